@@ -1,0 +1,44 @@
+"""Small shared builders for the loss tests (not collected: no ``test_`` prefix)."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+from torchrl.data import Bounded
+
+from wcsac_rl import WCSACLoss
+from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
+
+OBS_DIM = 5
+ACT_DIM = 2
+
+
+def make_batch(batch: int = 16, *, terminated_every: int = 4, seed: int = 0, cost_shape_1: bool = True):
+    """A replay batch with random observations, binary costs and some terminal steps."""
+    g = torch.Generator().manual_seed(seed)
+    cost = torch.bernoulli(torch.full((batch, 1), 0.3), generator=g)
+    terminated = torch.zeros(batch, 1, dtype=torch.bool)
+    terminated[::terminated_every] = True
+    return TensorDict(
+        {
+            "observation": torch.randn(batch, OBS_DIM, generator=g),
+            "action": torch.rand(batch, ACT_DIM, generator=g) * 2 - 1,
+            "next": {
+                "observation": torch.randn(batch, OBS_DIM, generator=g),
+                "reward": torch.randn(batch, 1, generator=g),
+                "cost": cost if cost_shape_1 else cost.squeeze(-1),
+                "done": terminated.clone(),
+                "terminated": terminated,
+            },
+        },
+        [batch],
+    )
+
+
+def make_loss(*, variance: bool = True, width: int = 32, seed: int = 0, **kwargs) -> WCSACLoss:
+    torch.manual_seed(seed)
+    actor = make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=width)
+    qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=width) for _ in range(2)]
+    safety = make_safety_critic(OBS_DIM, ACT_DIM, variance=variance, width=width)
+    kwargs.setdefault("risk_level", 0.5 if variance else 1.0)
+    return WCSACLoss(actor, qvalues, safety, **kwargs)

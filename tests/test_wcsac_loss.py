@@ -1,0 +1,425 @@
+"""WCSACLoss: gradient routing, targets, keys, reductions, state dict, errors."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from _loss_helpers import ACT_DIM, OBS_DIM, make_batch, make_loss
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.data import Bounded
+from torchrl.objectives import SoftUpdate
+from torchrl.objectives.utils import ValueEstimators
+
+from wcsac_rl import SACLagLoss, WCSACLoss, per_step_cost_threshold
+from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
+
+LOSS_KEYS = [
+    "loss_actor",
+    "loss_qvalue",
+    "loss_alpha",
+    "loss_cost_value",
+    "loss_cost_variance",
+    "loss_kappa",
+]
+
+# Which parameter groups each loss term may (and must) send gradients to.
+OWNERS = {
+    "loss_actor": "actor_network_params.",
+    "loss_qvalue": "qvalue_network_params.",
+    "loss_cost_value": "safety_network_params.module.mean_net.",
+    "loss_cost_variance": "safety_network_params.module.variance_net.",
+    "loss_kappa": "kappa_raw",
+    "loss_alpha": "log_alpha",
+}
+
+
+def _grads_after(loss: WCSACLoss, key: str, batch) -> dict[str, torch.Tensor | None]:
+    loss.zero_grad(set_to_none=True)
+    out = loss(batch)
+    out[key].backward()
+    return {name: p.grad for name, p in loss.named_parameters()}
+
+
+@pytest.mark.parametrize("kappa_actions", ["replay", "policy"])
+@pytest.mark.parametrize("damp_scale", [0.0, 10.0])
+@pytest.mark.parametrize("key", LOSS_KEYS)
+def test_each_loss_term_reaches_exactly_its_own_parameters(key, kappa_actions, damp_scale):
+    loss = make_loss(kappa_actions=kappa_actions, damp_scale=damp_scale)
+    grads = _grads_after(loss, key, make_batch())
+    owner = OWNERS[key]
+    owned = {n for n in grads if n.startswith(owner)}
+    assert owned, f"no parameter matches {owner}"
+    for name, grad in grads.items():
+        if name in owned:
+            assert grad is not None and grad.abs().sum() > 0, f"{key} gave no gradient to {name}"
+        else:
+            assert grad is None or grad.abs().sum() == 0, f"{key} leaked a gradient into {name}"
+
+
+def test_target_parameters_get_no_gradient_and_follow_soft_update():
+    loss = make_loss()
+    updater = SoftUpdate(loss, tau=0.1)
+    optim = torch.optim.SGD(loss.parameters(), lr=0.5)
+    out = loss(make_batch())
+    sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+    for name, buf in loss.named_buffers():
+        if name.startswith("target_"):
+            assert buf.grad is None and not buf.requires_grad, name
+
+    before = loss.target_safety_network_params.clone()
+    optim.step()
+    updater.step()
+    online = loss.safety_network_params.detach()
+    after = loss.target_safety_network_params
+    for key, target in after.items(True, True):
+        torch.testing.assert_close(target, 0.9 * before[key] + 0.1 * online[key])
+        assert not torch.equal(target, before[key]), key  # it moved
+    # the reward critic's targets are updated too
+    moved = loss.target_qvalue_network_params != loss.qvalue_network_params.detach()
+    assert any(bool(v.any()) for v in moved.values(True, True))
+
+
+def test_loss_terms_and_diagnostics_are_finite_scalars():
+    loss = make_loss(risk_level=0.1)
+    out = loss(make_batch())
+    expected = set(LOSS_KEYS) | {
+        "alpha",
+        "kappa",
+        "entropy",
+        "cost_value",
+        "cost_variance",
+        "cvar",
+        "cost_threshold",
+    }
+    assert set(out.keys()) == expected == set(loss.out_keys)
+    for key, value in out.items():
+        assert value.shape == () and torch.isfinite(value), key
+        if not key.startswith("loss_"):
+            assert not value.requires_grad, key
+    assert out["kappa"] == pytest.approx(math.log(2.0), rel=1e-6)  # softplus(0)
+    assert out["cost_variance"] > 0
+    # cvar is the mean of Q^c + multiplier·√V^c at the κ-loss (policy) actions
+    assert torch.isfinite(out["cvar"])
+
+
+def _identical_losses(**kwargs):
+    a, b = make_loss(seed=0, **kwargs), make_loss(seed=1, **kwargs)
+    b.load_state_dict(a.state_dict())
+    return a, b
+
+
+def test_state_dict_round_trip_restores_every_parameter_buffer_and_output():
+    a = make_loss(risk_level=0.1, kappa_init=2.5)
+    with torch.no_grad():
+        a.log_alpha.fill_(-1.3)
+    b = make_loss(seed=7, risk_level=0.1)
+    b.load_state_dict(a.state_dict())
+    for (na, pa), (nb, pb) in zip(a.state_dict().items(), b.state_dict().items()):
+        assert na == nb and torch.equal(pa, pb), na
+    assert b.kappa == pytest.approx(2.5, rel=1e-5)
+    batch = make_batch()
+    torch.manual_seed(3)
+    out_a = a(batch.clone())
+    torch.manual_seed(3)
+    out_b = b(batch.clone())
+    for key in out_a.keys():
+        torch.testing.assert_close(out_a[key], out_b[key])
+
+
+@pytest.mark.parametrize("reduction", ["mean", "sum"])
+def test_reduction_none_matches_mean_and_sum(reduction):
+    batch = make_batch(batch=12)
+    none_loss = make_loss(reduction="none", scalar_output_mode="exclude")
+    other = make_loss(reduction=reduction)
+    torch.manual_seed(0)
+    per_sample = none_loss(batch.clone())
+    torch.manual_seed(0)
+    reduced = other(batch.clone())
+    assert per_sample.batch_size == torch.Size([12])
+    for key in LOSS_KEYS:
+        assert per_sample[key].shape == (12,), key
+        expected = per_sample[key].mean() if reduction == "mean" else per_sample[key].sum()
+        torch.testing.assert_close(reduced[key], expected, rtol=1e-5, atol=1e-5)
+
+
+def test_cost_shaped_like_batch_or_like_reward_gives_identical_losses():
+    a, b = _identical_losses()
+    torch.manual_seed(0)
+    out_1 = a(make_batch(cost_shape_1=True))
+    torch.manual_seed(0)
+    out_0 = b(make_batch(cost_shape_1=False))
+    for key in LOSS_KEYS:
+        torch.testing.assert_close(out_1[key], out_0[key])
+
+
+def _rename(batch: TensorDict) -> TensorDict:
+    return TensorDict(
+        {
+            "obs": batch["observation"],
+            "act": batch["action"],
+            "next": {
+                "obs": batch["next", "observation"],
+                "rew": batch["next", "reward"],
+                ("safety", "c"): batch["next", "cost"],
+                "dn": batch["next", "done"],
+                "term": batch["next", "terminated"],
+            },
+        },
+        batch.batch_size,
+    )
+
+
+def test_set_keys_with_custom_names_gives_the_same_losses():
+    reference = make_loss(width=16)
+    torch.manual_seed(0)
+    actor = make_actor(
+        OBS_DIM,
+        Bounded(-1.0, 1.0, shape=(ACT_DIM,)),
+        observation_key="obs",
+        action_key="act",
+        width=16,
+    )
+    qvalues = [
+        make_qvalue(OBS_DIM, ACT_DIM, observation_key="obs", action_key="act", out_key="q", width=16)
+        for _ in range(2)
+    ]
+    safety = make_safety_critic(
+        OBS_DIM,
+        ACT_DIM,
+        observation_key="obs",
+        action_key="act",
+        cost_value_key=("safety", "mean"),
+        cost_variance_key=("safety", "var"),
+        width=16,
+    )
+    custom = WCSACLoss(actor, qvalues, safety, risk_level=0.5)
+    # the safety critic's out keys are adopted (mean first, variance second)
+    assert custom.tensor_keys.cost_value == ("safety", "mean")
+    assert custom.tensor_keys.cost_variance == ("safety", "var")
+    custom.set_keys(
+        state_action_value="q", reward="rew", cost=("safety", "c"), done="dn", terminated="term"
+    )
+    assert custom.tensor_keys.action == "act"
+    assert ("next", ("safety", "c")) in custom.in_keys or ("next", "safety", "c") in custom.in_keys
+    custom.load_state_dict(reference.state_dict())
+
+    batch = make_batch()
+    torch.manual_seed(1)
+    expected = reference(batch.clone())
+    torch.manual_seed(1)
+    got = custom(_rename(batch))
+    for key in expected.keys():
+        torch.testing.assert_close(got[key], expected[key])
+
+
+def test_mean_only_critic_is_sac_lag_without_variance_parameters():
+    loss = make_loss(variance=False)
+    assert not loss.has_variance
+    assert not any("variance" in n for n, _ in loss.named_parameters())
+    out = loss(make_batch())
+    assert "loss_cost_variance" not in out.keys() and "cost_variance" not in out.keys()
+    # Γ = Q^c: the κ loss uses the mean alone
+    torch.testing.assert_close(out["loss_kappa"], loss.kappa * (out["cost_threshold"] - out["cvar"]))
+
+    torch.manual_seed(0)
+    lag = SACLagLoss(
+        make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=8),
+        [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)],
+        make_safety_critic(OBS_DIM, ACT_DIM, variance=False, width=8),
+    )
+    assert isinstance(lag, WCSACLoss) and lag.risk_level == 1.0 and lag.cvar_multiplier == 0.0
+    assert set(lag(make_batch()).keys()) == set(lag.out_keys)
+
+
+def test_risk_neutral_wcsac_ignores_the_variance_in_its_cvar():
+    loss = make_loss(risk_level=1.0)
+    assert loss.has_variance and loss.cvar_multiplier == 0.0
+    mean, var = torch.tensor([1.0, 2.0]), torch.tensor([4.0, 9.0])
+    torch.testing.assert_close(loss.cvar(mean, var), mean)
+    loss01 = make_loss(risk_level=0.1)
+    torch.testing.assert_close(loss01.cvar(mean, var), mean + 1.7549833 * var.sqrt())
+
+
+# ---------------------------------------------------------------- thresholds
+def test_per_step_threshold_matches_spec_and_follows_gamma():
+    assert per_step_cost_threshold(15.0, 0.99, 1000) == pytest.approx(1.49994, abs=1e-5)
+    assert per_step_cost_threshold(15.0, 1.0, 1000) == pytest.approx(15.0)
+    assert per_step_cost_threshold(3.0, 0.99, 1) == pytest.approx(3.0)
+    loss = make_loss(cost_limit=15.0, max_episode_steps=1000)
+    assert float(loss.cost_threshold) == pytest.approx(1.49994, abs=1e-5)
+    loss.make_value_estimator(gamma=0.9)
+    assert float(loss.value_estimator.gamma) == pytest.approx(0.9)
+    assert float(loss.cost_threshold) == pytest.approx(15.0 * (1 - 0.9**1000) / (0.1 * 1000))
+    explicit = make_loss(cost_threshold=0.25)
+    explicit.make_value_estimator(gamma=0.5)
+    assert float(explicit.cost_threshold) == pytest.approx(0.25)
+
+
+# ------------------------------------------------------------ analytic targets
+class _ReadOut(nn.Module):
+    """Q^c = obs[0] and V^c = obs[1]: a 'critic' whose outputs are set by the batch."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.scale = nn.Parameter(torch.ones(()))
+
+    def forward(self, observation, action):
+        return self.scale * observation[..., :1], self.scale * observation[..., 1:2]
+
+
+def _readout_loss(variance_loss: str, gamma: float = 0.9) -> WCSACLoss:
+    torch.manual_seed(0)
+    actor = make_actor(2, Bounded(-1.0, 1.0, shape=(1,)), width=8)
+    qvalues = [make_qvalue(2, 1, width=8) for _ in range(2)]
+    safety = TensorDictModule(
+        _ReadOut(), in_keys=["observation", "action"], out_keys=["cost_value", "cost_variance"]
+    )
+    loss = WCSACLoss(actor, qvalues, safety, risk_level=0.5, variance_loss=variance_loss)
+    loss.make_value_estimator(gamma=gamma)
+    return loss
+
+
+def _readout_batch():
+    # rows: (Q^c(s,a), V^c(s,a)) in obs, (Q̄^c', V̄^c') in next obs, cost, terminated
+    obs = torch.tensor([[2.0, 0.5], [1.0, 4.0], [3.0, 1.0]])
+    next_obs = torch.tensor([[1.5, 2.0], [0.5, 1.0], [7.0, 9.0]])
+    cost = torch.tensor([[1.0], [0.0], [2.0]])
+    terminated = torch.tensor([[False], [False], [True]])
+    return TensorDict(
+        {
+            "observation": obs,
+            "action": torch.zeros(3, 1),
+            "next": {
+                "observation": next_obs,
+                "reward": torch.zeros(3, 1),
+                "cost": cost,
+                "done": terminated.clone(),
+                "terminated": terminated,
+            },
+        },
+        [3],
+    )
+
+
+def test_cost_mean_and_variance_targets_equal_eq7_and_eq8_with_terminal_mask():
+    g = 0.9
+    loss = _readout_loss("mse", gamma=g)
+    targets = loss.compute_targets(_readout_batch())
+    # Eq. 7: y_c = c + γ(1−term) Q̄^c'
+    torch.testing.assert_close(
+        targets["cost_target"], torch.tensor([1.0 + g * 1.5, 0.0 + g * 0.5, 2.0])
+    )
+    # Eq. 8: y_v = c² + (1−term)(2γcQ̄' + γ²V̄' + γ²Q̄'²) − Q^c(s,a)²
+    row0 = 1.0 + 2 * g * 1.0 * 1.5 + g**2 * 2.0 + g**2 * 1.5**2 - 2.0**2
+    row1 = 0.0 + 0.0 + g**2 * 1.0 + g**2 * 0.5**2 - 1.0**2
+    row2 = 2.0**2 - 3.0**2  # terminal: no bootstrap, and negative
+    cost_value = torch.tensor([2.0, 1.0, 3.0])
+    y_v = loss.variance_target(targets["cost_second_moment"], cost_value)
+    torch.testing.assert_close(y_v, torch.tensor([row0, row1, row2]))
+    # the W2 variant clamps the target to [1e-8, 1e8] as in the paper
+    w2 = _readout_loss("w2", gamma=g)
+    y_w2 = w2.variance_target(targets["cost_second_moment"], cost_value)
+    torch.testing.assert_close(y_w2, torch.tensor([row0, max(row1, 1e-8), 1e-8]))
+
+
+@pytest.mark.parametrize("variance_loss", ["w2", "mse"])
+def test_variance_loss_values_on_hand_made_tensors(variance_loss):
+    loss = _readout_loss(variance_loss)
+    batch = _readout_batch()
+    targets = loss.compute_targets(batch)
+    _, loss_var, meta = loss.safety_loss(batch, targets)
+    v = torch.tensor([0.5, 4.0, 1.0])
+    y = loss.variance_target(targets["cost_second_moment"], torch.tensor([2.0, 1.0, 3.0]))
+    if variance_loss == "w2":
+        expected = (v.sqrt() - y.sqrt()).pow(2).mean()
+    else:
+        expected = (0.5 * (v - y).pow(2)).mean()
+    torch.testing.assert_close(loss_var, expected)
+    torch.testing.assert_close(meta["cost_variance"], v)
+
+
+def test_terminal_transitions_do_not_bootstrap_the_reward_either():
+    loss = _readout_loss("mse", gamma=0.9)
+    batch = _readout_batch()
+    batch["next", "reward"] = torch.tensor([[0.0], [0.0], [5.0]])
+    targets = loss.compute_targets(batch)
+    assert targets["reward_target"][2] == pytest.approx(5.0)
+
+
+# ------------------------------------------------------------------- errors
+@pytest.mark.parametrize("alpha", [0.0, -0.1, 1.5, float("nan"), "high"])
+def test_risk_level_outside_unit_interval_is_refused_with_its_meaning(alpha):
+    with pytest.raises(ValueError, match="tail fraction"):
+        make_loss(risk_level=alpha)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"cost_limit": -1.0}, "cost_limit must be >= 0"),
+        ({"cost_threshold": -0.5}, "cost_threshold must be >= 0"),
+        ({"max_episode_steps": 0}, "max_episode_steps must be a positive integer"),
+        ({"kappa_init": 0.0}, "kappa_init must be > 0"),
+        ({"kappa_parametrization": "relu"}, "kappa_parametrization must be one of"),
+        ({"kappa_actions": "target"}, "kappa_actions must be one of"),
+        ({"damp_scale": -1.0}, "damp_scale must be >= 0"),
+        ({"variance_loss": "l1"}, "variance_loss must be one of"),
+    ],
+)
+def test_bad_constructor_arguments_are_refused(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        make_loss(**kwargs)
+
+
+def test_mean_only_critic_below_risk_level_one_is_refused():
+    with pytest.raises(ValueError, match="needs a safety critic with a variance head"):
+        make_loss(variance=False, risk_level=0.5)
+    with pytest.raises(ValueError, match="risk-neutral"):
+        SACLagLoss(
+            make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=8),
+            [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)],
+            make_safety_critic(OBS_DIM, ACT_DIM, variance=False, width=8),
+            risk_level=0.5,
+        )
+
+
+def test_missing_or_misshapen_cost_gives_a_clear_error():
+    loss = make_loss()
+    batch = make_batch()
+    del batch["next", "cost"]
+    with pytest.raises(KeyError, match="needs the per-step cost"):
+        loss(batch)
+    batch = make_batch()
+    batch["next", "cost"] = torch.zeros(16, 2)
+    with pytest.raises(ValueError, match="has shape"):
+        loss(batch)
+
+
+def test_multi_step_value_estimators_are_refused():
+    loss = make_loss()
+    with pytest.raises(NotImplementedError, match="TD\\(0\\)"):
+        loss.make_value_estimator(ValueEstimators.TD1)
+
+
+# ------------------------------------------------------------------ compile
+@pytest.mark.slow
+def test_forward_compiles_with_fullgraph_and_matches_eager():
+    import torch._inductor.config as inductor_config
+
+    loss = make_loss(risk_level=0.1, width=16)
+    batch = make_batch()
+    compiled = torch.compile(loss, fullgraph=True)
+    with inductor_config.patch(fallback_random=True):
+        torch.manual_seed(0)
+        got = compiled(batch.clone())
+        torch.manual_seed(0)
+        expected = loss(batch.clone())
+    for key in expected.keys():
+        torch.testing.assert_close(got[key], expected[key], rtol=1e-4, atol=1e-5)
+    total = sum(v for k, v in got.items() if k.startswith("loss_"))
+    total.backward()
+    assert loss.kappa_raw.grad is not None

@@ -1,0 +1,102 @@
+"""The Gaussian safety critic of WCSAC: C(s, a) ~ N(Q^c(s, a), V^c(s, a)).
+
+Mean and variance are two *separate* MLPs, as the paper requires: removing the
+variance network leaves exactly the cost critic of SAC-Lagrangian.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
+from torch import nn
+from torch.nn import functional as F
+
+from wcsac_rl.modules._mlp import make_mlp
+
+__all__ = ["VARIANCE_MAX", "VARIANCE_MIN", "GaussianSafetyCritic", "make_safety_critic"]
+
+#: V^c is clamped to this range wherever it is produced or used (spec, authors' code).
+VARIANCE_MIN = 1e-8
+VARIANCE_MAX = 1e8
+
+
+class GaussianSafetyCritic(nn.Module):
+    """Two MLPs over ``cat(s, a)``: the cost mean ``Q^c`` and the cost variance ``V^c``.
+
+    ``V^c = clamp(softplus(η(s, a)), 1e-8, 1e8)`` is positive by construction.
+    ``forward(observation, action)`` returns ``(mean, variance)``, each ``[*B, 1]``.
+    """
+
+    def __init__(
+        self,
+        observation_dim: int,
+        action_dim: int,
+        *,
+        width: int = 256,
+        depth: int = 2,
+        activation: str = "relu",
+    ) -> None:
+        super().__init__()
+        in_features = observation_dim + action_dim
+        self.mean_net = make_mlp(in_features, 1, width=width, depth=depth, activation=activation)
+        self.variance_net = make_mlp(
+            in_features, 1, width=width, depth=depth, activation=activation
+        )
+
+    def forward(
+        self, observation: torch.Tensor, action: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        x = torch.cat([observation, action], dim=-1)
+        mean = self.mean_net(x)
+        variance = F.softplus(self.variance_net(x)).clamp(VARIANCE_MIN, VARIANCE_MAX)
+        return mean, variance
+
+
+def make_safety_critic(
+    observation_dim: int,
+    action_dim: int,
+    *,
+    variance: bool = True,
+    observation_key: NestedKey = "observation",
+    action_key: NestedKey = "action",
+    cost_value_key: NestedKey = "cost_value",
+    cost_variance_key: NestedKey = "cost_variance",
+    width: int = 256,
+    depth: int = 2,
+    activation: str = "relu",
+) -> TensorDictModule:
+    """The safety critic as a ``TensorDictModule`` reading observation and action.
+
+    Args:
+        observation_dim: size of the flat observation.
+        action_dim: size of the action.
+
+    Keyword Args:
+        variance: ``True`` (WCSAC) writes ``cost_value`` (Q^c) and ``cost_variance``
+            (V^c > 0) from two separate MLPs; ``False`` (SAC-Lag) writes only
+            ``cost_value``.
+        observation_key, action_key: input keys.
+        cost_value_key, cost_variance_key: output keys (``WCSACLoss`` reads them in
+            this order: mean first, variance second).
+        width, depth, activation: MLP shape (paper: 2 × 256, ReLU).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> critic = make_safety_critic(44, 2)
+        >>> td = TensorDict({"observation": torch.randn(4, 44), "action": torch.rand(4, 2)}, [4])
+        >>> td = critic(td)
+        >>> td["cost_value"].shape, bool((td["cost_variance"] > 0).all())
+        (torch.Size([4, 1]), True)
+    """
+    in_keys = [observation_key, action_key]
+    if variance:
+        net = GaussianSafetyCritic(
+            observation_dim, action_dim, width=width, depth=depth, activation=activation
+        )
+        return TensorDictModule(net, in_keys=in_keys, out_keys=[cost_value_key, cost_variance_key])
+    net = make_mlp(
+        observation_dim + action_dim, 1, width=width, depth=depth, activation=activation
+    )
+    return TensorDictModule(net, in_keys=in_keys, out_keys=[cost_value_key])

@@ -1,0 +1,19 @@
+"""Loss modules (WCSAC, SAC-Lagrangian) and risk measures."""
+
+from wcsac_rl.objectives.risk import (
+    empirical_cvar,
+    gaussian_cvar,
+    gaussian_cvar_multiplier,
+    validate_risk_level,
+)
+from wcsac_rl.objectives.wcsac import SACLagLoss, WCSACLoss, per_step_cost_threshold
+
+__all__ = [
+    "SACLagLoss",
+    "WCSACLoss",
+    "empirical_cvar",
+    "gaussian_cvar",
+    "gaussian_cvar_multiplier",
+    "per_step_cost_threshold",
+    "validate_risk_level",
+]

@@ -1,0 +1,95 @@
+"""Risk measures: the Gaussian CVaR of the safety critic and the empirical CVaR of samples.
+
+Convention (the paper's): the risk level ``α ∈ (0, 1]`` is the *tail fraction*.
+``CVaR_α`` of a cost is the mean of its worst ``α`` fraction: small α is risk-averse,
+``α = 1`` is the plain expectation (risk-neutral). Some ports use ``α' = 1 − α``;
+this module does not.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from statistics import NormalDist
+
+import torch
+
+__all__ = [
+    "empirical_cvar",
+    "gaussian_cvar",
+    "gaussian_cvar_multiplier",
+    "validate_risk_level",
+]
+
+_STD_NORMAL = NormalDist()
+
+
+def validate_risk_level(risk_level: float) -> float:
+    """Return ``risk_level`` as a float, or raise ``ValueError`` if it is not in (0, 1]."""
+    try:
+        alpha = float(risk_level)
+    except (TypeError, ValueError):
+        alpha = math.nan
+    if not 0.0 < alpha <= 1.0:  # also refuses NaN
+        raise ValueError(
+            f"risk_level α must be a number in (0, 1], got {risk_level!r}. α is the tail "
+            "fraction of the cost distribution that CVaR_α averages over: α = 0.1 is the mean "
+            "of the worst 10% (risk-averse), α = 1 is the plain expected cost (risk-neutral, "
+            "SAC-Lag)."
+        )
+    return alpha
+
+
+def gaussian_cvar_multiplier(risk_level: float) -> float:
+    """``α⁻¹ φ(Φ⁻¹(α))``: CVaR_α of N(μ, σ²) is ``μ + multiplier · σ`` (paper, Eq. 9).
+
+    >>> round(gaussian_cvar_multiplier(0.1), 5), round(gaussian_cvar_multiplier(0.5), 5)
+    (1.75498, 0.79788)
+    >>> gaussian_cvar_multiplier(1.0)
+    0.0
+    """
+    alpha = validate_risk_level(risk_level)
+    if alpha == 1.0:
+        return 0.0
+    # φ is symmetric, so φ(Φ⁻¹(α)) = φ(Φ⁻¹(1 − α)): either tail gives the same value.
+    return _STD_NORMAL.pdf(_STD_NORMAL.inv_cdf(alpha)) / alpha
+
+
+def gaussian_cvar(
+    mean: torch.Tensor, variance: torch.Tensor | None, risk_level: float
+) -> torch.Tensor:
+    """``Γ = mean + α⁻¹ φ(Φ⁻¹(α)) √variance``, the CVaR_α of a Gaussian cost.
+
+    ``variance=None`` (a mean-only critic) is allowed only at ``α = 1``.
+    """
+    multiplier = gaussian_cvar_multiplier(risk_level)
+    if multiplier == 0.0:
+        return mean
+    if variance is None:
+        raise ValueError(
+            f"CVaR at risk_level={risk_level} needs a variance; a mean-only critic "
+            "supports only risk_level=1 (SAC-Lagrangian)."
+        )
+    return mean + multiplier * variance.sqrt()
+
+
+def empirical_cvar(costs: Sequence[float] | torch.Tensor, risk_level: float) -> float:
+    """Mean of the worst ``⌈n·α⌉`` values of a sample (the paper's C_α of test episodes).
+
+    >>> empirical_cvar([0, 0, 0, 0, 0, 0, 0, 0, 10, 30], 0.1)
+    30.0
+    >>> empirical_cvar([0, 0, 0, 0, 0, 0, 0, 0, 10, 30], 0.2)
+    20.0
+    """
+    alpha = validate_risk_level(risk_level)
+    values = torch.as_tensor(costs, dtype=torch.float64).flatten()
+    n = values.numel()
+    if n == 0:
+        raise ValueError("empirical_cvar needs at least one value")
+    if torch.isnan(values).any():
+        raise ValueError("empirical_cvar got NaN values")
+    # n·α in floating point can land just above an integer (300 · 0.1 = 30.000000000000004):
+    # round away that noise before taking the ceiling.
+    k = max(1, math.ceil(round(n * alpha, 9)))
+    worst = torch.topk(values, k).values
+    return float(worst.mean())

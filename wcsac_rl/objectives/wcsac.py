@@ -1,0 +1,631 @@
+"""Worst-Case Soft Actor Critic (Yang et al., AAAI 2021) as a TorchRL ``LossModule``.
+
+``WCSACLoss`` is TorchRL's :class:`~torchrl.objectives.SACLoss` (v2: twin Q, no value
+network) plus
+
+* a Gaussian safety critic ``C(s, a) ~ N(Q^c, V^c)`` (mean and variance networks),
+  trained with a TD loss on the mean (Eq. 7) and a 2-Wasserstein TD loss on the
+  variance (Eq. 8), each with its own target network updated by ``SoftUpdate``;
+* the CVaR of the cost, ``Γ(s, a, α) = Q^c + α⁻¹ φ(Φ⁻¹(α)) √V^c`` (Eq. 9);
+* a CVaR-penalised actor loss ``β log π − min Q^r + κ Γ``;
+* a Lagrange multiplier ``κ`` trained to keep ``Γ`` under the per-step threshold.
+
+``SACLagLoss`` is the same loss at ``α = 1`` with a mean-only safety critic.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase, TensorDictParams
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule, dispatch
+from tensordict.utils import NestedKey
+from torch import Tensor
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.objectives import SACLoss
+from torchrl.objectives.sac import compute_rsample_log_prob
+from torchrl.objectives.utils import ValueEstimators, _cache_values, distance_loss
+
+from wcsac_rl.modules.safety_critic import VARIANCE_MAX, VARIANCE_MIN
+from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
+
+__all__ = ["SACLagLoss", "WCSACLoss", "per_step_cost_threshold"]
+
+KAPPA_PARAMETRISATIONS = ("softplus", "log")
+KAPPA_ACTIONS = ("replay", "policy")
+VARIANCE_LOSSES = ("w2", "mse")
+
+
+def per_step_cost_threshold(cost_limit: float, gamma: float, max_episode_steps: int) -> float:
+    """Turn an episodic cost limit ``d`` into the threshold for a *discounted* cost critic.
+
+    ``d_step = (d / T) · Σ_{t<T} γ^t = d (1 − γ^T) / ((1 − γ) T)``: the discounted
+    sum of a cost spread evenly (``d / T`` per step) over an episode of ``T`` steps.
+
+    >>> round(per_step_cost_threshold(15.0, 0.99, 1000), 5)
+    1.49994
+    """
+    if cost_limit < 0:
+        raise ValueError(f"cost_limit must be >= 0 (an episodic cost budget), got {cost_limit}")
+    if int(max_episode_steps) != max_episode_steps or max_episode_steps <= 0:
+        raise ValueError(f"max_episode_steps must be a positive integer, got {max_episode_steps}")
+    if not 0.0 <= gamma <= 1.0:
+        raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+    horizon = int(max_episode_steps)
+    discounted_steps = horizon if gamma == 1.0 else (1.0 - gamma**horizon) / (1.0 - gamma)
+    return cost_limit * discounted_steps / horizon
+
+
+def _inverse_softplus(x: float) -> float:
+    return x + math.log(-math.expm1(-x))
+
+
+class WCSACLoss(SACLoss):
+    r"""The WCSAC loss: SAC with a Gaussian safety critic and a CVaR constraint.
+
+    Args:
+        actor_network (ProbabilisticTensorDictSequential): the stochastic (tanh-Normal) actor.
+        qvalue_network (TensorDictModule or list of them): the reward critic ``Q^r(s, a)``
+            writing ``"state_action_value"``; a list gives independently initialised twins
+            (see :class:`~torchrl.objectives.SACLoss`).
+        safety_network (TensorDictModule): the safety critic reading state and action
+            and writing the cost mean ``Q^c`` and, for WCSAC, the cost variance
+            ``V^c > 0`` (keys ``"cost_value"`` and ``"cost_variance"``; if its out_keys
+            are named otherwise, the first is taken as the mean and the second as the
+            variance). A mean-only critic (one out key) is allowed at ``risk_level=1``.
+            See :func:`wcsac_rl.modules.make_safety_critic`.
+
+    Keyword Args:
+        risk_level (float): the paper's α ∈ (0, 1], the tail fraction whose mean cost
+            (CVaR_α) is constrained. 0.1 is risk-averse, 1 is the expected cost (SAC-Lag).
+            Default ``0.5``.
+        cost_limit (float): the episodic cost budget ``d`` (undiscounted sum over an
+            episode). Default ``15.0``.
+        max_episode_steps (int): episode length ``T`` used to convert ``d`` into the
+            per-step threshold ``d·(1−γ^T)/((1−γ)T)`` for the discounted critic
+            (γ from the value estimator). Default ``1000``.
+        cost_threshold (float, optional): give the per-step (discounted-critic)
+            threshold directly; when set, ``cost_limit`` and ``max_episode_steps`` are
+            not used.
+        kappa_init (float): initial safety weight κ > 0. Default ``softplus(0) ≈ 0.693``
+            (the authors' code).
+        kappa_parametrization (str): ``"softplus"`` (κ = softplus(raw), the authors'
+            code) or ``"log"`` (κ = exp(raw)). Default ``"softplus"``.
+        kappa_actions (str): the actions at which the κ loss evaluates Γ: ``"replay"``
+            (the stored actions, the authors' code) or ``"policy"`` (``a ~ π``, as the
+            paper writes). Default ``"policy"`` (see README for the evidence).
+        damp_scale (float): MDMM damping in the actor's penalty,
+            ``(κ − damp_scale · mean(d_step − Γ)) · Γ_π``. Default ``0`` (none).
+        variance_loss (str): ``"w2"`` — the paper's 2-Wasserstein variance loss
+            ``V + y − 2√(V y)``; ``"mse"`` — ``½ (V − y)²``, a consistent estimator of
+            the variance when the TD target ``y`` is noisy (W2 on sampled targets
+            converges to ``(E√y)²`` instead of ``E y``). Default ``"mse"`` (see README).
+        num_qvalue_nets, loss_function, alpha_init, min_alpha, max_alpha, action_spec,
+        fixed_alpha, target_entropy, delay_actor, delay_qvalue, separate_losses,
+        reduction, skip_done_states, deactivate_vmap, scalar_output_mode: as in
+        :class:`~torchrl.objectives.SACLoss`. ``loss_function`` defaults to ``"l2"``
+        (the paper's squared TD error) instead of TorchRL's ``"smooth_l1"``.
+
+    The discount γ comes from the value estimator, as for every TorchRL loss:
+    ``loss.make_value_estimator(gamma=0.99)`` (TD(0) only: the cost-variance target
+    is a one-step recursion). The default is 0.99, the paper's value.
+
+    ``forward`` returns ``loss_actor``, ``loss_qvalue``, ``loss_alpha``,
+    ``loss_cost_value``, ``loss_cost_variance`` (only with a variance head) and
+    ``loss_kappa``, plus the detached diagnostics ``alpha`` (entropy weight β),
+    ``kappa``, ``entropy``, ``cost_value`` (mean Q^c), ``cost_variance`` (mean V^c),
+    ``cvar`` (mean Γ at the κ-loss actions) and ``cost_threshold``. Each loss term
+    sends gradients only to its own parameters, so their sum can be back-propagated
+    at once.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.data import Bounded
+        >>> from torchrl.objectives import SoftUpdate
+        >>> from wcsac_rl import WCSACLoss
+        >>> from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
+        >>> actor = make_actor(4, Bounded(-1.0, 1.0, shape=(2,)))
+        >>> loss = WCSACLoss(
+        ...     actor, [make_qvalue(4, 2) for _ in range(2)], make_safety_critic(4, 2),
+        ...     risk_level=0.1, cost_limit=15.0, max_episode_steps=1000)
+        >>> updater = SoftUpdate(loss, tau=0.005)
+        >>> batch = TensorDict({
+        ...     "observation": torch.randn(8, 4), "action": torch.rand(8, 2) * 2 - 1,
+        ...     "next": {"observation": torch.randn(8, 4), "reward": torch.randn(8, 1),
+        ...              "cost": torch.bernoulli(torch.full((8, 1), 0.1)),
+        ...              "done": torch.zeros(8, 1, dtype=torch.bool),
+        ...              "terminated": torch.zeros(8, 1, dtype=torch.bool)}}, [8])
+        >>> out = loss(batch)
+        >>> sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        >>> sorted(k for k in out.keys() if k.startswith("loss_"))
+        ['loss_actor', 'loss_alpha', 'loss_cost_value', 'loss_cost_variance', 'loss_kappa', 'loss_qvalue']
+    """
+
+    @dataclass
+    class _AcceptedKeys(SACLoss._AcceptedKeys):
+        """Tensordict keys the loss reads; change them with ``.set_keys(name=key)``.
+
+        Attributes:
+            action (NestedKey): the action. Defaults to ``"action"``.
+            state_action_value (NestedKey): output of the reward critic.
+                Defaults to ``"state_action_value"``.
+            log_prob (NestedKey): log-probability of the sampled action.
+            priority (NestedKey): where the reward-critic TD error is written.
+                Defaults to ``"td_error"``.
+            reward (NestedKey): reward, read under ``"next"``. Defaults to ``"reward"``.
+            done (NestedKey): done flag, read under ``"next"``. Defaults to ``"done"``.
+            terminated (NestedKey): termination flag (no bootstrap), read under
+                ``"next"``. Defaults to ``"terminated"``.
+            cost (NestedKey): per-step cost, read under ``"next"``, shaped like the
+                reward (``[*B, 1]``) or ``[*B]``. Defaults to ``"cost"``.
+            cost_value (NestedKey): safety critic's cost mean Q^c. Defaults to
+                ``"cost_value"``.
+            cost_variance (NestedKey): safety critic's cost variance V^c. Defaults to
+                ``"cost_variance"``.
+        """
+
+        cost: NestedKey = "cost"
+        cost_value: NestedKey = "cost_value"
+        cost_variance: NestedKey = "cost_variance"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
+    SUPPORTED_VALUE_ESTIMATORS = (ValueEstimators.TD0,)
+
+    safety_network: TensorDictModule
+    safety_network_params: TensorDictParams
+    target_safety_network_params: TensorDictParams
+
+    def __init__(
+        self,
+        actor_network: ProbabilisticTensorDictSequential,
+        qvalue_network: TensorDictModule | list[TensorDictModule],
+        safety_network: TensorDictModule,
+        *,
+        risk_level: float = 0.5,
+        cost_limit: float = 15.0,
+        max_episode_steps: int = 1000,
+        cost_threshold: float | None = None,
+        kappa_init: float = math.log(2.0),
+        kappa_parametrization: str = "softplus",
+        kappa_actions: str = "policy",
+        damp_scale: float = 0.0,
+        variance_loss: str = "mse",
+        num_qvalue_nets: int = 2,
+        loss_function: str = "l2",
+        **sac_kwargs,
+    ) -> None:
+        if "value_network" in sac_kwargs and sac_kwargs["value_network"] is not None:
+            raise ValueError("WCSACLoss is SAC v2: it takes no value_network")
+        sac_kwargs.pop("value_network", None)
+        self.risk_level = validate_risk_level(risk_level)
+        self.cvar_multiplier = gaussian_cvar_multiplier(self.risk_level)
+        if cost_threshold is not None:
+            if cost_threshold < 0:
+                raise ValueError(f"cost_threshold must be >= 0, got {cost_threshold}")
+        else:
+            # Validates cost_limit and max_episode_steps now, whatever γ is later.
+            per_step_cost_threshold(cost_limit, 0.99, max_episode_steps)
+        if not kappa_init > 0:
+            raise ValueError(f"kappa_init must be > 0 (κ is a Lagrange multiplier), got {kappa_init}")
+        if kappa_parametrization not in KAPPA_PARAMETRISATIONS:
+            raise ValueError(
+                f"kappa_parametrization must be one of {KAPPA_PARAMETRISATIONS}, got {kappa_parametrization!r}"
+            )
+        if kappa_actions not in KAPPA_ACTIONS:
+            raise ValueError(f"kappa_actions must be one of {KAPPA_ACTIONS}, got {kappa_actions!r}")
+        if damp_scale < 0:
+            raise ValueError(f"damp_scale must be >= 0, got {damp_scale}")
+        if variance_loss not in VARIANCE_LOSSES:
+            raise ValueError(f"variance_loss must be one of {VARIANCE_LOSSES}, got {variance_loss!r}")
+        self.cost_limit = float(cost_limit)
+        self.max_episode_steps = int(max_episode_steps)
+        self._explicit_cost_threshold = None if cost_threshold is None else float(cost_threshold)
+        self.kappa_parametrization = kappa_parametrization
+        self.kappa_actions = kappa_actions
+        self.damp_scale = float(damp_scale)
+        self.variance_loss = variance_loss
+
+        super().__init__(
+            actor_network,
+            qvalue_network,
+            None,
+            num_qvalue_nets=num_qvalue_nets,
+            loss_function=loss_function,
+            **sac_kwargs,
+        )
+        self.convert_to_functional(safety_network, "safety_network", create_target_params=True)
+        self._adopt_safety_keys(safety_network)
+        if self.cvar_multiplier != 0.0 and not self.has_variance:
+            raise ValueError(
+                f"risk_level={self.risk_level} needs a safety critic with a variance head "
+                f"(out_keys {self.tensor_keys.cost_value!r} and {self.tensor_keys.cost_variance!r}); "
+                f"this one writes only {list(safety_network.out_keys)}. A mean-only critic "
+                "is SAC-Lagrangian: use risk_level=1 (or SACLagLoss)."
+            )
+
+        device = self.log_alpha.device
+        raw = (
+            _inverse_softplus(kappa_init)
+            if kappa_parametrization == "softplus"
+            else math.log(kappa_init)
+        )
+        self.register_parameter("kappa_raw", torch.nn.Parameter(torch.tensor(raw, device=device)))
+        self.register_buffer("cost_threshold", torch.zeros((), device=device))
+        self.make_value_estimator(ValueEstimators.TD0)
+        self._set_in_keys()
+
+    # ------------------------------------------------------------------ set-up
+    def _adopt_safety_keys(self, safety_network: TensorDictModule) -> None:
+        out_keys = list(safety_network.out_keys)
+        defaults = (self.tensor_keys.cost_value, self.tensor_keys.cost_variance)
+        if not any(k in out_keys for k in defaults):
+            if len(out_keys) > 2:
+                raise ValueError(
+                    f"cannot tell the cost mean and variance apart among the safety "
+                    f"critic's out_keys {out_keys}; call set_keys(cost_value=..., cost_variance=...)"
+                )
+            self.tensor_keys.cost_value = out_keys[0]
+            if len(out_keys) == 2:
+                self.tensor_keys.cost_variance = out_keys[1]
+        if self.tensor_keys.cost_value not in out_keys:
+            raise ValueError(
+                f"the safety critic writes {out_keys} but the loss reads the cost mean "
+                f"from {self.tensor_keys.cost_value!r}"
+            )
+
+    @property
+    def has_variance(self) -> bool:
+        """Whether the safety critic has a variance head (WCSAC) or not (SAC-Lag)."""
+        return self.tensor_keys.cost_variance in self.safety_network.out_keys
+
+    def make_value_estimator(self, value_type: ValueEstimators = None, **hyperparams):
+        """Set γ (TD(0) only), and the per-step cost threshold that depends on it."""
+        if value_type not in (None, ValueEstimators.TD0):
+            raise NotImplementedError(
+                f"WCSACLoss supports only the TD(0) value estimator (its cost-variance target "
+                f"is a one-step recursion), got {value_type}"
+            )
+        super().make_value_estimator(value_type, **hyperparams)
+        gamma = float(self.value_estimator.gamma)
+        if self._explicit_cost_threshold is not None:
+            threshold = self._explicit_cost_threshold
+        else:
+            threshold = per_step_cost_threshold(self.cost_limit, gamma, self.max_episode_steps)
+        if "cost_threshold" in self._buffers:
+            self.cost_threshold.fill_(threshold)
+        return self
+
+    def _set_in_keys(self):
+        super()._set_in_keys()
+        safety = self.__dict__.get("safety_network")
+        if safety is not None:
+            keys = set(self._in_keys)
+            keys.add(("next", self.tensor_keys.cost))
+            keys.update(safety.in_keys)
+            keys.update(("next", k) for k in safety.in_keys if k != self.tensor_keys.action)
+            self._in_keys = list(keys)
+
+    @property
+    def out_keys(self):
+        if self._out_keys is None:
+            keys = ["loss_actor", "loss_qvalue", "loss_alpha", "loss_cost_value"]
+            if self.has_variance:
+                keys.append("loss_cost_variance")
+            keys += ["loss_kappa", "alpha", "kappa", "entropy", "cost_value"]
+            if self.has_variance:
+                keys.append("cost_variance")
+            keys += ["cvar", "cost_threshold"]
+            self._out_keys = keys
+        return self._out_keys
+
+    @out_keys.setter
+    def out_keys(self, values):
+        self._out_keys = values
+
+    # --------------------------------------------------------------- parameters
+    @property
+    def _kappa_param(self) -> Tensor:
+        """κ as a differentiable function of its raw parameter."""
+        if self.kappa_parametrization == "softplus":
+            return torch.nn.functional.softplus(self.kappa_raw)
+        return self.kappa_raw.exp()
+
+    @property
+    def kappa(self) -> Tensor:
+        """The current safety weight κ (detached)."""
+        with torch.no_grad():
+            return self._kappa_param
+
+    @property
+    @_cache_values
+    def _cached_detached_safety_params(self):
+        return self.safety_network_params.detach()
+
+    # ----------------------------------------------------------------- pieces
+    def _get_cost(self, tensordict: TensorDictBase) -> Tensor:
+        key = ("next", self.tensor_keys.cost)
+        cost = tensordict.get(key, None)
+        if cost is None:
+            raise KeyError(
+                f"WCSACLoss needs the per-step cost at {key} of the batch, which has no such "
+                f"entry. Use an env that reports a cost (wcsac_rl.envs.make_env) or point the "
+                f"loss at your key with loss.set_keys(cost=...)."
+            )
+        batch_shape = tensordict.shape
+        if cost.shape == batch_shape + (1,):
+            cost = cost.squeeze(-1)
+        elif cost.shape != batch_shape:
+            raise ValueError(
+                f"cost at {key} has shape {tuple(cost.shape)}; expected {tuple(batch_shape)} "
+                f"or {(*batch_shape, 1)} for a batch of shape {tuple(batch_shape)}"
+            )
+        return cost.to(self.cost_threshold.dtype)
+
+    def _safety_forward(
+        self, tensordict: TensorDictBase, params: TensorDictBase
+    ) -> tuple[Tensor, Tensor | None]:
+        """Q^c and V^c (squeezed to the batch shape) at the state-action in ``tensordict``."""
+        td = tensordict.select(*self.safety_network.in_keys, strict=False)
+        with params.to_module(self.safety_network, preserve_module_state=False):
+            td = self.safety_network(td)
+        mean = td.get(self.tensor_keys.cost_value).squeeze(-1)
+        if not self.has_variance:
+            return mean, None
+        variance = td.get(self.tensor_keys.cost_variance).squeeze(-1)
+        return mean, variance.clamp(VARIANCE_MIN, VARIANCE_MAX)
+
+    def cvar(self, cost_value: Tensor, cost_variance: Tensor | None) -> Tensor:
+        """Γ(s, a, α) = Q^c + α⁻¹ φ(Φ⁻¹(α)) √V^c (Eq. 9)."""
+        if self.cvar_multiplier == 0.0 or cost_variance is None:
+            return cost_value
+        return cost_value + self.cvar_multiplier * cost_variance.sqrt()
+
+    def _sample_policy(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor]:
+        with set_exploration_type(ExplorationType.RANDOM), self.actor_network_params.to_module(
+            self.actor_network, preserve_module_state=False
+        ):
+            dist = self.actor_network.get_dist(tensordict)
+            return compute_rsample_log_prob(dist)
+
+    def compute_targets(self, tensordict: TensorDictBase) -> dict[str, Tensor]:
+        """TD targets from one next action ``a' ~ π(·|s')`` scored by the target critics.
+
+        Returns a dict (each entry shaped like the batch, no gradient) with
+        ``reward_target`` (``r + γ(1−term)(min_i Q̄^r_i(s',a') − β log π(a'|s'))``,
+        computed by TorchRL's TD(0) estimator), ``cost_target`` (Eq. 7:
+        ``c + γ(1−term) Q̄^c(s',a')``) and ``cost_second_moment``
+        (``c² + (1−term)(2γ c Q̄^c' + γ² V̄^c' + γ² Q̄^c'²)``; the variance target of
+        Eq. 8 is this minus ``Q^c(s, a)²``).
+        """
+        with torch.no_grad():
+            next_td = tensordict.get("next").copy()
+            next_action, next_log_prob = self._sample_policy(next_td)
+            next_td.set(self.tensor_keys.action, next_action)
+
+            q_next = self._vmap_qnetworkN0(
+                next_td.select(*self.qvalue_network.in_keys, strict=False),
+                self.target_qvalue_network_params,
+            ).get(self.tensor_keys.state_action_value)
+            next_value = (q_next - self._alpha * next_log_prob.unsqueeze(-1)).min(0)[0]
+            td_value = tensordict.clone(False)
+            td_value.set(("next", self.value_estimator.tensor_keys.value), next_value)
+            reward_target = self.value_estimator.value_estimate(td_value).squeeze(-1)
+
+            cost = self._get_cost(tensordict)
+            gamma = self.value_estimator.gamma.to(cost.dtype)
+            not_terminated = (
+                ~tensordict.get(("next", self.tensor_keys.terminated)).reshape(cost.shape)
+            ).to(cost.dtype)
+            qc_next, vc_next = self._safety_forward(next_td, self.target_safety_network_params)
+            cost_target = cost + gamma * not_terminated * qc_next
+            if vc_next is None:
+                second_moment = None
+            else:
+                second_moment = cost.pow(2) + not_terminated * (
+                    2 * gamma * cost * qc_next + gamma.pow(2) * (vc_next + qc_next.pow(2))
+                )
+        return {
+            "reward_target": reward_target,
+            "cost_target": cost_target,
+            "cost_second_moment": second_moment,
+        }
+
+    # ----------------------------------------------------------------- losses
+    def qvalue_loss(
+        self, tensordict: TensorDictBase, targets: dict[str, Tensor] | None = None
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        """Twin reward-critic TD loss (TorchRL's SAC v2 critic loss)."""
+        if targets is None:
+            targets = self.compute_targets(tensordict)
+        weights = self._maybe_get_priority_weight(tensordict)
+        target_value = targets["reward_target"]
+        pred = self._vmap_qnetworkN0(
+            tensordict.select(*self.qvalue_network.in_keys, strict=False),
+            self.qvalue_network_params,
+        ).get(self.tensor_keys.state_action_value).squeeze(-1)
+        loss = distance_loss(
+            pred, target_value.expand_as(pred), loss_function=self.loss_function
+        ).sum(0)
+        loss = self._reduce_loss(loss, tensordict=tensordict, weights=weights)
+        return loss, {"td_error": (pred - target_value).abs().detach().max(0)[0]}
+
+    def safety_loss(
+        self, tensordict: TensorDictBase, targets: dict[str, Tensor] | None = None
+    ) -> tuple[Tensor, Tensor | None, dict[str, Tensor]]:
+        """Mean TD loss (Eq. 7) and variance TD loss (Eq. 8, W2 or MSE) of the safety critic.
+
+        Returns ``(loss_cost_value, loss_cost_variance or None, metadata)`` with
+        ``metadata["cost_value"]`` / ``["cost_variance"]`` the detached predictions at
+        the replay actions.
+        """
+        if targets is None:
+            targets = self.compute_targets(tensordict)
+        weights = self._maybe_get_priority_weight(tensordict)
+        qc, vc = self._safety_forward(tensordict, self.safety_network_params)
+        loss_mean = 0.5 * (targets["cost_target"] - qc).pow(2)
+        loss_mean = self._reduce_loss(loss_mean, tensordict=tensordict, weights=weights)
+        metadata = {"cost_value": qc.detach(), "cost_variance": None}
+        if vc is None:
+            return loss_mean, None, metadata
+        variance_target = self.variance_target(targets["cost_second_moment"], qc)
+        if self.variance_loss == "w2":
+            # 2-Wasserstein distance between N(·, V) and N(·, y), variance part: (√V − √y)².
+            loss_var = vc + variance_target - 2 * (vc * variance_target).sqrt()
+        else:
+            loss_var = 0.5 * (vc - variance_target).pow(2)
+        loss_var = self._reduce_loss(loss_var, tensordict=tensordict, weights=weights)
+        metadata["cost_variance"] = vc.detach()
+        return loss_mean, loss_var, metadata
+
+    def variance_target(self, cost_second_moment: Tensor, cost_value: Tensor) -> Tensor:
+        """Eq. 8: ``y_v = E-sample of C² − Q^c(s, a)²`` with ``Q^c(s, a)`` detached.
+
+        For the ``"w2"`` loss the target is clamped to [1e-8, 1e8] (the square root
+        needs it positive), as in the paper. For ``"mse"`` it is only clamped to
+        [−1e8, 1e8]: a single sampled target may legitimately be negative, and
+        clamping it at 0 would bias the fit upwards (e.g. a cost of 10 with
+        probability 0.1 would give 9.9 instead of the true variance 9).
+        """
+        target = cost_second_moment - cost_value.detach().pow(2)
+        if self.variance_loss == "w2":
+            return target.clamp(VARIANCE_MIN, VARIANCE_MAX)
+        return target.clamp(-VARIANCE_MAX, VARIANCE_MAX)
+
+    def _constraint_gap_penalty(self, cvar_constraint: Tensor) -> Tensor:
+        """The actor's penalty weight: κ, minus the MDMM damping term if enabled."""
+        kappa = self.kappa
+        if self.damp_scale == 0.0:
+            return kappa
+        return kappa - self.damp_scale * (self.cost_threshold - cvar_constraint).mean()
+
+    def _actor_loss(
+        self, tensordict: TensorDictBase, cvar_replay: Tensor | None
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        weights = self._maybe_get_priority_weight(tensordict)
+        action, log_prob = self._sample_policy(tensordict)
+        td_pi = tensordict.select(*self.qvalue_network.in_keys, strict=False)
+        td_pi.set(self.tensor_keys.action, action)
+        min_q = (
+            self._vmap_qnetworkN0(td_pi, self._cached_detached_qvalue_params)
+            .get(self.tensor_keys.state_action_value)
+            .min(0)[0]
+            .squeeze(-1)
+        )
+        td_pi_safety = tensordict.select(*self.safety_network.in_keys, strict=False)
+        td_pi_safety.set(self.tensor_keys.action, action)
+        cvar_pi = self.cvar(*self._safety_forward(td_pi_safety, self._cached_detached_safety_params))
+        cvar_constraint = cvar_pi.detach() if self.kappa_actions == "policy" else cvar_replay
+        penalty = self._constraint_gap_penalty(cvar_constraint)
+        loss = self._alpha * log_prob - min_q + penalty * cvar_pi
+        loss = self._reduce_loss(loss, tensordict=tensordict, weights=weights)
+        return loss, {
+            "log_prob": log_prob.detach(),
+            "cvar_policy": cvar_pi.detach(),
+            "cvar_constraint": cvar_constraint,
+        }
+
+    def actor_loss(self, tensordict: TensorDictBase) -> tuple[Tensor, dict[str, Tensor]]:
+        """``E[β log π(a|s) − min_i Q^r_i(s,a) + κ Γ(s,a,α)]``, ``a ~ π`` reparametrised.
+
+        β, κ and all critic parameters are detached: only the actor gets gradients.
+        """
+        return self._actor_loss(tensordict, self._replay_cvar(tensordict))
+
+    def _replay_cvar(self, tensordict: TensorDictBase) -> Tensor | None:
+        if self.kappa_actions != "replay":
+            return None
+        with torch.no_grad():
+            return self.cvar(*self._safety_forward(tensordict, self.safety_network_params))
+
+    def kappa_loss(self, cvar: Tensor, tensordict: TensorDictBase | None = None) -> Tensor:
+        """``κ · (d_step − Γ)`` with Γ detached: κ grows while Γ exceeds the threshold."""
+        loss = self._kappa_param * (self.cost_threshold - cvar.detach())
+        weights = None if tensordict is None else self._maybe_get_priority_weight(tensordict)
+        return self._reduce_loss(loss, tensordict=tensordict, weights=weights)
+
+    # ---------------------------------------------------------------- forward
+    @dispatch
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        targets = self.compute_targets(tensordict)
+        loss_qvalue, q_metadata = self.qvalue_loss(tensordict, targets)
+        loss_cost_value, loss_cost_variance, safety_metadata = self.safety_loss(tensordict, targets)
+        cvar_replay = self.cvar(safety_metadata["cost_value"], safety_metadata["cost_variance"])
+        loss_actor, actor_metadata = self._actor_loss(tensordict, cvar_replay)
+        log_prob = actor_metadata["log_prob"]
+        weights = self._maybe_get_priority_weight(tensordict)
+        loss_alpha = self._reduce_loss(
+            self._alpha_loss(log_prob=log_prob), tensordict=tensordict, weights=weights
+        )
+        cvar_constraint = actor_metadata["cvar_constraint"]
+        loss_kappa = self.kappa_loss(cvar_constraint, tensordict)
+        tensordict.set(self.tensor_keys.priority, q_metadata["td_error"])
+
+        out = {
+            "loss_actor": loss_actor,
+            "loss_qvalue": loss_qvalue,
+            "loss_alpha": loss_alpha,
+            "loss_cost_value": loss_cost_value,
+        }
+        if loss_cost_variance is not None:
+            out["loss_cost_variance"] = loss_cost_variance
+        out["loss_kappa"] = loss_kappa
+        scalars = {
+            "alpha": self._alpha,
+            "kappa": self.kappa,
+            "entropy": -log_prob.mean(),
+            "cost_value": safety_metadata["cost_value"].mean(),
+            "cvar": cvar_constraint.mean(),
+            "cost_threshold": self.cost_threshold.clone(),
+        }
+        if safety_metadata["cost_variance"] is not None:
+            scalars["cost_variance"] = safety_metadata["cost_variance"].mean()
+        if self.reduction == "none":
+            td_out = TensorDict(out, batch_size=tensordict.batch_size)
+            if self.scalar_output_mode == "non_tensor":
+                for key, value in scalars.items():
+                    td_out.set_non_tensor(key, value)
+        else:
+            out.update(scalars)
+            td_out = TensorDict(out, batch_size=[])
+        self._clear_weakrefs(
+            tensordict,
+            td_out,
+            "actor_network_params",
+            "qvalue_network_params",
+            "safety_network_params",
+            "target_actor_network_params",
+            "target_qvalue_network_params",
+            "target_safety_network_params",
+        )
+        return td_out
+
+
+class SACLagLoss(WCSACLoss):
+    """SAC-Lagrangian: :class:`WCSACLoss` with ``risk_level=1`` (Γ = Q^c, the expected cost).
+
+    Use a mean-only safety critic (``make_safety_critic(..., variance=False)``): no
+    variance network exists or is trained, which is the paper's ablation. With a
+    Gaussian critic the variance is still learned (a diagnostic) but never used.
+
+    Example:
+        >>> from torchrl.data import Bounded
+        >>> from wcsac_rl import SACLagLoss
+        >>> from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
+        >>> loss = SACLagLoss(make_actor(4, Bounded(-1.0, 1.0, shape=(2,))),
+        ...                   [make_qvalue(4, 2) for _ in range(2)],
+        ...                   make_safety_critic(4, 2, variance=False), cost_limit=25.0)
+        >>> loss.has_variance, loss.risk_level
+        (False, 1.0)
+    """
+
+    def __init__(self, actor_network, qvalue_network, safety_network, **kwargs) -> None:
+        if kwargs.get("risk_level", 1.0) != 1.0:
+            raise ValueError(
+                "SACLagLoss is the risk-neutral case (risk_level=1); for risk_level < 1 use WCSACLoss"
+            )
+        kwargs["risk_level"] = 1.0
+        super().__init__(actor_network, qvalue_network, safety_network, **kwargs)
