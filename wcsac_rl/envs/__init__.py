@@ -1,0 +1,77 @@
+"""Environments: the point-goal MuJoCo task, its presets, a tiny env and TorchRL wrapping.
+
+Importing this package registers the gymnasium ids (idempotently):
+
+=====================  =========================  ========================================
+short name             gymnasium id               env
+=====================  =========================  ========================================
+``"static"``           ``wcsac_rl/StaticEnv-v0``  WCSAC StaticEnv (44-dim obs)
+``"dynamic"``          ``wcsac_rl/DynamicEnv-v0`` WCSAC DynamicEnv (44-dim obs)
+``"point_goal1"``      ``wcsac_rl/PointGoal1-v0`` Safety Gym PointGoal1 (60-dim obs)
+``"point_goal2"``      ``wcsac_rl/PointGoal2-v0`` Safety Gym PointGoal2 (60-dim obs)
+``"tiny"``             ``wcsac_rl/TinyHazard-v0`` :class:`TinyHazardEnv` (6-dim obs)
+=====================  =========================  ========================================
+
+Main entry points:
+
+* :func:`make_env` — a TorchRL env with ``("next", "cost")`` ``[*B, 1]`` float32,
+  ``episode_reward`` / ``episode_cost`` / ``step_count``; ``num_workers > 1`` gives a
+  ``ParallelEnv``.
+* :func:`make_env_creator` — a picklable creator for multi-process collectors.
+* :func:`env_info` — obs/action sizes and episode length of a preset.
+* :func:`check_cost_key` — a clear error for envs/tensordicts without a cost.
+* :class:`PointGoalEnv`, :class:`TinyHazardEnv` — the gymnasium envs.
+* :func:`make_safety_gymnasium_env` — the same conventions on top of safety-gymnasium.
+"""
+
+from wcsac_rl.envs.layout import LayoutError
+from wcsac_rl.envs.point_goal import PointGoalConfig, PointGoalEnv
+from wcsac_rl.envs.presets import (
+    GYM_IDS,
+    PRESET_NAMES,
+    PRESETS,
+    get_preset,
+    make_gym_env,
+    register_envs,
+)
+from wcsac_rl.envs.safety_gymnasium import make_safety_gymnasium_env, wrap_safety_gymnasium
+from wcsac_rl.envs.tiny import TinyHazardEnv
+from wcsac_rl.envs.torchrl_env import (
+    COST_KEY,
+    CostKeyError,
+    CostSum,
+    InfoReader,
+    check_cost_key,
+    env_info,
+    make_base_env,
+    make_env,
+    make_env_creator,
+    step_info_spec,
+)
+
+register_envs()
+
+__all__ = [
+    "COST_KEY",
+    "GYM_IDS",
+    "PRESETS",
+    "PRESET_NAMES",
+    "CostKeyError",
+    "CostSum",
+    "InfoReader",
+    "LayoutError",
+    "PointGoalConfig",
+    "PointGoalEnv",
+    "TinyHazardEnv",
+    "check_cost_key",
+    "env_info",
+    "get_preset",
+    "make_base_env",
+    "make_env",
+    "make_env_creator",
+    "make_gym_env",
+    "make_safety_gymnasium_env",
+    "register_envs",
+    "step_info_spec",
+    "wrap_safety_gymnasium",
+]

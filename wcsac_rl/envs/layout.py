@@ -1,0 +1,249 @@
+"""Layout sampling for the point-goal task, with Safety Gym's keepout rules.
+
+Objects are placed in a fixed order (robot, goal, hazards, vases). Each object is
+drawn uniformly from the placement extents shrunk by its own keepout (a fixed
+location makes that rectangle a point); a draw is rejected when it is closer to an
+already placed object than the sum of the two keepouts. Each object gets
+``tries_per_object`` draws; if one object runs out, the whole layout restarts, up to
+``max_restarts`` times, after which :class:`LayoutError` is raised.
+
+The draws of one object are made as one vectorised batch and the first valid one is
+kept, which has the same distribution as drawing them one by one.
+
+Also here: :func:`parse_explicit_layout`, the validator of the
+``reset(options={"layout": ...})`` dictionary.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "EXPLICIT_LAYOUT_KEYS",
+    "LayoutError",
+    "ObjectPlacement",
+    "draw_position",
+    "parse_explicit_layout",
+    "sample_layout",
+]
+
+Extents = tuple[float, float, float, float]
+"""Placement area as ``(xmin, ymin, xmax, ymax)``."""
+
+EXPLICIT_LAYOUT_KEYS = ("robot_xy", "robot_heading", "goal_xy", "hazards_xy", "vases_xy")
+"""Keys accepted in ``reset(options={"layout": {...}})``."""
+
+
+class LayoutError(RuntimeError):
+    """No layout satisfying the keepout rules was found within the allowed restarts."""
+
+
+@dataclass(frozen=True)
+class ObjectPlacement:
+    """Placement rule of one object.
+
+    Attributes:
+        name: object name, unique within a layout (``"robot"``, ``"goal"``, ``"hazard0"`` ...).
+        keepout: keepout radius; shrinks the sampling rectangle and sets the minimum
+            distance ``keepout + other.keepout`` to every other object.
+        fixed_xy: if given, the object always sits there (keepout checks still apply).
+    """
+
+    name: str
+    keepout: float
+    fixed_xy: tuple[float, float] | None = None
+
+    def rectangle(self, extents: Extents) -> tuple[np.ndarray, np.ndarray]:
+        """Low and high corners of the sampling rectangle (equal for a fixed object)."""
+        if self.fixed_xy is not None:
+            xy = np.asarray(self.fixed_xy, dtype=np.float64)
+            return xy, xy
+        xmin, ymin, xmax, ymax = extents
+        k = self.keepout
+        low = np.array([xmin + k, ymin + k])
+        high = np.array([xmax - k, ymax - k])
+        if np.any(low > high):
+            raise ValueError(
+                f"object {self.name!r}: keepout {k} leaves no room inside extents {extents}"
+            )
+        return low, high
+
+
+def draw_position(
+    rng: np.random.Generator,
+    extents: Extents,
+    obj: ObjectPlacement,
+    placed_xy: np.ndarray,
+    placed_keepout: np.ndarray,
+    tries: int,
+) -> np.ndarray | None:
+    """Draw up to ``tries`` candidate positions for ``obj`` and return the first valid one.
+
+    A candidate is valid when its distance to every placed object ``i`` is at least
+    ``obj.keepout + placed_keepout[i]``.
+
+    Args:
+        rng: the random generator.
+        extents: placement area ``(xmin, ymin, xmax, ymax)``.
+        obj: the object to place.
+        placed_xy: positions of the objects already placed, shape ``(m, 2)``.
+        placed_keepout: their keepouts, shape ``(m,)``.
+        tries: maximum number of candidates.
+
+    Returns:
+        The position (shape ``(2,)``), or ``None`` if every candidate was rejected.
+    """
+    low, high = obj.rectangle(extents)
+    if obj.fixed_xy is not None:
+        # Every draw from a point rectangle is the same point: one check decides.
+        candidates = low[None, :]
+    else:
+        candidates = rng.uniform(low, high, size=(tries, 2))
+    if len(placed_xy) == 0:
+        return candidates[0].copy()
+    diff = candidates[:, None, :] - placed_xy[None, :, :]
+    dist = np.sqrt(np.sum(diff * diff, axis=-1))
+    ok = np.all(dist >= obj.keepout + placed_keepout[None, :], axis=1)
+    idx = np.flatnonzero(ok)
+    if idx.size == 0:
+        return None
+    return candidates[idx[0]].copy()
+
+
+def sample_layout(
+    rng: np.random.Generator,
+    extents: Extents,
+    objects: Sequence[ObjectPlacement],
+    *,
+    explicit: Mapping[str, np.ndarray] | None = None,
+    tries_per_object: int = 100,
+    max_restarts: int = 10_000,
+) -> dict[str, np.ndarray]:
+    """Sample the positions of ``objects`` in order, with keepouts and restarts.
+
+    Args:
+        rng: the random generator (the env's ``np_random``).
+        extents: placement area ``(xmin, ymin, xmax, ymax)``.
+        objects: placement rules, in placement order.
+        explicit: positions given by the caller; these objects are put there without
+            any keepout check, and the others keep clear of them as usual.
+        tries_per_object: draws per object before the layout restarts.
+        max_restarts: whole-layout attempts before giving up.
+
+    Returns:
+        A dict ``name -> xy`` (shape ``(2,)`` arrays) with every object.
+
+    Raises:
+        LayoutError: no valid layout was found in ``max_restarts`` attempts.
+    """
+    explicit = dict(explicit or {})
+    n = len(objects)
+    keepouts = np.array([o.keepout for o in objects], dtype=np.float64)
+    for _ in range(max_restarts):
+        xy = np.zeros((n, 2))
+        failed = False
+        for i, obj in enumerate(objects):
+            if obj.name in explicit:
+                xy[i] = explicit[obj.name]
+                continue
+            pos = draw_position(rng, extents, obj, xy[:i], keepouts[:i], tries_per_object)
+            if pos is None:
+                failed = True
+                break
+            xy[i] = pos
+        if not failed:
+            return {obj.name: xy[i].copy() for i, obj in enumerate(objects)}
+    raise LayoutError(
+        f"could not place {[o.name for o in objects]} in extents {extents} with keepouts "
+        f"{keepouts.tolist()} after {max_restarts} layout restarts of {tries_per_object} "
+        f"tries per object (explicit positions: {sorted(explicit)}); the objects do not "
+        "fit: reduce their number or keepouts, or enlarge the extents"
+    )
+
+
+def _as_xy(value: object, what: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise ValueError(
+            f"layout[{what!r}] must be an (x, y) pair of numbers, got {value!r}"
+        ) from err
+    if arr.shape != (2,):
+        raise ValueError(
+            f"layout[{what!r}] must be an (x, y) pair of numbers, got shape {arr.shape}: {value!r}"
+        )
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"layout[{what!r}] must be finite, got {value!r}")
+    return arr
+
+
+def _as_xy_list(value: object, what: str, count: int) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise ValueError(
+            f"layout[{what!r}] must be a list of {count} (x, y) pairs, got {value!r}"
+        ) from err
+    if count == 0 and arr.size == 0:
+        return np.zeros((0, 2))
+    if arr.shape != (count, 2):
+        raise ValueError(
+            f"layout[{what!r}] must be a list of {count} (x, y) pairs (this env has "
+            f"{count}), got shape {arr.shape}"
+        )
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"layout[{what!r}] must be finite, got {value!r}")
+    return arr
+
+
+def parse_explicit_layout(
+    layout: object, *, hazards_num: int, vases_num: int
+) -> tuple[dict[str, np.ndarray], float | None]:
+    """Validate a user layout and map it to object names.
+
+    Accepted keys (all optional; missing objects are sampled as usual):
+    ``robot_xy`` (x, y), ``robot_heading`` (radians), ``goal_xy`` (x, y),
+    ``hazards_xy`` (``hazards_num`` pairs), ``vases_xy`` (``vases_num`` pairs).
+
+    Returns:
+        ``(positions, heading)``: a dict ``object name -> xy`` for the explicit objects
+        and the explicit robot heading (``None`` if not given).
+
+    Raises:
+        ValueError: not a mapping, unknown key, wrong shape/count, or non-finite values.
+    """
+    if not isinstance(layout, Mapping):
+        raise ValueError(
+            f"options['layout'] must be a dict with keys among {list(EXPLICIT_LAYOUT_KEYS)}, "
+            f"got {type(layout).__name__}"
+        )
+    unknown = sorted(set(layout) - set(EXPLICIT_LAYOUT_KEYS))
+    if unknown:
+        raise ValueError(
+            f"unknown layout key(s) {unknown}; valid keys are {list(EXPLICIT_LAYOUT_KEYS)}"
+        )
+    positions: dict[str, np.ndarray] = {}
+    heading = None
+    if "robot_xy" in layout:
+        positions["robot"] = _as_xy(layout["robot_xy"], "robot_xy")
+    if "robot_heading" in layout:
+        h = layout["robot_heading"]
+        try:
+            heading = float(h)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"layout['robot_heading'] must be a number, got {h!r}") from err
+        if not math.isfinite(heading):
+            raise ValueError(f"layout['robot_heading'] must be finite, got {h!r}")
+    if "goal_xy" in layout:
+        positions["goal"] = _as_xy(layout["goal_xy"], "goal_xy")
+    if "hazards_xy" in layout:
+        for i, xy in enumerate(_as_xy_list(layout["hazards_xy"], "hazards_xy", hazards_num)):
+            positions[f"hazard{i}"] = xy
+    if "vases_xy" in layout:
+        for i, xy in enumerate(_as_xy_list(layout["vases_xy"], "vases_xy", vases_num)):
+            positions[f"vase{i}"] = xy
+    return positions, heading

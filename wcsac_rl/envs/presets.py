@@ -1,0 +1,219 @@
+"""Env presets: short names, gymnasium ids and registration.
+
+====================  ===============================  ====================================
+short name            gymnasium id                     what
+====================  ===============================  ====================================
+``"static"``          ``wcsac_rl/StaticEnv-v0``        WCSAC StaticEnv: fixed goal (1.1, 1.1)
+                                                       and one hazard (size 0.7) at the
+                                                       origin, random robot start, -0.02
+                                                       per step, 44-dim obs
+``"dynamic"``         ``wcsac_rl/DynamicEnv-v0``       WCSAC DynamicEnv: random goal and 3
+                                                       hazards (size 0.3), 44-dim obs
+``"point_goal1"``     ``wcsac_rl/PointGoal1-v0``       Safety Gym PointGoal1: 8 hazards
+                                                       (0.2), 1 unconstrained vase, 60 dims
+``"point_goal2"``     ``wcsac_rl/PointGoal2-v0``       Safety Gym PointGoal2: extents ±2,
+                                                       10 hazards, 10 constrained vases
+``"tiny"``            ``wcsac_rl/TinyHazard-v0``       :class:`~wcsac_rl.envs.tiny.TinyHazardEnv`
+====================  ===============================  ====================================
+
+Importing :mod:`wcsac_rl.envs` registers the ids (idempotently), so
+``gymnasium.make("wcsac_rl/DynamicEnv-v0")`` works after ``import wcsac_rl.envs``.
+Episodes are truncated inside the envs (1000 steps, 100 for ``tiny``), not by a
+``TimeLimit`` wrapper.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium as gym
+from gymnasium.envs.registration import load_env_creator
+
+from wcsac_rl.envs.point_goal import PointGoalConfig
+
+__all__ = [
+    "GYM_IDS",
+    "PRESETS",
+    "PRESET_NAMES",
+    "Preset",
+    "get_preset",
+    "make_gym_env",
+    "register_envs",
+]
+
+_POINT_GOAL_ENTRY = "wcsac_rl.envs.point_goal:PointGoalEnv"
+_TINY_ENTRY = "wcsac_rl.envs.tiny:TinyHazardEnv"
+
+
+@dataclass(frozen=True)
+class Preset:
+    """One named environment configuration.
+
+    Attributes:
+        name: short name used in configs (``"static"``, ...).
+        gym_id: gymnasium id it is registered under.
+        entry_point: ``"module:Class"`` of the env.
+        kwargs: constructor keyword arguments (``config`` for the point-goal presets).
+        description: one line for humans.
+    """
+
+    name: str
+    gym_id: str
+    entry_point: str
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    description: str = ""
+
+    @property
+    def config(self) -> PointGoalConfig | None:
+        """The :class:`PointGoalConfig` of a point-goal preset, else ``None``."""
+        return self.kwargs.get("config")
+
+
+STATIC_CONFIG = PointGoalConfig(
+    placement_extents=(-1.5, -1.5, 1.5, 1.5),
+    goal_size=0.3,
+    goal_keepout=0.305,
+    goal_location=(1.1, 1.1),
+    hazards_num=1,
+    hazards_size=0.7,
+    hazards_keepout=0.705,
+    hazards_locations=((0.0, 0.0),),
+    reward_per_step=-0.02,
+)
+DYNAMIC_CONFIG = PointGoalConfig(
+    placement_extents=(-1.5, -1.5, 1.5, 1.5),
+    goal_size=0.3,
+    goal_keepout=0.305,
+    hazards_num=3,
+    hazards_size=0.3,
+    hazards_keepout=0.305,
+)
+POINT_GOAL1_CONFIG = PointGoalConfig(
+    placement_extents=(-1.5, -1.5, 1.5, 1.5),
+    goal_size=0.3,
+    goal_keepout=0.305,
+    hazards_num=8,
+    hazards_size=0.2,
+    hazards_keepout=0.18,
+    vases_num=1,
+    constrain_vases=False,
+)
+POINT_GOAL2_CONFIG = PointGoalConfig(
+    placement_extents=(-2.0, -2.0, 2.0, 2.0),
+    goal_size=0.3,
+    goal_keepout=0.305,
+    hazards_num=10,
+    hazards_size=0.2,
+    hazards_keepout=0.18,
+    vases_num=10,
+    constrain_vases=True,
+)
+
+PRESETS: dict[str, Preset] = {
+    p.name: p
+    for p in (
+        Preset(
+            "static",
+            "wcsac_rl/StaticEnv-v0",
+            _POINT_GOAL_ENTRY,
+            {"config": STATIC_CONFIG},
+            "WCSAC StaticEnv: fixed goal and hazard, random start, -0.02 per step",
+        ),
+        Preset(
+            "dynamic",
+            "wcsac_rl/DynamicEnv-v0",
+            _POINT_GOAL_ENTRY,
+            {"config": DYNAMIC_CONFIG},
+            "WCSAC DynamicEnv: random goal and 3 hazards each episode",
+        ),
+        Preset(
+            "point_goal1",
+            "wcsac_rl/PointGoal1-v0",
+            _POINT_GOAL_ENTRY,
+            {"config": POINT_GOAL1_CONFIG},
+            "Safety Gym PointGoal1: 8 hazards, 1 unconstrained vase",
+        ),
+        Preset(
+            "point_goal2",
+            "wcsac_rl/PointGoal2-v0",
+            _POINT_GOAL_ENTRY,
+            {"config": POINT_GOAL2_CONFIG},
+            "Safety Gym PointGoal2: 10 hazards, 10 constrained vases, extents ±2",
+        ),
+        Preset(
+            "tiny",
+            "wcsac_rl/TinyHazard-v0",
+            _TINY_ENTRY,
+            {},
+            "Tiny numpy point mass to a goal past a hazard disc (smoke tests)",
+        ),
+    )
+}
+PRESET_NAMES: tuple[str, ...] = tuple(PRESETS)
+"""Short names accepted by :func:`get_preset` and ``make_env``."""
+GYM_IDS: dict[str, str] = {name: p.gym_id for name, p in PRESETS.items()}
+"""Short name -> gymnasium id."""
+_BY_GYM_ID = {p.gym_id: p for p in PRESETS.values()}
+
+
+def get_preset(name: str) -> Preset:
+    """Look a preset up by short name (``"dynamic"``) or gymnasium id.
+
+    Raises:
+        ValueError: unknown name; the message lists the valid ones.
+    """
+    if isinstance(name, str):
+        if name in PRESETS:
+            return PRESETS[name]
+        if name in _BY_GYM_ID:
+            return _BY_GYM_ID[name]
+        if name.lower() in PRESETS:
+            return PRESETS[name.lower()]
+    raise ValueError(
+        f"unknown env {name!r}; valid names are {list(PRESET_NAMES)} "
+        f"(or the gymnasium ids {list(_BY_GYM_ID)})"
+    )
+
+
+def register_envs() -> None:
+    """Register every preset with gymnasium; calling it again is a no-op."""
+    for preset in PRESETS.values():
+        if preset.gym_id in gym.registry:
+            continue
+        gym.register(
+            id=preset.gym_id,
+            entry_point=preset.entry_point,
+            kwargs=dict(preset.kwargs),
+            disable_env_checker=False,
+        )
+
+
+def make_gym_env(name: str, *, max_episode_steps: int | None = None, **kwargs: Any) -> gym.Env:
+    """Build the raw gymnasium env of a preset (no gymnasium wrappers).
+
+    Args:
+        name: short name or gymnasium id.
+        max_episode_steps: episode length override (the env truncates internally).
+        **kwargs: constructor overrides, e.g. ``render_mode="rgb_array"`` or, for the
+            point-goal presets, any :class:`PointGoalConfig` field (``hazards_num=5``).
+
+    Raises:
+        ValueError: unknown name or unknown keyword.
+    """
+    preset = get_preset(name)
+    ctor_kwargs = dict(preset.kwargs)
+    if max_episode_steps is not None:
+        if preset.config is not None:
+            ctor_kwargs["config"] = dataclasses.replace(
+                preset.config, max_episode_steps=int(max_episode_steps)
+            )
+        else:
+            ctor_kwargs["max_episode_steps"] = int(max_episode_steps)
+    ctor_kwargs.update(kwargs)
+    creator = load_env_creator(preset.entry_point)
+    try:
+        return creator(**ctor_kwargs)
+    except TypeError as err:
+        raise ValueError(f"bad keyword for env {preset.name!r}: {err}") from err

@@ -1,0 +1,194 @@
+"""A tiny, fast, cost-bearing env (numpy only) for smoke tests and training-loop examples.
+
+A point mass in the plane must reach a goal disc at ``(1, 0)`` from a start near
+``(-1, 0)``; a hazard disc at the origin lies on the straight path. The action is a
+velocity command in ``[-1, 1]^2`` (clipped), scaled by ``speed`` per step. The
+reward is progress towards the goal (``dist_prev - dist_now``) plus ``reward_goal``
+on arrival, which ends the episode; the cost is 1 while the point is strictly inside
+the hazard. The reward-greedy path crosses the hazard; the safe one goes around it.
+Episodes last at most ``max_episode_steps`` (100) steps.
+
+The observation (6 dims, ``float32``) is ``[x, y, goal_x - x, goal_y - y,
+hazard_x - x, hazard_y - y]``. ``info`` carries the same keys as
+:class:`~wcsac_rl.envs.point_goal.PointGoalEnv` so the same TorchRL wrapping,
+metrics and trajectory plots work unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from wcsac_rl.envs.layout import parse_explicit_layout
+from wcsac_rl.envs.point_goal import validate_action
+
+__all__ = ["TinyHazardEnv"]
+
+
+class TinyHazardEnv(gym.Env):
+    """Point mass to a goal past a hazard disc: the smallest env with a real cost trade-off.
+
+    Args:
+        max_episode_steps: episode length (``truncated=True`` at the limit).
+        speed: distance moved per step for a unit action component.
+        goal_xy: goal centre.
+        goal_size: goal radius; reaching it gives ``reward_goal`` and ends the episode.
+        hazard_xy: hazard centre.
+        hazard_size: hazard radius; cost 1 while strictly inside.
+        start_xy: mean start position.
+        start_noise: start position is ``start_xy + U(-start_noise, start_noise)^2``.
+        reward_goal: bonus on reaching the goal.
+        render_mode: only ``None`` (this env does not render).
+
+    Examples:
+        >>> env = TinyHazardEnv()
+        >>> obs, info = env.reset(seed=0)
+        >>> obs.shape
+        (6,)
+        >>> obs, reward, terminated, truncated, info = env.step(np.array([1.0, 0.0]))
+        >>> info["cost"]
+        0.0
+    """
+
+    metadata = {"render_modes": [], "render_fps": 50}  # noqa: RUF012
+
+    def __init__(
+        self,
+        *,
+        max_episode_steps: int = 100,
+        speed: float = 0.05,
+        goal_xy: tuple[float, float] = (1.0, 0.0),
+        goal_size: float = 0.1,
+        hazard_xy: tuple[float, float] = (0.0, 0.0),
+        hazard_size: float = 0.35,
+        start_xy: tuple[float, float] = (-1.0, 0.0),
+        start_noise: float = 0.2,
+        reward_goal: float = 1.0,
+        render_mode: str | None = None,
+    ) -> None:
+        if render_mode is not None:
+            raise ValueError(f"TinyHazardEnv does not render; got render_mode={render_mode!r}")
+        if int(max_episode_steps) < 1:
+            raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
+        self.render_mode = None
+        self.max_episode_steps = int(max_episode_steps)
+        self.speed = float(speed)
+        self.goal_size = float(goal_size)
+        self.hazard_size = float(hazard_size)
+        self.start_noise = float(start_noise)
+        self.reward_goal = float(reward_goal)
+        self._start_xy = (float(start_xy[0]), float(start_xy[1]))
+        self._default_goal = (float(goal_xy[0]), float(goal_xy[1]))
+        self._default_hazard = (float(hazard_xy[0]), float(hazard_xy[1]))
+        self._gx, self._gy = self._default_goal
+        self._hx, self._hy = self._default_hazard
+        self._x = self._y = 0.0
+        self._start = (0.0, 0.0)
+        self._steps = 0
+        self._dist_prev = 0.0
+        self._needs_reset = True
+        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(6,), dtype=np.float32)
+
+    def reset(
+        self, *, seed: int | None = None, options: Mapping[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start an episode; ``options={"layout": {...}}`` accepts ``robot_xy``,
+        ``goal_xy`` and ``hazards_xy`` (one pair) like the point-goal env."""
+        super().reset(seed=seed)
+        explicit: dict[str, np.ndarray] = {}
+        if options is not None:
+            if not isinstance(options, Mapping):
+                raise ValueError(f"options must be a dict, got {type(options).__name__}")
+            unknown = sorted(set(options) - {"layout"})
+            if unknown:
+                raise ValueError(f"unknown reset option(s) {unknown}; the only option is 'layout'")
+            layout = options.get("layout")
+            if layout is not None:
+                if isinstance(layout, Mapping) and {"robot_heading", "vases_xy"} & set(layout):
+                    raise ValueError(
+                        "TinyHazardEnv has no robot heading and no vases; valid layout keys "
+                        "are ['robot_xy', 'goal_xy', 'hazards_xy']"
+                    )
+                explicit, _ = parse_explicit_layout(layout, hazards_num=1, vases_num=0)
+        self._gx, self._gy = (
+            tuple(explicit["goal"].tolist()) if "goal" in explicit else self._default_goal
+        )
+        self._hx, self._hy = (
+            tuple(explicit["hazard0"].tolist()) if "hazard0" in explicit else self._default_hazard
+        )
+        if "robot" in explicit:
+            self._x, self._y = explicit["robot"].tolist()
+        else:
+            noise = self.np_random.uniform(-self.start_noise, self.start_noise, size=2)
+            self._x = self._start_xy[0] + float(noise[0])
+            self._y = self._start_xy[1] + float(noise[1])
+        self._start = (self._x, self._y)
+        self._steps = 0
+        self._dist_prev = math.hypot(self._gx - self._x, self._gy - self._y)
+        self._needs_reset = False
+        return self._obs(), self._info(goal_reached=False)
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Move by ``speed * clip(action, -1, 1)``; see the module docstring for reward and cost."""
+        if self._needs_reset:
+            raise RuntimeError(
+                "TinyHazardEnv.step() called before reset() or after the episode ended; "
+                "call reset() first"
+            )
+        a = validate_action(action, (2,))
+        self._x += self.speed * float(a[0])
+        self._y += self.speed * float(a[1])
+        self._steps += 1
+        dist = math.hypot(self._gx - self._x, self._gy - self._y)
+        reward = self._dist_prev - dist
+        self._dist_prev = dist
+        goal_reached = dist <= self.goal_size
+        if goal_reached:
+            reward += self.reward_goal
+        terminated = goal_reached
+        truncated = self._steps >= self.max_episode_steps
+        self._needs_reset = terminated or truncated
+        return self._obs(), reward, terminated, truncated, self._info(goal_reached=goal_reached)
+
+    def layout(self) -> dict[str, Any]:
+        """Current layout with sizes, in the same format as ``PointGoalEnv.layout()``."""
+        return {
+            "robot_xy": np.array([self._x, self._y]),
+            "robot_heading": 0.0,
+            "robot_start_xy": np.array(self._start),
+            "robot_start_heading": 0.0,
+            "goal_xy": np.array([self._gx, self._gy]),
+            "goal_size": self.goal_size,
+            "hazards_xy": np.array([[self._hx, self._hy]]),
+            "hazards_size": self.hazard_size,
+            "vases_xy": np.zeros((0, 2)),
+            "vases_size": 0.0,
+            "placement_extents": (-1.5, -1.5, 1.5, 1.5),
+        }
+
+    def _obs(self) -> np.ndarray:
+        x, y = self._x, self._y
+        return np.array(
+            [x, y, self._gx - x, self._gy - y, self._hx - x, self._hy - y], dtype=np.float32
+        )
+
+    def _info(self, *, goal_reached: bool) -> dict[str, Any]:
+        hazard_dist = math.hypot(self._hx - self._x, self._hy - self._y)
+        cost = 1.0 if hazard_dist < self.hazard_size else 0.0
+        return {
+            "cost": cost,
+            "goal_reached": goal_reached,
+            "numerical_failure": False,
+            "robot_xy": np.array([self._x, self._y]),
+            "robot_heading": 0.0,
+            "goal_xy": np.array([self._gx, self._gy]),
+            "goal_dist": self._dist_prev,
+            "hazard_dists": np.array([hazard_dist]),
+            "hazard_min_dist": hazard_dist,
+            "cost_hazards": cost,
+        }
