@@ -1,0 +1,415 @@
+"""TorchRL wrapping of the presets: ``make_env`` and its helpers.
+
+``make_env(name)`` returns a :class:`~torchrl.envs.TransformedEnv` whose tensordicts
+carry, besides TorchRL's usual ``observation`` / ``reward`` / ``done`` /
+``terminated`` / ``truncated`` entries:
+
+=========================  =============  ==============================================
+key                        shape / dtype  meaning
+=========================  =============  ==============================================
+``("next", "cost")``       [*B, 1] f32    per-step cost (from ``info["cost"]``)
+``"goal_reached"``         [*B, 1] bool   the step reached the goal
+``"numerical_failure"``    [*B, 1] bool   MuJoCo went unstable; the episode ended
+``"robot_xy"``             [*B, 2] f32    robot position after the step (for plots)
+``"goal_xy"``              [*B, 2] f32    goal position after the step
+``"episode_reward"``       [*B, 1] f32    running sum of reward (``RewardSum``)
+``"episode_cost"``         [*B, 1] f32    running sum of cost (:class:`CostSum`)
+``"step_count"``           [*B, 1] i64    steps since reset (``StepCounter``)
+=========================  =============  ==============================================
+
+(the non-cost info entries live at the root of reset tensordicts and under
+``"next"`` after a step, like any observation.)
+
+With ``num_workers > 1`` the base envs run in a :class:`~torchrl.envs.ParallelEnv`
+(one process each) and the transforms are applied on top. For TorchRL's
+multi-process collectors, pass :func:`make_env_creator` (picklable) instead.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from torchrl.data import Composite, Unbounded
+from torchrl.envs import (
+    Compose,
+    EnvBase,
+    ParallelEnv,
+    RewardSum,
+    StepCounter,
+    Transform,
+    TransformedEnv,
+)
+from torchrl.envs.gym_like import BaseInfoDictReader
+from torchrl.envs.libs.gym import GymWrapper
+
+from wcsac_rl.envs.presets import get_preset, make_gym_env
+
+__all__ = [
+    "COST_KEY",
+    "CostKeyError",
+    "CostSum",
+    "InfoReader",
+    "check_cost_key",
+    "env_info",
+    "env_transforms",
+    "episode_transforms",
+    "make_base_env",
+    "make_env",
+    "make_env_creator",
+    "step_info_spec",
+]
+
+COST_KEY = "cost"
+"""Name of the per-step cost entry (``("next", "cost")`` after a step)."""
+
+
+class CostKeyError(ValueError):
+    """An env or a tensordict lacks a usable per-step cost entry."""
+
+
+def step_info_spec(device: torch.device | str | None = None) -> Composite:
+    """Spec of the ``info`` entries copied into the tensordicts by :class:`InfoReader`."""
+    return Composite(
+        {
+            COST_KEY: Unbounded(shape=(1,), dtype=torch.float32, device=device),
+            "goal_reached": Unbounded(shape=(1,), dtype=torch.bool, device=device),
+            "numerical_failure": Unbounded(shape=(1,), dtype=torch.bool, device=device),
+            "robot_xy": Unbounded(shape=(2,), dtype=torch.float32, device=device),
+            "goal_xy": Unbounded(shape=(2,), dtype=torch.float32, device=device),
+        },
+        shape=(),
+        device=device,
+    )
+
+
+class InfoReader(BaseInfoDictReader):
+    """Copy selected ``info`` entries into the tensordict, cast and shaped to their spec.
+
+    A missing entry is filled with the spec's zero, so env wrappers that drop ``info``
+    on some steps do not break the tensordict layout. Use it with
+    ``GymWrapper.set_info_dict_reader(InfoReader(spec))``.
+
+    Args:
+        spec: a :class:`~torchrl.data.Composite` of the entries to read.
+    """
+
+    def __init__(self, spec: Composite) -> None:
+        self._spec = spec
+        self._items = [(key, s.dtype, s.shape, s.device) for key, s in spec.items()]
+
+    def __call__(self, info_dict: Mapping[str, Any], tensordict: TensorDictBase) -> TensorDictBase:
+        for key, dtype, shape, device in self._items:
+            value = info_dict.get(key) if info_dict is not None else None
+            if value is None:
+                tensordict.set(key, self._spec[key].zero())
+                continue
+            tensor = torch.as_tensor(np.asarray(value), dtype=dtype, device=device)
+            tensordict.set(key, tensor.reshape(shape))
+        return tensordict
+
+    @property
+    def info_spec(self) -> Composite:
+        return self._spec
+
+
+class CostSum(RewardSum):
+    """``RewardSum`` for a cost stored as an observation entry (not in the reward spec).
+
+    Tracks the running per-episode sum of ``in_keys`` (default ``["cost"]``) into
+    ``out_keys`` (default ``["episode_cost"]``), reset to 0 at every episode start.
+    TorchRL's ``RewardSum`` only accepts keys of the reward spec, while the cost read
+    from ``info`` lives in the observation spec (so that ``env.reward_key`` stays
+    unique); this subclass takes the spec from there.
+    """
+
+    def __init__(
+        self,
+        in_keys: list | None = None,
+        out_keys: list | None = None,
+        reset_keys: list | None = None,
+    ) -> None:
+        in_keys = [COST_KEY] if in_keys is None else in_keys
+        out_keys = ["episode_" + str(k) for k in in_keys] if out_keys is None else out_keys
+        super().__init__(in_keys=in_keys, out_keys=out_keys, reset_keys=reset_keys)
+
+    def _generate_episode_reward_spec(self) -> Composite:
+        obs_spec = self.parent.full_observation_spec
+        out = Composite()
+        for in_key, out_key in zip(self.in_keys, self.out_keys, strict=True):
+            if in_key not in obs_spec.keys(True, True):
+                raise CostKeyError(
+                    f"CostSum: the env has no {in_key!r} entry in its observation spec "
+                    f"(keys: {sorted(map(str, obs_spec.keys(True, True)))})"
+                )
+            out[out_key] = obs_spec[in_key].clone()
+        return out
+
+    def _reset(
+        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+    ) -> TensorDictBase:
+        for in_key, reset_key, out_key in zip(
+            self.in_keys, self.reset_keys, self.out_keys, strict=True
+        ):
+            value = tensordict.get(out_key, default=None) if tensordict is not None else None
+            if value is None:
+                value = self.parent.full_observation_spec[in_key].zero()
+            else:
+                reset = tensordict.get(reset_key, default=None)
+                if reset is None:
+                    value = torch.zeros_like(value)
+                else:
+                    reset = reset.reshape(*reset.shape, *([1] * (value.ndim - reset.ndim)))
+                    value = torch.where(reset, torch.zeros_like(value), value)
+            tensordict_reset.set(out_key, value)
+        return tensordict_reset
+
+
+def episode_transforms() -> list[Transform]:
+    """New instances of the transforms ``make_env`` puts on top of the base env(s).
+
+    ``StepCounter`` (``"step_count"``), ``RewardSum`` (``"episode_reward"``) and
+    :class:`CostSum` (``"episode_cost"``).
+    """
+    return [
+        StepCounter(),
+        RewardSum(in_keys=["reward"], out_keys=["episode_reward"]),
+        CostSum(in_keys=[COST_KEY], out_keys=["episode_cost"]),
+    ]
+
+
+def env_transforms() -> Compose:
+    """:func:`episode_transforms` as one ``Compose``."""
+    return Compose(*episode_transforms())
+
+
+class _PixelsAndObservation(gym.ObservationWrapper):
+    """Dict observation ``{"observation": state, "pixels": render()}`` for ``from_pixels``."""
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        env.reset(seed=0)
+        frame = env.render()
+        self.observation_space = gym.spaces.Dict(
+            {
+                "observation": env.observation_space,
+                "pixels": gym.spaces.Box(0, 255, shape=frame.shape, dtype=np.uint8),
+            }
+        )
+
+    def observation(self, observation: np.ndarray) -> dict[str, np.ndarray]:
+        return {"observation": observation, "pixels": self.env.render()}
+
+
+def make_base_env(
+    name: str,
+    *,
+    device: torch.device | str = "cpu",
+    max_episode_steps: int | None = None,
+    from_pixels: bool = False,
+    **kwargs: Any,
+) -> EnvBase:
+    """One untransformed TorchRL env of a preset: ``GymWrapper`` + :class:`InfoReader`.
+
+    Args:
+        name: preset short name (``"static"``, ``"dynamic"``, ``"point_goal1"``,
+            ``"point_goal2"``, ``"tiny"``) or its gymnasium id.
+        device: device of the output tensordicts.
+        max_episode_steps: episode length override.
+        from_pixels: add a ``"pixels"`` entry (uint8 ``H x W x 3``) rendered with
+            MuJoCo (set ``MUJOCO_GL=egl`` when headless); ``"observation"`` stays.
+        **kwargs: forwarded to the gymnasium env constructor (e.g. config overrides).
+
+    Raises:
+        ValueError: unknown preset name or constructor keyword.
+    """
+    if from_pixels:
+        kwargs.setdefault("render_mode", "rgb_array")
+    gym_env = make_gym_env(name, max_episode_steps=max_episode_steps, **kwargs)
+    if from_pixels:
+        gym_env = _PixelsAndObservation(gym_env)
+    env = GymWrapper(gym_env, device=device)
+    env.set_info_dict_reader(InfoReader(step_info_spec(device=env.device)))
+    return env
+
+
+def make_env(
+    name: str,
+    *,
+    seed: int | None = None,
+    num_workers: int = 1,
+    device: torch.device | str = "cpu",
+    max_episode_steps: int | None = None,
+    from_pixels: bool = False,
+    **kwargs: Any,
+) -> TransformedEnv:
+    """Build a preset as a TorchRL env with cost, episode sums and step counts.
+
+    Args:
+        name: preset short name (``"static"``, ``"dynamic"``, ``"point_goal1"``,
+            ``"point_goal2"``, ``"tiny"``) or its gymnasium id.
+        seed: seeds the env(s) (workers get ``seed``, ``seed + 1``, ...).
+        num_workers: ``1`` for a single in-process env; more for a ``ParallelEnv``
+            with one process per worker (batch size ``[num_workers]``).
+        device: device of the output tensordicts.
+        max_episode_steps: episode length override (default: the preset's).
+        from_pixels: also emit rendered ``"pixels"``.
+        **kwargs: forwarded to the gymnasium env constructor, e.g.
+            ``hazards_num=5`` for a point-goal preset.
+
+    Returns:
+        A :class:`~torchrl.envs.TransformedEnv` (see the module docstring for keys).
+
+    Raises:
+        ValueError: unknown preset name, bad keyword, or ``num_workers < 1``.
+
+    Examples:
+        >>> from wcsac_rl.envs import make_env
+        >>> env = make_env("tiny", seed=0)
+        >>> td = env.rollout(5)
+        >>> td["next", "cost"].shape
+        torch.Size([5, 1])
+    """
+    get_preset(name)  # fail fast, in this process, on an unknown name
+    if not isinstance(num_workers, int) or num_workers < 1:
+        raise ValueError(f"num_workers must be a positive int, got {num_workers!r}")
+    base_fn = functools.partial(
+        make_base_env,
+        name,
+        device="cpu" if num_workers > 1 else device,
+        max_episode_steps=max_episode_steps,
+        from_pixels=from_pixels,
+        **kwargs,
+    )
+    if num_workers == 1:
+        base = base_fn()
+    else:
+        base = ParallelEnv(num_workers, base_fn, device=device)
+    env = TransformedEnv(base, env_transforms())
+    if seed is not None:
+        env.set_seed(int(seed))
+    return env
+
+
+def make_env_creator(name: str, **kwargs: Any) -> Callable[[], TransformedEnv]:
+    """A picklable zero-argument callable that builds ``make_env(name, **kwargs)``.
+
+    Pass it as ``create_env_fn`` to TorchRL collectors, including the multi-process
+    ones (``MultiSyncCollector([creator] * n, ...)``).
+    """
+    get_preset(name)
+    return functools.partial(make_env, name, **kwargs)
+
+
+def env_info(name: str, **kwargs: Any) -> dict[str, Any]:
+    """Facts about a preset that a training loop needs, without building a TorchRL env.
+
+    Returns a dict with ``name`` (short name), ``gym_id``, ``max_episode_steps``,
+    ``obs_dim``, ``action_dim``, ``action_low``, ``action_high``, ``cost_key``
+    (``("next", "cost")``), ``observation_slices`` (name -> slice, point-goal presets
+    only, else ``{}``) and ``description``.
+
+    Args:
+        name: preset short name or gymnasium id.
+        **kwargs: the same overrides ``make_env`` would receive (e.g.
+            ``max_episode_steps``).
+    """
+    preset = get_preset(name)
+    env = make_gym_env(preset.name, **kwargs)
+    try:
+        unwrapped = env.unwrapped
+        slices = unwrapped.observation_slices() if hasattr(unwrapped, "observation_slices") else {}
+        max_steps = (
+            unwrapped.config.max_episode_steps
+            if hasattr(unwrapped, "config")
+            else unwrapped.max_episode_steps
+        )
+        return {
+            "name": preset.name,
+            "gym_id": preset.gym_id,
+            "max_episode_steps": int(max_steps),
+            "obs_dim": int(np.prod(env.observation_space.shape)),
+            "action_dim": int(np.prod(env.action_space.shape)),
+            "action_low": float(np.min(env.action_space.low)),
+            "action_high": float(np.max(env.action_space.high)),
+            "cost_key": ("next", COST_KEY),
+            "observation_slices": slices,
+            "description": preset.description,
+        }
+    finally:
+        env.close()
+
+
+_HOW_TO_ADD_COST = (
+    "wcsac_rl's safe-RL losses need a per-step cost. Build the env with "
+    "wcsac_rl.envs.make_env(...), or, for your own gymnasium env that puts the cost in "
+    "info['cost'], call GymWrapper(...).set_info_dict_reader("
+    "wcsac_rl.envs.InfoReader(wcsac_rl.envs.step_info_spec())) — or point the loss at "
+    "your key with set_keys(cost=...)."
+)
+
+
+def check_cost_key(obj: EnvBase | TensorDictBase, cost_key: str | tuple = COST_KEY) -> None:
+    """Check that an env or a collected tensordict carries a usable per-step cost.
+
+    For an env: ``cost_key`` must be in its observation or reward spec, floating point,
+    shaped ``[*B, 1]`` or ``[*B]``. For a tensordict: ``("next", *cost_key)`` must be
+    present, floating point, and shaped like ``("next", "reward")`` (``[*B, 1]``) or
+    without its last dim (``[*B]``).
+
+    Raises:
+        CostKeyError: with a message that says what is missing and how to fix it.
+    """
+    key = (cost_key,) if isinstance(cost_key, str) else tuple(cost_key)
+    if isinstance(obj, EnvBase):
+        spec = None
+        for container in (obj.full_observation_spec, obj.full_reward_spec):
+            if key in container.keys(True, True):
+                spec = container[key]
+                break
+        if spec is None:
+            keys = sorted(
+                map(str, list(obj.full_observation_spec.keys(True, True)) + list(obj.reward_keys))
+            )
+            raise CostKeyError(
+                f"{type(obj).__name__} has no {cost_key!r} entry in its specs (entries: {keys}). "
+                + _HOW_TO_ADD_COST
+            )
+        if not spec.dtype.is_floating_point:
+            raise CostKeyError(f"the {cost_key!r} spec must be floating point, got {spec.dtype}")
+        batch = tuple(obj.batch_size)
+        shape = tuple(spec.shape)
+        if shape not in ((*batch, 1), batch):
+            raise CostKeyError(
+                f"the {cost_key!r} spec must have shape {[*list(batch), 1]} (or {list(batch)}), "
+                f"got {list(shape)}"
+            )
+        return
+    if isinstance(obj, TensorDictBase):
+        full_key = ("next", *key)
+        cost = obj.get(full_key, default=None)
+        if cost is None:
+            raise CostKeyError(
+                f"the tensordict has no {full_key!r} entry (entries: "
+                f"{sorted(map(str, obj.keys(True, True)))}). " + _HOW_TO_ADD_COST
+            )
+        if not cost.dtype.is_floating_point:
+            raise CostKeyError(f"{full_key!r} must be floating point, got {cost.dtype}")
+        reward = obj.get(("next", "reward"), default=None)
+        if reward is not None and tuple(cost.shape) not in (
+            tuple(reward.shape),
+            tuple(reward.shape[:-1]),
+        ):
+            raise CostKeyError(
+                f"{full_key!r} has shape {list(cost.shape)}; expected the reward's shape "
+                f"{list(reward.shape)} (or without its last dim)"
+            )
+        return
+    raise TypeError(
+        f"check_cost_key expects a TorchRL env or a TensorDict, got {type(obj).__name__}"
+    )
