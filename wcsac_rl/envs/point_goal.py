@@ -399,7 +399,8 @@ class PointGoalEnv(gym.Env):
             options: ``{"layout": {...}}`` to place objects explicitly; keys
                 ``robot_xy``, ``robot_heading``, ``goal_xy``, ``hazards_xy``,
                 ``vases_xy`` (all optional; missing objects are sampled as usual, and
-                explicit ones are not keepout-checked).
+                explicit ones are not keepout-checked). With an explicit layout, objects
+                the preset fixes (StaticEnv's goal and hazard) also count as explicit.
 
         Raises:
             ValueError: malformed ``options``.
@@ -418,6 +419,13 @@ class PointGoalEnv(gym.Env):
                 explicit, heading = parse_explicit_layout(
                     options["layout"], hazards_num=c.hazards_num, vases_num=c.vases_num
                 )
+        if explicit:
+            # Objects fixed by the preset are deterministic: with an explicit layout they
+            # count as explicit too, so placing e.g. the StaticEnv robot near its fixed
+            # goal is honoured instead of being rejected by the goal's keepout.
+            for p in self._placements:
+                if p.fixed_xy is not None and p.name not in explicit:
+                    explicit[p.name] = np.asarray(p.fixed_xy, dtype=np.float64)
         rng = self.np_random
         layout = sample_layout(
             rng,
