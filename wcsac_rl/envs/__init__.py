@@ -22,8 +22,12 @@ Main entry points:
 * :func:`check_cost_key` — a clear error for envs/tensordicts without a cost.
 * :class:`PointGoalEnv`, :class:`TinyHazardEnv` — the gymnasium envs.
 * :func:`make_safety_gymnasium_env` — the same conventions on top of safety-gymnasium.
+
+On headless Linux (no ``DISPLAY``) importing this package sets ``MUJOCO_GL=egl``
+unless ``MUJOCO_GL`` is already set, so rendering works on servers.
 """
 
+from wcsac_rl.envs import _headless  # noqa: F401  (before mujoco: headless GL default)
 from wcsac_rl.envs.layout import LayoutError
 from wcsac_rl.envs.point_goal import PointGoalConfig, PointGoalEnv
 from wcsac_rl.envs.presets import (

@@ -538,7 +538,14 @@ class PointGoalEnv(gym.Env):
             gym.logger.warn("render() called with render_mode=None; pass render_mode='rgb_array'")
             return None
         if self._renderer is None:
-            self._renderer = mujoco.Renderer(self.model, height=self._height, width=self._width)
+            try:
+                self._renderer = mujoco.Renderer(self.model, height=self._height, width=self._width)
+            except Exception as err:
+                raise RuntimeError(
+                    f"MuJoCo could not create an OpenGL context ({err}). On a headless "
+                    "machine set MUJOCO_GL=egl (or osmesa) in the environment before "
+                    "anything imports mujoco (torchrl does), e.g. `MUJOCO_GL=egl python ...`"
+                ) from err
         self._renderer.update_scene(self.data, camera=self._camera)
         return self._renderer.render()
 

@@ -65,6 +65,14 @@ __all__ = [
     "step_info_spec",
 ]
 
+_NUMPY_DTYPES = {
+    torch.float32: np.float32,
+    torch.float64: np.float64,
+    torch.bool: np.bool_,
+    torch.int64: np.int64,
+    torch.int32: np.int32,
+}
+
 COST_KEY = "cost"
 """Name of the per-step cost entry (``("next", "cost")`` after a step)."""
 
@@ -101,16 +109,25 @@ class InfoReader(BaseInfoDictReader):
 
     def __init__(self, spec: Composite) -> None:
         self._spec = spec
-        self._items = [(key, s.dtype, s.shape, s.device) for key, s in spec.items()]
+        self._items = [
+            (key, _NUMPY_DTYPES.get(s.dtype), s.dtype, tuple(s.shape), s.device)
+            for key, s in spec.items()
+        ]
 
     def __call__(self, info_dict: Mapping[str, Any], tensordict: TensorDictBase) -> TensorDictBase:
-        for key, dtype, shape, device in self._items:
+        for key, np_dtype, dtype, shape, device in self._items:
             value = info_dict.get(key) if info_dict is not None else None
             if value is None:
                 tensordict.set(key, self._spec[key].zero())
                 continue
-            tensor = torch.as_tensor(np.asarray(value), dtype=dtype, device=device)
-            tensordict.set(key, tensor.reshape(shape))
+            if np_dtype is not None:  # fast path: one numpy copy, shared with torch
+                tensor = torch.from_numpy(np.array(value, dtype=np_dtype).reshape(shape))
+                if device is not None and device.type != "cpu":
+                    tensor = tensor.to(device)
+            else:
+                tensor = torch.as_tensor(np.asarray(value), dtype=dtype, device=device)
+                tensor = tensor.reshape(shape)
+            tensordict.set(key, tensor)
         return tensordict
 
     @property

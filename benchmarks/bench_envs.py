@@ -1,0 +1,85 @@
+"""Env throughput: raw gymnasium steps/s and TorchRL-wrapped steps/s for each preset.
+
+Usage::
+
+    python benchmarks/bench_envs.py [--steps N] [--envs static dynamic ...]
+
+Random actions, one process, resets included in the timing. "raw" steps the
+gymnasium env directly; "torchrl" steps ``make_env(name)`` (GymWrapper + info reader
++ StepCounter/RewardSum/CostSum) through ``env.rollout`` with pre-drawn random
+actions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+
+import numpy as np
+import torch
+
+from wcsac_rl.envs import PRESET_NAMES, make_env, make_gym_env
+
+
+def raw_steps_per_second(name: str, steps: int, seed: int = 0) -> float:
+    """Steps/s of the bare gymnasium env with uniform random actions."""
+    env = make_gym_env(name)
+    rng = np.random.default_rng(seed)
+    actions = rng.uniform(-1.0, 1.0, size=(steps, 2))
+    env.reset(seed=seed)
+    start = time.perf_counter()
+    for a in actions:
+        *_, terminated, truncated, _ = env.step(a)
+        if terminated or truncated:
+            env.reset()
+    elapsed = time.perf_counter() - start
+    env.close()
+    return steps / elapsed
+
+
+def torchrl_steps_per_second(name: str, steps: int, seed: int = 0) -> float:
+    """Steps/s of ``make_env(name)`` stepped by ``rollout`` with pre-drawn random actions.
+
+    The actions are drawn up front so the timing covers the env and its TorchRL
+    wrapping, not the sampling of a random policy from the action spec.
+    """
+    env = make_env(name, seed=seed)
+    actions = torch.rand(steps + 10, 2, generator=torch.Generator().manual_seed(seed)) * 2 - 1
+    it = iter(actions)
+
+    def policy(td):
+        return td.set("action", next(it))
+
+    env.rollout(10, policy, break_when_any_done=False)  # warm-up
+    start = time.perf_counter()
+    td = env.rollout(steps, policy, break_when_any_done=False)
+    elapsed = time.perf_counter() - start
+    assert td.shape[0] == steps
+    env.close()
+    return steps / elapsed
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--steps", type=int, default=5000, help="steps per measurement")
+    parser.add_argument("--envs", nargs="*", default=list(PRESET_NAMES), help="preset names")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+
+    print(
+        f"# {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
+        f"torch {torch.__version__}, {args.steps} steps per cell, 1 process"
+    )
+    header = f"{'env':<12} {'raw gym steps/s':>16} {'torchrl steps/s':>16} {'overhead':>9}"
+    print(header)
+    print("-" * len(header))
+    for name in args.envs:
+        raw = raw_steps_per_second(name, args.steps)
+        wrapped = torchrl_steps_per_second(name, args.steps)
+        print(f"{name:<12} {raw:>16,.0f} {wrapped:>16,.0f} {raw / wrapped:>8.1f}x", flush=True)
+
+
+if __name__ == "__main__":
+    main()
