@@ -274,7 +274,6 @@ class PointGoalEnv(gym.Env):
         self._goal_xy = np.zeros(2)
         self._robot_xy0 = np.zeros(2)
         self._robot_heading0 = 0.0
-        self._vases_xy0 = np.zeros((config.vases_num, 2))
         # Lidar points: goal (row 0), hazards, vases; one class index per row.
         nh, nv = config.hazards_num, config.vases_num
         self._lidar_points = np.zeros((1 + nh + nv, 2))
@@ -302,7 +301,6 @@ class PointGoalEnv(gym.Env):
         jy = m.joint("robot_y").id
         jz = m.joint("robot_z").id
         self._robot_qpos = np.array([m.jnt_qposadr[j] for j in (jx, jy, jz)])
-        self._robot_qvel = np.array([m.jnt_dofadr[j] for j in (jx, jy, jz)])
         self._robot_body = m.body("robot").id
         self._goal_mocap = m.body_mocapid[m.body("goal").id]
         self._hazard_mocap = np.array(
@@ -326,6 +324,11 @@ class PointGoalEnv(gym.Env):
         self._dt = m.opt.timestep * _FRAME_SKIP
 
     # ------------------------------------------------------------------ public facts
+    @property
+    def max_episode_steps(self) -> int:
+        """Episode length; ``truncated=True`` on that step."""
+        return self.config.max_episode_steps
+
     @property
     def dt(self) -> float:
         """Duration of one env step in seconds (0.02)."""
@@ -459,7 +462,6 @@ class PointGoalEnv(gym.Env):
         for i in range(c.vases_num):
             rot = float(rng.uniform(0.0, 2.0 * np.pi))
             xy = layout[f"vase{i}"]
-            self._vases_xy0[i] = xy
             adr = self._vase_qpos[i]
             d.qpos[adr : adr + 7] = (
                 xy[0],

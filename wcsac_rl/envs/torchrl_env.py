@@ -341,15 +341,10 @@ def env_info(name: str, **kwargs: Any) -> dict[str, Any]:
     try:
         unwrapped = env.unwrapped
         slices = unwrapped.observation_slices() if hasattr(unwrapped, "observation_slices") else {}
-        max_steps = (
-            unwrapped.config.max_episode_steps
-            if hasattr(unwrapped, "config")
-            else unwrapped.max_episode_steps
-        )
         return {
             "name": preset.name,
             "gym_id": preset.gym_id,
-            "max_episode_steps": int(max_steps),
+            "max_episode_steps": int(unwrapped.max_episode_steps),
             "obs_dim": int(np.prod(env.observation_space.shape)),
             "action_dim": int(np.prod(env.action_space.shape)),
             "action_low": float(np.min(env.action_space.low)),
