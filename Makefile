@@ -33,6 +33,7 @@ train: $(STAMP)
 	$(PY) train.py experiment=quickstart
 
 bench: $(STAMP)
+	$(PY) benchmarks/bench_envs.py
 	$(PY) benchmarks/bench_update.py
 
 clean:

@@ -13,7 +13,9 @@ OBS_DIM = 5
 ACT_DIM = 2
 
 
-def make_batch(batch: int = 16, *, terminated_every: int = 4, seed: int = 0, cost_shape_1: bool = True):
+def make_batch(
+    batch: int = 16, *, terminated_every: int = 4, seed: int = 0, cost_shape_1: bool = True
+):
     """A replay batch with random observations, binary costs and some terminal steps."""
     g = torch.Generator().manual_seed(seed)
     cost = torch.bernoulli(torch.full((batch, 1), 0.3), generator=g)

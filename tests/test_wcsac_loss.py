@@ -184,7 +184,9 @@ def test_set_keys_with_custom_names_gives_the_same_losses():
         width=16,
     )
     qvalues = [
-        make_qvalue(OBS_DIM, ACT_DIM, observation_key="obs", action_key="act", out_key="q", width=16)
+        make_qvalue(
+            OBS_DIM, ACT_DIM, observation_key="obs", action_key="act", out_key="q", width=16
+        )
         for _ in range(2)
     ]
     safety = make_safety_critic(
@@ -223,7 +225,9 @@ def test_mean_only_critic_is_sac_lag_without_variance_parameters():
     out = loss(make_batch())
     assert "loss_cost_variance" not in out.keys() and "cost_variance" not in out.keys()
     # Γ = Q^c: the κ loss uses the mean alone
-    torch.testing.assert_close(out["loss_kappa"], loss.kappa * (out["cost_threshold"] - out["cvar"]))
+    torch.testing.assert_close(
+        out["loss_kappa"], loss.kappa * (out["cost_threshold"] - out["cvar"])
+    )
 
     torch.manual_seed(0)
     lag = SACLagLoss(

@@ -41,6 +41,7 @@ from torchrl.envs import (
     EnvBase,
     ParallelEnv,
     RewardSum,
+    SerialEnv,
     StepCounter,
     Transform,
     TransformedEnv,
@@ -260,6 +261,7 @@ def make_env(
     *,
     seed: int | None = None,
     num_workers: int = 1,
+    parallel: bool = True,
     device: torch.device | str = "cpu",
     max_episode_steps: int | None = None,
     from_pixels: bool = False,
@@ -271,8 +273,11 @@ def make_env(
         name: preset short name (``"static"``, ``"dynamic"``, ``"point_goal1"``,
             ``"point_goal2"``, ``"tiny"``) or its gymnasium id.
         seed: seeds the env(s) (workers get ``seed``, ``seed + 1``, ...).
-        num_workers: ``1`` for a single in-process env; more for a ``ParallelEnv``
-            with one process per worker (batch size ``[num_workers]``).
+        num_workers: ``1`` for a single in-process env; more for a batch of
+            ``num_workers`` envs (batch size ``[num_workers]``).
+        parallel: with ``num_workers > 1``, ``True`` runs one process per env
+            (``ParallelEnv``), ``False`` steps them in turn in this process
+            (``SerialEnv``; the better choice when updates, not envs, use the cores).
         device: device of the output tensordicts.
         max_episode_steps: episode length override (default: the preset's).
         from_pixels: also emit rendered ``"pixels"``.
@@ -306,7 +311,8 @@ def make_env(
     if num_workers == 1:
         base = base_fn()
     else:
-        base = ParallelEnv(num_workers, base_fn, device=device)
+        batched = ParallelEnv if parallel else SerialEnv
+        base = batched(num_workers, base_fn, device=device)
     env = TransformedEnv(base, env_transforms())
     if seed is not None:
         env.set_seed(int(seed))

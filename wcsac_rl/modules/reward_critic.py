@@ -35,7 +35,5 @@ def make_qvalue(
         >>> q(td)["state_action_value"].shape
         torch.Size([3, 1])
     """
-    net = make_mlp(
-        observation_dim + action_dim, 1, width=width, depth=depth, activation=activation
-    )
+    net = make_mlp(observation_dim + action_dim, 1, width=width, depth=depth, activation=activation)
     return ValueOperator(net, in_keys=[observation_key, action_key], out_keys=[out_key])

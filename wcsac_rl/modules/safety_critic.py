@@ -96,7 +96,5 @@ def make_safety_critic(
             observation_dim, action_dim, width=width, depth=depth, activation=activation
         )
         return TensorDictModule(net, in_keys=in_keys, out_keys=[cost_value_key, cost_variance_key])
-    net = make_mlp(
-        observation_dim + action_dim, 1, width=width, depth=depth, activation=activation
-    )
+    net = make_mlp(observation_dim + action_dim, 1, width=width, depth=depth, activation=activation)
     return TensorDictModule(net, in_keys=in_keys, out_keys=[cost_value_key])

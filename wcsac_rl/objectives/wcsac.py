@@ -210,7 +210,9 @@ class WCSACLoss(SACLoss):
             # Validates cost_limit and max_episode_steps now, whatever γ is later.
             per_step_cost_threshold(cost_limit, 0.99, max_episode_steps)
         if not kappa_init > 0:
-            raise ValueError(f"kappa_init must be > 0 (κ is a Lagrange multiplier), got {kappa_init}")
+            raise ValueError(
+                f"kappa_init must be > 0 (κ is a Lagrange multiplier), got {kappa_init}"
+            )
         if kappa_parametrization not in KAPPA_PARAMETRISATIONS:
             raise ValueError(
                 f"kappa_parametrization must be one of {KAPPA_PARAMETRISATIONS}, got {kappa_parametrization!r}"
@@ -220,7 +222,9 @@ class WCSACLoss(SACLoss):
         if damp_scale < 0:
             raise ValueError(f"damp_scale must be >= 0, got {damp_scale}")
         if variance_loss not in VARIANCE_LOSSES:
-            raise ValueError(f"variance_loss must be one of {VARIANCE_LOSSES}, got {variance_loss!r}")
+            raise ValueError(
+                f"variance_loss must be one of {VARIANCE_LOSSES}, got {variance_loss!r}"
+            )
         self.cost_limit = float(cost_limit)
         self.max_episode_steps = int(max_episode_steps)
         self._explicit_cost_threshold = None if cost_threshold is None else float(cost_threshold)
@@ -356,7 +360,7 @@ class WCSACLoss(SACLoss):
                 f"loss at your key with loss.set_keys(cost=...)."
             )
         batch_shape = tensordict.shape
-        if cost.shape == batch_shape + (1,):
+        if cost.shape == (*batch_shape, 1):
             cost = cost.squeeze(-1)
         elif cost.shape != batch_shape:
             raise ValueError(
@@ -385,8 +389,9 @@ class WCSACLoss(SACLoss):
         return cost_value + self.cvar_multiplier * cost_variance.sqrt()
 
     def _sample_policy(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor]:
-        with set_exploration_type(ExplorationType.RANDOM), self.actor_network_params.to_module(
-            self.actor_network, preserve_module_state=False
+        with (
+            set_exploration_type(ExplorationType.RANDOM),
+            self.actor_network_params.to_module(self.actor_network, preserve_module_state=False),
         ):
             dist = self.actor_network.get_dist(tensordict)
             return compute_rsample_log_prob(dist)
@@ -443,10 +448,14 @@ class WCSACLoss(SACLoss):
             targets = self.compute_targets(tensordict)
         weights = self._maybe_get_priority_weight(tensordict)
         target_value = targets["reward_target"]
-        pred = self._vmap_qnetworkN0(
-            tensordict.select(*self.qvalue_network.in_keys, strict=False),
-            self.qvalue_network_params,
-        ).get(self.tensor_keys.state_action_value).squeeze(-1)
+        pred = (
+            self._vmap_qnetworkN0(
+                tensordict.select(*self.qvalue_network.in_keys, strict=False),
+                self.qvalue_network_params,
+            )
+            .get(self.tensor_keys.state_action_value)
+            .squeeze(-1)
+        )
         loss = distance_loss(
             pred, target_value.expand_as(pred), loss_function=self.loss_function
         ).sum(0)
@@ -517,7 +526,9 @@ class WCSACLoss(SACLoss):
         )
         td_pi_safety = tensordict.select(*self.safety_network.in_keys, strict=False)
         td_pi_safety.set(self.tensor_keys.action, action)
-        cvar_pi = self.cvar(*self._safety_forward(td_pi_safety, self._cached_detached_safety_params))
+        cvar_pi = self.cvar(
+            *self._safety_forward(td_pi_safety, self._cached_detached_safety_params)
+        )
         cvar_constraint = cvar_pi.detach() if self.kappa_actions == "policy" else cvar_replay
         penalty = self._constraint_gap_penalty(cvar_constraint)
         loss = self._alpha * log_prob - min_q + penalty * cvar_pi

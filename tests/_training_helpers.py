@@ -1,0 +1,35 @@
+"""Compose the project's Hydra config for tests, at a small scale."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+CONF = ROOT / "conf"
+
+# A fast schedule: 2 envs, 200 frames per batch, 50 updates, small networks.
+SMALL = [
+    "algo.collector.num_envs=2",
+    "algo.collector.frames_per_batch=200",
+    "algo.collector.init_random_frames=200",
+    "algo.batch_size=64",
+    "algo.buffer_size=10000",
+    "algo.network.width=32",
+    "epoch_frames=400",
+    "total_frames=800",
+    "eval_episodes=1",
+    "progress_bar=false",
+    "logger=csv",
+]
+SMALL_RANDOM = [o for o in SMALL if o.startswith(("epoch", "total", "eval", "progress", "logger"))]
+
+
+def compose_config(*overrides: str, small: bool = True) -> DictConfig:
+    """``conf/config.yaml`` with the test schedule and then ``overrides`` applied."""
+    algo = next((o.split("=", 1)[1] for o in overrides if o.startswith("algo=")), "wcsac")
+    base = (SMALL_RANDOM if algo == "random" else SMALL) if small else []
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose("config", overrides=[*base, *overrides])

@@ -1,0 +1,70 @@
+"""CVaR helpers: the Gaussian multiplier against the spec and Monte-Carlo; empirical CVaR."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from wcsac_rl import empirical_cvar, gaussian_cvar, gaussian_cvar_multiplier
+
+
+@pytest.mark.parametrize(
+    ("alpha", "expected"),
+    [(0.1, 1.75498), (0.5, 0.79788), (0.9, 0.19500), (1.0, 0.0)],
+)
+def test_multiplier_matches_the_spec_table(alpha, expected):
+    assert gaussian_cvar_multiplier(alpha) == pytest.approx(expected, abs=1e-5)
+
+
+def test_multiplier_at_one_half_is_sqrt_two_over_pi():
+    assert gaussian_cvar_multiplier(0.5) == pytest.approx(math.sqrt(2 / math.pi), rel=1e-12)
+
+
+@pytest.mark.parametrize("alpha", [0.05, 0.1, 0.5, 0.9])
+def test_gaussian_cvar_equals_monte_carlo_tail_mean(alpha):
+    g = torch.Generator().manual_seed(0)
+    mean, std = 2.0, 3.0
+    samples = mean + std * torch.randn(2_000_000, generator=g, dtype=torch.float64)
+    mc = empirical_cvar(samples, alpha)
+    closed = float(gaussian_cvar(torch.tensor(mean), torch.tensor(std**2), alpha))
+    assert closed == pytest.approx(mc, abs=0.02)
+
+
+def test_gaussian_cvar_is_monotone_in_risk_level():
+    mean, var = torch.tensor(1.0), torch.tensor(4.0)
+    values = [float(gaussian_cvar(mean, var, a)) for a in (0.01, 0.1, 0.5, 0.9, 1.0)]
+    assert values == sorted(values, reverse=True)
+    assert values[-1] == 1.0
+
+
+def test_mean_only_cvar_below_one_is_refused():
+    assert gaussian_cvar(torch.tensor(1.0), None, 1.0) == 1.0
+    with pytest.raises(ValueError, match="needs a variance"):
+        gaussian_cvar(torch.tensor(1.0), None, 0.5)
+
+
+def test_empirical_cvar_hand_computed():
+    costs = [0, 0, 0, 0, 0, 0, 0, 0, 10, 30]
+    assert empirical_cvar(costs, 0.1) == 30.0
+    assert empirical_cvar(costs, 0.2) == 20.0
+    assert empirical_cvar(costs, 0.25) == pytest.approx(40 / 3)  # ⌈2.5⌉ = 3 worst
+    assert empirical_cvar(costs, 1.0) == 4.0
+    assert empirical_cvar([7.0], 0.1) == 7.0
+
+
+def test_empirical_cvar_uses_exactly_ceil_n_alpha_despite_float_noise():
+    # 300 · 0.1 is 30.000000000000004 in floating point: still the worst 30, not 31.
+    costs = torch.arange(300, dtype=torch.float64)
+    assert empirical_cvar(costs, 0.1) == pytest.approx(float(costs[-30:].mean()))
+    assert empirical_cvar(costs, 0.9) == pytest.approx(float(costs[-270:].mean()))
+
+
+def test_empirical_cvar_bad_input():
+    with pytest.raises(ValueError, match="at least one"):
+        empirical_cvar([], 0.5)
+    with pytest.raises(ValueError, match="NaN"):
+        empirical_cvar([1.0, float("nan")], 0.5)
+    with pytest.raises(ValueError, match="tail fraction"):
+        empirical_cvar([1.0], 0.0)

@@ -1,0 +1,43 @@
+"""The paper's central claim on the smallest task where it can be checked exactly.
+
+On :class:`~wcsac_rl.envs.risky_bandit.RiskyBanditEnv` the expected cost is under
+the limit for every action, but the CVaR_0.1 is not: SAC-Lag must take the
+high-reward end, WCSAC-0.1 must settle at the closed-form CVaR-feasible action.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from wcsac_rl.envs.risky_bandit import RiskyBanditEnv
+from wcsac_rl.experiments.risky_bandit import COST_LIMIT, train_on_risky_bandit
+
+
+def test_bandit_closed_form_facts():
+    env = RiskyBanditEnv()
+    assert float(env.expected_cost(1.0)) == pytest.approx(0.9)  # E[c] < 3 everywhere
+    a_star = env.cvar_feasible_action(0.1, COST_LIMIT)
+    assert a_star == pytest.approx(-0.621, abs=1e-3)
+    assert float(env.gaussian_cvar(a_star, 0.1)) == pytest.approx(COST_LIMIT, abs=1e-6)
+    assert env.cvar_feasible_action(1.0, COST_LIMIT) == 1.0
+    with pytest.raises(ValueError, match="no action"):
+        env.cvar_feasible_action(0.1, 0.5)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1])
+def test_sac_lag_takes_the_high_reward_end(seed):
+    run = train_on_risky_bandit(risk_level=1.0, variance=False, seed=seed, report_risk_level=0.1)
+    # measured: E_π[a] = +0.85/+0.86 (tanh-squashed policy with its target entropy)
+    assert run.mean_action > 0.7
+    assert run.true_cvar > COST_LIMIT + 1.5  # CVaR_0.1 ≈ 5.7: far over the limit
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_wcsac_settles_at_the_cvar_feasible_action(seed):
+    a_star = RiskyBanditEnv().cvar_feasible_action(0.1, COST_LIMIT)  # -0.621
+    run = train_on_risky_bandit(risk_level=0.1, seed=seed)  # the loss's defaults
+    # measured: E_π[a] = -0.62, -0.61, -0.58 and E_π[CVaR_0.1] ≈ 2.86 for seeds 0, 1, 2
+    assert run.mean_action == pytest.approx(a_star, abs=0.15)
+    assert run.true_cvar == pytest.approx(COST_LIMIT, abs=0.5)

@@ -1,0 +1,278 @@
+"""The training loop: every algorithm end to end, logs, checkpoints, resume, errors, sweeps."""
+
+from __future__ import annotations
+
+import csv
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from _training_helpers import ROOT, compose_config
+
+from wcsac_rl.training import ConfigError, Trainer
+from wcsac_rl.training.checkpoint import load_checkpoint
+
+COMMON_COLUMNS = {
+    "epoch",
+    "frames",
+    "updates",
+    "time_s",
+    "train/episodes",
+    "train/episode_return",
+    "train/episode_cost",
+    "train/episode_length",
+    "train/cost_rate",
+    "train/numerical_failures",
+    "eval/episode_return",
+    "eval/episode_cost",
+    "eval/episode_length",
+    "time/fps",
+    "time/ups",
+}
+WCSAC_COLUMNS = {
+    "loss/loss_actor",
+    "loss/loss_qvalue",
+    "loss/loss_alpha",
+    "loss/loss_cost_value",
+    "loss/loss_cost_variance",
+    "loss/loss_kappa",
+    "loss/alpha",
+    "loss/kappa",
+    "loss/entropy",
+    "loss/cost_value",
+    "loss/cost_variance",
+    "loss/cvar",
+    "loss/cost_threshold",
+}
+
+
+def _rows(run_dir: Path) -> list[dict[str, str]]:
+    with (run_dir / "progress.csv").open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _train(tmp_path: Path, *overrides: str, name: str = "run") -> tuple[Trainer, Path]:
+    trainer = Trainer(compose_config(*overrides), tmp_path / name)
+    try:
+        run_dir = trainer.run()
+    finally:
+        trainer.close()
+    return trainer, run_dir
+
+
+@pytest.mark.parametrize(
+    ("algo", "extra_columns", "absent"),
+    [
+        ("wcsac", WCSAC_COLUMNS, set()),
+        (
+            "sac_lag",
+            WCSAC_COLUMNS - {"loss/loss_cost_variance", "loss/cost_variance"},
+            {"loss/cost_variance"},
+        ),
+        ("sac", {"loss/loss_actor", "loss/loss_qvalue", "loss/alpha"}, {"loss/kappa"}),
+        ("random", set(), {"loss/loss_actor"}),
+    ],
+)
+def test_each_algorithm_trains_on_the_tiny_env_and_logs_the_documented_columns(
+    tmp_path, algo, extra_columns, absent
+):
+    trainer, run_dir = _train(tmp_path, f"algo={algo}", "env=tiny")
+    rows = _rows(run_dir)
+    assert [int(r["frames"]) for r in rows] == [400, 800]
+    columns = set(rows[0])
+    assert COMMON_COLUMNS | extra_columns <= columns
+    assert not (absent & columns)
+    # 100-step episodes: 2 envs × 400 frames per epoch finish 4 episodes
+    assert [int(r["train/episodes"]) for r in rows] == [4, 4]
+    assert all(float(r["train/episode_length"]) == 100 for r in rows)
+    # updates start right after the 200 random frames: 50 after each of 4 batches
+    expected_updates = 0 if algo == "random" else 4 * 50
+    assert int(rows[-1]["updates"]) == expected_updates
+    checkpoint = load_checkpoint(trainer.checkpoint_path)
+    assert checkpoint["frames"] == 800 and checkpoint["updates"] == expected_updates
+    assert checkpoint["config"]["algo"]["name"] == algo
+    # the logger backend (csv) wrote its scalars too
+    assert list((run_dir / "logs").rglob("*.csv"))
+
+
+def test_wcsac_trains_on_static_env_with_the_paper_networks(tmp_path):
+    trainer, run_dir = _train(
+        tmp_path, "env=static", "algo.network.width=256", "total_frames=400", "epoch_frames=400"
+    )
+    row = _rows(run_dir)[-1]
+    assert int(row["updates"]) == 100  # 2 batches of 200 frames, 50 updates after each
+    assert float(row["loss/cost_threshold"]) == pytest.approx(1.49994, abs=1e-4)
+    assert float(row["eval/episode_length"]) <= 1000
+    assert trainer.loss.has_variance and trainer.loss.risk_level == 0.5
+
+
+def test_cost_rate_is_total_cost_over_frames(tmp_path):
+    trainer, run_dir = _train(tmp_path, "algo=random", "env=tiny")
+    rows = _rows(run_dir)
+    assert float(rows[-1]["train/cost_rate"]) == pytest.approx(trainer.tracker.total_cost / 800)
+
+
+def test_same_seed_gives_identical_logs(tmp_path):
+    _, first = _train(tmp_path, "env=tiny", "seed=3", name="a")
+    _, second = _train(tmp_path, "env=tiny", "seed=3", name="b")
+    _, other = _train(tmp_path, "env=tiny", "seed=4", name="c")
+
+    def values(run_dir):
+        return [
+            {k: v for k, v in row.items() if not k.startswith("time")} for row in _rows(run_dir)
+        ]
+
+    assert values(first) == values(second)
+    assert values(first) != values(other)
+
+
+def test_resume_continues_the_frame_counter_and_appends_to_the_log(tmp_path):
+    trainer, run_dir = _train(tmp_path, "env=tiny")
+    before = load_checkpoint(trainer.checkpoint_path)
+    resumed, same_dir = _train(
+        tmp_path, "env=tiny", "total_frames=1200", f"resume={run_dir}", name="ignored"
+    )
+    assert same_dir == run_dir
+    assert [int(r["frames"]) for r in _rows(run_dir)] == [400, 800, 1200]
+    after = load_checkpoint(resumed.checkpoint_path)
+    assert after["frames"] == 1200 and after["epoch"] == 3
+    # no saved buffer: 200 frames (init_random_frames) refill it, then updates continue:
+    # batches end at 1000 and 1200 frames, 50 updates after each
+    assert after["updates"] == before["updates"] + 100
+    for key, value in before["loss"].items():
+        if key.startswith(("actor_network_params", "qvalue_network_params")):
+            assert not torch.equal(value, after["loss"][key]), key  # training went on
+
+
+def test_resume_with_saved_replay_buffer_updates_at_once(tmp_path):
+    trainer, run_dir = _train(tmp_path, "env=tiny", "save_replay_buffer=true")
+    assert (run_dir / "checkpoints" / "replay_buffer").is_dir()
+    resumed, _ = _train(
+        tmp_path, "env=tiny", "save_replay_buffer=true", "total_frames=1000", f"resume={run_dir}"
+    )
+    assert len(resumed.replay_buffer) == 1000
+    assert resumed.updates == trainer.updates + 50
+
+
+def test_incompatible_checkpoint_and_occupied_run_dir_are_refused(tmp_path):
+    _, run_dir = _train(tmp_path, "env=tiny")
+    with pytest.raises(ConfigError, match=r"algo\.network: checkpoint="):
+        Trainer(
+            compose_config("env=tiny", "algo.network.width=16", f"resume={run_dir}"), tmp_path / "x"
+        )
+    with pytest.raises(ConfigError, match=r"algo\.name"):
+        Trainer(compose_config("env=tiny", "algo=sac", f"resume={run_dir}"), tmp_path / "x")
+    with pytest.raises(ConfigError, match="already holds a run"):
+        Trainer(compose_config("env=tiny"), run_dir)
+    with pytest.raises(ConfigError, match="no such run directory"):
+        Trainer(compose_config("env=tiny", f"resume={tmp_path / 'missing'}"), tmp_path / "y")
+    # the finished run is untouched
+    assert [int(r["frames"]) for r in _rows(run_dir)] == [400, 800]
+
+
+def test_keyboard_interrupt_writes_a_checkpoint_and_flushed_logs(tmp_path, monkeypatch):
+    trainer = Trainer(compose_config("env=tiny", "total_frames=1600"), tmp_path / "run")
+    real_update = trainer.update
+
+    def interrupting_update(batch):
+        if trainer.updates == 120:
+            raise KeyboardInterrupt
+        return real_update(batch)
+
+    monkeypatch.setattr(trainer, "update", interrupting_update)
+    with pytest.raises(KeyboardInterrupt):
+        trainer.run()
+    trainer.close()
+    checkpoint = load_checkpoint(trainer.checkpoint_path)
+    # interrupted during the updates after the third batch of 200 frames
+    assert checkpoint["updates"] == 120
+    assert checkpoint["frames"] == 600
+    assert [int(r["frames"]) for r in _rows(tmp_path / "run")] == [400]
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("risk_level=1.5", "risk_level α must be a number in (0, 1]"),
+        ("risk_level=0", "tail fraction"),
+        ("total_frames=-5", "total_frames must be an integer > 0"),
+        ("cost_limit=-1", "cost_limit must be a number >= 0"),
+        ("env.name=moon", "unknown env 'moon'"),
+        ("algo.collector.frames_per_batch=201", "must be a multiple"),
+    ],
+)
+def test_bad_config_fails_before_any_work_with_one_clear_message(tmp_path, override, message):
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        Trainer(compose_config("env=tiny", override), tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+def _train_py(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "train.py"), *args],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+SMALL_CLI = [
+    "env=tiny",
+    "algo.collector.num_envs=2",
+    "algo.collector.frames_per_batch=200",
+    "algo.collector.init_random_frames=200",
+    "algo.batch_size=32",
+    "algo.network.width=16",
+    "total_frames=400",
+    "epoch_frames=200",
+    "eval_episodes=1",
+    "progress_bar=false",
+]
+
+
+def test_train_py_runs_with_overrides_and_says_where_its_outputs_are(tmp_path):
+    run_dir = tmp_path / "cli_run"
+    result = _train_py(
+        *SMALL_CLI, "algo=wcsac", "risk_level=0.1", f"hydra.run.dir={run_dir}", cwd=tmp_path
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert f"run directory: {run_dir}" in result.stdout
+    assert (run_dir / "checkpoints" / "last.pt").is_file()
+    assert (run_dir / ".hydra" / "config.yaml").is_file()
+    rows = _rows(run_dir)
+    assert len(rows) == 2
+    assert float(rows[-1]["loss/cost_threshold"]) > 0
+    saved = load_checkpoint(run_dir / "checkpoints" / "last.pt")["config"]
+    assert saved["algo"]["risk_level"] == 0.1 and saved["algo"]["label"] == "wcsac_0.1"
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("risk_level=2", "error: risk_level α must be a number in (0, 1]"),
+        ("algo=nope", "Could not find 'algo/nope'"),
+        ("env=nope", "Could not find 'env/nope'"),
+    ],
+)
+def test_train_py_rejects_bad_input_with_one_line(tmp_path, override, message):
+    result = _train_py(*SMALL_CLI, override, f"hydra.run.dir={tmp_path / 'r'}", cwd=tmp_path)
+    assert result.returncode != 0
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_multirun_sweep_produces_one_run_dir_per_seed(tmp_path):
+    sweep_dir = tmp_path / "sweep"
+    result = _train_py(
+        "-m", *SMALL_CLI, "algo=sac", "seed=0,1", f"hydra.sweep.dir={sweep_dir}", cwd=tmp_path
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    runs = sorted(p.parent for p in sweep_dir.rglob("progress.csv"))
+    assert [p.name for p in runs] == ["0_sac_tiny_seed0", "1_sac_tiny_seed1"]
+    first, second = (_rows(p) for p in runs)
+    assert len(first) == len(second) == 2
+    assert first[-1]["loss/loss_qvalue"] != second[-1]["loss/loss_qvalue"]  # different seeds

@@ -1,0 +1,38 @@
+"""Train WCSAC or a baseline: ``python train.py algo=wcsac risk_level=0.5 env=dynamic``.
+
+Hydra composes ``conf/config.yaml``; with no overrides this is the paper's full run.
+Sweeps: ``python train.py -m algo=wcsac risk_level=0.1,0.5,0.9 seed=0,10,20``.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from wcsac_rl.training import ConfigError, Trainer
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="config")
+def main(cfg: DictConfig) -> None:
+    try:
+        trainer = Trainer(cfg, Path(HydraConfig.get().runtime.output_dir))
+    except ConfigError as err:
+        sys.exit(f"error: {err}")
+    try:
+        run_dir = trainer.run()
+    except KeyboardInterrupt:
+        sys.exit(130)
+    finally:
+        trainer.close()
+    print(f"run directory: {run_dir}")
+    print(f"  metrics (one row per epoch): {run_dir / 'progress.csv'}")
+    print(f"  logger output:               {run_dir / 'logs'}")
+    print(f"  checkpoint:                  {trainer.checkpoint_path}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,232 @@
+"""One small factory per piece of a run: envs, networks, loss, optimizers, collector, buffer, logger.
+
+Each takes the Hydra config (``cfg``) and returns a TorchRL object, so ``train.py``
+and the trainer read as the data flow: cfg → env → agent → loss → collector →
+replay buffer → update → logger.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict.nn import TensorDictModule
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType
+from torchrl.modules import ProbabilisticActor
+from torchrl.objectives import LossModule, SACLoss, SoftUpdate
+from torchrl.record.loggers import Logger
+
+from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
+from wcsac_rl.objectives import SACLagLoss, WCSACLoss
+
+__all__ = [
+    "Agent",
+    "make_agent",
+    "make_collector",
+    "make_eval_env",
+    "make_logger",
+    "make_loss",
+    "make_optimizers",
+    "make_replay_buffer",
+    "make_target_updater",
+    "make_train_env",
+]
+
+
+def _env_kwargs(cfg: DictConfig) -> dict:
+    extra = cfg.env.get("kwargs")
+    kwargs = {} if extra is None else OmegaConf.to_container(extra, resolve=True)
+    if cfg.env.get("max_episode_steps") is not None:
+        kwargs["max_episode_steps"] = int(cfg.env.max_episode_steps)
+    return kwargs
+
+
+def make_train_env(cfg: DictConfig) -> EnvBase:
+    """The training envs: ``algo.collector.num_envs`` copies, batched in one TorchRL env."""
+    from wcsac_rl.envs import make_env
+
+    collector = cfg.algo.collector
+    return make_env(
+        cfg.env.name,
+        seed=int(cfg.seed),
+        num_workers=int(collector.num_envs),
+        parallel=collector.get("env_backend", "serial") == "parallel",
+        device=cfg.device,
+        **_env_kwargs(cfg),
+    )
+
+
+def make_eval_env(cfg: DictConfig, *, seed_offset: int = 1_000_003) -> EnvBase:
+    """One unbatched env for test episodes, seeded apart from the training envs."""
+    from wcsac_rl.envs import make_env
+
+    return make_env(
+        cfg.env.name, seed=int(cfg.seed) + seed_offset, device=cfg.device, **_env_kwargs(cfg)
+    )
+
+
+@dataclass
+class Agent:
+    """The networks of a run (the loss holds their functional parameters)."""
+
+    actor: ProbabilisticActor
+    qvalues: list[TensorDictModule]
+    safety: TensorDictModule | None
+
+
+def make_agent(cfg: DictConfig, env: EnvBase) -> Agent:
+    """Actor, twin reward critic and (for WCSAC / SAC-Lag) the safety critic."""
+    net = cfg.algo.network
+    shape = {"width": int(net.width), "depth": int(net.depth), "activation": str(net.activation)}
+    action_spec = env.action_spec_unbatched
+    obs_dim = env.observation_spec["observation"].shape[-1]
+    act_dim = action_spec.shape[-1]
+    actor = make_actor(
+        obs_dim,
+        action_spec,
+        log_std_min=float(net.log_std_min),
+        log_std_max=float(net.log_std_max),
+        **shape,
+    )
+    qvalues = [make_qvalue(obs_dim, act_dim, **shape) for _ in range(2)]
+    safety = None
+    if cfg.algo.name in ("wcsac", "sac_lag"):
+        safety = make_safety_critic(obs_dim, act_dim, variance=bool(cfg.algo.variance), **shape)
+    device = torch.device(cfg.device)
+    actor.to(device)
+    for module in [*qvalues, safety]:
+        if module is not None:
+            module.to(device)
+    return Agent(actor, qvalues, safety)
+
+
+def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModule:
+    """``WCSACLoss`` / ``SACLagLoss`` / TorchRL ``SACLoss`` with the config's hyperparameters."""
+    algo = cfg.algo
+    common = {
+        "loss_function": "l2",
+        "alpha_init": float(algo.alpha_init),
+        "target_entropy": algo.target_entropy
+        if algo.target_entropy == "auto"
+        else float(algo.target_entropy),
+    }
+    if algo.name == "sac":
+        loss = SACLoss(agent.actor, agent.qvalues, num_qvalue_nets=2, **common)
+    else:
+        cls = SACLagLoss if algo.name == "sac_lag" else WCSACLoss
+        safety_kwargs = {
+            "cost_limit": float(cfg.cost_limit),
+            "max_episode_steps": int(max_episode_steps),
+            "kappa_init": float(algo.kappa_init),
+            "kappa_parametrization": str(algo.kappa_parametrization),
+            "kappa_actions": str(algo.kappa_actions),
+            "damp_scale": float(algo.damp_scale),
+            "variance_loss": str(algo.variance_loss),
+        }
+        if algo.name == "wcsac":
+            safety_kwargs["risk_level"] = float(algo.risk_level)
+        loss = cls(agent.actor, agent.qvalues, agent.safety, **safety_kwargs, **common)
+    loss.make_value_estimator(gamma=float(algo.gamma))
+    return loss
+
+
+def make_target_updater(cfg: DictConfig, loss: LossModule) -> SoftUpdate:
+    """Polyak averaging of every target network (reward and safety critics)."""
+    return SoftUpdate(loss, tau=float(cfg.algo.tau))
+
+
+def make_optimizers(cfg: DictConfig, loss: LossModule) -> dict[str, torch.optim.Optimizer]:
+    """One Adam per parameter group: actor, critics, entropy weight, safety weight κ.
+
+    κ's learning rate is ``lr × kappa_lr_scale`` (the authors' ``lr_scale``).
+    """
+    lr = float(cfg.algo.lr)
+    critics = list(loss.qvalue_network_params.values(True, True))
+    if isinstance(loss, WCSACLoss):
+        critics += list(loss.safety_network_params.values(True, True))
+    optimizers = {
+        "actor": torch.optim.Adam(loss.actor_network_params.values(True, True), lr=lr),
+        "critic": torch.optim.Adam(critics, lr=lr),
+        "alpha": torch.optim.Adam([loss.log_alpha], lr=lr),
+    }
+    if isinstance(loss, WCSACLoss):
+        kappa_lr = lr * float(cfg.algo.kappa_lr_scale)
+        optimizers["kappa"] = torch.optim.Adam([loss.kappa_raw], lr=kappa_lr)
+    return optimizers
+
+
+def make_collector(
+    cfg: DictConfig,
+    env: EnvBase,
+    policy: TensorDictModule | None,
+    *,
+    total_frames: int,
+    init_random_frames: int,
+) -> Collector:
+    """TorchRL ``Collector`` over the batched training envs (random actions first)."""
+    collector = Collector(
+        env,
+        policy,
+        frames_per_batch=int(cfg.algo.collector.frames_per_batch),
+        total_frames=int(total_frames),
+        init_random_frames=int(init_random_frames) if policy is not None else None,
+        exploration_type=ExplorationType.RANDOM,
+        device=cfg.device,
+        auto_register_policy_transforms=False,  # the MLP policy needs no env transforms
+    )
+    collector.set_seed(int(cfg.seed))
+    return collector
+
+
+def make_replay_buffer(cfg: DictConfig) -> TensorDictReplayBuffer:
+    """Uniform replay on a ``LazyTensorStorage`` (the paper: 10⁶ transitions, batch 256)."""
+    return TensorDictReplayBuffer(
+        storage=LazyTensorStorage(int(cfg.algo.buffer_size), device=cfg.device),
+        batch_size=int(cfg.algo.batch_size),
+    )
+
+
+def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:
+    """A ``torchrl.record.loggers`` logger writing under ``run_dir/logs`` (or ``None``)."""
+    backend = cfg.logger.backend
+    log_dir = run_dir / "logs"
+    name = str(cfg.run_name)
+    if backend == "none":
+        return None
+    if backend == "csv":
+        from torchrl.record.loggers.csv import CSVLogger
+
+        return CSVLogger(exp_name=name, log_dir=str(log_dir))
+    if backend == "tensorboard":
+        from torchrl.record.loggers.tensorboard import TensorboardLogger
+
+        return TensorboardLogger(exp_name=name, log_dir=str(log_dir))
+    if backend == "wandb":
+        from torchrl.record.loggers.wandb import WandbLogger
+
+        mode = cfg.logger.get("mode", "auto")
+        if mode == "auto":
+            mode = "online" if _wandb_key_available() else "offline"
+        log_dir.mkdir(parents=True, exist_ok=True)
+        return WandbLogger(
+            exp_name=name,
+            offline=mode == "offline",
+            save_dir=str(log_dir),
+            project=str(cfg.logger.project),
+            group=str(cfg.logger.group),
+            config=OmegaConf.to_container(cfg, resolve=True),
+        )
+    raise ValueError(f"unknown logger backend {backend!r}")
+
+
+def _wandb_key_available() -> bool:
+    if os.environ.get("WANDB_API_KEY"):
+        return True
+    netrc = Path.home() / ".netrc"
+    return netrc.exists() and "api.wandb.ai" in netrc.read_text(errors="ignore")

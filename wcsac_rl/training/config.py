@@ -1,0 +1,89 @@
+"""Validation of a training configuration: every user mistake becomes one clear line."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from wcsac_rl.objectives.risk import validate_risk_level
+
+__all__ = ["ALGOS", "OFF_POLICY_ALGOS", "ConfigError", "validate_config"]
+
+OFF_POLICY_ALGOS = ("wcsac", "sac_lag", "sac")
+ALGOS = (*OFF_POLICY_ALGOS, "random")
+
+
+class ConfigError(ValueError):
+    """A configuration a run cannot start from; the message says what to change."""
+
+
+def _positive_int(cfg: Mapping[str, Any], key: str, *, allow_zero: bool = False) -> None:
+    value = OmegaConf.select(cfg, key) if isinstance(cfg, DictConfig) else cfg.get(key)
+    ok = isinstance(value, int) and not isinstance(value, bool)
+    ok = ok and (value >= 0 if allow_zero else value > 0)
+    if not ok:
+        bound = ">= 0" if allow_zero else "> 0"
+        raise ConfigError(f"{key} must be an integer {bound}, got {value!r}")
+
+
+def validate_config(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` if ``cfg`` cannot give a sensible run. Does no work."""
+    from wcsac_rl.envs import PRESET_NAMES  # local: importing envs loads MuJoCo
+
+    algo = cfg.algo.get("name")
+    if algo not in ALGOS:
+        raise ConfigError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}")
+    env = cfg.env.get("name")
+    if env not in PRESET_NAMES:
+        raise ConfigError(f"unknown env {env!r}; choose one of {', '.join(PRESET_NAMES)}")
+    try:
+        validate_risk_level(cfg.risk_level)
+        if algo in ("wcsac", "sac_lag"):
+            validate_risk_level(cfg.algo.risk_level)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    if algo == "sac_lag" and float(cfg.algo.risk_level) != 1.0:
+        raise ConfigError(
+            "algo=sac_lag is risk-neutral (algo.risk_level=1); use algo=wcsac for α < 1"
+        )
+    if not isinstance(cfg.cost_limit, (int, float)) or cfg.cost_limit < 0:
+        raise ConfigError(
+            f"cost_limit must be a number >= 0 (episodic budget d), got {cfg.cost_limit!r}"
+        )
+    for key in ("total_frames", "epoch_frames", "threads", "checkpoint_every_epochs"):
+        _positive_int(cfg, key)
+    _positive_int(cfg, "eval_episodes", allow_zero=True)
+    if cfg.env.get("max_episode_steps") is not None:
+        _positive_int(cfg, "env.max_episode_steps")
+    collector = cfg.algo.collector
+    _positive_int(cfg, "algo.collector.num_envs")
+    _positive_int(cfg, "algo.collector.frames_per_batch")
+    if collector.frames_per_batch % collector.num_envs:
+        raise ConfigError(
+            f"algo.collector.frames_per_batch ({collector.frames_per_batch}) must be a multiple "
+            f"of algo.collector.num_envs ({collector.num_envs})"
+        )
+    if collector.get("env_backend", "serial") not in ("serial", "parallel"):
+        raise ConfigError(
+            f"algo.collector.env_backend must be 'serial' or 'parallel', got {collector.env_backend!r}"
+        )
+    if algo in OFF_POLICY_ALGOS:
+        _positive_int(cfg, "algo.batch_size")
+        _positive_int(cfg, "algo.buffer_size")
+        _positive_int(cfg, "algo.collector.init_random_frames", allow_zero=True)
+        if not 0 < float(collector.utd_ratio):
+            raise ConfigError(f"algo.collector.utd_ratio must be > 0, got {collector.utd_ratio}")
+        if not 0.0 < float(cfg.algo.tau) <= 1.0:
+            raise ConfigError(f"algo.tau must be in (0, 1], got {cfg.algo.tau}")
+        if not 0.0 <= float(cfg.algo.gamma) <= 1.0:
+            raise ConfigError(f"algo.gamma must be in [0, 1], got {cfg.algo.gamma}")
+        if not float(cfg.algo.lr) > 0:
+            raise ConfigError(f"algo.lr must be > 0, got {cfg.algo.lr}")
+    if cfg.logger.backend not in ("csv", "wandb", "tensorboard", "none"):
+        raise ConfigError(
+            f"logger.backend must be csv, wandb, tensorboard or none, got {cfg.logger.backend!r}"
+        )
+    if str(cfg.device) != "cpu" and not str(cfg.device).startswith(("cuda", "mps")):
+        raise ConfigError(f"device must be cpu, cuda[:N] or mps, got {cfg.device!r}")
