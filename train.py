@@ -13,13 +13,13 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from wcsac_rl.training import ConfigError, Trainer
+from wcsac_rl.training import ConfigError, make_trainer
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> None:
     try:
-        trainer = Trainer(cfg, Path(HydraConfig.get().runtime.output_dir))
+        trainer = make_trainer(cfg, Path(HydraConfig.get().runtime.output_dir))
     except ConfigError as err:
         sys.exit(f"error: {err}")
     try:
@@ -32,6 +32,7 @@ def main(cfg: DictConfig) -> None:
     print(f"  metrics (one row per epoch): {run_dir / 'progress.csv'}")
     print(f"  logger output:               {run_dir / 'logs'}")
     print(f"  checkpoint:                  {trainer.checkpoint_path}")
+    print(f"  training curves:             {trainer.plot_path}")
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ import pytest
 import torch
 from _training_helpers import ROOT, compose_config
 
-from wcsac_rl.training import ConfigError, Trainer
+from wcsac_rl.training import ConfigError, make_trainer
 from wcsac_rl.training.checkpoint import load_checkpoint
 
 COMMON_COLUMNS = {
@@ -54,8 +54,8 @@ def _rows(run_dir: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(f))
 
 
-def _train(tmp_path: Path, *overrides: str, name: str = "run") -> tuple[Trainer, Path]:
-    trainer = Trainer(compose_config(*overrides), tmp_path / name)
+def _train(tmp_path: Path, *overrides: str, name: str = "run"):
+    trainer = make_trainer(compose_config(*overrides), tmp_path / name)
     try:
         run_dir = trainer.run()
     finally:
@@ -96,6 +96,9 @@ def test_each_algorithm_trains_on_the_tiny_env_and_logs_the_documented_columns(
     assert checkpoint["config"]["algo"]["name"] == algo
     # the logger backend (csv) wrote its scalars too
     assert list((run_dir / "logs").rglob("*.csv"))
+    # and the run's curves were drawn
+    png = (run_dir / "curves.png").read_bytes()
+    assert png.startswith(b"\x89PNG") and len(png) > 10_000
 
 
 def test_wcsac_trains_on_static_env_with_the_paper_networks(tmp_path):
@@ -142,9 +145,9 @@ def test_resume_continues_the_frame_counter_and_appends_to_the_log(tmp_path):
     # no saved buffer: 200 frames (init_random_frames) refill it, then updates continue:
     # batches end at 1000 and 1200 frames, 50 updates after each
     assert after["updates"] == before["updates"] + 100
-    for key, value in before["loss"].items():
+    for key, value in before["learner"]["loss"].items():
         if key.startswith(("actor_network_params", "qvalue_network_params")):
-            assert not torch.equal(value, after["loss"][key]), key  # training went on
+            assert not torch.equal(value, after["learner"]["loss"][key]), key  # training went on
 
 
 def test_resume_with_saved_replay_buffer_updates_at_once(tmp_path):
@@ -160,21 +163,21 @@ def test_resume_with_saved_replay_buffer_updates_at_once(tmp_path):
 def test_incompatible_checkpoint_and_occupied_run_dir_are_refused(tmp_path):
     _, run_dir = _train(tmp_path, "env=tiny")
     with pytest.raises(ConfigError, match=r"algo\.network: checkpoint="):
-        Trainer(
+        make_trainer(
             compose_config("env=tiny", "algo.network.width=16", f"resume={run_dir}"), tmp_path / "x"
         )
     with pytest.raises(ConfigError, match=r"algo\.name"):
-        Trainer(compose_config("env=tiny", "algo=sac", f"resume={run_dir}"), tmp_path / "x")
+        make_trainer(compose_config("env=tiny", "algo=sac", f"resume={run_dir}"), tmp_path / "x")
     with pytest.raises(ConfigError, match="already holds a run"):
-        Trainer(compose_config("env=tiny"), run_dir)
+        make_trainer(compose_config("env=tiny"), run_dir)
     with pytest.raises(ConfigError, match="no such run directory"):
-        Trainer(compose_config("env=tiny", f"resume={tmp_path / 'missing'}"), tmp_path / "y")
+        make_trainer(compose_config("env=tiny", f"resume={tmp_path / 'missing'}"), tmp_path / "y")
     # the finished run is untouched
     assert [int(r["frames"]) for r in _rows(run_dir)] == [400, 800]
 
 
 def test_keyboard_interrupt_writes_a_checkpoint_and_flushed_logs(tmp_path, monkeypatch):
-    trainer = Trainer(compose_config("env=tiny", "total_frames=1600"), tmp_path / "run")
+    trainer = make_trainer(compose_config("env=tiny", "total_frames=1600"), tmp_path / "run")
     real_update = trainer.update
 
     def interrupting_update(batch):
@@ -206,7 +209,7 @@ def test_keyboard_interrupt_writes_a_checkpoint_and_flushed_logs(tmp_path, monke
 )
 def test_bad_config_fails_before_any_work_with_one_clear_message(tmp_path, override, message):
     with pytest.raises(ConfigError, match=re.escape(message)):
-        Trainer(compose_config("env=tiny", override), tmp_path / "run")
+        make_trainer(compose_config("env=tiny", override), tmp_path / "run")
     assert not (tmp_path / "run").exists()
 
 
@@ -241,6 +244,7 @@ def test_train_py_runs_with_overrides_and_says_where_its_outputs_are(tmp_path):
     )
     assert result.returncode == 0, result.stderr[-2000:]
     assert f"run directory: {run_dir}" in result.stdout
+    assert f"training curves:             {run_dir / 'curves.png'}" in result.stdout
     assert (run_dir / "checkpoints" / "last.pt").is_file()
     assert (run_dir / ".hydra" / "config.yaml").is_file()
     rows = _rows(run_dir)

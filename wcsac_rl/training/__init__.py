@@ -1,6 +1,14 @@
-"""Training: config validation, builders of every piece, the trainer, checkpoints."""
+"""Training: config validation, builders of every piece, the trainers, checkpoints."""
 
 from wcsac_rl.training.config import ALGOS, ConfigError, validate_config
-from wcsac_rl.training.trainer import Trainer, seed_everything
+from wcsac_rl.training.trainer import RandomPolicyTrainer, Trainer, make_trainer, seed_everything
 
-__all__ = ["ALGOS", "ConfigError", "Trainer", "seed_everything", "validate_config"]
+__all__ = [
+    "ALGOS",
+    "ConfigError",
+    "RandomPolicyTrainer",
+    "Trainer",
+    "make_trainer",
+    "seed_everything",
+    "validate_config",
+]

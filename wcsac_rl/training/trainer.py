@@ -1,10 +1,12 @@
-"""The off-policy training loop (WCSAC, SAC-Lag, SAC) and the random-policy baseline.
+"""The training loop shared by every algorithm: collect, learn, log, evaluate, checkpoint.
 
-One collector batch (``algo.collector.frames_per_batch`` frames from the batched
-training envs) is followed by ``frames_per_batch × utd_ratio`` gradient steps on
-replay samples; every ``epoch_frames`` frames one row of metrics is logged and
-deterministic test episodes are run; checkpoints are written every
-``checkpoint_every_epochs`` epochs, at the end, and on Ctrl-C.
+:class:`Trainer` owns the run: the batched training envs and TorchRL ``Collector``,
+episode statistics, one ``progress.csv`` row (and logger scalars) per epoch of
+``epoch_frames`` frames, deterministic test episodes, checkpoints (every
+``checkpoint_every_epochs`` epochs, at the end and on Ctrl-C) and resume. What an
+algorithm does with a collected batch is its subclass's :meth:`Trainer.learn`
+(:class:`~wcsac_rl.training.off_policy.OffPolicyTrainer` for WCSAC, SAC-Lag and SAC,
+:class:`RandomPolicyTrainer` for the random baseline); :func:`make_trainer` picks it.
 """
 
 from __future__ import annotations
@@ -27,7 +29,6 @@ from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import (
     CHECKPOINT_DIR,
     LAST_CHECKPOINT,
-    REPLAY_BUFFER_DIR,
     check_compatible,
     find_checkpoint,
     load_checkpoint,
@@ -36,7 +37,7 @@ from wcsac_rl.training.checkpoint import (
 from wcsac_rl.training.config import ConfigError, validate_config
 from wcsac_rl.training.progress import EpisodeTracker, ProgressWriter
 
-__all__ = ["Trainer", "seed_everything"]
+__all__ = ["RandomPolicyTrainer", "Trainer", "make_trainer", "seed_everything"]
 
 
 def seed_everything(seed: int) -> None:
@@ -70,25 +71,9 @@ class Trainer:
         )
         self.env = builders.make_train_env(cfg)
         self.eval_env = builders.make_eval_env(cfg) if cfg.eval_episodes > 0 else None
-        self.learning = cfg.algo.name != "random"
-        collector_cfg = cfg.algo.collector
-        if self.learning:
-            self.agent = builders.make_agent(cfg, self.env)
-            self.loss = builders.make_loss(cfg, self.agent, self.max_episode_steps)
-            self.target_updater = builders.make_target_updater(cfg, self.loss)
-            self.optimizers = builders.make_optimizers(cfg, self.loss)
-            self.replay_buffer = builders.make_replay_buffer(cfg)
-            self.updates_per_batch = max(
-                1, round(int(collector_cfg.frames_per_batch) * float(collector_cfg.utd_ratio))
-            )
-            self.init_random_frames = int(collector_cfg.init_random_frames)
-            # frames after which gradient steps start (moved on resume, see _load_state)
-            self.update_start_frames = self.init_random_frames
-            self.policy = self.agent.actor
-            self._loss_forward = self._compiled_loss() if cfg.compile else self.loss
-        else:
-            self.policy = None
-            self.init_random_frames = 0
+        self.policy = None  # set by _build_learner; None acts uniformly at random
+        self.init_random_frames = 0  # collector frames with random actions at the start
+        self._build_learner()
 
         self.updates = 0
         self.epoch = 0
@@ -96,6 +81,7 @@ class Trainer:
         self.tracker = EpisodeTracker()
         if checkpoint is not None:
             self._load_state(checkpoint)
+            self.load_learner_state(checkpoint.get("learner", {}))
         remaining = max(0, int(cfg.total_frames) - self.tracker.frames)
         self.collector = (
             builders.make_collector(
@@ -133,30 +119,20 @@ class Trainer:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         return None
 
-    def _compiled_loss(self):
-        try:
-            return torch.compile(self.loss)
-        except Exception as err:  # pragma: no cover - depends on the platform's compiler
-            print(f"torch.compile unavailable ({err}); training eagerly")
-            return self.loss
+    # ---------------------------------------------------------- algorithm
+    def _build_learner(self) -> None:
+        """Build the algorithm's networks, loss and optimizers; set ``self.policy``."""
 
-    # ------------------------------------------------------------- update
-    def update(self, batch: TensorDictBase) -> TensorDictBase:
-        """One gradient step on every parameter group, then the polyak update of the targets.
+    def learn(self, batch: TensorDictBase) -> list[TensorDictBase]:
+        """Learn from one collected batch; return the loss outputs to average per epoch."""
+        return []
 
-        Each loss term reaches only its own parameters, so one backward of their sum
-        equals separate backwards; all terms are computed from the same parameters
-        (critics, actor, β and κ are then stepped together).
-        """
-        out = self._loss_forward(batch)
-        total = sum(value for key, value in out.items() if key.startswith("loss_"))
-        total.backward()
-        for optimizer in self.optimizers.values():
-            optimizer.step()
-            optimizer.zero_grad(set_to_none=True)
-        self.target_updater.step()
-        self.updates += 1
-        return out.detach()
+    def learner_state(self) -> dict[str, Any]:
+        """What a checkpoint must hold to resume the algorithm (networks, optimizers...)."""
+        return {}
+
+    def load_learner_state(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`learner_state` (called after the run counters are restored)."""
 
     # ----------------------------------------------------------------- loop
     def run(self) -> Path:
@@ -192,13 +168,7 @@ class Trainer:
                     break
                 self.tracker.add(batch)
                 pbar.update(batch.numel())
-                if self.learning:
-                    with timeit("replay_extend"):
-                        self.replay_buffer.extend(batch.reshape(-1))
-                    if self.tracker.frames >= self.update_start_frames:
-                        with timeit("update"):
-                            for _ in range(self.updates_per_batch):
-                                loss_outputs.append(self.update(self.replay_buffer.sample()))
+                loss_outputs.extend(self.learn(batch))
                 if self.tracker.frames >= next_epoch_end or self.tracker.frames >= cfg.total_frames:
                     seconds = time.time() - epoch_start
                     self.elapsed += seconds
@@ -230,7 +200,20 @@ class Trainer:
             pbar.close()
             self.collector.shutdown()
         self.save()
+        self.plot()
         return self.run_dir
+
+    @property
+    def plot_path(self) -> Path:
+        return self.run_dir / "curves.png"
+
+    def plot(self) -> Path:
+        """Draw the run's return, cost and cost-rate curves to ``curves.png``."""
+        from wcsac_rl.evaluation.plots import plot_run_curves
+
+        return plot_run_curves(
+            self.run_dir / "progress.csv", self.plot_path, cost_limit=float(self.cfg.cost_limit)
+        )
 
     def _epoch_row(
         self, loss_outputs: list[TensorDictBase], seconds: float, frames: int, updates: int
@@ -243,8 +226,7 @@ class Trainer:
         }
         row.update(self.tracker.epoch_metrics())
         self.tracker.reset_epoch()
-        if self.learning:
-            row.update(self._loss_means(loss_outputs))
+        row.update(self._loss_means(loss_outputs))
         with timeit("eval"):
             row.update(self._evaluate())
         row["time/fps"] = frames / seconds if seconds > 0 else math.nan
@@ -254,8 +236,13 @@ class Trainer:
         timeit.erase()
         return row
 
+    @property
+    def loss_keys(self) -> list[str]:
+        """The loss outputs logged as ``loss/<key>`` (fixed, so every row has them)."""
+        return []
+
     def _loss_means(self, outputs: list[TensorDictBase]) -> dict[str, float]:
-        keys = [*self.loss.out_keys]
+        keys = self.loss_keys
         if not outputs:
             return {f"loss/{key}": math.nan for key in keys}
         stacked = torch.stack([td.select(*keys) for td in outputs]).float().mean(0)
@@ -297,17 +284,11 @@ class Trainer:
                 "python": random.getstate(),
             },
         }
-        if self.learning:
-            state["loss"] = self.loss.state_dict()
-            state["optimizers"] = {k: opt.state_dict() for k, opt in self.optimizers.items()}
+        state["learner"] = self.learner_state()
         return state
 
     def save(self) -> Path:
-        """Write ``checkpoints/last.pt`` (and the replay buffer if configured)."""
-        if self.learning and self.cfg.save_replay_buffer and len(self.replay_buffer):
-            buffer_dir = self.run_dir / CHECKPOINT_DIR / REPLAY_BUFFER_DIR
-            buffer_dir.parent.mkdir(parents=True, exist_ok=True)
-            self.replay_buffer.dumps(buffer_dir)
+        """Write ``checkpoints/last.pt`` atomically."""
         save_checkpoint(self.checkpoint_path, self.state_dict())
         return self.checkpoint_path
 
@@ -318,18 +299,6 @@ class Trainer:
         self.updates = int(state["updates"])
         self.epoch = int(state["epoch"])
         self.elapsed = float(state.get("elapsed", 0.0))
-        if self.learning:
-            self.loss.load_state_dict(state["loss"])
-            for key, optimizer in self.optimizers.items():
-                optimizer.load_state_dict(state["optimizers"][key])
-            buffer_dir = self.run_dir / CHECKPOINT_DIR / REPLAY_BUFFER_DIR
-            if buffer_dir.exists():
-                self.replay_buffer.loads(buffer_dir)
-                self.update_start_frames = 0
-            else:
-                # No saved buffer: refill it with the current policy before updating again.
-                refill = max(self.init_random_frames, int(self.cfg.algo.batch_size))
-                self.update_start_frames = self.tracker.frames + refill
         rng = state["rng"]
         torch.set_rng_state(rng["torch"])
         np.random.set_state(rng["numpy"])
@@ -343,3 +312,21 @@ class Trainer:
         experiment = getattr(self.logger, "experiment", None)
         if hasattr(experiment, "finish"):
             experiment.finish()
+
+
+class RandomPolicyTrainer(Trainer):
+    """The paper's "Random Policy" row: uniform random actions, nothing learned.
+
+    Training and test episodes are logged like any other run, so the same tooling
+    evaluates it.
+    """
+
+
+def make_trainer(cfg: DictConfig, run_dir: str | Path) -> Trainer:
+    """The trainer for ``cfg.algo.name`` (validates ``cfg`` first)."""
+    validate_config(cfg)
+    if cfg.algo.name == "random":
+        return RandomPolicyTrainer(cfg, run_dir)
+    from wcsac_rl.training.off_policy import OffPolicyTrainer
+
+    return OffPolicyTrainer(cfg, run_dir)

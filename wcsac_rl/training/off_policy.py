@@ -1,0 +1,104 @@
+"""Off-policy learning for WCSAC, SAC-Lag and SAC: replay buffer, UTD updates, polyak targets.
+
+After each collector batch (``algo.collector.frames_per_batch`` frames) the batch
+goes into the replay buffer and ``frames_per_batch × utd_ratio`` gradient steps
+follow (the authors' schedule: 100 steps per 400 frames), once
+``init_random_frames`` uniform-random frames have been collected.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from torchrl import timeit
+
+from wcsac_rl.training import builders
+from wcsac_rl.training.checkpoint import CHECKPOINT_DIR, REPLAY_BUFFER_DIR
+from wcsac_rl.training.trainer import Trainer
+
+__all__ = ["OffPolicyTrainer"]
+
+
+class OffPolicyTrainer(Trainer):
+    """:class:`~wcsac_rl.training.trainer.Trainer` with a replay buffer and gradient updates."""
+
+    def _build_learner(self) -> None:
+        cfg = self.cfg
+        collector_cfg = cfg.algo.collector
+        self.agent = builders.make_agent(cfg, self.env)
+        self.loss = builders.make_loss(cfg, self.agent, self.max_episode_steps)
+        self.target_updater = builders.make_target_updater(cfg, self.loss)
+        self.optimizers = builders.make_optimizers(cfg, self.loss)
+        self.replay_buffer = builders.make_replay_buffer(cfg)
+        self.updates_per_batch = max(
+            1, round(int(collector_cfg.frames_per_batch) * float(collector_cfg.utd_ratio))
+        )
+        self.init_random_frames = int(collector_cfg.init_random_frames)
+        # frames after which gradient steps start (moved on resume, see load_learner_state)
+        self.update_start_frames = self.init_random_frames
+        self.policy = self.agent.actor
+        self._loss_forward = self._compiled_loss() if cfg.compile else self.loss
+
+    def _compiled_loss(self):
+        try:
+            return torch.compile(self.loss)
+        except Exception as err:  # pragma: no cover - depends on the platform's compiler
+            print(f"torch.compile unavailable ({err}); training eagerly")
+            return self.loss
+
+    @property
+    def loss_keys(self) -> list[str]:
+        return list(self.loss.out_keys)
+
+    def update(self, batch: TensorDictBase) -> TensorDictBase:
+        """One gradient step on every parameter group, then the polyak update of the targets.
+
+        Each loss term reaches only its own parameters, so one backward of their sum
+        equals separate backwards; all terms are computed from the same parameters
+        (critics, actor, β and κ are then stepped together).
+        """
+        out = self._loss_forward(batch)
+        total = sum(value for key, value in out.items() if key.startswith("loss_"))
+        total.backward()
+        for optimizer in self.optimizers.values():
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+        self.target_updater.step()
+        self.updates += 1
+        return out.detach()
+
+    def learn(self, batch: TensorDictBase) -> list[TensorDictBase]:
+        with timeit("replay_extend"):
+            self.replay_buffer.extend(batch.reshape(-1))
+        if self.tracker.frames < self.update_start_frames:
+            return []
+        with timeit("update"):
+            return [self.update(self.replay_buffer.sample()) for _ in range(self.updates_per_batch)]
+
+    # ---------------------------------------------------------- checkpoint
+    @property
+    def _buffer_dir(self):
+        return self.run_dir / CHECKPOINT_DIR / REPLAY_BUFFER_DIR
+
+    def learner_state(self) -> dict[str, Any]:
+        if self.cfg.save_replay_buffer and len(self.replay_buffer):
+            self._buffer_dir.parent.mkdir(parents=True, exist_ok=True)
+            self.replay_buffer.dumps(self._buffer_dir)
+        return {
+            "loss": self.loss.state_dict(),
+            "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
+        }
+
+    def load_learner_state(self, state: dict[str, Any]) -> None:
+        self.loss.load_state_dict(state["loss"])
+        for key, optimizer in self.optimizers.items():
+            optimizer.load_state_dict(state["optimizers"][key])
+        if self._buffer_dir.exists():
+            self.replay_buffer.loads(self._buffer_dir)
+            self.update_start_frames = 0
+        else:
+            # No saved buffer: refill it with the current policy before updating again.
+            refill = max(self.init_random_frames, int(self.cfg.algo.batch_size))
+            self.update_start_frames = self.tracker.frames + refill
