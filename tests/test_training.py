@@ -280,3 +280,24 @@ def test_multirun_sweep_produces_one_run_dir_per_seed(tmp_path):
     first, second = (_rows(p) for p in runs)
     assert len(first) == len(second) == 2
     assert first[-1]["loss/loss_qvalue"] != second[-1]["loss/loss_qvalue"]  # different seeds
+
+
+def test_load_run_restores_the_trained_policy_exactly(tmp_path):
+    from tensordict import TensorDict
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+    from wcsac_rl.training.restore import load_run
+
+    trainer, run_dir = _train(tmp_path, "env=tiny")
+    restored = load_run(run_dir)
+    assert restored.cfg.algo.name == "wcsac" and restored.frames == 800
+    obs = TensorDict({"observation": torch.randn(7, 6)}, [7])
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        expected = trainer.agent.actor(obs.clone())["action"]
+        got = restored.policy(obs.clone())["action"]
+    torch.testing.assert_close(got, expected)
+    restored.env.close()
+    random_run = load_run(_train(tmp_path, "algo=random", "env=tiny", name="rnd")[1])
+    assert random_run.policy is None
+    with pytest.raises(ConfigError, match="holds no checkpoint"):
+        load_run(tmp_path)

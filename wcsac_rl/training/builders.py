@@ -27,6 +27,7 @@ from wcsac_rl.objectives import SACLagLoss, WCSACLoss
 
 __all__ = [
     "Agent",
+    "env_kwargs",
     "make_agent",
     "make_collector",
     "make_eval_env",
@@ -39,7 +40,8 @@ __all__ = [
 ]
 
 
-def _env_kwargs(cfg: DictConfig) -> dict:
+def env_kwargs(cfg: DictConfig) -> dict:
+    """Keyword arguments for ``make_env`` from ``cfg.env`` (constructor kwargs, episode length)."""
     extra = cfg.env.get("kwargs")
     kwargs = {} if extra is None else OmegaConf.to_container(extra, resolve=True)
     if cfg.env.get("max_episode_steps") is not None:
@@ -58,7 +60,7 @@ def make_train_env(cfg: DictConfig) -> EnvBase:
         num_workers=int(collector.num_envs),
         parallel=collector.get("env_backend", "serial") == "parallel",
         device=cfg.device,
-        **_env_kwargs(cfg),
+        **env_kwargs(cfg),
     )
 
 
@@ -67,7 +69,7 @@ def make_eval_env(cfg: DictConfig, *, seed_offset: int = 1_000_003) -> EnvBase:
     from wcsac_rl.envs import make_env
 
     return make_env(
-        cfg.env.name, seed=int(cfg.seed) + seed_offset, device=cfg.device, **_env_kwargs(cfg)
+        cfg.env.name, seed=int(cfg.seed) + seed_offset, device=cfg.device, **env_kwargs(cfg)
     )
 
 

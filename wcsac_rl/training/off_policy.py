@@ -16,7 +16,7 @@ from torchrl import timeit
 
 from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import CHECKPOINT_DIR, REPLAY_BUFFER_DIR
-from wcsac_rl.training.trainer import Trainer
+from wcsac_rl.training.trainer import Trainer, env_max_episode_steps
 
 __all__ = ["OffPolicyTrainer"]
 
@@ -76,6 +76,14 @@ class OffPolicyTrainer(Trainer):
             return []
         with timeit("update"):
             return [self.update(self.replay_buffer.sample()) for _ in range(self.updates_per_batch)]
+
+    @classmethod
+    def restore_policy(cls, cfg, learner_state, env):
+        agent = builders.make_agent(cfg, env)
+        max_steps = env_max_episode_steps(cfg)
+        loss = builders.make_loss(cfg, agent, max_steps)
+        loss.load_state_dict(learner_state["loss"])  # the actor shares these parameters
+        return agent.actor
 
     # ---------------------------------------------------------- checkpoint
     @property

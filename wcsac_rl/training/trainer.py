@@ -21,7 +21,9 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
 from torchrl import timeit
+from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
 from wcsac_rl.evaluation.episodes import run_episodes, summarize_episodes
@@ -37,7 +39,7 @@ from wcsac_rl.training.checkpoint import (
 from wcsac_rl.training.config import ConfigError, validate_config
 from wcsac_rl.training.progress import EpisodeTracker, ProgressWriter
 
-__all__ = ["RandomPolicyTrainer", "Trainer", "make_trainer", "seed_everything"]
+__all__ = ["RandomPolicyTrainer", "Trainer", "make_trainer", "seed_everything", "trainer_class"]
 
 
 def seed_everything(seed: int) -> None:
@@ -45,6 +47,13 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
+
+
+def env_max_episode_steps(cfg: DictConfig) -> int:
+    """Episode length of the run's environment (config override or the preset's)."""
+    from wcsac_rl.envs import env_info
+
+    return int(env_info(cfg.env.name, **builders.env_kwargs(cfg))["max_episode_steps"])
 
 
 class Trainer:
@@ -64,11 +73,7 @@ class Trainer:
         torch.set_num_threads(int(cfg.threads))
         seed_everything(int(cfg.seed))
 
-        from wcsac_rl.envs import env_info
-
-        self.max_episode_steps = int(
-            env_info(cfg.env.name, **builders._env_kwargs(cfg))["max_episode_steps"]
-        )
+        self.max_episode_steps = env_max_episode_steps(cfg)
         self.env = builders.make_train_env(cfg)
         self.eval_env = builders.make_eval_env(cfg) if cfg.eval_episodes > 0 else None
         self.policy = None  # set by _build_learner; None acts uniformly at random
@@ -133,6 +138,16 @@ class Trainer:
 
     def load_learner_state(self, state: dict[str, Any]) -> None:
         """Restore :meth:`learner_state` (called after the run counters are restored)."""
+
+    @classmethod
+    def restore_policy(
+        cls, cfg: DictConfig, learner_state: dict[str, Any], env: EnvBase
+    ) -> TensorDictModule | None:
+        """The trained policy from a checkpoint's ``learner`` state (``None``: random actions).
+
+        ``env`` is an env of the run's preset (for specs). Used by evaluation.
+        """
+        return None
 
     # ----------------------------------------------------------------- loop
     def run(self) -> Path:
@@ -322,11 +337,18 @@ class RandomPolicyTrainer(Trainer):
     """
 
 
+def trainer_class(algo: str) -> type[Trainer]:
+    """The :class:`Trainer` subclass that trains ``algo`` (a ``conf/algo`` name)."""
+    if algo == "random":
+        return RandomPolicyTrainer
+    if algo in ("wcsac", "sac_lag", "sac"):
+        from wcsac_rl.training.off_policy import OffPolicyTrainer
+
+        return OffPolicyTrainer
+    raise ConfigError(f"no trainer for algo {algo!r}")
+
+
 def make_trainer(cfg: DictConfig, run_dir: str | Path) -> Trainer:
     """The trainer for ``cfg.algo.name`` (validates ``cfg`` first)."""
     validate_config(cfg)
-    if cfg.algo.name == "random":
-        return RandomPolicyTrainer(cfg, run_dir)
-    from wcsac_rl.training.off_policy import OffPolicyTrainer
-
-    return OffPolicyTrainer(cfg, run_dir)
+    return trainer_class(cfg.algo.name)(cfg, run_dir)

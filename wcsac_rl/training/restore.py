@@ -1,0 +1,67 @@
+"""Load a finished (or interrupted) run for evaluation: its config and trained policy."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+from tensordict.nn import TensorDictModule
+from torchrl.envs import EnvBase
+
+from wcsac_rl.training import builders
+from wcsac_rl.training.checkpoint import find_checkpoint, load_checkpoint
+from wcsac_rl.training.trainer import trainer_class
+
+__all__ = ["RestoredRun", "load_run"]
+
+
+@dataclass
+class RestoredRun:
+    """A run read back from its checkpoint.
+
+    Attributes:
+        run_dir: the run directory.
+        cfg: the run's resolved configuration.
+        policy: the trained actor (``None`` for the random policy: uniform actions).
+        env: an unbatched env of the run's preset, for test episodes.
+        frames: env steps the run was trained for.
+        checkpoint: the raw checkpoint dict.
+    """
+
+    run_dir: Path
+    cfg: DictConfig
+    policy: TensorDictModule | None
+    env: EnvBase
+    frames: int
+    checkpoint: dict[str, Any]
+
+
+def load_run(path: str | os.PathLike, *, seed: int | None = None) -> RestoredRun:
+    """Rebuild a run's policy from ``path`` (a run dir or a checkpoint file).
+
+    ``seed`` seeds the returned env (default: the eval seed of the run's trainer).
+    Raises :class:`~wcsac_rl.training.ConfigError` with one clear line when the
+    directory holds no checkpoint or the checkpoint cannot be read.
+    """
+    checkpoint_path = find_checkpoint(path)
+    checkpoint = load_checkpoint(checkpoint_path)
+    cfg = OmegaConf.create(checkpoint["config"])
+    env = (
+        builders.make_eval_env(cfg)
+        if seed is None
+        else builders.make_eval_env(cfg, seed_offset=seed - int(cfg.seed))
+    )
+    policy = trainer_class(cfg.algo.name).restore_policy(cfg, checkpoint.get("learner", {}), env)
+    if policy is not None:
+        policy.eval()
+    return RestoredRun(
+        run_dir=checkpoint_path.parent.parent,
+        cfg=cfg,
+        policy=policy,
+        env=env,
+        frames=int(checkpoint["frames"]),
+        checkpoint=checkpoint,
+    )
