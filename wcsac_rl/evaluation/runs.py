@@ -1,0 +1,191 @@
+"""Finding runs and evaluations on disk, and naming Table 1's rows.
+
+A **run directory** is what ``train.py`` writes: ``config.yaml``, ``progress.csv``
+and ``checkpoints/last.pt`` (single runs under ``outputs/<date>/<time>_<row>_<env>_seed<N>``,
+sweeps under ``multirun/<date>/<time>/<job>_<row>_<env>_seed<N>``). An **evaluated
+directory** also holds ``evaluation.csv`` + ``evaluation.json`` (written by
+``python -m wcsac_rl.evaluate``); the random policy evaluated without a training
+run gives an evaluated directory with no checkpoint.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Iterable
+from pathlib import Path
+
+from wcsac_rl.training.checkpoint import CHECKPOINT_DIR, LAST_CHECKPOINT
+
+__all__ = [
+    "EVALUATION_CSV",
+    "EVALUATION_JSON",
+    "ROW_NAMES",
+    "ROW_ORDER",
+    "find_evaluated_dirs",
+    "find_progress_dirs",
+    "find_run_dirs",
+    "has_checkpoint",
+    "looks_like_run_dir",
+    "row_name",
+    "row_sort_key",
+]
+
+EVALUATION_CSV = "evaluation.csv"
+EVALUATION_JSON = "evaluation.json"
+
+ROW_ORDER: tuple[str, ...] = (
+    "sac",
+    "sac_lag",
+    "wcsac_0.9",
+    "wcsac_0.5",
+    "wcsac_0.1",
+    "cpo",
+    "random",
+)
+"""Table 1's rows (``algo.label`` values) in the paper's order."""
+
+ROW_NAMES: dict[str, str] = {
+    "sac": "SAC",
+    "sac_lag": "SAC-Lag",
+    "cpo": "CPO",
+    "random": "Random Policy",
+}
+
+
+def row_name(label: str) -> str:
+    """The paper's name of a row: ``"sac_lag"`` → ``"SAC-Lag"``, ``"wcsac_0.5"`` → ``"WCSAC-0.5"``.
+
+    >>> row_name("wcsac_0.1"), row_name("random"), row_name("my_algo")
+    ('WCSAC-0.1', 'Random Policy', 'my_algo')
+    """
+    if label in ROW_NAMES:
+        return ROW_NAMES[label]
+    match = re.fullmatch(r"wcsac_([0-9.]+)", label)
+    if match:
+        return f"WCSAC-{match.group(1)}"
+    return label
+
+
+def row_sort_key(label: str) -> tuple[int, float, str]:
+    """Sort key putting rows in the paper's order: SAC, SAC-Lag, WCSAC by decreasing α
+    (any α), CPO, Random Policy, then unknown labels alphabetically.
+
+    >>> sorted(["random", "wcsac_0.1", "wcsac_0.7", "sac", "wcsac_0.9"], key=row_sort_key)
+    ['sac', 'wcsac_0.9', 'wcsac_0.7', 'wcsac_0.1', 'random']
+    """
+    match = re.fullmatch(r"wcsac_([0-9.]+)", label)
+    if match:
+        try:
+            alpha = float(match.group(1))
+        except ValueError:
+            alpha = 0.0
+        return (ROW_ORDER.index("wcsac_0.9"), -alpha, label)
+    if label in ROW_ORDER:
+        return (ROW_ORDER.index(label), 0.0, label)
+    return (len(ROW_ORDER), 0.0, label)
+
+
+def has_checkpoint(run_dir: str | os.PathLike) -> bool:
+    """Whether ``run_dir/checkpoints/last.pt`` exists."""
+    return (Path(run_dir) / CHECKPOINT_DIR / LAST_CHECKPOINT).is_file()
+
+
+def looks_like_run_dir(path: str | os.PathLike) -> bool:
+    """A directory written by ``train.py`` (it has ``config.yaml`` and ``progress.csv``
+    or a checkpoint), whether or not its checkpoint survived."""
+    path = Path(path)
+    return (path / "config.yaml").is_file() and (
+        (path / "progress.csv").is_file() or has_checkpoint(path)
+    )
+
+
+def _walk(root: Path) -> Iterable[Path]:
+    """``root`` and every directory below it (sorted, symlinks not followed)."""
+    yield root
+    for dirpath, dirnames, _ in os.walk(root):
+        dirnames.sort()
+        for name in dirnames:
+            yield Path(dirpath) / name
+
+
+def _no_checkpoint(path: Path) -> str:
+    return (
+        f"{path}: run directory without a checkpoint "
+        f"(expected {path / CHECKPOINT_DIR / LAST_CHECKPOINT})"
+    )
+
+
+def find_run_dirs(paths: Iterable[str | os.PathLike]) -> tuple[list[Path], list[str]]:
+    """Run directories to evaluate under ``paths`` (run dirs and/or sweep dirs).
+
+    A path that is itself a run directory is taken as one (with or without its
+    checkpoint); any other directory is searched recursively for run directories
+    (directories below a run directory are not searched further).
+
+    Returns:
+        ``(run_dirs, errors)``: the run directories with a checkpoint, in the order
+        given (each once), and one error line per run directory without a
+        checkpoint (given or found) and per path that does not exist or holds no run.
+    """
+    found: list[Path] = []
+    errors: list[str] = []
+    for raw in paths:
+        path = Path(raw).expanduser()
+        if not path.exists():
+            errors.append(f"{path}: no such file or directory")
+            continue
+        if path.is_file():
+            if path.name == LAST_CHECKPOINT and path.parent.name == CHECKPOINT_DIR:
+                path = path.parent.parent
+            else:
+                errors.append(f"{path}: not a run directory (expected a directory)")
+                continue
+        if has_checkpoint(path):
+            found.append(path)
+            continue
+        if looks_like_run_dir(path):
+            errors.append(_no_checkpoint(path))
+            continue
+        below = []
+        run_roots: list[Path] = []
+        for candidate in _walk(path):
+            if any(root in candidate.parents for root in run_roots):
+                continue
+            if has_checkpoint(candidate):
+                below.append(candidate)
+                run_roots.append(candidate)
+            elif looks_like_run_dir(candidate):
+                errors.append(_no_checkpoint(candidate))
+                run_roots.append(candidate)
+        if not run_roots:
+            errors.append(f"{path}: no run directories with {CHECKPOINT_DIR}/{LAST_CHECKPOINT}")
+        found.extend(below)
+    unique = list(dict.fromkeys(p.resolve() for p in found))
+    return unique, errors
+
+
+def find_evaluated_dirs(paths: Iterable[str | os.PathLike]) -> list[Path]:
+    """Every directory at or below ``paths`` that holds ``evaluation.json`` (sorted, unique)."""
+    found: list[Path] = []
+    for raw in paths:
+        path = Path(raw).expanduser()
+        if not path.is_dir():
+            continue
+        found.extend(d for d in _walk(path) if (d / EVALUATION_JSON).is_file())
+    return sorted(dict.fromkeys(p.resolve() for p in found))
+
+
+def find_progress_dirs(paths: Iterable[str | os.PathLike]) -> list[Path]:
+    """Every run directory at or below ``paths`` with ``config.yaml`` and ``progress.csv``."""
+    found: list[Path] = []
+    for raw in paths:
+        path = Path(raw).expanduser()
+        if not path.is_dir():
+            continue
+        found.extend(
+            d
+            for d in _walk(path)
+            if (d / "config.yaml").is_file() and (d / "progress.csv").is_file()
+        )
+    return sorted(dict.fromkeys(p.resolve() for p in found))
