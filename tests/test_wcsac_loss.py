@@ -44,11 +44,14 @@ def _grads_after(loss: WCSACLoss, key: str, batch) -> dict[str, torch.Tensor | N
     return {name: p.grad for name, p in loss.named_parameters()}
 
 
+@pytest.mark.parametrize("fuse_critics", [True, False])
 @pytest.mark.parametrize("kappa_actions", ["replay", "policy"])
 @pytest.mark.parametrize("damp_scale", [0.0, 10.0])
 @pytest.mark.parametrize("key", LOSS_KEYS)
-def test_each_loss_term_reaches_exactly_its_own_parameters(key, kappa_actions, damp_scale):
-    loss = make_loss(kappa_actions=kappa_actions, damp_scale=damp_scale)
+def test_each_loss_term_reaches_exactly_its_own_parameters(
+    key, kappa_actions, damp_scale, fuse_critics
+):
+    loss = make_loss(kappa_actions=kappa_actions, damp_scale=damp_scale, fuse_critics=fuse_critics)
     grads = _grads_after(loss, key, make_batch())
     owner = OWNERS[key]
     owned = {n for n in grads if n.startswith(owner)}
@@ -427,3 +430,38 @@ def test_forward_compiles_with_fullgraph_and_matches_eager():
     total = sum(v for k, v in got.items() if k.startswith("loss_"))
     total.backward()
     assert loss.kappa_raw.grad is not None
+
+
+@pytest.mark.parametrize("variance", [True, False])
+def test_fused_critic_ensemble_gives_the_same_losses_and_gradients(variance):
+    fused = make_loss(variance=variance, fuse_critics=True, kappa_actions="replay", damp_scale=1.0)
+    separate = make_loss(variance=variance, fuse_critics=False, kappa_actions="replay", damp_scale=1.0)
+    assert fused._ensemble is not None and separate._ensemble is None
+    separate.load_state_dict(fused.state_dict())
+    batch = make_batch()
+    outputs = []
+    for loss in (fused, separate):
+        torch.manual_seed(5)
+        out = loss(batch.clone())
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        outputs.append((out, {n: p.grad.clone() for n, p in loss.named_parameters()}))
+    (out_f, grad_f), (out_s, grad_s) = outputs
+    for key in out_s.keys():
+        torch.testing.assert_close(out_f[key], out_s[key], rtol=1e-5, atol=1e-6)
+    assert grad_f.keys() == grad_s.keys()
+    for name in grad_s:
+        torch.testing.assert_close(grad_f[name], grad_s[name], rtol=1e-4, atol=1e-6)
+
+
+def test_critics_that_cannot_be_fused_fall_back_or_are_refused():
+    # different widths for the reward and safety critics: no common ensemble
+    torch.manual_seed(0)
+    actor = make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=8)
+    qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)]
+    safety = make_safety_critic(OBS_DIM, ACT_DIM, width=16)
+    assert WCSACLoss(actor, qvalues, safety)._ensemble is None
+    with pytest.raises(ValueError, match="fuse_critics=True needs"):
+        WCSACLoss(actor, qvalues, safety, fuse_critics=True)
+    # a critic that is not a plain MLP
+    readout = _readout_loss("mse")
+    assert readout._ensemble is None

@@ -17,21 +17,29 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule, dispatch
 from tensordict.utils import NestedKey
 from torch import Tensor
+from torch.nn import functional as F
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import SACLoss
 from torchrl.objectives.sac import compute_rsample_log_prob
 from torchrl.objectives.utils import ValueEstimators, _cache_values, distance_loss
 
-from wcsac_rl.modules.safety_critic import VARIANCE_MAX, VARIANCE_MIN
+from wcsac_rl.modules.safety_critic import VARIANCE_MAX, VARIANCE_MIN, GaussianSafetyCritic
+from wcsac_rl.objectives.critic_ensemble import (
+    EnsembleMember,
+    evaluate_ensemble,
+    mlp_layout,
+    stack_layers,
+)
 from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
 
-__all__ = ["SACLagLoss", "WCSACLoss", "per_step_cost_threshold"]
+__all__ = ["CriticValues", "SACLagLoss", "WCSACLoss", "per_step_cost_threshold"]
 
 KAPPA_PARAMETRISATIONS = ("softplus", "log")
 KAPPA_ACTIONS = ("replay", "policy")
@@ -60,6 +68,18 @@ def per_step_cost_threshold(cost_limit: float, gamma: float, max_episode_steps: 
 
 def _inverse_softplus(x: float) -> float:
     return x + math.log(-math.expm1(-x))
+
+
+class CriticValues(NamedTuple):
+    """Every critic at one batch of state-actions, squeezed to the batch shape.
+
+    ``qvalue`` is ``[num_qvalue_nets, *B]``; ``cost_variance`` is ``None`` for a
+    mean-only safety critic.
+    """
+
+    qvalue: Tensor
+    cost_value: Tensor
+    cost_variance: Tensor | None
 
 
 class WCSACLoss(SACLoss):
@@ -102,6 +122,12 @@ class WCSACLoss(SACLoss):
             ``V + y − 2√(V y)``; ``"mse"`` — ``½ (V − y)²``, a consistent estimator of
             the variance when the TD target ``y`` is noisy (W2 on sampled targets
             converges to ``(E√y)²`` instead of ``E y``). Default ``"mse"`` (see README).
+        fuse_critics (bool, optional): evaluate the reward and safety critics as one
+            batched ensemble (one matrix product per layer for all four networks).
+            Needs plain MLP critics of one shape reading ``[observation, action]``, as
+            :mod:`wcsac_rl.modules` builds them; ``None`` (default) fuses when
+            possible, ``False`` calls the modules one by one. Same values and
+            gradients either way.
         num_qvalue_nets, loss_function, alpha_init, min_alpha, max_alpha, action_spec,
         fixed_alpha, target_entropy, delay_actor, delay_qvalue, separate_losses,
         reduction, skip_done_states, deactivate_vmap, scalar_output_mode: as in
@@ -194,6 +220,7 @@ class WCSACLoss(SACLoss):
         kappa_actions: str = "policy",
         damp_scale: float = 0.0,
         variance_loss: str = "mse",
+        fuse_critics: bool | None = None,
         num_qvalue_nets: int = 2,
         loss_function: str = "l2",
         **sac_kwargs,
@@ -261,6 +288,13 @@ class WCSACLoss(SACLoss):
         self.register_buffer("cost_threshold", torch.zeros((), device=device))
         self.make_value_estimator(ValueEstimators.TD0)
         self._set_in_keys()
+        self._ensemble = self._critic_ensemble() if fuse_critics is not False else None
+        if fuse_critics and self._ensemble is None:
+            raise ValueError(
+                "fuse_critics=True needs the reward and safety critics to be MLPs of one "
+                "shape (Linear/activation stacks) reading [observation, action], e.g. "
+                "from wcsac_rl.modules; use fuse_critics=None to fall back automatically"
+            )
 
     # ------------------------------------------------------------------ set-up
     def _adopt_safety_keys(self, safety_network: TensorDictModule) -> None:
@@ -382,6 +416,84 @@ class WCSACLoss(SACLoss):
         variance = td.get(self.tensor_keys.cost_variance).squeeze(-1)
         return mean, variance.clamp(VARIANCE_MIN, VARIANCE_MAX)
 
+    def _critic_ensemble(self) -> list[EnsembleMember] | None:
+        """The fused-evaluation plan if every critic is a same-shaped MLP, else ``None``."""
+        q_module, safety = self.qvalue_network, self.safety_network
+        if type(q_module.module) is GaussianSafetyCritic:
+            return None
+        in_keys = list(q_module.in_keys)
+        if (
+            len(in_keys) != 2
+            or in_keys[1] != self.tensor_keys.action
+            or list(safety.in_keys) != in_keys
+            or len(q_module.out_keys) != 1
+        ):
+            return None
+        members = [EnsembleMember("qvalue", mlp_layout(q_module.module, ("module",)), True)]
+        net = safety.module
+        if isinstance(net, GaussianSafetyCritic) and self.has_variance:
+            members.append(
+                EnsembleMember("safety", mlp_layout(net.mean_net, ("module", "mean_net")), False)
+            )
+            members.append(
+                EnsembleMember(
+                    "safety", mlp_layout(net.variance_net, ("module", "variance_net")), False
+                )
+            )
+        elif not self.has_variance and len(safety.out_keys) == 1:
+            members.append(EnsembleMember("safety", mlp_layout(net, ("module",)), False))
+        else:
+            return None
+        layouts = [m.layout for m in members]
+        if any(layout is None for layout in layouts):
+            return None
+        first = layouts[0]
+        if (
+            any(
+                layout.shapes != first.shapes or layout.activation is not first.activation
+                for layout in layouts
+            )
+            or first.shapes[-1][0] != 1
+        ):
+            return None
+        return members
+
+    def _critic_values(
+        self, tensordict: TensorDictBase, action: Tensor, which: str
+    ) -> CriticValues:
+        """The reward and safety critics at ``(observation, action)``.
+
+        ``which``: ``"target"`` (target parameters), ``"online"`` (trainable) or
+        ``"detached"`` (online values, gradients only to ``action``).
+        """
+        if which == "target":
+            q_params, s_params = (
+                self.target_qvalue_network_params,
+                self.target_safety_network_params,
+            )
+        elif which == "online":
+            q_params, s_params = self.qvalue_network_params, self.safety_network_params
+        else:
+            q_params, s_params = (
+                self._cached_detached_qvalue_params,
+                self._cached_detached_safety_params,
+            )
+        if self._ensemble is not None:
+            x = torch.cat([tensordict.get(self.qvalue_network.in_keys[0]), action], dim=-1)
+            layers = stack_layers(self._ensemble, {"qvalue": q_params, "safety": s_params})
+            out = evaluate_ensemble(x, layers, self._ensemble[0].layout.activation).squeeze(-1)
+            n = self.num_qvalue_nets
+            variance = None
+            if self.has_variance:
+                variance = F.softplus(out[n + 1]).clamp(VARIANCE_MIN, VARIANCE_MAX)
+            return CriticValues(out[:n], out[n], variance)
+        td_q = tensordict.select(*self.qvalue_network.in_keys, strict=False)
+        td_q.set(self.tensor_keys.action, action)
+        qvalue = self._vmap_qnetworkN0(td_q, q_params).get(self.tensor_keys.state_action_value)
+        td_s = tensordict.select(*self.safety_network.in_keys, strict=False)
+        td_s.set(self.tensor_keys.action, action)
+        return CriticValues(qvalue.squeeze(-1), *self._safety_forward(td_s, s_params))
+
     def cvar(self, cost_value: Tensor, cost_variance: Tensor | None) -> Tensor:
         """Γ(s, a, α) = Q^c + α⁻¹ φ(Φ⁻¹(α)) √V^c (Eq. 9)."""
         if self.cvar_multiplier == 0.0 or cost_variance is None:
@@ -409,13 +521,8 @@ class WCSACLoss(SACLoss):
         with torch.no_grad():
             next_td = tensordict.get("next").copy()
             next_action, next_log_prob = self._sample_policy(next_td)
-            next_td.set(self.tensor_keys.action, next_action)
-
-            q_next = self._vmap_qnetworkN0(
-                next_td.select(*self.qvalue_network.in_keys, strict=False),
-                self.target_qvalue_network_params,
-            ).get(self.tensor_keys.state_action_value)
-            next_value = (q_next - self._alpha * next_log_prob.unsqueeze(-1)).min(0)[0]
+            q_next, qc_next, vc_next = self._critic_values(next_td, next_action, "target")
+            next_value = (q_next - self._alpha * next_log_prob).min(0)[0].unsqueeze(-1)
             td_value = tensordict.clone(False)
             td_value.set(("next", self.value_estimator.tensor_keys.value), next_value)
             reward_target = self.value_estimator.value_estimate(td_value).squeeze(-1)
@@ -425,7 +532,6 @@ class WCSACLoss(SACLoss):
             not_terminated = (
                 ~tensordict.get(("next", self.tensor_keys.terminated)).reshape(cost.shape)
             ).to(cost.dtype)
-            qc_next, vc_next = self._safety_forward(next_td, self.target_safety_network_params)
             cost_target = cost + gamma * not_terminated * qc_next
             if vc_next is None:
                 second_moment = None
@@ -440,22 +546,27 @@ class WCSACLoss(SACLoss):
         }
 
     # ----------------------------------------------------------------- losses
+    def _online_values(self, tensordict: TensorDictBase) -> CriticValues:
+        return self._critic_values(tensordict, tensordict.get(self.tensor_keys.action), "online")
+
     def qvalue_loss(
-        self, tensordict: TensorDictBase, targets: dict[str, Tensor] | None = None
+        self,
+        tensordict: TensorDictBase,
+        targets: dict[str, Tensor] | None = None,
+        values: CriticValues | None = None,
     ) -> tuple[Tensor, dict[str, Tensor]]:
-        """Twin reward-critic TD loss (TorchRL's SAC v2 critic loss)."""
+        """Twin reward-critic TD loss (TorchRL's SAC v2 critic loss).
+
+        ``targets`` (from :meth:`compute_targets`) and ``values`` (the online critics
+        at the replay actions) are computed if not given.
+        """
         if targets is None:
             targets = self.compute_targets(tensordict)
+        if values is None:
+            values = self._online_values(tensordict)
         weights = self._maybe_get_priority_weight(tensordict)
         target_value = targets["reward_target"]
-        pred = (
-            self._vmap_qnetworkN0(
-                tensordict.select(*self.qvalue_network.in_keys, strict=False),
-                self.qvalue_network_params,
-            )
-            .get(self.tensor_keys.state_action_value)
-            .squeeze(-1)
-        )
+        pred = values.qvalue
         loss = distance_loss(
             pred, target_value.expand_as(pred), loss_function=self.loss_function
         ).sum(0)
@@ -463,7 +574,10 @@ class WCSACLoss(SACLoss):
         return loss, {"td_error": (pred - target_value).abs().detach().max(0)[0]}
 
     def safety_loss(
-        self, tensordict: TensorDictBase, targets: dict[str, Tensor] | None = None
+        self,
+        tensordict: TensorDictBase,
+        targets: dict[str, Tensor] | None = None,
+        values: CriticValues | None = None,
     ) -> tuple[Tensor, Tensor | None, dict[str, Tensor]]:
         """Mean TD loss (Eq. 7) and variance TD loss (Eq. 8, W2 or MSE) of the safety critic.
 
@@ -473,8 +587,10 @@ class WCSACLoss(SACLoss):
         """
         if targets is None:
             targets = self.compute_targets(tensordict)
+        if values is None:
+            values = self._online_values(tensordict)
         weights = self._maybe_get_priority_weight(tensordict)
-        qc, vc = self._safety_forward(tensordict, self.safety_network_params)
+        qc, vc = values.cost_value, values.cost_variance
         loss_mean = 0.5 * (targets["cost_target"] - qc).pow(2)
         loss_mean = self._reduce_loss(loss_mean, tensordict=tensordict, weights=weights)
         metadata = {"cost_value": qc.detach(), "cost_variance": None}
@@ -516,19 +632,9 @@ class WCSACLoss(SACLoss):
     ) -> tuple[Tensor, dict[str, Tensor]]:
         weights = self._maybe_get_priority_weight(tensordict)
         action, log_prob = self._sample_policy(tensordict)
-        td_pi = tensordict.select(*self.qvalue_network.in_keys, strict=False)
-        td_pi.set(self.tensor_keys.action, action)
-        min_q = (
-            self._vmap_qnetworkN0(td_pi, self._cached_detached_qvalue_params)
-            .get(self.tensor_keys.state_action_value)
-            .min(0)[0]
-            .squeeze(-1)
-        )
-        td_pi_safety = tensordict.select(*self.safety_network.in_keys, strict=False)
-        td_pi_safety.set(self.tensor_keys.action, action)
-        cvar_pi = self.cvar(
-            *self._safety_forward(td_pi_safety, self._cached_detached_safety_params)
-        )
+        qvalue, cost_value, cost_variance = self._critic_values(tensordict, action, "detached")
+        min_q = qvalue.min(0)[0]
+        cvar_pi = self.cvar(cost_value, cost_variance)
         cvar_constraint = cvar_pi.detach() if self.kappa_actions == "policy" else cvar_replay
         penalty = self._constraint_gap_penalty(cvar_constraint)
         loss = self._alpha * log_prob - min_q + penalty * cvar_pi
@@ -550,7 +656,8 @@ class WCSACLoss(SACLoss):
         if self.kappa_actions != "replay":
             return None
         with torch.no_grad():
-            return self.cvar(*self._safety_forward(tensordict, self.safety_network_params))
+            values = self._online_values(tensordict)
+            return self.cvar(values.cost_value, values.cost_variance)
 
     def kappa_loss(self, cvar: Tensor, tensordict: TensorDictBase | None = None) -> Tensor:
         """``κ · (d_step − Γ)`` with Γ detached: κ grows while Γ exceeds the threshold."""
@@ -562,8 +669,11 @@ class WCSACLoss(SACLoss):
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         targets = self.compute_targets(tensordict)
-        loss_qvalue, q_metadata = self.qvalue_loss(tensordict, targets)
-        loss_cost_value, loss_cost_variance, safety_metadata = self.safety_loss(tensordict, targets)
+        values = self._online_values(tensordict)  # shared by the reward and safety losses
+        loss_qvalue, q_metadata = self.qvalue_loss(tensordict, targets, values)
+        loss_cost_value, loss_cost_variance, safety_metadata = self.safety_loss(
+            tensordict, targets, values
+        )
         cvar_replay = self.cvar(safety_metadata["cost_value"], safety_metadata["cost_variance"])
         loss_actor, actor_metadata = self._actor_loss(tensordict, cvar_replay)
         log_prob = actor_metadata["log_prob"]

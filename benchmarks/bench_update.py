@@ -1,0 +1,268 @@
+"""Update and loop throughput, measured side by side in one process.
+
+Usage::
+
+    python benchmarks/bench_update.py [--threads 1] [--rounds 5] [--updates 20]
+                                      [--compile] [--no-loop]
+
+Prints, with one torch thread by default:
+
+* the machine's single-core fp32 matmul peak (GFLOP/s, measured here);
+* updates/s of (a) TorchRL's ``SACLoss``, (b) ``WCSACLoss`` as shipped,
+  (b') ``WCSACLoss`` under ``torch.compile`` (``--compile``) and (c) a plain-PyTorch
+  WCSAC update (``plain_wcsac.py``), all with the paper's sizes (2 × 256 MLPs,
+  batch 256, obs 44, action 2), timed in interleaved rounds (median reported), each
+  with its FLOPs per update (forward + backward matrix products) and the
+  achieved GFLOP/s as a fraction of the matmul peak;
+* StaticEnv steps/s (raw gymnasium and TorchRL-wrapped), collector frames/s
+  (4 serial envs, random policy) and end-to-end training frames/s of WCSAC at the
+  paper's UTD 0.25, against 4 × the update rate (the ceiling when collection,
+  replay and logging cost nothing).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+from torch.utils._python_dispatch import TorchDispatchMode
+from torchrl.data import Bounded
+from torchrl.objectives import SACLoss, SoftUpdate
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from plain_wcsac import PlainWCSAC  # noqa: E402
+
+from wcsac_rl import WCSACLoss  # noqa: E402
+from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic  # noqa: E402
+
+OBS, ACT, BATCH = 44, 2, 256
+
+
+def matmul_peak_gflops(seconds: float = 1.0) -> dict[str, float]:
+    """fp32 GFLOP/s of torch.mm at a large square size and at the update's layer sizes."""
+    out = {}
+    for name, (m, k, n) in {
+        "1024x1024x1024": (1024, 1024, 1024),
+        "256x256x256 (hidden layer)": (256, 256, 256),
+        "256x46x256 (input layer)": (256, 46, 256),
+    }.items():
+        a, b = torch.randn(m, k), torch.randn(k, n)
+        for _ in range(3):
+            torch.mm(a, b)
+        count, start = 0, time.perf_counter()
+        while time.perf_counter() - start < seconds:
+            torch.mm(a, b)
+            count += 1
+        out[name] = 2 * m * k * n * count / (time.perf_counter() - start) / 1e9
+    return out
+
+
+def make_batch() -> TensorDict:
+    g = torch.Generator().manual_seed(0)
+    return TensorDict(
+        {
+            "observation": torch.randn(BATCH, OBS, generator=g),
+            "action": torch.rand(BATCH, ACT, generator=g) * 2 - 1,
+            "next": {
+                "observation": torch.randn(BATCH, OBS, generator=g),
+                "reward": torch.randn(BATCH, 1, generator=g),
+                "cost": torch.bernoulli(torch.full((BATCH, 1), 0.1), generator=g),
+                "done": torch.zeros(BATCH, 1, dtype=torch.bool),
+                "terminated": torch.zeros(BATCH, 1, dtype=torch.bool),
+            },
+        },
+        [BATCH],
+    )
+
+
+def torchrl_update_fn(loss, *, compile_loss: bool = False):
+    updater = SoftUpdate(loss, tau=0.005)
+    optim = torch.optim.Adam(loss.parameters(), lr=1e-3)
+    forward = torch.compile(loss) if compile_loss else loss
+
+    def update(batch):
+        out = forward(batch)
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        optim.step()
+        optim.zero_grad(set_to_none=True)
+        updater.step()
+
+    return update
+
+
+def build_variants(with_compile: bool) -> dict[str, callable]:
+    torch.manual_seed(0)
+    spec = Bounded(-1.0, 1.0, shape=(ACT,))
+    sac = SACLoss(make_actor(OBS, spec), [make_qvalue(OBS, ACT) for _ in range(2)], loss_function="l2")
+    variants = {"(a) TorchRL SACLoss": torchrl_update_fn(sac)}
+
+    def wcsac():
+        return WCSACLoss(
+            make_actor(OBS, spec), [make_qvalue(OBS, ACT) for _ in range(2)], make_safety_critic(OBS, ACT)
+        )
+
+    variants["(b) WCSACLoss"] = torchrl_update_fn(wcsac())
+    if with_compile:
+        variants["(b') WCSACLoss, compiled"] = torchrl_update_fn(wcsac(), compile_loss=True)
+    plain = PlainWCSAC(OBS, ACT)
+    variants["(c) plain PyTorch WCSAC"] = plain_update_fn(plain)
+    return variants
+
+
+def plain_update_fn(plain: PlainWCSAC):
+    def update(batch):
+        nxt = batch["next"]
+        plain.update(
+            batch["observation"],
+            batch["action"],
+            nxt["reward"].squeeze(-1),
+            nxt["cost"].squeeze(-1),
+            nxt["observation"],
+            nxt["terminated"].squeeze(-1).float(),
+        )
+
+    return update
+
+
+class _MatmulFlops(TorchDispatchMode):
+    """Counts 2·m·k·n for every (batched) matrix product, forward and backward.
+
+    (torch's FlopCounterMode tracks modules, which trips over tensordict's
+    parameter containers; matrix products are all but every FLOP of these updates.)
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.flops = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        out = func(*args, **(kwargs or {}))
+        name = func.overloadpacket.__name__
+        if name in ("mm", "addmm", "bmm", "baddbmm"):
+            a, b = (args[0], args[1]) if name in ("mm", "bmm") else (args[1], args[2])
+            batch = a.shape[0] if a.dim() == 3 else 1
+            self.flops += 2 * batch * a.shape[-2] * a.shape[-1] * b.shape[-1]
+        return out
+
+
+def flops_per_update(update, batch) -> float:
+    with _MatmulFlops() as counter:
+        update(batch)
+    return float(counter.flops)
+
+
+def time_variants(variants, batch, rounds: int, updates: int) -> dict[str, float]:
+    for name, update in variants.items():  # warm-up (and compilation)
+        start = time.perf_counter()
+        for _ in range(3):
+            update(batch)
+        print(f"  warm-up {name}: {time.perf_counter() - start:.1f}s", flush=True)
+    rates: dict[str, list[float]] = {name: [] for name in variants}
+    for _ in range(rounds):
+        for name, update in variants.items():
+            start = time.perf_counter()
+            for _ in range(updates):
+                update(batch)
+            rates[name].append(updates / (time.perf_counter() - start))
+    return {name: statistics.median(r) for name, r in rates.items()}
+
+
+def env_and_loop(update_rate: float, threads: int) -> list[tuple[str, str]]:
+    """StaticEnv raw / wrapped steps/s, collector frames/s, end-to-end training frames/s."""
+    from bench_envs import raw_steps_per_second, torchrl_steps_per_second
+    from omegaconf import OmegaConf
+    from torchrl.collectors import Collector
+
+    from wcsac_rl.envs import make_env
+    from wcsac_rl.training import make_trainer
+
+    rows = [
+        ("StaticEnv raw gymnasium steps/s", f"{raw_steps_per_second('static', 3000):,.0f}"),
+        ("StaticEnv TorchRL-wrapped steps/s", f"{torchrl_steps_per_second('static', 3000):,.0f}"),
+    ]
+    env = make_env("static", seed=0, num_workers=4, parallel=False)
+    collector = Collector(env, None, frames_per_batch=400, total_frames=4000)
+    start = time.perf_counter()
+    frames = sum(batch.numel() for batch in collector)
+    rows.append(("collector frames/s (4 serial envs, random policy)", f"{frames / (time.perf_counter() - start):,.0f}"))
+    collector.shutdown()
+
+    from hydra import compose, initialize_config_dir
+
+    conf = Path(__file__).resolve().parents[1] / "conf"
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose(
+            "config",
+            overrides=[
+                "env=static",
+                "total_frames=8400",
+                "epoch_frames=4000",
+                "algo.collector.init_random_frames=400",
+                "eval_episodes=0",
+                "progress_bar=false",
+                "logger=none",
+                f"threads={threads}",
+            ],
+        )
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = make_trainer(cfg, Path(tmp) / "run")
+        trainer.run()
+        trainer.close()
+        rows_csv = (Path(tmp) / "run" / "progress.csv").read_text().splitlines()
+    header, last = rows_csv[0].split(","), rows_csv[-2].split(",")  # a full epoch with updates
+    values = dict(zip(header, last))
+    fps, ups = float(values["time/fps"]), float(values["time/ups"])
+    rows.append(("end-to-end WCSAC training frames/s (UTD 0.25)", f"{fps:,.1f} ({ups:.1f} updates/s)"))
+    rows.append(
+        ("  vs 4 × isolated WCSACLoss updates/s", f"{fps / (4 * update_rate):.0%} of {4 * update_rate:.1f}")
+    )
+    del OmegaConf
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--updates", type=int, default=20)
+    parser.add_argument("--compile", action="store_true", help="also time WCSACLoss under torch.compile")
+    parser.add_argument("--no-loop", action="store_true", help="skip the env / collector / training part")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    print(f"torch {torch.__version__}, {args.threads} thread(s)")
+
+    peaks = matmul_peak_gflops()
+    peak = max(peaks.values())
+    print("\nfp32 matmul GFLOP/s:")
+    for name, value in peaks.items():
+        print(f"  {name:<28} {value:8.1f}")
+
+    batch = make_batch()
+    variants = build_variants(args.compile)
+    flops = {name: flops_per_update(update, batch) for name, update in variants.items()}
+    rates = time_variants(variants, batch, args.rounds, args.updates)
+    reference = rates["(a) TorchRL SACLoss"]
+    print(f"\nupdates/s (median of {args.rounds} interleaved rounds of {args.updates} updates, batch {BATCH}):")
+    print(f"  {'variant':<28} {'updates/s':>10} {'vs SACLoss':>10} {'GFLOP/upd':>10} {'GFLOP/s':>8} {'of peak':>8}")
+    for name, rate in rates.items():
+        gflops = flops[name] / 1e9
+        print(
+            f"  {name:<28} {rate:10.1f} {rate / reference:10.2f} {gflops:10.3f} "
+            f"{gflops * rate:8.1f} {gflops * rate / peak:8.0%}"
+        )
+    if not args.no_loop:
+        wcsac_rate = rates.get("(b') WCSACLoss, compiled", rates["(b) WCSACLoss"])
+        print("\nenvironment and loop:")
+        for name, value in env_and_loop(wcsac_rate, args.threads):
+            print(f"  {name:<52} {value}")
+
+
+if __name__ == "__main__":
+    main()
