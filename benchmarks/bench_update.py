@@ -37,10 +37,10 @@ from torchrl.objectives import SACLoss, SoftUpdate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from plain_wcsac import PlainWCSAC  # noqa: E402
+from plain_wcsac import PlainWCSAC
 
-from wcsac_rl import WCSACLoss  # noqa: E402
-from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic  # noqa: E402
+from wcsac_rl import WCSACLoss
+from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
 
 OBS, ACT, BATCH = 44, 2, 256
 
@@ -100,12 +100,16 @@ def torchrl_update_fn(loss, *, compile_loss: bool = False):
 def build_variants(with_compile: bool) -> dict[str, callable]:
     torch.manual_seed(0)
     spec = Bounded(-1.0, 1.0, shape=(ACT,))
-    sac = SACLoss(make_actor(OBS, spec), [make_qvalue(OBS, ACT) for _ in range(2)], loss_function="l2")
+    sac = SACLoss(
+        make_actor(OBS, spec), [make_qvalue(OBS, ACT) for _ in range(2)], loss_function="l2"
+    )
     variants = {"(a) TorchRL SACLoss": torchrl_update_fn(sac)}
 
     def wcsac():
         return WCSACLoss(
-            make_actor(OBS, spec), [make_qvalue(OBS, ACT) for _ in range(2)], make_safety_critic(OBS, ACT)
+            make_actor(OBS, spec),
+            [make_qvalue(OBS, ACT) for _ in range(2)],
+            make_safety_critic(OBS, ACT),
         )
 
     variants["(b) WCSACLoss"] = torchrl_update_fn(wcsac())
@@ -191,7 +195,12 @@ def env_and_loop(update_rate: float, threads: int) -> list[tuple[str, str]]:
     collector = Collector(env, None, frames_per_batch=400, total_frames=4000)
     start = time.perf_counter()
     frames = sum(batch.numel() for batch in collector)
-    rows.append(("collector frames/s (4 serial envs, random policy)", f"{frames / (time.perf_counter() - start):,.0f}"))
+    rows.append(
+        (
+            "collector frames/s (4 serial envs, random policy)",
+            f"{frames / (time.perf_counter() - start):,.0f}",
+        )
+    )
     collector.shutdown()
 
     from hydra import compose, initialize_config_dir
@@ -219,21 +228,32 @@ def env_and_loop(update_rate: float, threads: int) -> list[tuple[str, str]]:
     header, last = rows_csv[0].split(","), rows_csv[-2].split(",")  # a full epoch with updates
     values = dict(zip(header, last))
     fps, ups = float(values["time/fps"]), float(values["time/ups"])
-    rows.append(("end-to-end WCSAC training frames/s (UTD 0.25)", f"{fps:,.1f} ({ups:.1f} updates/s)"))
     rows.append(
-        ("  vs 4 × isolated WCSACLoss updates/s", f"{fps / (4 * update_rate):.0%} of {4 * update_rate:.1f}")
+        ("end-to-end WCSAC training frames/s (UTD 0.25)", f"{fps:,.1f} ({ups:.1f} updates/s)")
+    )
+    rows.append(
+        (
+            "  vs 4 × isolated WCSACLoss updates/s",
+            f"{fps / (4 * update_rate):.0%} of {4 * update_rate:.1f}",
+        )
     )
     del OmegaConf
     return rows
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--updates", type=int, default=20)
-    parser.add_argument("--compile", action="store_true", help="also time WCSACLoss under torch.compile")
-    parser.add_argument("--no-loop", action="store_true", help="skip the env / collector / training part")
+    parser.add_argument(
+        "--compile", action="store_true", help="also time WCSACLoss under torch.compile"
+    )
+    parser.add_argument(
+        "--no-loop", action="store_true", help="skip the env / collector / training part"
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     print(f"torch {torch.__version__}, {args.threads} thread(s)")
@@ -249,8 +269,12 @@ def main() -> None:
     flops = {name: flops_per_update(update, batch) for name, update in variants.items()}
     rates = time_variants(variants, batch, args.rounds, args.updates)
     reference = rates["(a) TorchRL SACLoss"]
-    print(f"\nupdates/s (median of {args.rounds} interleaved rounds of {args.updates} updates, batch {BATCH}):")
-    print(f"  {'variant':<28} {'updates/s':>10} {'vs SACLoss':>10} {'GFLOP/upd':>10} {'GFLOP/s':>8} {'of peak':>8}")
+    print(
+        f"\nupdates/s (median of {args.rounds} interleaved rounds of {args.updates} updates, batch {BATCH}):"
+    )
+    print(
+        f"  {'variant':<28} {'updates/s':>10} {'vs SACLoss':>10} {'GFLOP/upd':>10} {'GFLOP/s':>8} {'of peak':>8}"
+    )
     for name, rate in rates.items():
         gflops = flops[name] / 1e9
         print(

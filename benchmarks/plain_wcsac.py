@@ -65,7 +65,9 @@ class PlainWCSAC(nn.Module):
         loc, log_std = self.actor(obs).chunk(2, -1)
         std = log_std.clamp(-20, 2).exp()
         u = loc + std * torch.randn_like(loc)
-        log_prob = (-((u - loc) ** 2) / (2 * std**2) - std.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
+        log_prob = (-((u - loc) ** 2) / (2 * std**2) - std.log() - 0.5 * math.log(2 * math.pi)).sum(
+            -1
+        )
         log_prob = log_prob - (2 * (math.log(2) - u - F.softplus(-2 * u))).sum(-1)
         return torch.tanh(u), log_prob
 
@@ -80,9 +82,7 @@ class PlainWCSAC(nn.Module):
             not_term = 1.0 - terminated
             y_r = rew + self.gamma * not_term * (torch.min(tq1, tq2) - alpha * next_logp)
             y_c = cost + self.gamma * not_term * tqc
-            m2 = cost**2 + not_term * (
-                2 * self.gamma * cost * tqc + self.gamma**2 * (tvc + tqc**2)
-            )
+            m2 = cost**2 + not_term * (2 * self.gamma * cost * tqc + self.gamma**2 * (tvc + tqc**2))
         x = torch.cat([obs, act], -1)
         q1, q2, qc = self.q1(x).squeeze(-1), self.q2(x).squeeze(-1), self.qc(x).squeeze(-1)
         vc = F.softplus(self.vc(x)).squeeze(-1).clamp(1e-8, 1e8)
@@ -94,9 +94,10 @@ class PlainWCSAC(nn.Module):
         x_pi = torch.cat([obs, pi_act], -1)
         self.critics.requires_grad_(False)
         q_pi = torch.min(self.q1(x_pi), self.q2(x_pi)).squeeze(-1)
-        cvar_pi = self.qc(x_pi).squeeze(-1) + self.multiplier * F.softplus(
-            self.vc(x_pi)
-        ).squeeze(-1).clamp(1e-8, 1e8).sqrt()
+        cvar_pi = (
+            self.qc(x_pi).squeeze(-1)
+            + self.multiplier * F.softplus(self.vc(x_pi)).squeeze(-1).clamp(1e-8, 1e8).sqrt()
+        )
         self.critics.requires_grad_(True)
         loss_pi = (alpha * logp - q_pi + kappa.detach() * cvar_pi).mean()
         loss_alpha = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
