@@ -1,0 +1,198 @@
+"""Final evaluation of trained runs: ``python -m wcsac_rl.evaluate RUN_OR_SWEEP_DIR ...``.
+
+For every run directory given, or found below a sweep directory (any directory with
+``checkpoints/last.pt``), loads the final checkpoint, runs N deterministic test
+episodes (default 100, the paper's per seed) and writes ``evaluation.csv`` (one row
+per episode) and ``evaluation.json`` (metadata and the Table-1 summary) beside the
+run. ``--random-policy ENV`` evaluates the uniform random policy the same way
+without a training run (one directory per ``--random-seeds`` seed under ``--out``).
+
+Existing evaluations are skipped (nothing is overwritten) unless ``--force``. A path
+that cannot be evaluated (missing, a run directory without a checkpoint, an
+unreadable checkpoint) prints one ``error:`` line; the other runs are still
+evaluated, and the exit code is 1 if any path failed (0 otherwise).
+
+Examples::
+
+    python -m wcsac_rl.evaluate multirun/2026-11-22/10-00-00
+    python -m wcsac_rl.evaluate outputs/2026-11-22/10-00-00_wcsac_0.5_static_seed0 --episodes 20
+    python -m wcsac_rl.evaluate --random-policy static --out evaluations/random_static
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from wcsac_rl.evaluation.evaluator import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
+
+__all__ = ["main", "parse_args"]
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """The command line of ``python -m wcsac_rl.evaluate``."""
+    parser = argparse.ArgumentParser(
+        prog="python -m wcsac_rl.evaluate",
+        description=(
+            "Run deterministic test episodes of trained runs' final policies and save "
+            "evaluation.csv / evaluation.json beside each run."
+        ),
+    )
+    parser.add_argument(
+        "paths",
+        nargs="*",
+        type=Path,
+        help="run directories and/or sweep directories (searched for checkpoints/last.pt)",
+    )
+    parser.add_argument(
+        "--episodes",
+        type=int,
+        default=DEFAULT_EPISODES,
+        help=f"test episodes per run (default {DEFAULT_EPISODES}, the paper's per seed)",
+    )
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=DEFAULT_SEED_OFFSET,
+        help=(
+            "seed offset of the test episodes: a run trained with seed k is evaluated on an "
+            f"env seeded k + SEED (default {DEFAULT_SEED_OFFSET}, apart from the training "
+            "envs and the per-epoch test episodes)"
+        ),
+    )
+    parser.add_argument(
+        "--max-episode-steps",
+        type=int,
+        default=None,
+        help="bound on an episode's length (default: the env's own)",
+    )
+    parser.add_argument("--force", action="store_true", help="overwrite existing evaluation files")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    random_group = parser.add_argument_group("random policy (no training run needed)")
+    random_group.add_argument(
+        "--random-policy",
+        metavar="ENV",
+        default=None,
+        help="also evaluate the uniform random policy on ENV (static, dynamic, ..., tiny)",
+    )
+    random_group.add_argument(
+        "--random-seeds",
+        type=int,
+        nargs="+",
+        default=[0, 10, 20],
+        help="its 'training' seeds, one evaluation directory each (default: 0 10 20)",
+    )
+    random_group.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="where its evaluation directories go (default: evaluations/random_<ENV>)",
+    )
+    random_group.add_argument(
+        "--cost-limit",
+        type=float,
+        default=15.0,
+        help="budget d recorded with its evaluation (default 15)",
+    )
+    args = parser.parse_args(argv)
+    if not args.paths and args.random_policy is None:
+        parser.error("give run or sweep directories, or --random-policy ENV")
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    if args.max_episode_steps is not None and args.max_episode_steps < 1:
+        parser.error(f"--max-episode-steps must be >= 1, got {args.max_episode_steps}")
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Evaluate; return the exit code (1 if any path failed)."""
+    args = parse_args(argv)
+    import torch
+
+    from wcsac_rl.evaluation.evaluator import (
+        EvaluationExistsError,
+        evaluate_random_policy,
+        evaluate_run,
+    )
+    from wcsac_rl.evaluation.runs import find_run_dirs
+    from wcsac_rl.training.config import ConfigError
+
+    torch.set_num_threads(max(1, args.threads))
+    errors: list[str] = []
+    skipped: list[str] = []
+    done: list[str] = []
+
+    def report(directory: Path, evaluation) -> None:
+        m = evaluation.summary["metrics"]
+        done.append(str(directory))
+        print(
+            f"{directory}: {m['episodes']} episodes  EC {m['EC']:.2f}  C0.1 {m['C0.1']:.2f}  "
+            f"ER {m['ER']:.2f}  over budget {100 * m['over_budget']:.1f}%",
+            flush=True,
+        )
+
+    jobs: list[tuple[Path, object]] = []
+    if args.paths:
+        run_dirs, find_errors = find_run_dirs(args.paths)
+        errors += find_errors
+        for message in find_errors:
+            print(f"error: {message}", file=sys.stderr, flush=True)
+        for run_dir in run_dirs:
+            jobs.append(
+                (
+                    run_dir,
+                    lambda d=run_dir: evaluate_run(
+                        d,
+                        episodes=args.episodes,
+                        seed_offset=args.seed,
+                        force=args.force,
+                        progress=not args.no_progress,
+                        max_episode_steps=args.max_episode_steps,
+                    ),
+                )
+            )
+    if args.random_policy is not None:
+        out = args.out or Path("evaluations") / f"random_{args.random_policy}"
+        for seed in dict.fromkeys(args.random_seeds):
+            directory = out / f"random_{args.random_policy}_seed{seed}"
+            jobs.append(
+                (
+                    directory,
+                    lambda d=directory, s=seed: evaluate_random_policy(
+                        args.random_policy,
+                        d,
+                        seed=s,
+                        episodes=args.episodes,
+                        seed_offset=args.seed,
+                        cost_limit=args.cost_limit,
+                        max_episode_steps=args.max_episode_steps,
+                        force=args.force,
+                        progress=not args.no_progress,
+                    ),
+                )
+            )
+    for directory, job in jobs:
+        try:
+            report(directory, job())
+        except EvaluationExistsError as err:
+            skipped.append(str(directory))
+            print(f"skipped: {err}", file=sys.stderr, flush=True)
+        except ConfigError as err:
+            errors.append(str(err))
+            print(f"error: {err}", file=sys.stderr, flush=True)
+        except Exception as err:  # one broken run must not stop a sweep's evaluation
+            errors.append(f"{directory}: {err}")
+            print(f"error: {directory}: {type(err).__name__}: {err}", file=sys.stderr, flush=True)
+    print(
+        f"{len(done)} evaluated, {len(skipped)} skipped (already evaluated; --force "
+        f"re-evaluates), {len(errors)} failed",
+        flush=True,
+    )
+    return 1 if errors else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

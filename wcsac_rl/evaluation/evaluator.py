@@ -1,0 +1,376 @@
+"""Final evaluation of runs: N deterministic test episodes → ``evaluation.csv`` + ``evaluation.json``.
+
+:func:`evaluate_run` loads a run's last checkpoint (:func:`~wcsac_rl.training.restore.load_run`),
+runs the paper's deterministic (mean-action) test episodes and writes, beside the run:
+
+* ``evaluation.csv`` — one row per episode: ``episode, return, cost, length, goals,
+  numerical_failure``;
+* ``evaluation.json`` — what was evaluated (row label, algo, env, training seed,
+  cost limit, trained frames, test-env seed, episode length) and the summary
+  (``metrics``: EC, C0.9, C0.5, C0.1, ER, over_budget, episodes; plus mean length,
+  goals per episode and numerical failures).
+
+:func:`evaluate_random_policy` does the same for the uniform random policy without
+a training run. Existing evaluation files are never overwritten unless ``force``.
+
+**Seeds.** The test env of a run trained with seed ``k`` is seeded with
+``k + seed_offset`` (default :data:`DEFAULT_SEED_OFFSET` = 2 000 003, apart from the
+training envs, seeded ``k``, and the per-epoch test episodes, ``k + 1 000 003``), and
+torch is seeded with the same number (the random policy draws its actions from
+torch), so an evaluation is reproducible and different seeds see different start
+states.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as _dt
+import json
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from tqdm.auto import tqdm
+
+from wcsac_rl.evaluation.episodes import EpisodeResult, run_episodes
+from wcsac_rl.evaluation.metrics import table1_metrics
+from wcsac_rl.evaluation.runs import EVALUATION_CSV, EVALUATION_JSON
+from wcsac_rl.training.config import ConfigError
+
+__all__ = [
+    "CSV_COLUMNS",
+    "DEFAULT_EPISODES",
+    "DEFAULT_SEED_OFFSET",
+    "Evaluation",
+    "EvaluationExistsError",
+    "evaluate_random_policy",
+    "evaluate_run",
+    "read_evaluation",
+    "summarize",
+    "write_evaluation",
+]
+
+DEFAULT_EPISODES = 100  # the paper: 100 test episodes per seed, 300 per algorithm
+DEFAULT_SEED_OFFSET = 2_000_003
+CSV_COLUMNS = ("episode", "return", "cost", "length", "goals", "numerical_failure")
+
+
+class EvaluationExistsError(ConfigError):
+    """The directory already holds an evaluation and ``force`` was not given."""
+
+
+@dataclass
+class Evaluation:
+    """One directory's test episodes and what they were run with.
+
+    Attributes:
+        directory: where ``evaluation.csv`` / ``evaluation.json`` live.
+        meta: ``label``, ``algo``, ``env``, ``seed`` (training seed), ``cost_limit``,
+            ``trained_frames``, ``env_seed``, ``max_episode_steps``, ``policy``, ...
+        episodes: the per-episode results.
+        summary: :func:`summarize` of ``episodes`` (``metrics`` and extras).
+    """
+
+    directory: Path
+    meta: dict[str, Any]
+    episodes: list[EpisodeResult]
+    summary: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        return str(self.meta["label"])
+
+    @property
+    def costs(self) -> list[float]:
+        return [e.cost for e in self.episodes]
+
+    @property
+    def returns(self) -> list[float]:
+        return [e.ret for e in self.episodes]
+
+
+def summarize(episodes: list[EpisodeResult], cost_limit: float) -> dict[str, Any]:
+    """The evaluation summary: Table-1 ``metrics`` plus mean length, goals, failures."""
+    n = len(episodes)
+    return {
+        "metrics": table1_metrics(
+            [e.cost for e in episodes], [e.ret for e in episodes], cost_limit
+        ),
+        "mean_length": sum(e.length for e in episodes) / n,
+        "goals_per_episode": sum(e.goal_reached for e in episodes) / n,
+        "numerical_failures": sum(bool(e.numerical_failure) for e in episodes),
+    }
+
+
+def _existing(directory: Path) -> list[Path]:
+    return [p for p in (directory / EVALUATION_CSV, directory / EVALUATION_JSON) if p.exists()]
+
+
+def check_can_write(directory: Path, force: bool) -> None:
+    """Raise :class:`EvaluationExistsError` if ``directory`` holds an evaluation and not ``force``."""
+    existing = _existing(Path(directory))
+    if existing and not force:
+        raise EvaluationExistsError(
+            f"{directory} already has {', '.join(p.name for p in existing)}; "
+            "pass --force to overwrite"
+        )
+
+
+def _atomic_write(path: Path, write: Callable[[Any], None]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as f:
+        write(f)
+    os.replace(tmp, path)
+
+
+def write_evaluation(evaluation: Evaluation, *, force: bool = False) -> tuple[Path, Path]:
+    """Write ``evaluation.csv`` then ``evaluation.json`` (each atomically) into its directory."""
+    directory = Path(evaluation.directory)
+    check_can_write(directory, force)
+    directory.mkdir(parents=True, exist_ok=True)
+    csv_path, json_path = directory / EVALUATION_CSV, directory / EVALUATION_JSON
+
+    def write_csv(f: Any) -> None:
+        writer = csv.writer(f)
+        writer.writerow(CSV_COLUMNS)
+        for i, e in enumerate(evaluation.episodes):
+            writer.writerow(
+                [i, repr(e.ret), repr(e.cost), e.length, e.goal_reached, int(e.numerical_failure)]
+            )
+
+    def write_json(f: Any) -> None:
+        json.dump({**evaluation.meta, **evaluation.summary}, f, indent=2, sort_keys=False)
+        f.write("\n")
+
+    _atomic_write(csv_path, write_csv)
+    _atomic_write(json_path, write_json)
+    return csv_path, json_path
+
+
+def read_evaluation(directory: str | os.PathLike) -> Evaluation:
+    """Read back what :func:`write_evaluation` wrote (episodes from the CSV).
+
+    Raises:
+        ConfigError: missing or malformed files (one line saying which).
+    """
+    directory = Path(directory)
+    json_path, csv_path = directory / EVALUATION_JSON, directory / EVALUATION_CSV
+    try:
+        data = json.loads(json_path.read_text())
+        with csv_path.open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        episodes = [
+            EpisodeResult(
+                ret=float(r["return"]),
+                cost=float(r["cost"]),
+                length=int(r["length"]),
+                goal_reached=int(r["goals"]),
+                numerical_failure=bool(int(r["numerical_failure"])),
+            )
+            for r in rows
+        ]
+    except FileNotFoundError as err:
+        raise ConfigError(f"{directory}: incomplete evaluation ({err.filename} missing)") from None
+    except (ValueError, KeyError, TypeError) as err:
+        raise ConfigError(f"{directory}: cannot read the evaluation files ({err!r})") from None
+    if not episodes:
+        raise ConfigError(f"{directory}: {EVALUATION_CSV} has no episodes")
+    summary_keys = ("metrics", "mean_length", "goals_per_episode", "numerical_failures")
+    summary = {k: data.pop(k) for k in summary_keys if k in data}
+    for key in ("label", "env", "cost_limit"):
+        if key not in data:
+            raise ConfigError(f"{json_path}: missing {key!r}")
+    return Evaluation(directory=directory, meta=data, episodes=episodes, summary=summary)
+
+
+def _progress(total: int, desc: str, enabled: bool) -> tuple[tqdm, Callable[[EpisodeResult], None]]:
+    bar = tqdm(
+        total=total, desc=desc, unit="ep", disable=not enabled, leave=True, dynamic_ncols=True
+    )
+    sums = {"cost": 0.0, "ret": 0.0, "n": 0}
+
+    def on_episode(result: EpisodeResult) -> None:
+        sums["cost"] += result.cost
+        sums["ret"] += result.ret
+        sums["n"] += 1
+        bar.set_postfix(
+            cost=f"{sums['cost'] / sums['n']:.2f}",
+            ret=f"{sums['ret'] / sums['n']:.2f}",
+            refresh=False,
+        )
+        bar.update(1)
+
+    return bar, on_episode
+
+
+def _run(
+    env: Any,
+    policy: Any,
+    episodes: int,
+    max_steps: int,
+    env_seed: int,
+    desc: str,
+    progress: bool,
+) -> list[EpisodeResult]:
+    if not isinstance(episodes, int) or episodes < 1:
+        raise ConfigError(f"episodes must be a positive integer, got {episodes!r}")
+    torch.manual_seed(env_seed)
+    bar, on_episode = _progress(episodes, desc, progress)
+    try:
+        return run_episodes(
+            env, policy, episodes, deterministic=True, max_steps=max_steps, on_episode=on_episode
+        )
+    finally:
+        bar.close()
+
+
+def _now() -> str:
+    return _dt.datetime.now().astimezone().isoformat(timespec="seconds")
+
+
+def _training_seed(run_dir: Path) -> int:
+    """The run's training seed: from ``config.yaml``, else from its checkpoint."""
+    from omegaconf import OmegaConf
+
+    from wcsac_rl.training.checkpoint import find_checkpoint, load_checkpoint
+
+    checkpoint = find_checkpoint(run_dir)  # a clear error first if there is none
+    config_yaml = run_dir / "config.yaml"
+    if config_yaml.is_file():
+        seed = OmegaConf.select(OmegaConf.load(config_yaml), "seed")
+        if isinstance(seed, int):
+            return seed
+    return int(load_checkpoint(checkpoint)["config"]["seed"])
+
+
+def evaluate_run(
+    run_dir: str | os.PathLike,
+    *,
+    episodes: int = DEFAULT_EPISODES,
+    seed_offset: int = DEFAULT_SEED_OFFSET,
+    force: bool = False,
+    progress: bool = True,
+    max_episode_steps: int | None = None,
+) -> Evaluation:
+    """Evaluate a run's final policy on ``episodes`` deterministic test episodes and save them.
+
+    Args:
+        run_dir: a run directory holding ``checkpoints/last.pt``.
+        episodes: number of test episodes (the paper: 100 per seed).
+        seed_offset: the test env is seeded with ``run seed + seed_offset``.
+        force: overwrite an existing evaluation.
+        progress: show a tqdm bar over the episodes.
+        max_episode_steps: bound on episode length (default: the run's env's).
+
+    Raises:
+        ConfigError: no checkpoint / unreadable checkpoint (one line), or an
+            evaluation exists and not ``force`` (:class:`EvaluationExistsError`;
+            checked before any work).
+    """
+    from wcsac_rl.training.restore import load_run
+    from wcsac_rl.training.trainer import env_max_episode_steps
+
+    run_dir = Path(run_dir)
+    check_can_write(run_dir, force)
+    env_seed = _training_seed(run_dir) + int(seed_offset)
+    restored = load_run(run_dir, seed=env_seed)
+    cfg = restored.cfg
+    steps = int(max_episode_steps or env_max_episode_steps(cfg))
+    label = str(cfg.algo.get("label", cfg.algo.name))
+    try:
+        results = _run(
+            restored.env,
+            restored.policy,
+            episodes,
+            steps,
+            env_seed,
+            f"{label} seed {cfg.seed}",
+            progress,
+        )
+    finally:
+        restored.env.close()
+    meta = {
+        "label": label,
+        "algo": str(cfg.algo.name),
+        "env": str(cfg.env.name),
+        "seed": int(cfg.seed),
+        "cost_limit": float(cfg.cost_limit),
+        "risk_level": float(cfg.algo.get("risk_level", cfg.risk_level)),
+        "trained_frames": int(restored.frames),
+        "policy": "uniform random" if restored.policy is None else "trained (deterministic)",
+        "checkpoint": str(Path("checkpoints") / "last.pt"),
+        "env_seed": env_seed,
+        "max_episode_steps": steps,
+        "episodes": len(results),
+        "created": _now(),
+    }
+    evaluation = Evaluation(
+        directory=restored.run_dir,
+        meta=meta,
+        episodes=results,
+        summary=summarize(results, float(cfg.cost_limit)),
+    )
+    write_evaluation(evaluation, force=force)
+    return evaluation
+
+
+def evaluate_random_policy(
+    env_name: str,
+    out_dir: str | os.PathLike,
+    *,
+    seed: int = 0,
+    episodes: int = DEFAULT_EPISODES,
+    seed_offset: int = DEFAULT_SEED_OFFSET,
+    cost_limit: float = 15.0,
+    max_episode_steps: int | None = None,
+    force: bool = False,
+    progress: bool = True,
+) -> Evaluation:
+    """Evaluate the uniform random policy (Table 1's "Random Policy") without a training run.
+
+    Same files and seeding as :func:`evaluate_run` for a run of ``algo=random`` with
+    training seed ``seed`` (so both ways give the same episodes), written to ``out_dir``.
+
+    Raises:
+        ConfigError: unknown env, negative cost limit, or an existing evaluation and
+            not ``force``.
+    """
+    from wcsac_rl.envs import PRESET_NAMES, env_info, make_env
+
+    if env_name not in PRESET_NAMES:
+        raise ConfigError(f"unknown env {env_name!r}; choose one of {', '.join(PRESET_NAMES)}")
+    if not math.isfinite(cost_limit) or cost_limit < 0:
+        raise ConfigError(f"cost limit must be a number >= 0, got {cost_limit!r}")
+    out_dir = Path(out_dir)
+    check_can_write(out_dir, force)
+    kwargs = {} if max_episode_steps is None else {"max_episode_steps": int(max_episode_steps)}
+    steps = int(env_info(env_name, **kwargs)["max_episode_steps"])
+    env_seed = int(seed) + int(seed_offset)
+    env = make_env(env_name, seed=env_seed, **kwargs)
+    try:
+        results = _run(env, None, episodes, steps, env_seed, f"random seed {seed}", progress)
+    finally:
+        env.close()
+    meta = {
+        "label": "random",
+        "algo": "random",
+        "env": env_name,
+        "seed": int(seed),
+        "cost_limit": float(cost_limit),
+        "trained_frames": 0,
+        "policy": "uniform random",
+        "checkpoint": None,
+        "env_seed": env_seed,
+        "max_episode_steps": steps,
+        "episodes": len(results),
+        "created": _now(),
+    }
+    evaluation = Evaluation(
+        directory=out_dir, meta=meta, episodes=results, summary=summarize(results, cost_limit)
+    )
+    write_evaluation(evaluation, force=force)
+    return evaluation
