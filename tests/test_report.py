@@ -1,0 +1,273 @@
+"""``python -m wcsac_rl.report``: Table 1 and Figures 4-6 from real (tiny) runs."""
+
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from _evaluation_helpers import EPISODE_STEPS, copy_sweep, png_size, run_dirs
+from _training_helpers import ROOT
+from PIL import Image
+
+from wcsac_rl.evaluation import plots
+from wcsac_rl.evaluation.evaluator import evaluate_random_policy, evaluate_run, read_evaluation
+from wcsac_rl.evaluation.metrics import aggregate_seeds
+from wcsac_rl.evaluation.reporting import ReportError, build_report
+
+EPISODES = 6
+TRAJECTORY_EPISODES = 2
+FIG4_PX = (1500, 450)
+FIG6_PX = (1300, 480)
+PANEL_PX = 550
+
+
+def _px(size_in: tuple[float, float]) -> tuple[int, int]:
+    return round(size_in[0] * plots.DPI), round(size_in[1] * plots.DPI)
+
+
+@pytest.fixture(scope="module")
+def sweep(tmp_path_factory):
+    """A copy of the tiny sweep (2 rows × 2 seeds), every run evaluated."""
+    sweep = copy_sweep(tmp_path_factory.mktemp("report"))
+    for run_dir in run_dirs(sweep):
+        evaluate_run(run_dir, episodes=EPISODES, progress=False)
+    return sweep
+
+
+@pytest.fixture(scope="module")
+def report(sweep, tmp_path_factory):
+    out = tmp_path_factory.mktemp("report_out") / "report"
+    lines: list[str] = []
+    result = build_report(
+        [sweep.parents[2]], out, trajectory_episodes=TRAJECTORY_EPISODES, log=lines.append
+    )
+    return result, lines
+
+
+def _assert_png(path, size):
+    assert png_size(path) == size
+    image = np.asarray(Image.open(path).convert("L"), dtype=np.float64)
+    assert image.std() > 10  # something is drawn, not a blank canvas
+
+
+def test_report_writes_every_file(report):
+    result, lines = report
+    names = sorted(p.name for p in result.files)
+    assert names == sorted(
+        [
+            "table1.md",
+            "table1.csv",
+            "fig4_training_curves.png",
+            "fig5_trajectories.png",
+            "fig5_wcsac_0.5_seed0.png",
+            "fig5_random_seed0.png",
+            "fig6_evaluation.png",
+        ]
+    )
+    assert sorted(p.name for p in result.out_dir.iterdir()) == names
+    assert result.warnings == []
+    assert [line for line in lines if line.startswith("wrote ")] == [
+        f"wrote {p}" for p in result.files
+    ]
+
+
+def test_png_sizes(report):
+    result, _ = report
+    out = result.out_dir
+    assert _px(plots.FIG4_SIZE) == FIG4_PX and _px(plots.FIG6_SIZE) == FIG6_PX
+    _assert_png(out / "fig4_training_curves.png", FIG4_PX)
+    _assert_png(out / "fig6_evaluation.png", FIG6_PX)
+    _assert_png(out / "fig5_trajectories.png", (2 * PANEL_PX, PANEL_PX))  # one panel per row
+    _assert_png(out / "fig5_wcsac_0.5_seed0.png", (PANEL_PX, PANEL_PX))
+    _assert_png(out / "fig5_random_seed0.png", (PANEL_PX, PANEL_PX))
+
+
+def test_table1_pools_the_seeds_of_each_row_in_the_papers_order(report, sweep):
+    result, _ = report
+    with (result.out_dir / "table1.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["label"] for r in rows] == ["wcsac_0.5", "random"]
+    assert [r["algorithm"] for r in rows] == ["WCSAC-0.5", "Random Policy"]
+    evaluations = [read_evaluation(d) for d in run_dirs(sweep)]
+    for row, evs in zip(rows, (evaluations[:2], evaluations[2:])):
+        expected = aggregate_seeds([e.costs for e in evs], [e.returns for e in evs], 15.0)
+        for key, value in expected.items():
+            assert float(row[key]) == pytest.approx(value), key
+        assert row["episodes"] == str(2 * EPISODES) and row["seeds"] == "2"
+        assert row["seed_list"] == "0 1" and row["env"] == "tiny" and row["cost_limit"] == "15.0"
+    md = (result.out_dir / "table1.md").read_text()
+    lines = md.splitlines()
+    assert lines[0] == "# Table 1 — TinyHazard, budget d = 15"
+    assert lines[2] == (
+        "| Algorithm | EC | C0.9 | C0.5 | C0.1 | ER | over budget | episodes (seeds) |"
+    )
+    wcsac, random = lines[4], lines[5]
+    assert wcsac.startswith("| WCSAC-0.5 | ") and random.startswith("| Random Policy | ")
+    cells = [c.strip() for c in wcsac.strip("|").split("|")]
+    assert cells[3] == f"**{float(rows[0]['C0.5']):.2f}**"  # the constrained column in bold
+    assert cells[-1] == f"{2 * EPISODES} (2)"
+    assert "strictly above d = 15" in md
+
+
+def test_existing_report_is_not_overwritten_without_force(report, sweep):
+    result, _ = report
+    before = {p: p.read_bytes() for p in result.files}
+    with pytest.raises(ReportError, match=r"already has .*table1\.md.*pass --force to overwrite"):
+        build_report([sweep], result.out_dir, log=lambda _: None)
+    assert {p: p.read_bytes() for p in before} == before
+    # --force rewrites (without trajectories this time: only those files are planned)
+    again = build_report(
+        [sweep], result.out_dir, force=True, trajectories=False, log=lambda _: None
+    )
+    assert {p.name for p in again.files} == {
+        "table1.md",
+        "table1.csv",
+        "fig4_training_curves.png",
+        "fig6_evaluation.png",
+    }
+    assert (result.out_dir / "table1.csv").read_bytes() == before[result.out_dir / "table1.csv"]
+
+
+def test_unevaluated_runs_give_curves_and_a_warning(tmp_path):
+    sweep = copy_sweep(tmp_path)
+    lines: list[str] = []
+    result = build_report([sweep], tmp_path / "out", trajectories=False, log=lines.append)
+    assert [p.name for p in result.files] == ["fig4_training_curves.png"]
+    assert any("4 training run(s) have no evaluation" in w for w in result.warnings)
+    assert any("Table 1 and Figure 6 skipped" in w for w in result.warnings)
+    assert all(line.startswith(("warning: ", "wrote ")) for line in lines)
+
+
+def test_nothing_to_report_and_mixed_envs_are_clear_errors(sweep, tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ReportError, match="nothing to report under"):
+        build_report([tmp_path / "empty"], tmp_path / "out", log=lambda _: None)
+    with pytest.raises(ReportError, match="no such directory"):
+        build_report([tmp_path / "missing"], tmp_path / "out", log=lambda _: None)
+    static = tmp_path / "static_random"
+    evaluate_random_policy("static", static, episodes=1, max_episode_steps=5, progress=False)
+    with pytest.raises(ReportError, match=r"several envs \(static, tiny\); choose one with --env"):
+        build_report([sweep, static], tmp_path / "out", log=lambda _: None)
+    result = build_report(
+        [sweep, static], tmp_path / "out", env="static", cost_limit=10, log=lambda _: None
+    )
+    table = (tmp_path / "out" / "table1.md").read_text()
+    assert "StaticEnv, budget d = 10" in table and "| Random Policy |" in table
+    assert "| WCSAC" not in table
+    assert "fig4_training_curves.png" not in {p.name for p in result.files}  # no training run
+    assert any("Figure 4 skipped" in w for w in result.warnings)
+    assert not (tmp_path / "out" / "fig5_random_seed0.gif").exists()
+
+
+def test_static_trajectories_and_gif_video(tmp_path):
+    pytest.importorskip("mujoco")
+    static = tmp_path / "random_static_seed0"
+    evaluate_random_policy("static", static, episodes=2, max_episode_steps=30, progress=False)
+    try:
+        result = build_report(
+            [static],
+            tmp_path / "out",
+            trajectory_episodes=3,
+            video=True,
+            video_format="gif",
+            log=lambda _: None,
+        )
+    except Exception as err:  # no GL backend on this machine
+        if "OpenGL" in str(err) or "MUJOCO_GL" in str(err):
+            pytest.skip(f"MuJoCo rendering unavailable: {err}")
+        raise
+    out = tmp_path / "out"
+    _assert_png(out / "fig5_trajectories.png", (PANEL_PX, PANEL_PX))
+    gif = Image.open(out / "fig5_random_seed0.gif")
+    assert gif.size == (480, 480)
+    assert 2 <= gif.n_frames <= 31  # start + up to 30 steps
+    assert out / "fig5_random_seed0.gif" in result.files
+
+
+def test_trajectories_follow_the_layout_and_paths(tmp_path):
+    from wcsac_rl.envs import make_env
+    from wcsac_rl.evaluation.trajectories import collect_trajectories
+
+    env = make_env("dynamic", seed=3, max_episode_steps=20)
+    try:
+        layout, trajs = collect_trajectories(env, None, 3, max_steps=20)
+        # every episode replays the first one's hazards and goal (one picture per run)
+        assert np.allclose(env.base_env._env.unwrapped.hazards_xy, layout["hazards_xy"])
+    finally:
+        env.close()
+    assert layout["hazards_xy"].shape == (3, 2) and layout["hazards_size"] == 0.3
+    for traj in trajs:
+        assert traj.xy.shape == (traj.length + 1, 2) and traj.in_hazard.shape == (traj.length,)
+        assert np.allclose(traj.goals[0], layout["goal_xy"])
+        assert traj.cost == float(traj.in_hazard.sum())
+    assert not np.allclose(trajs[0].xy[0], trajs[1].xy[0])  # fresh random starts
+    out = plots.plot_trajectories([("dynamic", layout, trajs)], tmp_path / "t.png")
+    _assert_png(out, (PANEL_PX, PANEL_PX))
+
+
+def test_video_errors_come_before_any_work(sweep, tmp_path, monkeypatch):
+    import wcsac_rl.evaluation.trajectories as trajectories
+
+    monkeypatch.setattr(trajectories, "ffmpeg_executable", lambda: None)
+    static = tmp_path / "static_random"
+    evaluate_random_policy("static", static, episodes=1, max_episode_steps=5, progress=False)
+    with pytest.raises(ReportError, match=r"pip install imageio-ffmpeg.*--video-format gif"):
+        build_report([static], tmp_path / "out", video=True, log=lambda _: None)
+    with pytest.raises(ReportError, match="the tiny env does not render"):
+        build_report([sweep], tmp_path / "out", video=True, video_format="gif", log=print)
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(trajectories.VideoError, match="pip install imageio-ffmpeg"):
+        trajectories.write_video(np.zeros((2, 4, 4, 3), np.uint8), tmp_path / "v.mp4")
+
+
+def test_mp4_when_ffmpeg_is_installed(tmp_path):
+    from wcsac_rl.evaluation.trajectories import ffmpeg_executable, write_video
+
+    if ffmpeg_executable() is None:
+        pytest.skip("no ffmpeg (pip install imageio-ffmpeg): mp4 videos unavailable")
+    frames = np.random.default_rng(0).integers(0, 255, size=(10, 48, 64, 3), dtype=np.uint8)
+    out = write_video(frames, tmp_path / "v.mp4")
+    data = out.read_bytes()
+    assert len(data) > 100 and data[4:8] == b"ftyp"
+
+
+def test_figure6_synthetic_heavy_tail(tmp_path):
+    rng = np.random.default_rng(0)
+    costs = {
+        "sac": list(rng.normal(20, 5, 300).clip(0)),
+        "sac_lag": [0.0] * 280 + [150.0] * 20,
+        "wcsac_0.1": list(rng.exponential(1.5, 300)),
+    }
+    out = plots.plot_cost_distribution(costs, tmp_path / "f6.png", cost_limit=15, ymax=60)
+    _assert_png(out, FIG6_PX)
+    progress = {
+        "frames": [1000.0, 2000.0, 3000.0],
+        "train/episode_return": [0.0, float("nan"), 1.0],
+        "train/episode_cost": [30.0, 20.0, 10.0],
+        "train/cost_rate": [0.03, 0.025, 0.02],
+    }
+    out = plots.plot_training_curves({"sac": [progress, progress]}, tmp_path / "f4.png")
+    _assert_png(out, FIG4_PX)
+
+
+def test_report_cli(sweep, tmp_path, capsys):
+    out = tmp_path / "cli_report"
+    cmd = [sys.executable, "-m", "wcsac_rl.report", str(sweep), "--out", str(out)]
+    cmd += ["--trajectory-episodes", "1", "--trajectory-max-steps", str(EPISODE_STEPS // 2)]
+    cmd += ["--fig6-rows", "random", "wcsac_0.5"]
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "# Table 1 — TinyHazard, budget d = 15" in proc.stdout
+    assert "| WCSAC-0.5 |" in proc.stdout
+    assert len(list(out.glob("*.png"))) == 5
+    # the same again without --force: one error line, exit code 1 (in-process: fast)
+    from wcsac_rl.report import main
+
+    assert main([str(sweep), "--out", str(out), "--no-trajectories"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "pass --force" in err[0]
+    assert json.loads((run_dirs(sweep)[0] / "evaluation.json").read_text())["episodes"] == EPISODES

@@ -1,0 +1,584 @@
+"""The paper's analysis of a set of runs: Table 1 and Figures 4, 5 and 6 in one directory.
+
+:func:`build_report` reads, below the given directories,
+
+* every evaluated directory (``evaluation.json`` + ``evaluation.csv`` from
+  ``python -m wcsac_rl.evaluate``) → Table 1 and Figure 6;
+* every run directory with ``config.yaml`` + ``progress.csv`` → Figure 4;
+* chosen runs' checkpoints → Figure 5 (trajectories; optionally videos),
+
+groups them by Table-1 row (``algo.label``; seeds pooled) and writes
+
+===============================  ============================================================
+``table1.md``, ``table1.csv``    EC, C0.9, C0.5, C0.1, ER, % over budget, episodes, seeds
+``fig4_training_curves.png``     return, cost, cost rate vs env steps (mean ± std over seeds)
+``fig5_trajectories.png``        one panel per chosen run: layout + several test episodes
+``fig5_<label>_seed<N>.png``     the same, one file per chosen run
+``fig5_<label>_seed<N>.mp4``     (``video=True``) the first of those episodes, rendered
+``fig6_evaluation.png``          (a) cost box plots, whiskers 1st/99th pct.; (b) % over budget
+===============================  ============================================================
+
+Nothing is overwritten unless ``force``: the existing files are listed and nothing
+is done. A report covers one environment and one budget d (pass ``env`` /
+``cost_limit`` when the runs mix them).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+from collections import defaultdict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from wcsac_rl.evaluation import plots
+from wcsac_rl.evaluation.evaluator import DEFAULT_SEED_OFFSET, Evaluation, read_evaluation
+from wcsac_rl.evaluation.metrics import RISK_LEVELS, aggregate_seeds, cvar_key
+from wcsac_rl.evaluation.runs import (
+    find_evaluated_dirs,
+    find_progress_dirs,
+    has_checkpoint,
+    row_name,
+    row_sort_key,
+)
+from wcsac_rl.training.config import ConfigError
+from wcsac_rl.training.progress import read_progress
+
+__all__ = [
+    "FIG4",
+    "FIG6",
+    "TABLE_CSV",
+    "TABLE_MD",
+    "TRAJECTORIES",
+    "Report",
+    "ReportError",
+    "build_report",
+    "table1_markdown",
+    "table1_rows",
+]
+
+TABLE_MD = "table1.md"
+TABLE_CSV = "table1.csv"
+FIG4 = "fig4_training_curves.png"
+FIG5 = "fig5_trajectories.png"
+FIG6 = "fig6_evaluation.png"
+TRAJECTORIES = FIG5
+
+TABLE_COLUMNS = (
+    "label",
+    "algorithm",
+    "env",
+    "cost_limit",
+    "EC",
+    *(cvar_key(a) for a in RISK_LEVELS),
+    "ER",
+    "over_budget",
+    "episodes",
+    "seeds",
+    "EC_seed_std",
+    "ER_seed_std",
+    "seed_list",
+)
+
+
+class ReportError(ConfigError):
+    """The report cannot be made as asked; the message says why and what to pass."""
+
+
+@dataclass
+class RunRecord:
+    """A training run found on disk (for curves and trajectories)."""
+
+    directory: Path
+    label: str
+    env: str
+    seed: int
+    cost_limit: float
+    progress: dict[str, list[float]] | None
+
+
+@dataclass
+class Report:
+    """What :func:`build_report` wrote (``files``) and the notes it printed (``warnings``)."""
+
+    out_dir: Path
+    files: list[Path] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    rows: list[dict[str, Any]] = field(default_factory=list)
+
+
+def env_title(name: str) -> str:
+    """``"static"`` → ``"StaticEnv"`` (the gymnasium id's name), unknown names unchanged."""
+    try:
+        from wcsac_rl.envs import get_preset
+
+        return get_preset(name).gym_id.split("/")[-1].rsplit("-v", 1)[0]
+    except (ValueError, KeyError):
+        return name
+
+
+def _read_run(directory: Path) -> RunRecord:
+    cfg = OmegaConf.load(directory / "config.yaml")
+    progress_csv = directory / "progress.csv"
+    progress = read_progress(progress_csv) if progress_csv.is_file() else None
+    return RunRecord(
+        directory=directory,
+        label=str(OmegaConf.select(cfg, "algo.label") or OmegaConf.select(cfg, "algo.name")),
+        env=str(OmegaConf.select(cfg, "env.name")),
+        seed=int(OmegaConf.select(cfg, "seed")),
+        cost_limit=float(OmegaConf.select(cfg, "cost_limit")),
+        progress=progress or None,
+    )
+
+
+# --------------------------------------------------------------------------- Table 1
+def table1_rows(evaluations: Sequence[Evaluation], cost_limit: float) -> list[dict[str, Any]]:
+    """One Table-1 row per label (seeds pooled, :func:`aggregate_seeds`), in the paper's order."""
+    by_label: dict[str, list[Evaluation]] = defaultdict(list)
+    for ev in evaluations:
+        by_label[ev.label].append(ev)
+    rows = []
+    for label in sorted(by_label, key=row_sort_key):
+        evs = sorted(by_label[label], key=lambda e: int(e.meta.get("seed", 0)))
+        metrics = aggregate_seeds([e.costs for e in evs], [e.returns for e in evs], cost_limit)
+        rows.append(
+            {
+                "label": label,
+                "algorithm": row_name(label),
+                "env": evs[0].meta["env"],
+                "cost_limit": cost_limit,
+                **metrics,
+                "seed_list": " ".join(str(e.meta.get("seed", "?")) for e in evs),
+            }
+        )
+    return rows
+
+
+def _constrained_column(label: str) -> str | None:
+    """The column the row's agent constrains (bold in the paper's Table 1)."""
+    if label == "sac_lag":
+        return "EC"
+    if label.startswith("wcsac_"):
+        try:
+            key = cvar_key(float(label.split("_", 1)[1]))
+        except ValueError:
+            return None
+        return key if key in {cvar_key(a) for a in RISK_LEVELS} else None
+    return None
+
+
+def table1_markdown(rows: Sequence[dict[str, Any]], env: str, cost_limit: float) -> str:
+    """Table 1 as Markdown, with a legend of the columns below it."""
+    cvars = [cvar_key(a) for a in RISK_LEVELS]
+    header = ["Algorithm", "EC", *cvars, "ER", "over budget", "episodes (seeds)"]
+    lines = [
+        f"# Table 1 — {env_title(env)}, budget d = {cost_limit:g}",
+        "",
+        "| " + " | ".join(header) + " |",
+        "|---|" + "---:|" * (len(header) - 1),
+    ]
+    for row in rows:
+        bold = _constrained_column(row["label"])
+        cells = [row["algorithm"]]
+        for key in ("EC", *cvars, "ER"):
+            text = f"{row[key]:.2f}"
+            cells.append(f"**{text}**" if key == bold else text)
+        cells.append(f"{100 * row['over_budget']:.1f}%")
+        cells.append(f"{row['episodes']} ({row['seeds']})")
+        lines.append("| " + " | ".join(cells) + " |")
+    lines += [
+        "",
+        "EC: mean episodic cost; C_α: empirical CVaR, the mean cost of the worst ⌈n·α⌉ of "
+        "the n test episodes; ER: mean episodic return; over budget: share of episodes "
+        f"with cost strictly above d = {cost_limit:g}. Deterministic (mean-action) test "
+        "episodes of each seed's final policy, seeds pooled. In bold: the quantity the "
+        "agent constrains (SAC-Lag: EC, WCSAC-α: C_α). Per-seed spread: table1.csv "
+        "(EC_seed_std, ER_seed_std).",
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def _table_csv(rows: Sequence[dict[str, Any]]) -> str:
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=TABLE_COLUMNS, extrasaction="ignore")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow(row)
+    return buf.getvalue()
+
+
+# ------------------------------------------------------------------------- the report
+def _common(values: dict[str, set], what: str, flag: str) -> Any:
+    present = set().union(*values.values()) if values else set()
+    if len(present) > 1:
+        listing = ", ".join(sorted(map(str, present)))
+        raise ReportError(f"the runs use several {what} ({listing}); choose one with {flag}")
+    return next(iter(present)) if present else None
+
+
+def _write_text(path: Path, text: str) -> Path:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+    return path
+
+
+@dataclass
+class _TrajectorySource:
+    directory: Path
+    label: str
+    seed: int
+
+    @property
+    def stem(self) -> str:
+        return f"fig5_{self.label}_seed{self.seed}"
+
+
+def _trajectory_sources(
+    chosen: Sequence[str | os.PathLike] | None,
+    runs: Sequence[RunRecord],
+    evaluations: Sequence[Evaluation],
+) -> list[_TrajectorySource]:
+    """The runs whose policies Figure 5 shows: the chosen ones, else per row the lowest seed."""
+    if chosen is not None:
+        sources = []
+        for raw in chosen:
+            directory = Path(raw).expanduser().resolve()
+            if has_checkpoint(directory):
+                record = _read_run(directory)
+                sources.append(_TrajectorySource(directory, record.label, record.seed))
+            elif (directory / "evaluation.json").is_file():
+                ev = read_evaluation(directory)
+                if ev.meta.get("algo") != "random":
+                    raise ReportError(f"{directory}: no checkpoint to draw trajectories from")
+                sources.append(_TrajectorySource(directory, ev.label, int(ev.meta["seed"])))
+            else:
+                raise ReportError(
+                    f"{directory}: not a run directory with a checkpoint "
+                    "(expected checkpoints/last.pt)"
+                )
+        return sources
+    candidates: dict[str, list[_TrajectorySource]] = defaultdict(list)
+    seen: set[Path] = set()
+    for run in runs:
+        if has_checkpoint(run.directory):
+            candidates[run.label].append(_TrajectorySource(run.directory, run.label, run.seed))
+            seen.add(run.directory)
+    for ev in evaluations:
+        directory = Path(ev.directory).resolve()
+        if directory in seen:
+            continue
+        if has_checkpoint(directory) or ev.meta.get("algo") == "random":
+            candidates[ev.label].append(
+                _TrajectorySource(directory, ev.label, int(ev.meta["seed"]))
+            )
+    return [
+        min(candidates[label], key=lambda s: (s.seed, str(s.directory)))
+        for label in sorted(candidates, key=row_sort_key)
+    ]
+
+
+def _restore(source: _TrajectorySource, env_seed: int) -> tuple[Any, Any, int, str, dict]:
+    """``(policy, env, max_steps, env_name, env_kwargs)`` for a trajectory source."""
+    if has_checkpoint(source.directory):
+        from wcsac_rl.training.builders import env_kwargs
+        from wcsac_rl.training.restore import load_run
+        from wcsac_rl.training.trainer import env_max_episode_steps
+
+        restored = load_run(source.directory, seed=env_seed)
+        cfg = restored.cfg
+        return (
+            restored.policy,
+            restored.env,
+            env_max_episode_steps(cfg),
+            str(cfg.env.name),
+            env_kwargs(cfg),
+        )
+    from wcsac_rl.envs import make_env
+
+    ev = read_evaluation(source.directory)
+    kwargs = {"max_episode_steps": int(ev.meta["max_episode_steps"])}
+    env = make_env(str(ev.meta["env"]), seed=env_seed, **kwargs)
+    return None, env, kwargs["max_episode_steps"], str(ev.meta["env"]), kwargs
+
+
+def build_report(
+    paths: Sequence[str | os.PathLike],
+    out_dir: str | os.PathLike,
+    *,
+    env: str | None = None,
+    cost_limit: float | None = None,
+    force: bool = False,
+    trajectory_runs: Sequence[str | os.PathLike] | None = None,
+    trajectories: bool = True,
+    trajectory_episodes: int = 5,
+    trajectory_max_steps: int | None = None,
+    trajectory_seed: int = DEFAULT_SEED_OFFSET,
+    video: bool = False,
+    video_format: str = "mp4",
+    fig6_rows: Sequence[str] | None = None,
+    fig6_ymax: float | None = None,
+    log: Callable[[str], None] = print,
+) -> Report:
+    """Write Table 1 and Figures 4, 5, 6 for the runs below ``paths`` into ``out_dir``.
+
+    Args:
+        paths: run, sweep or evaluation directories (searched recursively).
+        out_dir: where the files go (created).
+        env: report on this env's runs only (needed when the runs mix envs).
+        cost_limit: the budget d (default: the runs' own; needed when they differ).
+        force: overwrite existing report files.
+        trajectory_runs: runs for Figure 5 (default: per row, its lowest seed).
+        trajectories: draw Figure 5 at all.
+        trajectory_episodes: episodes per trajectory panel.
+        trajectory_max_steps: bound on those episodes' length (default: the env's).
+        trajectory_seed: env seed of the trajectory episodes (the same for every run,
+            so rows start from comparable states).
+        video: also render the first trajectory episode of each chosen run.
+        video_format: ``"mp4"`` (needs ffmpeg) or ``"gif"`` (Pillow).
+        fig6_rows: the rows Figure 6 compares (default: every evaluated row except
+            the random policy, as the paper compares the SAC-based methods).
+        fig6_ymax: upper view limit of Figure 6(a).
+        log: where progress lines go.
+
+    Raises:
+        ReportError: nothing to report, mixed envs or budgets, existing files without
+            ``force``, or a video that cannot be made — before anything is written.
+    """
+    out_dir = Path(out_dir).expanduser()
+    report = Report(out_dir=out_dir)
+
+    def warn(message: str) -> None:
+        report.warnings.append(message)
+        log(f"warning: {message}")
+
+    for raw in paths:
+        if not Path(raw).expanduser().is_dir():
+            raise ReportError(f"{raw}: no such directory")
+    evaluations: list[Evaluation] = []
+    for directory in find_evaluated_dirs(paths):
+        try:
+            evaluations.append(read_evaluation(directory))
+        except ConfigError as err:
+            warn(f"skipped: {err}")
+    runs = []
+    for directory in find_progress_dirs(paths):
+        try:
+            runs.append(_read_run(directory))
+        except Exception as err:  # a half-written config: report it and go on
+            warn(f"skipped {directory}: cannot read config.yaml/progress.csv ({err})")
+
+    envs = {"evaluations": {e.meta["env"] for e in evaluations}, "runs": {r.env for r in runs}}
+    if env is not None:
+        evaluations = [e for e in evaluations if e.meta["env"] == env]
+        runs = [r for r in runs if r.env == env]
+    else:
+        env = _common(envs, "envs", "--env")
+    if not evaluations and not runs:
+        where = ", ".join(map(str, paths))
+        raise ReportError(
+            f"nothing to report under {where}"
+            + (f" for env {env!r}" if env else "")
+            + ": no evaluated runs (evaluation.json) and no training runs (progress.csv)"
+        )
+    if cost_limit is None:
+        cost_limit = _common(
+            {
+                "evaluations": {float(e.meta["cost_limit"]) for e in evaluations},
+                "runs": {r.cost_limit for r in runs},
+            },
+            "cost limits",
+            "--cost-limit",
+        )
+    cost_limit = float(cost_limit)
+    if not math.isfinite(cost_limit) or cost_limit < 0:
+        raise ReportError(f"cost limit must be a number >= 0, got {cost_limit!r}")
+
+    evaluated_dirs = {Path(e.directory).resolve() for e in evaluations}
+    unevaluated = [r for r in runs if r.directory not in evaluated_dirs]
+    if unevaluated:
+        warn(
+            f"{len(unevaluated)} training run(s) have no evaluation and are not in Table 1 / "
+            f"Figure 6 (run `python -m wcsac_rl.evaluate` on them): "
+            + ", ".join(r.directory.name for r in unevaluated)
+        )
+    seeds_seen: dict[tuple[str, int], int] = defaultdict(int)
+    for ev in evaluations:
+        seeds_seen[(ev.label, int(ev.meta.get("seed", -1)))] += 1
+    for (label, seed), count in seeds_seen.items():
+        if count > 1:
+            warn(f"row {label}: {count} evaluations with seed {seed} (all are pooled)")
+
+    # ---- plan every output file, refuse to overwrite, check the video encoder
+    planned: list[Path] = []
+    if evaluations:
+        planned += [out_dir / TABLE_MD, out_dir / TABLE_CSV, out_dir / FIG6]
+    runs_with_progress = [r for r in runs if r.progress]
+    if runs_with_progress:
+        planned.append(out_dir / FIG4)
+    sources: list[_TrajectorySource] = []
+    if trajectories:
+        sources = _trajectory_sources(trajectory_runs, runs, evaluations)
+        if sources:
+            planned.append(out_dir / FIG5)
+            planned += [out_dir / f"{s.stem}.png" for s in sources]
+            if video:
+                planned += [out_dir / f"{s.stem}.{video_format}" for s in sources]
+        elif trajectory_runs is None:
+            warn("no run with a checkpoint: Figure 5 (trajectories) skipped")
+    if video:
+        _check_video(video_format, env)
+    existing = [p for p in planned if p.exists()]
+    if existing and not force:
+        listing = ", ".join(p.name for p in existing)
+        raise ReportError(f"{out_dir} already has {listing}; pass --force to overwrite")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    title_env = env_title(env) if env else "?"
+
+    # ---- Table 1 and Figure 6
+    if evaluations:
+        rows = table1_rows(evaluations, cost_limit)
+        report.rows = rows
+        report.files.append(_write_text(out_dir / TABLE_MD, table1_markdown(rows, env, cost_limit)))
+        report.files.append(_write_text(out_dir / TABLE_CSV, _table_csv(rows)))
+        costs: dict[str, list[float]] = defaultdict(list)
+        for ev in sorted(evaluations, key=lambda e: row_sort_key(e.label)):
+            costs[ev.label].extend(ev.costs)
+        if fig6_rows is None:
+            chosen = [label for label in costs if label != "random"] or list(costs)
+        else:
+            unknown = sorted(set(fig6_rows) - set(costs))
+            if unknown:
+                warn(f"Figure 6: no evaluated row(s) {', '.join(unknown)}")
+            chosen = [label for label in fig6_rows if label in costs]
+        report.files.append(
+            plots.plot_cost_distribution(
+                {label: costs[label] for label in chosen},
+                out_dir / FIG6,
+                cost_limit=cost_limit,
+                title=f"Evaluation after training ({title_env})",
+                ymax=fig6_ymax,
+            )
+        )
+    else:
+        warn("no evaluated runs: Table 1 and Figure 6 skipped")
+
+    # ---- Figure 4
+    if runs_with_progress:
+        by_label: dict[str, list[dict[str, list[float]]]] = defaultdict(list)
+        for run in sorted(runs_with_progress, key=lambda r: (row_sort_key(r.label), r.seed)):
+            by_label[run.label].append(run.progress)
+        report.files.append(
+            plots.plot_training_curves(
+                dict(by_label),
+                out_dir / FIG4,
+                cost_limit=cost_limit,
+                title=f"Training on {title_env}",
+            )
+        )
+    else:
+        warn("no training runs with progress.csv: Figure 4 skipped")
+
+    # ---- Figure 5 (and videos)
+    if sources:
+        report.files += _figure5(
+            sources,
+            out_dir,
+            episodes=trajectory_episodes,
+            max_steps=trajectory_max_steps,
+            env_seed=trajectory_seed,
+            video_format=video_format if video else None,
+            title_env=title_env,
+            log=log,
+        )
+    for path in report.files:
+        log(f"wrote {path}")
+    return report
+
+
+def _check_video(video_format: str, env: str | None) -> None:
+    from wcsac_rl.evaluation.trajectories import ffmpeg_executable
+
+    if video_format not in ("mp4", "gif"):
+        raise ReportError(f"video format must be mp4 or gif, got {video_format!r}")
+    if env == "tiny":
+        raise ReportError(
+            "videos need a MuJoCo env (static, dynamic, point_goal1, point_goal2); "
+            "the tiny env does not render"
+        )
+    if video_format == "mp4" and ffmpeg_executable() is None:
+        raise ReportError(
+            "--video needs ffmpeg for mp4, which is not installed: `pip install imageio-ffmpeg` "
+            "(it ships an ffmpeg binary) or install the system's ffmpeg, "
+            "or pass --video-format gif (uses Pillow)"
+        )
+
+
+def _figure5(
+    sources: Sequence[_TrajectorySource],
+    out_dir: Path,
+    *,
+    episodes: int,
+    max_steps: int | None,
+    env_seed: int,
+    video_format: str | None,
+    title_env: str,
+    log: Callable[[str], None],
+) -> list[Path]:
+    import torch
+
+    from wcsac_rl.evaluation.trajectories import (
+        collect_trajectories,
+        render_episode,
+        write_video,
+    )
+
+    written: list[Path] = []
+    panels = []
+    for source in sources:
+        log(f"trajectories: {source.label} seed {source.seed} ({episodes} episodes)")
+        policy, env, env_steps, env_name, kwargs = _restore(source, env_seed)
+        steps = int(max_steps or env_steps)
+        try:
+            torch.manual_seed(env_seed)
+            layout, trajs = collect_trajectories(env, policy, episodes, max_steps=steps)
+        finally:
+            env.close()
+        title = f"{row_name(source.label)}, seed {source.seed}"
+        panels.append((title, layout, trajs))
+        written.append(
+            plots.plot_trajectories(
+                [(title, layout, trajs)],
+                out_dir / f"{source.stem}.png",
+                title=f"{row_name(source.label)} on {title_env}: {episodes} test episodes",
+            )
+        )
+        if video_format is not None:
+            log(f"video: {source.label} seed {source.seed}")
+            frames = render_episode(
+                env_name, policy, seed=env_seed, max_steps=steps, **_without_steps(kwargs, steps)
+            )
+            written.append(write_video(frames, out_dir / f"{source.stem}.{video_format}"))
+    written.insert(
+        0,
+        plots.plot_trajectories(
+            panels,
+            out_dir / FIG5,
+            title=f"Trajectories on {title_env}: {episodes} deterministic test episodes per run",
+        ),
+    )
+    return written
+
+
+def _without_steps(kwargs: dict, steps: int) -> dict:
+    """``make_env`` kwargs with the episode length bounded by ``steps``."""
+    out = dict(kwargs)
+    out["max_episode_steps"] = min(int(out.get("max_episode_steps") or steps), steps)
+    return out

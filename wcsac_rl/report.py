@@ -1,0 +1,148 @@
+"""The paper's Table 1 and Figures 4-6 for your runs: ``python -m wcsac_rl.report DIR ...``.
+
+Reads the evaluated runs (``evaluation.json`` from ``python -m wcsac_rl.evaluate``)
+and training logs (``progress.csv``) below the given directories, groups them by
+Table-1 row (``algo.label``, seeds pooled) and writes into ``--out`` (default
+``<first DIR>/report``):
+
+* ``table1.md`` / ``table1.csv`` — EC, C0.9, C0.5, C0.1, ER, % of episodes over budget d;
+* ``fig4_training_curves.png`` — return, cost, cost rate vs env steps (mean ± std over seeds);
+* ``fig5_trajectories.png`` (+ ``fig5_<row>_seed<N>.png`` per run) — top-down paths of
+  test episodes of one run per row (the lowest seed; ``--trajectory-runs`` to choose);
+  ``--video`` adds an mp4 (or ``--video-format gif``) rendered with MuJoCo;
+* ``fig6_evaluation.png`` — cost box plots (whiskers 1st/99th percentiles, d dashed)
+  and the budget-exceedance bar chart.
+
+Existing files are not overwritten without ``--force``. Errors print one ``error:``
+line and exit with code 1.
+
+Examples::
+
+    python -m wcsac_rl.report multirun/2026-11-22/10-00-00
+    python -m wcsac_rl.report multirun/2026-11-22/10-00-00 evaluations/random_static --out report
+    python -m wcsac_rl.report RUNS --trajectory-runs RUNS/3_wcsac_0.1_static_seed0 --video
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from wcsac_rl.evaluation.evaluator import DEFAULT_SEED_OFFSET
+
+__all__ = ["main", "parse_args"]
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """The command line of ``python -m wcsac_rl.report``."""
+    parser = argparse.ArgumentParser(
+        prog="python -m wcsac_rl.report",
+        description="Table 1 and Figures 4, 5, 6 of the WCSAC paper for a set of runs.",
+    )
+    parser.add_argument(
+        "paths", nargs="+", type=Path, help="run, sweep or evaluation directories (recursive)"
+    )
+    parser.add_argument(
+        "--out", type=Path, default=None, help="output directory (default: <first path>/report)"
+    )
+    parser.add_argument("--env", default=None, help="report on this env's runs only")
+    parser.add_argument(
+        "--cost-limit", type=float, default=None, help="budget d (default: the runs' own)"
+    )
+    parser.add_argument("--force", action="store_true", help="overwrite existing report files")
+    traj = parser.add_argument_group("Figure 5: trajectories")
+    traj.add_argument(
+        "--trajectory-runs",
+        nargs="+",
+        type=Path,
+        default=None,
+        help="runs to draw (default: per row, the run with the lowest seed)",
+    )
+    traj.add_argument("--no-trajectories", action="store_true", help="skip Figure 5")
+    traj.add_argument(
+        "--trajectory-episodes", type=int, default=5, help="episodes per run (default 5)"
+    )
+    traj.add_argument(
+        "--trajectory-max-steps",
+        type=int,
+        default=None,
+        help="bound on those episodes' length (default: the env's)",
+    )
+    traj.add_argument(
+        "--trajectory-seed",
+        type=int,
+        default=DEFAULT_SEED_OFFSET,
+        help=f"env seed of the trajectory episodes, the same for every run (default {DEFAULT_SEED_OFFSET})",
+    )
+    traj.add_argument(
+        "--video",
+        action="store_true",
+        help="also render each drawn run's first episode with MuJoCo",
+    )
+    traj.add_argument(
+        "--video-format",
+        choices=("mp4", "gif"),
+        default="mp4",
+        help="mp4 needs ffmpeg (pip install imageio-ffmpeg); gif uses Pillow (default mp4)",
+    )
+    fig6 = parser.add_argument_group("Figure 6")
+    fig6.add_argument(
+        "--fig6-rows",
+        nargs="+",
+        default=None,
+        help="rows to compare, e.g. sac sac_lag wcsac_0.5 (default: all evaluated but random)",
+    )
+    fig6.add_argument(
+        "--fig6-ymax", type=float, default=None, help="upper view limit of the box plots"
+    )
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    args = parser.parse_args(argv)
+    if args.trajectory_episodes < 1:
+        parser.error(f"--trajectory-episodes must be >= 1, got {args.trajectory_episodes}")
+    if args.trajectory_max_steps is not None and args.trajectory_max_steps < 1:
+        parser.error(f"--trajectory-max-steps must be >= 1, got {args.trajectory_max_steps}")
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Build the report; return the exit code."""
+    args = parse_args(argv)
+    import torch
+
+    from wcsac_rl.evaluation.reporting import build_report
+    from wcsac_rl.evaluation.trajectories import TrajectoryError, VideoError
+    from wcsac_rl.training.config import ConfigError
+
+    torch.set_num_threads(max(1, args.threads))
+    out = args.out if args.out is not None else args.paths[0] / "report"
+    try:
+        report = build_report(
+            args.paths,
+            out,
+            env=args.env,
+            cost_limit=args.cost_limit,
+            force=args.force,
+            trajectory_runs=args.trajectory_runs,
+            trajectories=not args.no_trajectories,
+            trajectory_episodes=args.trajectory_episodes,
+            trajectory_max_steps=args.trajectory_max_steps,
+            trajectory_seed=args.trajectory_seed,
+            video=args.video,
+            video_format=args.video_format,
+            fig6_rows=args.fig6_rows,
+            fig6_ymax=args.fig6_ymax,
+        )
+    except (ConfigError, TrajectoryError, VideoError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    table = out / "table1.md"
+    if table in report.files:
+        print()
+        print(table.read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
