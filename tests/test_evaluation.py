@@ -140,6 +140,15 @@ def test_corrupt_checkpoint_is_one_clear_error(tmp_path):
         evaluate_run(run_dir, episodes=1, progress=False)
 
 
+def test_checkpoint_without_a_policy_is_not_evaluated_as_random(evaluated, monkeypatch):
+    from wcsac_rl.training.off_policy import OffPolicyTrainer
+
+    monkeypatch.setattr(OffPolicyTrainer, "restore_policy", classmethod(lambda *a: None))
+    sweep, _ = evaluated
+    with pytest.raises(ConfigError, match="no policy could be restored .* algo 'wcsac'"):
+        evaluate_run(run_dirs(sweep)[0], episodes=1, progress=False, force=True)
+
+
 def _touch_run(path: Path, checkpoint: bool) -> Path:
     path.mkdir(parents=True)
     (path / "config.yaml").write_text("seed: 0\n")

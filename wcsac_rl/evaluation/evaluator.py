@@ -40,6 +40,7 @@ from wcsac_rl.evaluation.episodes import EpisodeResult, run_episodes
 from wcsac_rl.evaluation.metrics import table1_metrics
 from wcsac_rl.evaluation.runs import EVALUATION_CSV, EVALUATION_JSON
 from wcsac_rl.training.config import ConfigError
+from wcsac_rl.training.restore import RestoredRun
 
 __all__ = [
     "CSV_COLUMNS",
@@ -49,6 +50,7 @@ __all__ = [
     "EvaluationExistsError",
     "evaluate_random_policy",
     "evaluate_run",
+    "load_policy",
     "read_evaluation",
     "summarize",
     "write_evaluation",
@@ -232,6 +234,22 @@ def _now() -> str:
     return _dt.datetime.now().astimezone().isoformat(timespec="seconds")
 
 
+def load_policy(run_dir: str | os.PathLike, env_seed: int) -> RestoredRun:
+    """:func:`~wcsac_rl.training.restore.load_run` with its env seeded ``env_seed``,
+    refusing a checkpoint that restores no policy for a learning algorithm (it
+    would silently be evaluated as the random policy)."""
+    from wcsac_rl.training.restore import load_run
+
+    restored = load_run(run_dir, seed=env_seed)
+    algo = str(restored.cfg.algo.name)
+    if restored.policy is None and algo != "random":
+        restored.env.close()
+        raise ConfigError(
+            f"{run_dir}: no policy could be restored from the checkpoint of algo {algo!r}"
+        )
+    return restored
+
+
 def _training_seed(run_dir: Path) -> int:
     """The run's training seed: from ``config.yaml``, else from its checkpoint."""
     from omegaconf import OmegaConf
@@ -271,13 +289,12 @@ def evaluate_run(
             evaluation exists and not ``force`` (:class:`EvaluationExistsError`;
             checked before any work).
     """
-    from wcsac_rl.training.restore import load_run
     from wcsac_rl.training.trainer import env_max_episode_steps
 
     run_dir = Path(run_dir)
     check_can_write(run_dir, force)
     env_seed = _training_seed(run_dir) + int(seed_offset)
-    restored = load_run(run_dir, seed=env_seed)
+    restored = load_policy(run_dir, env_seed)
     cfg = restored.cfg
     steps = int(max_episode_steps or env_max_episode_steps(cfg))
     label = str(cfg.algo.get("label", cfg.algo.name))

@@ -288,11 +288,11 @@ def _trajectory_sources(
 def _restore(source: _TrajectorySource, env_seed: int) -> tuple[Any, Any, int, str, dict]:
     """``(policy, env, max_steps, env_name, env_kwargs)`` for a trajectory source."""
     if has_checkpoint(source.directory):
+        from wcsac_rl.evaluation.evaluator import load_policy
         from wcsac_rl.training.builders import env_kwargs
-        from wcsac_rl.training.restore import load_run
         from wcsac_rl.training.trainer import env_max_episode_steps
 
-        restored = load_run(source.directory, seed=env_seed)
+        restored = load_policy(source.directory, env_seed)
         cfg = restored.cfg
         return (
             restored.policy,
