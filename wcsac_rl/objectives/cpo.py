@@ -102,7 +102,10 @@ def conjugate_gradient(
         if residual_sq <= residual_tol:
             break
         a_dir = matvec(direction)
-        alpha = residual_sq / (direction @ a_dir + _EPS)
+        curvature = direction @ a_dir
+        if curvature <= 0:  # not positive definite along this direction: stop here
+            break
+        alpha = residual_sq / curvature
         x = x + alpha * direction
         residual = residual - alpha * a_dir
         new_residual_sq = residual @ residual
@@ -121,7 +124,8 @@ class CPODirection:
             feasible part of the trust region, ``2``: feasible with the constraint
             cutting the trust region, ``3``: whole trust region feasible, ``4``:
             feasible and no cost gradient) — safety-starter-agents' numbering.
-        lam: the dual variable λ of the trust region (``0`` for the recovery step).
+        lam: the dual variable λ of the trust region (``0`` for the recovery step
+            and in the limit of parallel reward and cost gradients).
         nu: the dual variable ν of the cost constraint.
         q, r, s: ``gᵀH⁻¹g``, ``gᵀH⁻¹b``, ``bᵀH⁻¹b``.
         c: the constraint value ``(J_C − d) / T̄`` the step was computed for.
@@ -176,16 +180,17 @@ def cpo_direction(
     """
     g, b, c, delta = reward_grad, cost_grad, float(constraint), float(max_kl)
     v = solve(g)  # H⁻¹ g
-    q = float(g @ v)
-    if float(b @ b) <= _EPS and c < 0:
-        lam = math.sqrt(q / (2 * delta))
-        return CPODirection(v / (lam + _EPS), CASE_NO_COST_GRADIENT, lam, 0.0, q, 0.0, 0.0, c)
+    q = max(float(g @ v), 0.0)
     w = solve(b)  # H⁻¹ b
     r = float(g @ w)
     s = float(b @ w)
-    if s <= _EPS:  # infeasible and no direction lowers the linearised cost: stay
-        zero = torch.zeros_like(g)
-        return CPODirection(zero, CASE_INFEASIBLE_RECOVERY, 0.0, 0.0, q, r, s, c)
+    if float(b @ b) <= _EPS or s <= _EPS:  # no (measurable) cost gradient
+        if c < 0:  # feasible: the constraint plays no part, a TRPO step
+            lam = math.sqrt(q / (2 * delta))
+            step = v / (lam + _EPS)
+            return CPODirection(step, CASE_NO_COST_GRADIENT, lam, 0.0, q, r, s, c)
+        # infeasible, and no direction lowers the linearised cost: stay
+        return CPODirection(torch.zeros_like(g), CASE_INFEASIBLE_RECOVERY, 0.0, 0.0, q, r, s, c)
     A = max(q - r * r / s, 0.0)  # ≥ 0 by Cauchy-Schwarz
     B = 2 * delta - c * c / s
     if B < 0 and c < 0:
@@ -208,21 +213,32 @@ def cpo_direction(
     def clip(x: float, interval: tuple[float, float]) -> float:
         return min(max(x, interval[0]), interval[1])
 
-    candidates = []
+    # (dual value, λ, piece); the dual is convex in λ, so the better projected
+    # minimiser of the two pieces is the global one.
+    candidates: list[tuple[float, float, str]] = []
     if nu_positive is not None:
         lam_a = clip(math.sqrt(A / B) if B > 0 else math.inf, nu_positive)
         if 0 < lam_a < math.inf:
-            candidates.append((A / (2 * lam_a) + lam_a * B / 2 - r * c / s, lam_a))
+            candidates.append((A / (2 * lam_a) + lam_a * B / 2 - r * c / s, lam_a, "a"))
+        elif lam_a == 0 and A == 0:  # g ∥ b: the dual's infimum is its λ → 0 limit
+            candidates.append((-r * c / s, 0.0, "a"))
     if nu_zero is not None:
         lam_b = clip(math.sqrt(q / (2 * delta)), nu_zero)
         if 0 < lam_b < math.inf:
-            candidates.append((q / (2 * lam_b) + lam_b * delta, lam_b))
-    if not candidates:  # degenerate (g ≈ 0 and c = 0): nothing to gain
-        return CPODirection(torch.zeros_like(g), CASE_FEASIBLE_DUAL, 0.0, 0.0, q, r, s, c)
-    _, lam = min(candidates)
-    nu = max(0.0, (lam * c + r) / s)
+            candidates.append((q / (2 * lam_b) + lam_b * delta, lam_b, "b"))
     case = CASE_FEASIBLE_DUAL if c < 0 else CASE_INFEASIBLE_DUAL
-    return CPODirection((v - nu * w) / lam, case, lam, nu, q, r, s, c)
+    if not candidates:  # degenerate (g ≈ 0 and c = 0): nothing to gain
+        return CPODirection(torch.zeros_like(g), case, 0.0, 0.0, q, r, s, c)
+    _, lam, piece = min(candidates)
+    if piece == "b":
+        return CPODirection(v / lam, case, lam, 0.0, q, r, s, c)
+    nu = (lam * c + r) / s
+    # x = H⁻¹(g − νb)/λ = u/λ − (c/s) H⁻¹b with u = H⁻¹g − (r/s) H⁻¹b (‖u‖²_H = A):
+    # at A = 0 (reward and cost gradients parallel) only the second term remains —
+    # the point of the constraint's boundary nearest to θ_old.
+    u = v - (r / s) * w
+    step = -(c / s) * w if lam == 0 else u / lam - (c / s) * w
+    return CPODirection(step, case, lam, nu, q, r, s, c)
 
 
 class CPOLoss(LossModule):
@@ -246,11 +262,12 @@ class CPOLoss(LossModule):
     ``cost_advantage`` and ``cost_value_target``.
 
     Args:
-        actor_network (ProbabilisticTensorDictSequential): the stochastic policy, e.g.
-            :func:`wcsac_rl.modules.gaussian_actor.make_gaussian_actor` (its
-            parameters are updated in place, so a collector holding it sees the
-            new policy). Any actor whose ``get_dist`` returns a distribution with a
-            registered KL divergence works.
+        actor_network (ProbabilisticTensorDictSequential): a diagonal-Gaussian policy
+            (``get_dist`` returns a ``Normal`` or an ``Independent(Normal)``, e.g.
+            :func:`wcsac_rl.modules.gaussian_actor.make_gaussian_actor`). Its
+            parameters are updated in place, so a collector holding it sees the new
+            policy. The stored action must be the sampled one (unclipped: the env
+            clips), or the likelihood ratios are wrong.
         value_network (TensorDictModule): ``V^r(s)`` writing ``"state_value"``.
         cost_value_network (TensorDictModule): ``V^c(s)`` writing ``"state_cost_value"``.
 
