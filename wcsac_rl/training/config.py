@@ -9,10 +9,11 @@ from omegaconf import DictConfig, OmegaConf
 
 from wcsac_rl.objectives.risk import validate_risk_level
 
-__all__ = ["ALGOS", "OFF_POLICY_ALGOS", "ConfigError", "validate_config"]
+__all__ = ["ALGOS", "OFF_POLICY_ALGOS", "ON_POLICY_ALGOS", "ConfigError", "validate_config"]
 
 OFF_POLICY_ALGOS = ("wcsac", "sac_lag", "sac")
-ALGOS = (*OFF_POLICY_ALGOS, "random")
+ON_POLICY_ALGOS = ("cpo",)
+ALGOS = (*OFF_POLICY_ALGOS, *ON_POLICY_ALGOS, "random")
 
 
 class ConfigError(ValueError):
@@ -26,6 +27,26 @@ def _positive_int(cfg: Mapping[str, Any], key: str, *, allow_zero: bool = False)
     if not ok:
         bound = ">= 0" if allow_zero else "> 0"
         raise ConfigError(f"{key} must be an integer {bound}, got {value!r}")
+
+
+def _validate_cpo(cfg: DictConfig) -> None:
+    algo = cfg.algo
+    for key in ("gamma", "lmbda", "cost_gamma", "cost_lmbda"):
+        if not 0.0 <= float(algo[key]) <= 1.0:
+            raise ConfigError(f"algo.{key} must be in [0, 1], got {algo[key]}")
+    for key in ("max_kl", "value_lr"):
+        if not float(algo[key]) > 0:
+            raise ConfigError(f"algo.{key} must be > 0, got {algo[key]}")
+    if not float(algo.damping) >= 0:
+        raise ConfigError(f"algo.damping must be >= 0, got {algo.damping}")
+    if not float(algo.entropy_coeff) >= 0:
+        raise ConfigError(f"algo.entropy_coeff must be >= 0, got {algo.entropy_coeff}")
+    if not 0.0 < float(algo.backtrack_coeff) < 1.0:
+        raise ConfigError(f"algo.backtrack_coeff must be in (0, 1), got {algo.backtrack_coeff}")
+    for key in ("cg_iters", "backtrack_iters", "value_iters"):
+        _positive_int(cfg, f"algo.{key}")
+    if algo.value_batch_size is not None:
+        _positive_int(cfg, "algo.value_batch_size")
 
 
 def validate_config(cfg: DictConfig) -> None:
@@ -81,6 +102,8 @@ def validate_config(cfg: DictConfig) -> None:
             raise ConfigError(f"algo.gamma must be in [0, 1], got {cfg.algo.gamma}")
         if not float(cfg.algo.lr) > 0:
             raise ConfigError(f"algo.lr must be > 0, got {cfg.algo.lr}")
+    if algo in ON_POLICY_ALGOS:
+        _validate_cpo(cfg)
     if cfg.logger.backend not in ("csv", "wandb", "tensorboard", "none"):
         raise ConfigError(
             f"logger.backend must be csv, wandb, tensorboard or none, got {cfg.logger.backend!r}"

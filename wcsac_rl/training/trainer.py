@@ -345,6 +345,10 @@ def trainer_class(algo: str) -> type[Trainer]:
         from wcsac_rl.training.off_policy import OffPolicyTrainer
 
         return OffPolicyTrainer
+    if algo == "cpo":
+        from wcsac_rl.training.on_policy import OnPolicyTrainer
+
+        return OnPolicyTrainer
     raise ConfigError(f"no trainer for algo {algo!r}")
 
 
