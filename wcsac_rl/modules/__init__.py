@@ -1,6 +1,8 @@
-"""Network builders: the tanh-Normal actor, the reward critic and the Gaussian safety critic."""
+"""Network builders: the tanh-Normal actor, the reward critic, the Gaussian safety critic,
+and CPO's Gaussian actor and state-value networks."""
 
 from wcsac_rl.modules.actor import ClampedLogStdNormalParams, make_actor
+from wcsac_rl.modules.gaussian_actor import make_gaussian_actor, make_state_value
 from wcsac_rl.modules.reward_critic import make_qvalue
 from wcsac_rl.modules.safety_critic import (
     VARIANCE_MAX,
@@ -15,6 +17,8 @@ __all__ = [
     "ClampedLogStdNormalParams",
     "GaussianSafetyCritic",
     "make_actor",
+    "make_gaussian_actor",
     "make_qvalue",
     "make_safety_critic",
+    "make_state_value",
 ]

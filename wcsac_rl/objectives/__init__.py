@@ -1,5 +1,6 @@
-"""Loss modules (WCSAC, SAC-Lagrangian) and risk measures."""
+"""Loss modules (WCSAC, SAC-Lagrangian, CPO) and risk measures."""
 
+from wcsac_rl.objectives.cpo import CPOLoss
 from wcsac_rl.objectives.risk import (
     empirical_cvar,
     gaussian_cvar,
@@ -9,6 +10,7 @@ from wcsac_rl.objectives.risk import (
 from wcsac_rl.objectives.wcsac import SACLagLoss, WCSACLoss, per_step_cost_threshold
 
 __all__ = [
+    "CPOLoss",
     "SACLagLoss",
     "WCSACLoss",
     "empirical_cvar",
