@@ -132,6 +132,19 @@ def test_existing_report_is_not_overwritten_without_force(report, sweep):
     assert (result.out_dir / "table1.csv").read_bytes() == before[result.out_dir / "table1.csv"]
 
 
+def test_chosen_trajectory_runs(sweep, tmp_path):
+    chosen = run_dirs(sweep)[1]  # wcsac_0.5, seed 1
+    result = build_report(
+        [sweep], tmp_path / "out", trajectory_runs=[chosen], trajectory_episodes=1,
+        trajectory_max_steps=10, log=lambda _: None,
+    )  # fmt: skip
+    names = {p.name for p in result.files}
+    assert {"fig5_trajectories.png", "fig5_wcsac_0.5_seed1.png"} <= names
+    assert "fig5_random_seed0.png" not in names
+    with pytest.raises(ReportError, match="not a run directory with a checkpoint"):
+        build_report([sweep], tmp_path / "out2", trajectory_runs=[tmp_path], log=lambda _: None)
+
+
 def test_unevaluated_runs_give_curves_and_a_warning(tmp_path):
     sweep = copy_sweep(tmp_path)
     lines: list[str] = []
