@@ -145,7 +145,7 @@ def test_checkpoint_without_a_policy_is_not_evaluated_as_random(evaluated, monke
 
     monkeypatch.setattr(OffPolicyTrainer, "restore_policy", classmethod(lambda *a: None))
     sweep, _ = evaluated
-    with pytest.raises(ConfigError, match="no policy could be restored .* algo 'wcsac'"):
+    with pytest.raises(ConfigError, match=r"no policy could be restored .* algo 'wcsac'"):
         evaluate_run(run_dirs(sweep)[0], episodes=1, progress=False, force=True)
 
 
