@@ -41,6 +41,7 @@ from plain_wcsac import PlainWCSAC
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
+from wcsac_rl.training.builders import adam
 
 OBS, ACT, BATCH = 44, 2, 256
 
@@ -84,7 +85,7 @@ def make_batch() -> TensorDict:
 
 def torchrl_update_fn(loss, *, compile_loss: bool = False):
     updater = SoftUpdate(loss, tau=0.005)
-    optim = torch.optim.Adam(loss.parameters(), lr=1e-3)
+    optim = adam(loss.parameters(), lr=1e-3)
     forward = torch.compile(loss) if compile_loss else loss
 
     def update(batch):
