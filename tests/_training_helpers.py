@@ -33,3 +33,23 @@ def compose_config(*overrides: str, small: bool = True) -> DictConfig:
     base = (SMALL_RANDOM if algo == "random" else SMALL) if small else []
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         return compose("config", overrides=[*base, *overrides])
+
+
+# Columns every algorithm's progress.csv has (README, "Logged columns").
+COMMON_COLUMNS = {
+    "epoch",
+    "frames",
+    "updates",
+    "time_s",
+    "train/episodes",
+    "train/episode_return",
+    "train/episode_cost",
+    "train/episode_length",
+    "train/cost_rate",
+    "train/numerical_failures",
+    "eval/episode_return",
+    "eval/episode_cost",
+    "eval/episode_length",
+    "time/fps",
+    "time/ups",
+}

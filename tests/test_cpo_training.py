@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from _training_helpers import COMMON_COLUMNS as BASE_COLUMNS
 from _training_helpers import CONF, ROOT, compose_config
 from omegaconf import OmegaConf
 from tensordict import TensorDict
@@ -41,24 +42,7 @@ SMALL_CPO = [
     "logger=csv",
 ]
 CPO_COLUMNS = {f"loss/{k}" for k in (*CPOLoss.STEP_KEYS, "loss_value", "loss_cost_value")}
-COMMON_COLUMNS = {
-    "epoch",
-    "frames",
-    "updates",
-    "time_s",
-    "train/episodes",
-    "train/episode_return",
-    "train/episode_cost",
-    "train/episode_length",
-    "train/cost_rate",
-    "train/numerical_failures",
-    "eval/episode_return",
-    "eval/episode_cost",
-    "eval/episode_length",
-    "time/fps",
-    "time/ups",
-    "time/update_s",
-}
+COMMON_COLUMNS = {*BASE_COLUMNS, "time/update_s"}
 
 
 def _cfg(*overrides: str):

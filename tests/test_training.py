@@ -10,28 +10,11 @@ from pathlib import Path
 
 import pytest
 import torch
-from _training_helpers import ROOT, compose_config
+from _training_helpers import COMMON_COLUMNS, ROOT, compose_config
 
 from wcsac_rl.training import ConfigError, make_trainer
 from wcsac_rl.training.checkpoint import load_checkpoint
 
-COMMON_COLUMNS = {
-    "epoch",
-    "frames",
-    "updates",
-    "time_s",
-    "train/episodes",
-    "train/episode_return",
-    "train/episode_cost",
-    "train/episode_length",
-    "train/cost_rate",
-    "train/numerical_failures",
-    "eval/episode_return",
-    "eval/episode_cost",
-    "eval/episode_length",
-    "time/fps",
-    "time/ups",
-}
 WCSAC_COLUMNS = {
     "loss/loss_actor",
     "loss/loss_qvalue",
