@@ -435,7 +435,9 @@ def test_forward_compiles_with_fullgraph_and_matches_eager():
 @pytest.mark.parametrize("variance", [True, False])
 def test_fused_critic_ensemble_gives_the_same_losses_and_gradients(variance):
     fused = make_loss(variance=variance, fuse_critics=True, kappa_actions="replay", damp_scale=1.0)
-    separate = make_loss(variance=variance, fuse_critics=False, kappa_actions="replay", damp_scale=1.0)
+    separate = make_loss(
+        variance=variance, fuse_critics=False, kappa_actions="replay", damp_scale=1.0
+    )
     assert fused._ensemble is not None and separate._ensemble is None
     separate.load_state_dict(fused.state_dict())
     batch = make_batch()
