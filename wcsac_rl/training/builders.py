@@ -181,8 +181,9 @@ def make_collector(
     *,
     total_frames: int,
     init_random_frames: int,
+    seed: int,
 ) -> Collector:
-    """TorchRL ``Collector`` over the batched training envs (random actions first)."""
+    """TorchRL ``Collector`` over the batched training envs (random actions first), seeded."""
     collector = Collector(
         env,
         policy,
@@ -193,7 +194,7 @@ def make_collector(
         device=cfg.device,
         auto_register_policy_transforms=False,  # the MLP policy needs no env transforms
     )
-    collector.set_seed(int(cfg.seed))
+    collector.set_seed(int(seed))
     return collector
 
 

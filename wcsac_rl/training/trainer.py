@@ -36,7 +36,7 @@ from wcsac_rl.training.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
-from wcsac_rl.training.config import ConfigError, validate_config
+from wcsac_rl.training.config import ALGOS, ConfigError, validate_config
 from wcsac_rl.training.progress import EpisodeTracker, ProgressWriter
 
 __all__ = ["RandomPolicyTrainer", "Trainer", "make_trainer", "seed_everything", "trainer_class"]
@@ -95,6 +95,8 @@ class Trainer:
                 self.policy,
                 total_frames=remaining,
                 init_random_frames=max(0, self.init_random_frames - self.tracker.frames),
+                # a resumed run must not replay the episodes its first session started with
+                seed=int(cfg.seed) + self.tracker.frames,
             )
             if remaining > 0
             else None
@@ -349,10 +351,9 @@ def trainer_class(algo: str) -> type[Trainer]:
         from wcsac_rl.training.on_policy import OnPolicyTrainer
 
         return OnPolicyTrainer
-    raise ConfigError(f"no trainer for algo {algo!r}")
+    raise ConfigError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}")
 
 
 def make_trainer(cfg: DictConfig, run_dir: str | Path) -> Trainer:
-    """The trainer for ``cfg.algo.name`` (validates ``cfg`` first)."""
-    validate_config(cfg)
+    """The trainer for ``cfg.algo.name`` (its constructor validates ``cfg`` first)."""
     return trainer_class(cfg.algo.name)(cfg, run_dir)
