@@ -56,6 +56,7 @@ def train_on_risky_bandit(
     buffer_size: int = 20_000,
     random_steps: int = 512,
     report_risk_level: float | None = None,
+    damp_scale: float = 1.0,
     **loss_kwargs,
 ) -> BanditRun:
     """Train WCSAC (or SAC-Lag with ``variance=False, risk_level=1``) on the bandit.
@@ -67,6 +68,10 @@ def train_on_risky_bandit(
     Lagrangian method oscillates around its fixed point). ``true_cvar`` is the
     policy's expected closed-form Gaussian CVaR at ``report_risk_level`` (default:
     the trained ``risk_level``).
+
+    ``damp_scale`` (MDMM damping of κ in the actor loss, default 1) damps the slow
+    Lagrangian oscillation of this task: without it a seed can end training in an
+    over-conservative swing (e.g. E_π[a] ≈ −0.9 when a* = −0.62).
     """
     torch.manual_seed(seed)
     env = RiskyBanditEnv(batch_size=[envs])
@@ -79,6 +84,7 @@ def train_on_risky_bandit(
         risk_level=risk_level,
         cost_limit=cost_limit,
         max_episode_steps=1,
+        damp_scale=damp_scale,
         **loss_kwargs,
     )
     updater = SoftUpdate(loss, tau=0.005)
