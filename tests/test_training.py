@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 import re
 import subprocess
 import sys
@@ -137,10 +138,24 @@ def test_resume_with_saved_replay_buffer_updates_at_once(tmp_path):
     trainer, run_dir = _train(tmp_path, "env=tiny", "save_replay_buffer=true")
     assert (run_dir / "checkpoints" / "replay_buffer").is_dir()
     resumed, _ = _train(
-        tmp_path, "env=tiny", "save_replay_buffer=true", "total_frames=1000", f"resume={run_dir}"
+        tmp_path,
+        "env=tiny",
+        "save_replay_buffer=true",
+        "total_frames=1000",
+        "algo.lr=3e-4",
+        f"resume={run_dir}",
     )
     assert len(resumed.replay_buffer) == 1000
     assert resumed.updates == trainer.updates + 50
+    # the warm-up threshold is the uninterrupted run's, and a new learning rate applies
+    assert resumed.update_start_frames == 200
+    assert all(
+        group["lr"] == pytest.approx(3e-4)
+        for key, optimizer in resumed.optimizers.items()
+        if key != "kappa"
+        for group in optimizer.param_groups
+    )
+    assert resumed.optimizers["actor"].state_dict()["state"]  # Adam's moments came back
 
 
 def test_incompatible_checkpoint_and_occupied_run_dir_are_refused(tmp_path):
@@ -153,6 +168,10 @@ def test_incompatible_checkpoint_and_occupied_run_dir_are_refused(tmp_path):
         make_trainer(compose_config("env=tiny", "algo=sac", f"resume={run_dir}"), tmp_path / "x")
     with pytest.raises(ConfigError, match="already holds a run"):
         make_trainer(compose_config("env=tiny"), run_dir)
+    stray = tmp_path / "stray.pt"
+    stray.write_bytes((run_dir / "checkpoints" / "last.pt").read_bytes())
+    with pytest.raises(ConfigError, match="not inside a run's checkpoints/ directory"):
+        make_trainer(compose_config("env=tiny", f"resume={stray}"), tmp_path / "z")
     with pytest.raises(ConfigError, match="no such run directory"):
         make_trainer(compose_config("env=tiny", f"resume={tmp_path / 'missing'}"), tmp_path / "y")
     # the finished run is untouched
@@ -188,6 +207,11 @@ def test_keyboard_interrupt_writes_a_checkpoint_and_flushed_logs(tmp_path, monke
         ("cost_limit=-1", "cost_limit must be a number >= 0"),
         ("env.name=moon", "unknown env 'moon'"),
         ("algo.collector.frames_per_batch=201", "must be a multiple"),
+        ("algo.variance_loss=W2", "algo.variance_loss must be one of w2, mse"),
+        ("algo.kappa_actions=target", "algo.kappa_actions must be one of replay, policy"),
+        ("algo.kappa_init=0", "algo.kappa_init must be > 0"),
+        ("algo.damp_scale=-1", "algo.damp_scale must be >= 0"),
+        ("algo.kappa_lr_scale=0", "algo.kappa_lr_scale must be > 0"),
     ],
 )
 def test_bad_config_fails_before_any_work_with_one_clear_message(tmp_path, override, message):
@@ -284,3 +308,18 @@ def test_load_run_restores_the_trained_policy_exactly(tmp_path):
     assert random_run.policy is None
     with pytest.raises(ConfigError, match="holds no checkpoint"):
         load_run(tmp_path)
+
+
+def test_progress_csv_gains_columns_that_first_appear_in_a_later_epoch(tmp_path):
+    from wcsac_rl.training.progress import ProgressWriter, read_progress
+
+    path = tmp_path / "progress.csv"
+    ProgressWriter(path).write({"epoch": 1, "time/collect_s": 0.5})
+    writer = ProgressWriter(path)  # a resumed run reopens the file
+    writer.write({"epoch": 2, "time/collect_s": 0.4, "time/update_s": 2.0})
+    writer.write({"epoch": 3, "time/update_s": 1.0})
+    columns = read_progress(path)
+    assert list(columns) == ["epoch", "time/collect_s", "time/update_s"]
+    assert columns["epoch"] == [1, 2, 3]
+    assert columns["time/update_s"][1:] == [2.0, 1.0]
+    assert math.isnan(columns["time/update_s"][0]) and math.isnan(columns["time/collect_s"][2])

@@ -17,6 +17,7 @@ __all__ = [
     "check_compatible",
     "find_checkpoint",
     "load_checkpoint",
+    "load_optimizer_state",
     "save_checkpoint",
 ]
 
@@ -49,10 +50,16 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
 
 
 def find_checkpoint(path: str | os.PathLike) -> Path:
-    """The checkpoint file for ``path``: a ``.pt`` file, or a run dir holding ``checkpoints/last.pt``."""
+    """The checkpoint file for ``path``: a run dir holding ``checkpoints/last.pt``, or a
+    ``.pt`` file in a run's ``checkpoints/`` directory (the run dir is its grandparent)."""
     path = Path(path).expanduser()
     if path.is_file():
-        return path
+        if path.parent.name != CHECKPOINT_DIR:
+            raise ConfigError(
+                f"{path} is not inside a run's {CHECKPOINT_DIR}/ directory; pass the run "
+                f"directory (or <run dir>/{CHECKPOINT_DIR}/<file>.pt) so its logs stay with it"
+            )
+        return path.resolve()
     candidate = path / CHECKPOINT_DIR / LAST_CHECKPOINT
     if candidate.is_file():
         return candidate
@@ -90,3 +97,15 @@ def check_compatible(saved_config: dict, cfg: DictConfig, path: Path) -> None:
             f"checkpoint {path} was made by another configuration ({'; '.join(diffs)}); "
             "run with the same settings or start a new run"
         )
+
+
+def load_optimizer_state(optimizer: torch.optim.Optimizer, state: dict[str, Any]) -> None:
+    """Restore an optimizer's moments and step counts but keep its configured learning rates.
+
+    ``Optimizer.load_state_dict`` also brings back the saved ``lr``, which would make a
+    learning rate changed on resume silently ignored.
+    """
+    lrs = [group["lr"] for group in optimizer.param_groups]
+    optimizer.load_state_dict(state)
+    for group, lr in zip(optimizer.param_groups, lrs):
+        group["lr"] = lr

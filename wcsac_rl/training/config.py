@@ -102,6 +102,8 @@ def validate_config(cfg: DictConfig) -> None:
             raise ConfigError(f"algo.gamma must be in [0, 1], got {cfg.algo.gamma}")
         if not float(cfg.algo.lr) > 0:
             raise ConfigError(f"algo.lr must be > 0, got {cfg.algo.lr}")
+    if algo in ("wcsac", "sac_lag"):
+        _validate_safety_keys(cfg.algo)
     if algo in ON_POLICY_ALGOS:
         _validate_cpo(cfg)
     if cfg.logger.backend not in ("csv", "wandb", "tensorboard", "none"):
@@ -110,3 +112,27 @@ def validate_config(cfg: DictConfig) -> None:
         )
     if str(cfg.device) != "cpu" and not str(cfg.device).startswith(("cuda", "mps")):
         raise ConfigError(f"device must be cpu, cuda[:N] or mps, got {cfg.device!r}")
+
+
+def _validate_safety_keys(algo: DictConfig) -> None:
+    """The WCSAC / SAC-Lag options of ``conf/algo`` (the loss would refuse them later)."""
+    from wcsac_rl.objectives.wcsac import KAPPA_ACTIONS, KAPPA_PARAMETRISATIONS, VARIANCE_LOSSES
+
+    choices = {
+        "variance_loss": VARIANCE_LOSSES,
+        "kappa_actions": KAPPA_ACTIONS,
+        "kappa_parametrization": KAPPA_PARAMETRISATIONS,
+    }
+    for key, allowed in choices.items():
+        if algo.get(key) not in allowed:
+            raise ConfigError(
+                f"algo.{key} must be one of {', '.join(allowed)}, got {algo.get(key)!r}"
+            )
+    if not float(algo.kappa_init) > 0:
+        raise ConfigError(
+            f"algo.kappa_init must be > 0 (κ is a Lagrange multiplier), got {algo.kappa_init}"
+        )
+    if not float(algo.damp_scale) >= 0:
+        raise ConfigError(f"algo.damp_scale must be >= 0, got {algo.damp_scale}")
+    if not float(algo.kappa_lr_scale) > 0:
+        raise ConfigError(f"algo.kappa_lr_scale must be > 0, got {algo.kappa_lr_scale}")

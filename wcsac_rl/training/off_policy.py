@@ -15,7 +15,11 @@ from tensordict import TensorDictBase
 from torchrl import timeit
 
 from wcsac_rl.training import builders
-from wcsac_rl.training.checkpoint import CHECKPOINT_DIR, REPLAY_BUFFER_DIR
+from wcsac_rl.training.checkpoint import (
+    CHECKPOINT_DIR,
+    REPLAY_BUFFER_DIR,
+    load_optimizer_state,
+)
 from wcsac_rl.training.trainer import Trainer, env_max_episode_steps
 
 __all__ = ["OffPolicyTrainer"]
@@ -102,10 +106,11 @@ class OffPolicyTrainer(Trainer):
     def load_learner_state(self, state: dict[str, Any]) -> None:
         self.loss.load_state_dict(state["loss"])
         for key, optimizer in self.optimizers.items():
-            optimizer.load_state_dict(state["optimizers"][key])
+            load_optimizer_state(optimizer, state["optimizers"][key])
         if self._buffer_dir.exists():
             self.replay_buffer.loads(self._buffer_dir)
-            self.update_start_frames = 0
+            # exact resume: the warm-up threshold stays where an uninterrupted run has it
+            self.update_start_frames = self.init_random_frames
         else:
             # No saved buffer: refill it with the current policy before updating again.
             refill = max(self.init_random_frames, int(self.cfg.algo.batch_size))

@@ -31,6 +31,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 
 from wcsac_rl.modules.gaussian_actor import make_gaussian_actor, make_state_value
 from wcsac_rl.objectives.cpo import CPOLoss
+from wcsac_rl.training.checkpoint import load_optimizer_state
 from wcsac_rl.training.trainer import Trainer, env_max_episode_steps
 
 __all__ = ["CPOLearner", "OnPolicyTrainer", "make_cpo_loss", "make_cpo_networks"]
@@ -167,7 +168,7 @@ class CPOLearner:
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict`."""
         self.loss.load_state_dict(state["loss"])
-        self.value_optimizer.load_state_dict(state["value_optimizer"])
+        load_optimizer_state(self.value_optimizer, state["value_optimizer"])
 
 
 class OnPolicyTrainer(Trainer):

@@ -14,9 +14,11 @@ __all__ = ["EpisodeTracker", "ProgressWriter", "read_progress"]
 
 
 class ProgressWriter:
-    """Append one row per epoch to a CSV file; the header is fixed by the first row.
+    """Append one row per epoch to a CSV file.
 
-    Appends to an existing file (a resumed run) under that file's header.
+    Appends to an existing file (a resumed run). A row with a column the file does not
+    have yet (a timer that first ran in a later epoch) rewrites the file once with the
+    wider header, earlier rows getting empty cells there.
     """
 
     def __init__(self, path: Path) -> None:
@@ -27,15 +29,28 @@ class ProgressWriter:
                 self.fieldnames = next(csv.reader(f))
 
     def write(self, row: Mapping[str, float | int | str]) -> None:
-        new_file = self.fieldnames is None
-        if new_file:
-            self.fieldnames = list(row)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.fieldnames is None:
+            self.fieldnames = list(row)
+            with self.path.open("w", newline="") as f:
+                csv.DictWriter(f, fieldnames=self.fieldnames).writeheader()
+        new_columns = [key for key in row if key not in self.fieldnames]
+        if new_columns:
+            self._widen(new_columns)
         with self.path.open("a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=self.fieldnames, extrasaction="ignore")
-            if new_file:
-                writer.writeheader()
+            writer = csv.DictWriter(f, fieldnames=self.fieldnames)
             writer.writerow({k: row.get(k, float("nan")) for k in self.fieldnames})
+
+    def _widen(self, new_columns: list[str]) -> None:
+        with self.path.open(newline="") as f:
+            rows = list(csv.DictReader(f))
+        self.fieldnames = [*self.fieldnames, *new_columns]
+        tmp = self.path.with_suffix(".csv.tmp")
+        with tmp.open("w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=self.fieldnames, restval="")
+            writer.writeheader()
+            writer.writerows(rows)
+        tmp.replace(self.path)
 
 
 def read_progress(path: Path) -> dict[str, list[float]]:

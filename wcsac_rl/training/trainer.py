@@ -74,11 +74,16 @@ class Trainer:
         seed_everything(int(cfg.seed))
 
         self.max_episode_steps = env_max_episode_steps(cfg)
+        self.logger = None
         self.env = builders.make_train_env(cfg)
         self.eval_env = builders.make_eval_env(cfg) if cfg.eval_episodes > 0 else None
         self.policy = None  # set by _build_learner; None acts uniformly at random
         self.init_random_frames = 0  # collector frames with random actions at the start
-        self._build_learner()
+        try:
+            self._build_learner()
+        except Exception:
+            self.close()
+            raise
 
         self.updates = 0
         self.epoch = 0
@@ -327,8 +332,10 @@ class Trainer:
             if env is not None and not env.is_closed:
                 env.close()
         experiment = getattr(self.logger, "experiment", None)
-        if hasattr(experiment, "finish"):
+        if hasattr(experiment, "finish"):  # wandb
             experiment.finish()
+        for handle in getattr(experiment, "files", {}).values():  # TorchRL's CSV logger
+            handle.close()
 
 
 class RandomPolicyTrainer(Trainer):
