@@ -182,7 +182,6 @@ def time_variants(variants, batch, rounds: int, updates: int) -> dict[str, float
 def env_and_loop(update_rate: float, threads: int) -> list[tuple[str, str]]:
     """StaticEnv raw / wrapped steps/s, collector frames/s, end-to-end training frames/s."""
     from bench_envs import raw_steps_per_second, torchrl_steps_per_second
-    from omegaconf import OmegaConf
     from torchrl.collectors import Collector
 
     from wcsac_rl.envs import make_env
@@ -238,7 +237,6 @@ def env_and_loop(update_rate: float, threads: int) -> list[tuple[str, str]]:
             f"{fps / (4 * update_rate):.0%} of {4 * update_rate:.1f}",
         )
     )
-    del OmegaConf
     return rows
 
 

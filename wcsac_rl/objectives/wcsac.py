@@ -419,8 +419,6 @@ class WCSACLoss(SACLoss):
     def _critic_ensemble(self) -> list[EnsembleMember] | None:
         """The fused-evaluation plan if every critic is a same-shaped MLP, else ``None``."""
         q_module, safety = self.qvalue_network, self.safety_network
-        if type(q_module.module) is GaussianSafetyCritic:
-            return None
         in_keys = list(q_module.in_keys)
         if (
             len(in_keys) != 2

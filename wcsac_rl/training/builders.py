@@ -65,13 +65,17 @@ def make_train_env(cfg: DictConfig) -> EnvBase:
     )
 
 
-def make_eval_env(cfg: DictConfig, *, seed_offset: int = 1_000_003) -> EnvBase:
-    """One unbatched env for test episodes, seeded apart from the training envs."""
+EVAL_SEED_OFFSET = 1_000_003
+
+
+def make_eval_env(cfg: DictConfig, *, seed: int | None = None) -> EnvBase:
+    """One unbatched env for test episodes, seeded ``seed`` (default: apart from the
+    training envs, ``cfg.seed + 1000003``)."""
     from wcsac_rl.envs import make_env
 
-    return make_env(
-        cfg.env.name, seed=int(cfg.seed) + seed_offset, device=cfg.device, **env_kwargs(cfg)
-    )
+    if seed is None:
+        seed = int(cfg.seed) + EVAL_SEED_OFFSET
+    return make_env(cfg.env.name, seed=int(seed), device=cfg.device, **env_kwargs(cfg))
 
 
 @dataclass

@@ -49,11 +49,7 @@ def load_run(path: str | os.PathLike, *, seed: int | None = None) -> RestoredRun
     checkpoint_path = find_checkpoint(path)
     checkpoint = load_checkpoint(checkpoint_path)
     cfg = OmegaConf.create(checkpoint["config"])
-    env = (
-        builders.make_eval_env(cfg)
-        if seed is None
-        else builders.make_eval_env(cfg, seed_offset=seed - int(cfg.seed))
-    )
+    env = builders.make_eval_env(cfg, seed=seed)
     policy = trainer_class(cfg.algo.name).restore_policy(cfg, checkpoint.get("learner", {}), env)
     if policy is not None:
         policy.eval()
