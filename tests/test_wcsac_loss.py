@@ -44,14 +44,14 @@ def _grads_after(loss: WCSACLoss, key: str, batch) -> dict[str, torch.Tensor | N
     return {name: p.grad for name, p in loss.named_parameters()}
 
 
-@pytest.mark.parametrize("fuse_critics", [True, False])
+@pytest.mark.parametrize("fast", [True, False], ids=["fused+direct", "modules"])
 @pytest.mark.parametrize("kappa_actions", ["replay", "policy"])
 @pytest.mark.parametrize("damp_scale", [0.0, 10.0])
 @pytest.mark.parametrize("key", LOSS_KEYS)
-def test_each_loss_term_reaches_exactly_its_own_parameters(
-    key, kappa_actions, damp_scale, fuse_critics
-):
-    loss = make_loss(kappa_actions=kappa_actions, damp_scale=damp_scale, fuse_critics=fuse_critics)
+def test_each_loss_term_reaches_exactly_its_own_parameters(key, kappa_actions, damp_scale, fast):
+    loss = make_loss(
+        kappa_actions=kappa_actions, damp_scale=damp_scale, fuse_critics=fast, direct_sampling=fast
+    )
     grads = _grads_after(loss, key, make_batch())
     owner = OWNERS[key]
     owned = {n for n in grads if n.startswith(owner)}

@@ -7,10 +7,12 @@ from wcsac_rl.objectives.risk import (
     gaussian_cvar_multiplier,
     validate_risk_level,
 )
+from wcsac_rl.objectives.target_update import PolyakUpdate
 from wcsac_rl.objectives.wcsac import SACLagLoss, WCSACLoss, per_step_cost_threshold
 
 __all__ = [
     "CPOLoss",
+    "PolyakUpdate",
     "SACLagLoss",
     "WCSACLoss",
     "empirical_cvar",

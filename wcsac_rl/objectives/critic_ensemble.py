@@ -19,7 +19,14 @@ import torch
 from tensordict import TensorDictBase
 from torch import Tensor, nn
 
-__all__ = ["EnsembleMember", "MLPLayout", "evaluate_ensemble", "mlp_layout", "stack_layers"]
+__all__ = [
+    "EnsembleMember",
+    "MLPLayout",
+    "evaluate_ensemble",
+    "evaluate_mlp",
+    "mlp_layout",
+    "stack_layers",
+]
 
 
 @dataclass(frozen=True)
@@ -128,3 +135,14 @@ def evaluate_ensemble(
     for weight, bias in rest:
         h = torch.baddbmm(bias.unsqueeze(1), act(h), weight.transpose(1, 2))
     return h.reshape(members, *batch_shape, h.shape[-1])
+
+
+def evaluate_mlp(x: Tensor, params: TensorDictBase, layout: MLPLayout) -> Tensor:
+    """One MLP given by ``layout`` at ``x``, with its weights read from ``params``."""
+    act = _ACTIVATIONS[layout.activation]
+    last = len(layout.prefixes) - 1
+    for depth, prefix in enumerate(layout.prefixes):
+        x = nn.functional.linear(x, params.get((*prefix, "weight")), params.get((*prefix, "bias")))
+        if depth < last:
+            x = act(x)
+    return x

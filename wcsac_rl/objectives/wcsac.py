@@ -38,6 +38,7 @@ from wcsac_rl.objectives.critic_ensemble import (
     stack_layers,
 )
 from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
+from wcsac_rl.objectives.tanh_normal import sample_tanh_normal, tanh_normal_actor_plan
 
 __all__ = ["CriticValues", "SACLagLoss", "WCSACLoss", "per_step_cost_threshold"]
 
@@ -128,6 +129,12 @@ class WCSACLoss(SACLoss):
             :mod:`wcsac_rl.modules` builds them; ``None`` (default) fuses when
             possible, ``False`` calls the modules one by one. Same values and
             gradients either way.
+        direct_sampling (bool, optional): draw the actor's reparametrised actions
+            straight from its parameters instead of building TorchRL's
+            ``TanhNormal`` each time. Needs an actor built like
+            :func:`wcsac_rl.modules.make_actor`; ``None`` (default) does it when
+            possible, ``False`` never. Same draws, log-probabilities and gradients
+            either way.
         num_qvalue_nets, loss_function, alpha_init, min_alpha, max_alpha, action_spec,
         fixed_alpha, target_entropy, delay_actor, delay_qvalue, separate_losses,
         reduction, skip_done_states, deactivate_vmap, scalar_output_mode: as in
@@ -221,6 +228,7 @@ class WCSACLoss(SACLoss):
         damp_scale: float = 0.0,
         variance_loss: str = "mse",
         fuse_critics: bool | None = None,
+        direct_sampling: bool | None = None,
         num_qvalue_nets: int = 2,
         loss_function: str = "l2",
         **sac_kwargs,
@@ -294,6 +302,15 @@ class WCSACLoss(SACLoss):
                 "fuse_critics=True needs the reward and safety critics to be MLPs of one "
                 "shape (Linear/activation stacks) reading [observation, action], e.g. "
                 "from wcsac_rl.modules; use fuse_critics=None to fall back automatically"
+            )
+        self._actor_plan = (
+            tanh_normal_actor_plan(actor_network) if direct_sampling is not False else None
+        )
+        if direct_sampling and self._actor_plan is None:
+            raise ValueError(
+                "direct_sampling=True needs an actor built like wcsac_rl.modules.make_actor "
+                "(an MLP with ClampedLogStdNormalParams and a TanhNormal); use "
+                "direct_sampling=None to fall back automatically"
             )
 
     # ------------------------------------------------------------------ set-up
@@ -456,14 +473,7 @@ class WCSACLoss(SACLoss):
             return None
         return members
 
-    def _critic_values(
-        self, tensordict: TensorDictBase, action: Tensor, which: str
-    ) -> CriticValues:
-        """The reward and safety critics at ``(observation, action)``.
-
-        ``which``: ``"target"`` (target parameters), ``"online"`` (trainable) or
-        ``"detached"`` (online values, gradients only to ``action``).
-        """
+    def _critic_params(self, which: str) -> tuple[TensorDictBase, TensorDictBase]:
         if which == "target":
             q_params, s_params = (
                 self.target_qvalue_network_params,
@@ -476,15 +486,39 @@ class WCSACLoss(SACLoss):
                 self._cached_detached_qvalue_params,
                 self._cached_detached_safety_params,
             )
+        return q_params, s_params
+
+    def _ensemble_layers(self, which: str) -> list[tuple[Tensor, Tensor]] | None:
+        """The fused critics' stacked ``(weight, bias)`` per layer (``None`` if not fused)."""
+        if self._ensemble is None:
+            return None
+        q_params, s_params = self._critic_params(which)
+        return stack_layers(self._ensemble, {"qvalue": q_params, "safety": s_params})
+
+    def _critic_values(
+        self,
+        tensordict: TensorDictBase,
+        action: Tensor,
+        which: str,
+        layers: list[tuple[Tensor, Tensor]] | None = None,
+    ) -> CriticValues:
+        """The reward and safety critics at ``(observation, action)``.
+
+        ``which``: ``"target"`` (target parameters), ``"online"`` (trainable) or
+        ``"detached"`` (online values, gradients only to ``action``). ``layers``:
+        the stacked parameters of fused critics if already gathered for ``which``.
+        """
         if self._ensemble is not None:
             x = torch.cat([tensordict.get(self.qvalue_network.in_keys[0]), action], dim=-1)
-            layers = stack_layers(self._ensemble, {"qvalue": q_params, "safety": s_params})
+            if layers is None:
+                layers = self._ensemble_layers(which)
             out = evaluate_ensemble(x, layers, self._ensemble[0].layout.activation).squeeze(-1)
             n = self.num_qvalue_nets
             variance = None
             if self.has_variance:
                 variance = F.softplus(out[n + 1]).clamp(VARIANCE_MIN, VARIANCE_MAX)
             return CriticValues(out[:n], out[n], variance)
+        q_params, s_params = self._critic_params(which)
         td_q = tensordict.select(*self.qvalue_network.in_keys, strict=False)
         td_q.set(self.tensor_keys.action, action)
         qvalue = self._vmap_qnetworkN0(td_q, q_params).get(self.tensor_keys.state_action_value)
@@ -499,6 +533,11 @@ class WCSACLoss(SACLoss):
         return cost_value + self.cvar_multiplier * cost_variance.sqrt()
 
     def _sample_policy(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor]:
+        """A reparametrised action ``a ~ π(·|s)`` and its log-probability."""
+        if self._actor_plan is not None:
+            observation = tensordict.get(self._actor_plan.observation_key)
+            return sample_tanh_normal(self._actor_plan, self.actor_network_params, observation)
+        tensordict = tensordict.copy()  # the actor writes its distribution parameters
         with (
             set_exploration_type(ExplorationType.RANDOM),
             self.actor_network_params.to_module(self.actor_network, preserve_module_state=False),
@@ -517,13 +556,11 @@ class WCSACLoss(SACLoss):
         Eq. 8 is this minus ``Q^c(s, a)²``).
         """
         with torch.no_grad():
-            next_td = tensordict.get("next").copy()
+            next_td = tensordict.get("next")
             next_action, next_log_prob = self._sample_policy(next_td)
             q_next, qc_next, vc_next = self._critic_values(next_td, next_action, "target")
             next_value = (q_next - self._alpha * next_log_prob).min(0)[0].unsqueeze(-1)
-            td_value = tensordict.clone(False)
-            td_value.set(("next", self.value_estimator.tensor_keys.value), next_value)
-            reward_target = self.value_estimator.value_estimate(td_value).squeeze(-1)
+            reward_target = self._reward_target(tensordict, next_value).squeeze(-1)
 
             cost = self._get_cost(tensordict)
             gamma = self.value_estimator.gamma.to(cost.dtype)
@@ -543,9 +580,38 @@ class WCSACLoss(SACLoss):
             "cost_second_moment": second_moment,
         }
 
+    def _reward_target(self, tensordict: TensorDictBase, next_value: Tensor) -> Tensor:
+        """TorchRL's TD(0) estimate ``r + γ (1 − term) V(s')``, shaped like the reward.
+
+        Computed here when the estimator has nothing beyond plain TD(0) to apply (no
+        reward standardisation, no multi-step ``steps_to_next_obs``); otherwise, or
+        when the shapes do not line up, the estimator does it (and reports errors).
+        """
+        estimator = self.value_estimator
+        keys = estimator.tensor_keys
+        reward = tensordict.get(("next", keys.reward), None)
+        terminated = tensordict.get(("next", keys.terminated), None)
+        if terminated is None:
+            terminated = tensordict.get(("next", keys.done), None)
+        if (
+            estimator.average_rewards
+            or reward is None
+            or terminated is None
+            or tensordict.get(keys.steps_to_next_obs, None) is not None
+            or not reward.shape == terminated.shape == next_value.shape
+        ):
+            td_value = tensordict.clone(False)
+            td_value.set(("next", keys.value), next_value)
+            return estimator.value_estimate(td_value)
+        gamma = estimator.gamma.to(reward.device)
+        return reward + gamma * (~terminated).int() * next_value
+
     # ----------------------------------------------------------------- losses
-    def _online_values(self, tensordict: TensorDictBase) -> CriticValues:
-        return self._critic_values(tensordict, tensordict.get(self.tensor_keys.action), "online")
+    def _online_values(
+        self, tensordict: TensorDictBase, layers: list[tuple[Tensor, Tensor]] | None = None
+    ) -> CriticValues:
+        action = tensordict.get(self.tensor_keys.action)
+        return self._critic_values(tensordict, action, "online", layers)
 
     def qvalue_loss(
         self,
@@ -626,11 +692,16 @@ class WCSACLoss(SACLoss):
         return kappa - self.damp_scale * (self.cost_threshold - cvar_constraint).mean()
 
     def _actor_loss(
-        self, tensordict: TensorDictBase, cvar_replay: Tensor | None
+        self,
+        tensordict: TensorDictBase,
+        cvar_replay: Tensor | None,
+        layers: list[tuple[Tensor, Tensor]] | None = None,
     ) -> tuple[Tensor, dict[str, Tensor]]:
         weights = self._maybe_get_priority_weight(tensordict)
         action, log_prob = self._sample_policy(tensordict)
-        qvalue, cost_value, cost_variance = self._critic_values(tensordict, action, "detached")
+        qvalue, cost_value, cost_variance = self._critic_values(
+            tensordict, action, "detached", layers
+        )
         min_q = qvalue.min(0)[0]
         cvar_pi = self.cvar(cost_value, cost_variance)
         cvar_constraint = cvar_pi.detach() if self.kappa_actions == "policy" else cvar_replay
@@ -667,13 +738,17 @@ class WCSACLoss(SACLoss):
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         targets = self.compute_targets(tensordict)
-        values = self._online_values(tensordict)  # shared by the reward and safety losses
+        # the fused critics' parameters are gathered once: trainable for the critic
+        # losses, detached for the actor's
+        layers = self._ensemble_layers("online")
+        values = self._online_values(tensordict, layers)  # shared by both critic losses
         loss_qvalue, q_metadata = self.qvalue_loss(tensordict, targets, values)
         loss_cost_value, loss_cost_variance, safety_metadata = self.safety_loss(
             tensordict, targets, values
         )
         cvar_replay = self.cvar(safety_metadata["cost_value"], safety_metadata["cost_variance"])
-        loss_actor, actor_metadata = self._actor_loss(tensordict, cvar_replay)
+        detached = None if layers is None else [(w.detach(), b.detach()) for w, b in layers]
+        loss_actor, actor_metadata = self._actor_loss(tensordict, cvar_replay, detached)
         log_prob = actor_metadata["log_prob"]
         weights = self._maybe_get_priority_weight(tensordict)
         loss_alpha = self._reduce_loss(

@@ -19,11 +19,11 @@ from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import ProbabilisticActor
-from torchrl.objectives import LossModule, SACLoss, SoftUpdate
+from torchrl.objectives import LossModule, SACLoss
 from torchrl.record.loggers import Logger
 
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import SACLagLoss, WCSACLoss
+from wcsac_rl.objectives import PolyakUpdate, SACLagLoss, WCSACLoss
 
 __all__ = [
     "Agent",
@@ -143,9 +143,9 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
     return loss
 
 
-def make_target_updater(cfg: DictConfig, loss: LossModule) -> SoftUpdate:
+def make_target_updater(cfg: DictConfig, loss: LossModule) -> PolyakUpdate:
     """Polyak averaging of every target network (reward and safety critics)."""
-    return SoftUpdate(loss, tau=float(cfg.algo.tau))
+    return PolyakUpdate(loss, tau=float(cfg.algo.tau))
 
 
 def adam(params, lr: float) -> torch.optim.Adam:

@@ -1,0 +1,150 @@
+"""The update's fast paths compute exactly what the general TorchRL paths compute.
+
+Direct tanh-Normal sampling (``direct_sampling``), the inline TD(0) reward target
+and ``PolyakUpdate`` are there for speed only; each is checked here against the
+path it replaces: same values, same gradients, same fall-backs.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from _loss_helpers import ACT_DIM, OBS_DIM, make_batch, make_loss
+from tensordict import TensorDict
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.data import Bounded
+from torchrl.modules import ProbabilisticActor, TanhNormal
+from torchrl.objectives import SoftUpdate
+
+from wcsac_rl import WCSACLoss
+from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
+from wcsac_rl.objectives import PolyakUpdate
+from wcsac_rl.objectives.tanh_normal import sample_tanh_normal, tanh_normal_actor_plan
+
+
+def _torchrl_draw(actor, observation):
+    dist = actor.get_dist(TensorDict({"observation": observation}, observation.shape[:1]))
+    return dist.rsample_and_log_prob()
+
+
+@pytest.mark.parametrize(
+    "low, high", [(-1.0, 1.0), (torch.tensor([-2.0, 0.0]), torch.tensor([0.5, 3.0]))]
+)
+@pytest.mark.parametrize("loc_scale", [1.0, 30.0], ids=["moderate", "saturated"])
+def test_direct_draw_equals_torchrl_tanh_normal(low, high, loc_scale):
+    torch.manual_seed(0)
+    actor = make_actor(OBS_DIM, Bounded(low, high, shape=(ACT_DIM,)), width=16)
+    plan = tanh_normal_actor_plan(actor)
+    assert plan is not None
+    assert (plan.low is None) == isinstance(low, float)  # no affine map for [-1, 1]
+    params = TensorDict.from_module(actor)
+    observation = loc_scale * torch.randn(64, OBS_DIM)
+    grads = []
+    for draw in ("direct", "torchrl"):
+        actor.zero_grad(set_to_none=True)
+        torch.manual_seed(3)
+        if draw == "direct":
+            action, log_prob = sample_tanh_normal(plan, params, observation)
+        else:
+            action, log_prob = _torchrl_draw(actor, observation)
+        (action.sum() + log_prob.sum()).backward()
+        grads.append(({n: p.grad.clone() for n, p in actor.named_parameters()}, action, log_prob))
+    (g_direct, a_direct, lp_direct), (g_torchrl, a_torchrl, lp_torchrl) = grads
+    torch.testing.assert_close(a_direct, a_torchrl, rtol=0, atol=1e-6)
+    torch.testing.assert_close(lp_direct, lp_torchrl, rtol=1e-5, atol=1e-4)
+    assert torch.isfinite(lp_direct).all()
+    for name in g_torchrl:
+        torch.testing.assert_close(g_direct[name], g_torchrl[name], rtol=1e-4, atol=1e-5)
+    if loc_scale == 30.0:  # the draws really saturate the tanh
+        assert ((a_direct - torch.as_tensor(high)).abs() < 1e-5).any() or (
+            (a_direct - torch.as_tensor(low)).abs() < 1e-5
+        ).any()
+
+
+@pytest.mark.parametrize("variance", [True, False])
+def test_direct_sampling_gives_the_same_losses_and_gradients(variance):
+    direct = make_loss(variance=variance, direct_sampling=True, damp_scale=1.0)
+    general = make_loss(variance=variance, direct_sampling=False, damp_scale=1.0)
+    assert direct._actor_plan is not None and general._actor_plan is None
+    general.load_state_dict(direct.state_dict())
+    batch = make_batch()
+    outputs = []
+    for loss in (direct, general):
+        torch.manual_seed(5)
+        out = loss(batch.clone())
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        outputs.append((out, {n: p.grad.clone() for n, p in loss.named_parameters()}))
+    (out_d, grad_d), (out_g, grad_g) = outputs
+    assert out_d.keys() == out_g.keys()
+    for key in out_g.keys():
+        torch.testing.assert_close(out_d[key], out_g[key], rtol=1e-5, atol=1e-6)
+    for name in grad_g:
+        torch.testing.assert_close(grad_d[name], grad_g[name], rtol=1e-4, atol=1e-6)
+
+
+def test_actors_not_built_like_make_actor_fall_back_or_are_refused():
+    torch.manual_seed(0)
+    spec = Bounded(-1.0, 1.0, shape=(ACT_DIM,))
+    net = nn.Sequential(nn.Linear(OBS_DIM, 2 * ACT_DIM), NormalParamExtractor())
+    actor = ProbabilisticActor(
+        TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        spec=spec,
+        distribution_class=TanhNormal,
+    )
+    qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)]
+    safety = make_safety_critic(OBS_DIM, ACT_DIM, width=8)
+    loss = WCSACLoss(actor, qvalues, safety)
+    assert loss._actor_plan is None
+    out = loss(make_batch())  # the general path still works
+    assert torch.isfinite(out["loss_actor"])
+    with pytest.raises(ValueError, match="direct_sampling=True needs"):
+        WCSACLoss(actor, qvalues, safety, direct_sampling=True)
+    # a TanhNormal with options beyond the bounds is not taken over either
+    tanh_loc = make_actor(OBS_DIM, spec, width=8)
+    tanh_loc.module[-1].distribution_kwargs["tanh_loc"] = True
+    assert tanh_normal_actor_plan(tanh_loc) is None
+
+
+def test_inline_td0_target_equals_torchrl_estimator_and_defers_to_it_when_needed():
+    loss = make_loss()
+    loss.make_value_estimator(gamma=0.9)
+    batch = make_batch()
+    next_value = torch.randn(16, 1)
+    expected_td = batch.clone(False)
+    expected_td.set(("next", "state_value"), next_value)
+    expected = loss.value_estimator.value_estimate(expected_td)
+    torch.testing.assert_close(loss._reward_target(batch, next_value), expected, rtol=0, atol=0)
+    # multi-step batches carry steps_to_next_obs: the estimator's γ^n is used
+    batch.set("steps_to_next_obs", torch.full((16, 1), 3))
+    terminated = batch["next", "terminated"]
+    want = batch["next", "reward"] + 0.9**3 * (~terminated).float() * next_value
+    torch.testing.assert_close(loss._reward_target(batch, next_value), want)
+
+
+def test_polyak_update_equals_torchrl_soft_update():
+    losses = [make_loss(seed=0), make_loss(seed=0)]
+    updaters = [SoftUpdate(losses[0], tau=0.05), PolyakUpdate(losses[1], tau=0.05)]
+    optimizers = [torch.optim.SGD(loss.parameters(), lr=0.1) for loss in losses]
+    for step in range(3):
+        for loss, updater, optimizer in zip(losses, updaters, optimizers):
+            torch.manual_seed(step)
+            out = loss(make_batch(seed=step))
+            sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+            optimizer.step()
+            optimizer.zero_grad()
+            updater.step()
+    soft, polyak = (dict(loss.named_buffers()) for loss in losses)
+    targets = [name for name in soft if name.startswith("target_")]
+    assert len(targets) >= 12  # twin reward critic, safety mean and variance networks
+    for name in targets:
+        torch.testing.assert_close(polyak[name], soft[name], rtol=0, atol=1e-7)
+    # and the targets moved away from their initial copy
+    initial = make_loss(seed=0)
+    moved = [
+        name
+        for name in targets
+        if not torch.equal(polyak[name], dict(initial.named_buffers())[name])
+    ]
+    assert set(moved) == set(targets)

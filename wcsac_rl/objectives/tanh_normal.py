@@ -1,0 +1,126 @@
+"""Sample the kit's tanh-Normal actor without building a distribution object.
+
+Every WCSAC update draws two reparametrised actions, ``a ~ π(·|s)`` for the actor
+loss and ``a' ~ π(·|s')`` for the TD targets. Through TorchRL that means swapping
+the parameters into the module, running it on a tensordict, building a
+``TanhNormal`` (a ``TransformedDistribution`` over an ``Independent(Normal)``)
+and scoring the draw, which costs more than the actor's matrix products. When
+the actor is the one :func:`wcsac_rl.modules.make_actor` builds, the same draw
+and score can be computed from the parameters directly: same noise stream, same
+formulas, same gradients (tested against the TorchRL path).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule
+from tensordict.utils import NestedKey
+from torch import Tensor, nn
+from torch.nn import functional as F
+from torchrl.modules import TanhNormal
+from torchrl.modules.distributions.utils import safetanh_noeps
+
+from wcsac_rl.modules.actor import ClampedLogStdNormalParams
+from wcsac_rl.objectives.critic_ensemble import MLPLayout, evaluate_mlp, mlp_layout
+
+__all__ = ["TanhNormalActorPlan", "sample_tanh_normal", "tanh_normal_actor_plan"]
+
+_HALF_LOG_2PI = math.log(math.sqrt(2 * math.pi))
+_LOG_2 = math.log(2.0)
+
+
+@dataclass(frozen=True)
+class TanhNormalActorPlan:
+    """What :func:`sample_tanh_normal` needs to know about a ``make_actor`` actor.
+
+    Attributes:
+        observation_key: the key the actor reads.
+        layout: its MLP (keys are relative to the actor's parameter tensordict).
+        log_std_min, log_std_max: the clamp of the Gaussian's log-std.
+        low, high: the action bounds, or ``None`` for ``[-1, 1]`` (no affine map).
+    """
+
+    observation_key: NestedKey
+    layout: MLPLayout
+    log_std_min: float
+    log_std_max: float
+    low: Tensor | None
+    high: Tensor | None
+
+
+def tanh_normal_actor_plan(actor: nn.Module) -> TanhNormalActorPlan | None:
+    """The plan for ``actor`` if it is built like :func:`~wcsac_rl.modules.make_actor`, else ``None``.
+
+    Recognised: a ``ProbabilisticTensorDictSequential`` of (1) a ``TensorDictModule``
+    reading one key and writing ``loc`` and ``scale`` through
+    ``nn.Sequential(<plain MLP>, ClampedLogStdNormalParams)`` and (2) a
+    ``TanhNormal`` with default options apart from ``low``/``high``.
+    """
+    if not isinstance(actor, ProbabilisticTensorDictSequential) or len(actor.module) != 2:
+        return None
+    params_module, dist_module = actor.module
+    if type(params_module) is not TensorDictModule or len(params_module.in_keys) != 1:
+        return None
+    net = params_module.module
+    if not (
+        isinstance(net, nn.Sequential)
+        and len(net) == 2
+        and type(net[1]) is ClampedLogStdNormalParams
+    ):
+        return None
+    layout = mlp_layout(net[0], ("module", "0", "module", "0"))
+    if layout is None:
+        return None
+    if getattr(dist_module, "distribution_class", None) is not TanhNormal:
+        return None
+    kwargs = dict(getattr(dist_module, "distribution_kwargs", {}) or {})
+    if set(kwargs) - {"low", "high"}:
+        return None
+    dist_in = dist_module.in_keys
+    if isinstance(dist_in, dict):
+        dist_in = [dist_in.get("loc"), dist_in.get("scale")]
+    if list(params_module.out_keys) != list(dist_in) or len(dist_in) != 2:
+        return None
+    low, high = kwargs.get("low", -1.0), kwargs.get("high", 1.0)
+    low = torch.as_tensor(low, dtype=torch.get_default_dtype())
+    high = torch.as_tensor(high, dtype=torch.get_default_dtype())
+    trivial = bool((low == -1.0).all() and (high == 1.0).all())
+    return TanhNormalActorPlan(
+        observation_key=params_module.in_keys[0],
+        layout=layout,
+        log_std_min=net[1].log_std_min,
+        log_std_max=net[1].log_std_max,
+        low=None if trivial else low,
+        high=None if trivial else high,
+    )
+
+
+def sample_tanh_normal(
+    plan: TanhNormalActorPlan, params: TensorDictBase, observation: Tensor
+) -> tuple[Tensor, Tensor]:
+    """A reparametrised draw ``a = tanh(μ + σ ε)`` (mapped to ``[low, high]``) and ``log π(a|s)``.
+
+    Equal to TorchRL's ``TanhNormal(...).rsample_and_log_prob()`` at the same
+    random state: the pre-tanh value is scored (not recovered by ``atanh``), the
+    tanh is TorchRL's saturation-safe one.
+    """
+    out = evaluate_mlp(observation, params, plan.layout)
+    loc, log_std = out.chunk(2, dim=-1)
+    scale = log_std.clamp(plan.log_std_min, plan.log_std_max).exp()
+    eps = torch.randn_like(loc)
+    pre_tanh = loc + eps * scale
+    # the Normal's log-density and the tanh's log-Jacobian, summed over the action
+    # dimensions separately (the order TorchRL's distribution sums them in)
+    normal_log_prob = -((pre_tanh - loc) ** 2) / (2 * scale**2) - scale.log() - _HALF_LOG_2PI
+    log_det = 2.0 * (_LOG_2 - pre_tanh - F.softplus(-2.0 * pre_tanh))
+    action = safetanh_noeps(pre_tanh)
+    if plan.low is not None:
+        low, high = plan.low.to(action), plan.high.to(action)
+        half_range = (high - low) / 2
+        action = (high + low) / 2 + half_range * action
+        log_det = log_det + half_range.abs().log()
+    return action, normal_log_prob.sum(-1) - log_det.sum(-1)
