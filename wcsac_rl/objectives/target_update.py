@@ -27,8 +27,8 @@ class PolyakUpdate(SoftUpdate):
         ...                  [make_qvalue(4, 2) for _ in range(2)], make_safety_critic(4, 2))
         >>> updater = PolyakUpdate(loss, tau=0.5)
         >>> with torch.no_grad():
-        ...     loss.safety_network_params["module", "mean_net", "0", "bias"].fill_(1.0)
-        ...     loss.target_safety_network_params["module", "mean_net", "0", "bias"].fill_(0.0)
+        ...     _ = loss.safety_network_params["module", "mean_net", "0", "bias"].fill_(1.0)
+        ...     _ = loss.target_safety_network_params["module", "mean_net", "0", "bias"].fill_(0.0)
         >>> updater.step()
         >>> loss.target_safety_network_params["module", "mean_net", "0", "bias"][0].item()
         0.5
