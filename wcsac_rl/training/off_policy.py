@@ -1,7 +1,7 @@
 """Off-policy learning for WCSAC, SAC-Lag and SAC: replay buffer, UTD updates, polyak targets.
 
-After each collector batch (``algo.collector.frames_per_batch`` frames) the batch
-goes into the replay buffer and ``frames_per_batch × utd_ratio`` gradient steps
+After each collector batch (``algo.collector.frames_per_batch`` frames) the entries
+of the batch the loss reads (``loss.in_keys``) go into the replay buffer and ``frames_per_batch × utd_ratio`` gradient steps
 follow (the authors' schedule: 100 steps per 400 frames), once
 ``init_random_frames`` uniform-random frames have been collected.
 """
@@ -36,6 +36,8 @@ class OffPolicyTrainer(Trainer):
         self.target_updater = builders.make_target_updater(cfg, self.loss)
         self.optimizers = builders.make_optimizers(cfg, self.loss)
         self.replay_buffer = builders.make_replay_buffer(cfg)
+        # only what the loss reads is stored: smaller buffer, faster sampling
+        self.replay_keys = sorted(self.loss.in_keys, key=str)
         self.updates_per_batch = max(
             1, round(int(collector_cfg.frames_per_batch) * float(collector_cfg.utd_ratio))
         )
@@ -75,7 +77,7 @@ class OffPolicyTrainer(Trainer):
 
     def learn(self, batch: TensorDictBase) -> list[TensorDictBase]:
         with timeit("replay_extend"):
-            self.replay_buffer.extend(batch.reshape(-1))
+            self.replay_buffer.extend(batch.reshape(-1).select(*self.replay_keys))
         if self.tracker.frames < self.update_start_frames:
             return []
         with timeit("update"):
