@@ -28,6 +28,7 @@ unless ``MUJOCO_GL`` is already set, so rendering works on servers.
 """
 
 from wcsac_rl.envs import _headless  # noqa: F401  (before mujoco: headless GL default)
+from wcsac_rl.envs.batched_gym import BatchedGymEnv
 from wcsac_rl.envs.layout import LayoutError
 from wcsac_rl.envs.point_goal import PointGoalConfig, PointGoalEnv
 from wcsac_rl.envs.presets import (
@@ -60,6 +61,7 @@ __all__ = [
     "GYM_IDS",
     "PRESETS",
     "PRESET_NAMES",
+    "BatchedGymEnv",
     "CostKeyError",
     "CostSum",
     "InfoReader",

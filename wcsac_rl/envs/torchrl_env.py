@@ -49,6 +49,7 @@ from torchrl.envs import (
 from torchrl.envs.gym_like import BaseInfoDictReader
 from torchrl.envs.libs.gym import GymWrapper
 
+from wcsac_rl.envs.batched_gym import BatchedGymEnv
 from wcsac_rl.envs.presets import get_preset, make_gym_env
 
 __all__ = [
@@ -277,7 +278,8 @@ def make_env(
             ``num_workers`` envs (batch size ``[num_workers]``).
         parallel: with ``num_workers > 1``, ``True`` runs one process per env
             (``ParallelEnv``), ``False`` steps them in turn in this process
-            (``SerialEnv``; the better choice when updates, not envs, use the cores).
+            (:class:`~wcsac_rl.envs.BatchedGymEnv`, or ``SerialEnv`` with
+            ``from_pixels``; the better choice when updates, not envs, use the cores).
         device: device of the output tensordicts.
         max_episode_steps: episode length override (default: the preset's).
         from_pixels: also emit rendered ``"pixels"``.
@@ -310,6 +312,11 @@ def make_env(
     )
     if num_workers == 1:
         base = base_fn()
+    elif not parallel and not from_pixels:
+        gym_fn = functools.partial(
+            make_gym_env, name, max_episode_steps=max_episode_steps, **kwargs
+        )
+        base = BatchedGymEnv([gym_fn] * num_workers, info_spec=step_info_spec(), device=device)
     else:
         batched = ParallelEnv if parallel else SerialEnv
         base = batched(num_workers, base_fn, device=device)
