@@ -18,7 +18,7 @@ Prints, with one torch thread by default:
   with its FLOPs per update (forward + backward matrix products) and the
   achieved GFLOP/s as a fraction of the matmul peak;
 * StaticEnv steps/s (raw gymnasium and TorchRL-wrapped), collector frames/s
-  (4 serial envs, random policy) and end-to-end training frames/s of WCSAC at the
+  (4 envs in one BatchedGymEnv, random policy) and end-to-end training frames/s of WCSAC at the
   paper's UTD 0.25, against 4 × the update rate (the ceiling when collection,
   replay and logging cost nothing).
 """
@@ -211,7 +211,7 @@ def env_and_loop(update_rate: float, threads: int) -> list[tuple[str, str]]:
     frames = sum(batch.numel() for batch in collector)
     rows.append(
         (
-            "collector frames/s (4 serial envs, random policy)",
+            "collector frames/s (4 envs, BatchedGymEnv, random policy)",
             f"{frames / (time.perf_counter() - start):,.0f}",
         )
     )

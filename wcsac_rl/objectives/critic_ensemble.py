@@ -5,9 +5,8 @@ safety critic's mean ``Q^c`` and variance ``V^c`` networks — on the same
 ``cat(s, a)`` three times per update (target nets at ``(s', a')``, online nets at
 ``(s, a)``, detached online nets at ``(s, a~π)``). When all of them are plain MLPs
 of the same shape (what :mod:`wcsac_rl.modules` builds), one call here replaces
-four module calls: the first layers become one matrix product against the
-concatenated weights, the others one ``baddbmm`` each. Gradients reach each
-network's own parameters exactly as with separate calls.
+four module calls: each layer becomes one ``baddbmm`` over the stacked weights.
+Gradients reach each network's own parameters exactly as with separate calls.
 """
 
 from __future__ import annotations
@@ -127,14 +126,14 @@ def evaluate_ensemble(
     act = _ACTIVATIONS[activation]
     batch_shape = x.shape[:-1]
     x = x.reshape(-1, x.shape[-1])
-    (w0, b0), rest = layers[0], layers[1:]
-    members, hidden = w0.shape[0], w0.shape[1]
-    # first layer: one product with the K weight matrices side by side
-    h = torch.addmm(b0.reshape(-1), x, w0.reshape(members * hidden, -1).T)
-    h = h.view(x.shape[0], members, hidden).transpose(0, 1)
-    for weight, bias in rest:
-        h = torch.baddbmm(bias.unsqueeze(1), act(h), weight.transpose(1, 2))
-    return h.reshape(members, *batch_shape, h.shape[-1])
+    # the shared input is broadcast (not copied) to the K members, so every layer,
+    # the first included, is one batched product on contiguous [K, B, features]
+    # activations (a first layer against the side-by-side weights would leave
+    # them transposed, and cost a strided copy per layer forward and backward)
+    h = x.expand(layers[0][0].shape[0], *x.shape)
+    for depth, (weight, bias) in enumerate(layers):
+        h = torch.baddbmm(bias.unsqueeze(1), h if depth == 0 else act(h), weight.transpose(1, 2))
+    return h.reshape(h.shape[0], *batch_shape, h.shape[-1])
 
 
 def evaluate_mlp(x: Tensor, params: TensorDictBase, layout: MLPLayout) -> Tensor:
