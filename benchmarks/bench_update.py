@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/bench_update.py [--threads 1] [--rounds 5] [--updates 20]
-                                      [--compile] [--no-loop]
+                                      [--compile] [--no-loop] [--default-malloc]
 
 Prints, with one torch thread by default:
 
@@ -21,6 +21,9 @@ Prints, with one torch thread by default:
   (4 envs in one BatchedGymEnv, random policy) and end-to-end training frames/s of WCSAC at the
   paper's UTD 0.25, against 4 × the update rate (the ceiling when collection,
   replay and logging cost nothing).
+
+Like training (``retain_freed_memory: true``), the process first asks glibc's malloc
+to keep freed memory for reuse; ``--default-malloc`` measures without that.
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives import PolyakUpdate
 from wcsac_rl.training.builders import adam
+from wcsac_rl.training.runtime import retain_freed_memory
 
 OBS, ACT, BATCH = 44, 2, 256
 
@@ -193,7 +197,7 @@ def time_variants(variants, batch, rounds: int, updates: int) -> dict[str, float
     return {name: statistics.median(r) for name, r in rates.items()}
 
 
-def env_and_loop(update_rate: float, threads: int) -> list[tuple[str, str]]:
+def env_and_loop(update_rate: float, threads: int, retained: bool) -> list[tuple[str, str]]:
     """StaticEnv raw / wrapped steps/s, collector frames/s, end-to-end training frames/s."""
     from bench_envs import raw_steps_per_second, torchrl_steps_per_second
     from torchrl.collectors import Collector
@@ -232,6 +236,7 @@ def env_and_loop(update_rate: float, threads: int) -> list[tuple[str, str]]:
                 "progress_bar=false",
                 "logger=none",
                 f"threads={threads}",
+                f"retain_freed_memory={str(retained).lower()}",
             ],
         )
     with tempfile.TemporaryDirectory() as tmp:
@@ -267,9 +272,18 @@ def main() -> None:
     parser.add_argument(
         "--no-loop", action="store_true", help="skip the env / collector / training part"
     )
+    parser.add_argument(
+        "--default-malloc",
+        action="store_true",
+        help="keep glibc's default malloc thresholds (training retains freed memory)",
+    )
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
-    print(f"torch {torch.__version__}, {args.threads} thread(s)")
+    retained = not args.default_malloc and retain_freed_memory()
+    print(
+        f"torch {torch.__version__}, {args.threads} thread(s), "
+        f"malloc {'retains freed memory' if retained else 'defaults'}"
+    )
 
     peaks = matmul_peak_gflops()
     peak = max(peaks.values())
@@ -297,7 +311,7 @@ def main() -> None:
     if not args.no_loop:
         wcsac_rate = rates["(b) WCSACLoss"]  # the training run below is eager
         print("\nenvironment and loop:")
-        for name, value in env_and_loop(wcsac_rate, args.threads):
+        for name, value in env_and_loop(wcsac_rate, args.threads, bool(retained)):
             print(f"  {name:<52} {value}")
 
 

@@ -212,6 +212,8 @@ def test_keyboard_interrupt_writes_a_checkpoint_and_flushed_logs(tmp_path, monke
         ("algo.kappa_init=0", "algo.kappa_init must be > 0"),
         ("algo.damp_scale=-1", "algo.damp_scale must be >= 0"),
         ("algo.kappa_lr_scale=0", "algo.kappa_lr_scale must be > 0"),
+        ("retain_freed_memory=maybe", "retain_freed_memory must be true or false, got 'maybe'"),
+        ("compile=2", "compile must be true or false, got 2"),
     ],
 )
 def test_bad_config_fails_before_any_work_with_one_clear_message(tmp_path, override, message):

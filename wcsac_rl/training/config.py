@@ -76,6 +76,10 @@ def validate_config(cfg: DictConfig) -> None:
     for key in ("total_frames", "epoch_frames", "threads", "checkpoint_every_epochs"):
         _positive_int(cfg, key)
     _positive_int(cfg, "eval_episodes", allow_zero=True)
+    for key in ("compile", "retain_freed_memory", "save_replay_buffer", "progress_bar"):
+        value = cfg.get(key, False)
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key} must be true or false, got {value!r}")
     if cfg.env.get("max_episode_steps") is not None:
         _positive_int(cfg, "env.max_episode_steps")
     collector = cfg.algo.collector

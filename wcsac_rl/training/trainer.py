@@ -38,6 +38,7 @@ from wcsac_rl.training.checkpoint import (
 )
 from wcsac_rl.training.config import ALGOS, ConfigError, validate_config
 from wcsac_rl.training.progress import EpisodeTracker, ProgressWriter
+from wcsac_rl.training.runtime import retain_freed_memory
 
 __all__ = ["RandomPolicyTrainer", "Trainer", "make_trainer", "seed_everything", "trainer_class"]
 
@@ -71,6 +72,8 @@ class Trainer:
         self.run_dir = Path(run_dir)
         checkpoint = self._resume_checkpoint()
         torch.set_num_threads(int(cfg.threads))
+        if cfg.get("retain_freed_memory", False):
+            retain_freed_memory()
         seed_everything(int(cfg.seed))
 
         self.max_episode_steps = env_max_episode_steps(cfg)
