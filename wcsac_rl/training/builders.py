@@ -68,14 +68,22 @@ def make_train_env(cfg: DictConfig) -> EnvBase:
 EVAL_SEED_OFFSET = 1_000_003
 
 
-def make_eval_env(cfg: DictConfig, *, seed: int | None = None) -> EnvBase:
-    """One unbatched env for test episodes, seeded ``seed`` (default: apart from the
-    training envs, ``cfg.seed + 1000003``)."""
+def make_eval_env(cfg: DictConfig, *, seed: int | None = None, num_envs: int = 1) -> EnvBase:
+    """The env for test episodes, seeded ``seed`` (default: apart from the training
+    envs, ``cfg.seed + 1000003``): unbatched, or ``num_envs`` sub-envs stepped side
+    by side in this process (seeded ``seed``, ``seed + 1``, ...)."""
     from wcsac_rl.envs import make_env
 
     if seed is None:
         seed = int(cfg.seed) + EVAL_SEED_OFFSET
-    return make_env(cfg.env.name, seed=int(seed), device=cfg.device, **env_kwargs(cfg))
+    return make_env(
+        cfg.env.name,
+        seed=int(seed),
+        device=cfg.device,
+        num_workers=int(num_envs),
+        parallel=False,
+        **env_kwargs(cfg),
+    )
 
 
 @dataclass

@@ -40,6 +40,9 @@ from wcsac_rl.training.config import ALGOS, ConfigError, validate_config
 from wcsac_rl.training.progress import EpisodeTracker, ProgressWriter
 from wcsac_rl.training.runtime import retain_freed_memory
 
+EVAL_ENVS = 10
+"""Most test episodes run side by side (each one sub-env of one in-process batch)."""
+
 __all__ = ["RandomPolicyTrainer", "Trainer", "make_trainer", "seed_everything", "trainer_class"]
 
 
@@ -79,7 +82,12 @@ class Trainer:
         self.max_episode_steps = env_max_episode_steps(cfg)
         self.logger = None
         self.env = builders.make_train_env(cfg)
-        self.eval_env = builders.make_eval_env(cfg) if cfg.eval_episodes > 0 else None
+        # the test episodes of an epoch run side by side (up to EVAL_ENVS at a time)
+        self.eval_env = (
+            builders.make_eval_env(cfg, num_envs=min(int(cfg.eval_episodes), EVAL_ENVS))
+            if cfg.eval_episodes > 0
+            else None
+        )
         self.policy = None  # set by _build_learner; None acts uniformly at random
         self.init_random_frames = 0  # collector frames with random actions at the start
         try:
