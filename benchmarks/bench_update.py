@@ -13,14 +13,14 @@ Prints, with one torch thread by default:
   as the trainer runs it (fused critics, direct sampling, ``PolyakUpdate``),
   (b-) ``WCSACLoss`` through TorchRL's general paths (module calls, ``TanhNormal``,
   ``SoftUpdate``), (b') ``WCSACLoss`` under ``torch.compile`` (``--compile``) and
-  (c) a plain-PyTorch WCSAC update (``plain_wcsac.py``), all with the paper's sizes (2 × 256 MLPs,
-  batch 256, obs 44, action 2), timed in interleaved rounds (median reported), each
-  with its FLOPs per update (forward + backward matrix products) and the
-  achieved GFLOP/s as a fraction of the matmul peak;
-* StaticEnv steps/s (raw gymnasium and TorchRL-wrapped), collector frames/s
-  (4 envs in one BatchedGymEnv, random policy) and end-to-end training frames/s of WCSAC at the
-  paper's UTD 0.25, against 4 × the update rate (the ceiling when collection,
-  replay and logging cost nothing).
+  (c) a plain-PyTorch WCSAC update (``plain_wcsac.py``), all with the paper's
+  sizes (2 × 256 MLPs, batch 256, obs 44, action 2), timed in interleaved rounds
+  (median reported), each with its FLOPs per update (forward + backward matrix
+  products) and the achieved GFLOP/s as a fraction of the matmul peak;
+* StaticEnv steps/s (raw gymnasium and TorchRL-wrapped), collector frames/s (4
+  envs in one BatchedGymEnv, random policy) and end-to-end training frames/s of
+  WCSAC at the paper's UTD 0.25, against 4 × the update rate (the ceiling when
+  collection, replay and logging cost nothing).
 
 Like training (``retain_freed_memory: true``), the process first asks glibc's malloc
 to keep freed memory for reuse; ``--default-malloc`` measures without that.
