@@ -1,7 +1,7 @@
-"""The update's fast paths compute exactly what the general TorchRL paths compute.
+"""The fast paths compute exactly what the general TorchRL paths compute.
 
-Direct tanh-Normal sampling (``direct_sampling``), the inline TD(0) reward target
-and ``PolyakUpdate`` are there for speed only; each is checked here against the
+Direct tanh-Normal sampling (``direct_sampling``), the inline TD(0) reward target,
+``PolyakUpdate`` and ``TanhNormalPolicy`` are there for speed only; each is checked here against the
 path it replaces: same values, same gradients, same fall-backs.
 """
 
@@ -14,13 +14,18 @@ from tensordict import TensorDict
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 from torchrl.data import Bounded
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import ProbabilisticActor, TanhNormal
 from torchrl.objectives import SoftUpdate
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives import PolyakUpdate
-from wcsac_rl.objectives.tanh_normal import sample_tanh_normal, tanh_normal_actor_plan
+from wcsac_rl.objectives.tanh_normal import (
+    TanhNormalPolicy,
+    sample_tanh_normal,
+    tanh_normal_actor_plan,
+)
 
 
 def _torchrl_draw(actor, observation):
@@ -148,3 +153,52 @@ def test_polyak_update_equals_torchrl_soft_update():
         if not torch.equal(polyak[name], dict(initial.named_buffers())[name])
     ]
     assert set(moved) == set(targets)
+
+
+@pytest.mark.parametrize(
+    "low, high", [(-1.0, 1.0), (torch.tensor([-2.0, 0.0]), torch.tensor([0.5, 3.0]))]
+)
+@pytest.mark.parametrize("exploration", [None, "random", "deterministic", "mean"])
+def test_tanh_normal_policy_acts_like_the_actor(low, high, exploration):
+    torch.manual_seed(0)
+    actor = make_actor(OBS_DIM, Bounded(low, high, shape=(ACT_DIM,)), width=16)
+    policy = TanhNormalPolicy(actor)
+    observation = 3 * torch.randn(32, OBS_DIM)
+    outputs = []
+    for module in (policy, actor):
+        torch.manual_seed(4)
+        td = TensorDict({"observation": observation}, [32])
+        if exploration is None:  # the actor's default: random
+            outputs.append(module(td))
+        else:
+            with set_exploration_type(ExplorationType.from_str(exploration)):
+                outputs.append(module(td))
+    fast, reference = outputs
+    assert set(fast.keys()) == set(reference.keys()) == {"observation", "loc", "scale", "action"}
+    for key in ("loc", "scale", "action"):
+        torch.testing.assert_close(fast[key], reference[key], rtol=0, atol=1e-6)
+    low_t, high_t = torch.as_tensor(low), torch.as_tensor(high)
+    assert ((fast["action"] >= low_t) & (fast["action"] <= high_t)).all()
+
+
+def test_tanh_normal_policy_refuses_other_actors_and_follows_training():
+    spec = Bounded(-1.0, 1.0, shape=(ACT_DIM,))
+    net = nn.Sequential(nn.Linear(OBS_DIM, 2 * ACT_DIM), NormalParamExtractor())
+    other = ProbabilisticActor(
+        TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        spec=spec,
+        distribution_class=TanhNormal,
+    )
+    with pytest.raises(ValueError, match=r"built like wcsac_rl\.modules\.make_actor"):
+        TanhNormalPolicy(other)
+    loss = make_loss()
+    policy = TanhNormalPolicy(loss.actor_network)
+    td = TensorDict({"observation": torch.randn(4, OBS_DIM)}, [4])
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        before = policy(td.clone())["action"]
+        with torch.no_grad():  # an optimiser step on the loss's actor parameters
+            for p in loss.actor_network_params.values(True, True):
+                p.add_(0.1)
+        after = policy(td.clone())["action"]
+    assert not torch.allclose(before, after)

@@ -14,6 +14,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl import timeit
 
+from wcsac_rl.objectives.tanh_normal import TanhNormalPolicy
 from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import (
     CHECKPOINT_DIR,
@@ -44,7 +45,8 @@ class OffPolicyTrainer(Trainer):
         self.init_random_frames = int(collector_cfg.init_random_frames)
         # frames after which gradient steps start (moved on resume, see load_learner_state)
         self.update_start_frames = self.init_random_frames
-        self.policy = self.agent.actor
+        # collection and test episodes act through the fast path of make_actor actors
+        self.policy = TanhNormalPolicy(self.agent.actor)
         self._loss_forward = self._compiled_loss() if cfg.compile else self.loss
 
     def _compiled_loss(self):
