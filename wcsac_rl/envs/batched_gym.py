@@ -37,7 +37,8 @@ class BatchedGymEnv(EnvBase):
 
     Seeding: ``set_seed(s)`` resets sub-env ``i`` with seed ``s + i``. Partial
     resets (``"_reset"`` masks, as TorchRL's collectors send) reset only the masked
-    sub-envs.
+    sub-envs; partial steps (``"_step"`` masks, from
+    ``rollout(break_when_all_done=True)``) step only the masked ones.
 
     Example:
         >>> from wcsac_rl.envs.presets import make_gym_env
@@ -124,10 +125,16 @@ class BatchedGymEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         actions = tensordict.get(self.action_key).detach().cpu().numpy()
         n = len(self._envs)
+        # partial steps (``rollout(break_when_all_done=True)``): the sub-envs outside
+        # the mask are not stepped; TorchRL keeps their previous entries
+        active = tensordict.get("_step", None)
+        active = None if active is None else active.reshape(n).cpu().numpy()
         reward = np.zeros((n, 1), np.float32)
         terminated = np.zeros((n, 1), bool)
         truncated = np.zeros((n, 1), bool)
         for i, env in enumerate(self._envs):
+            if active is not None and not active[i]:
+                continue
             obs, r, term, trunc, info = env.step(actions[i])
             self._observation[i] = obs
             reward[i] = r
