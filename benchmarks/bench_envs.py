@@ -7,7 +7,8 @@ Usage::
 Random actions, one process, resets included in the timing. "raw" steps the
 gymnasium env directly; "torchrl" steps ``make_env(name)`` (GymWrapper + info reader
 + StepCounter/RewardSum/CostSum) through ``env.rollout`` with pre-drawn random
-actions.
+actions; "batched x4" does the same with ``make_env(name, num_workers=4,
+parallel=False)`` (one ``BatchedGymEnv``, the training default) and counts frames.
 """
 
 from __future__ import annotations
@@ -39,14 +40,17 @@ def raw_steps_per_second(name: str, steps: int, seed: int = 0) -> float:
     return steps / elapsed
 
 
-def torchrl_steps_per_second(name: str, steps: int, seed: int = 0) -> float:
-    """Steps/s of ``make_env(name)`` stepped by ``rollout`` with pre-drawn random actions.
+def torchrl_steps_per_second(name: str, steps: int, seed: int = 0, num_envs: int = 1) -> float:
+    """Frames/s of ``make_env(name)`` stepped by ``rollout`` with pre-drawn random actions.
 
     The actions are drawn up front so the timing covers the env and its TorchRL
-    wrapping, not the sampling of a random policy from the action spec.
+    wrapping, not the sampling of a random policy from the action spec. With
+    ``num_envs > 1`` the envs are one in-process batch and ``steps`` batched steps
+    give ``steps × num_envs`` frames.
     """
-    env = make_env(name, seed=seed)
-    actions = torch.rand(steps + 10, 2, generator=torch.Generator().manual_seed(seed)) * 2 - 1
+    env = make_env(name, seed=seed, num_workers=num_envs, parallel=False)
+    shape = (steps + 10, 2) if num_envs == 1 else (steps + 10, num_envs, 2)
+    actions = torch.rand(shape, generator=torch.Generator().manual_seed(seed)) * 2 - 1
     it = iter(actions)
 
     def policy(td):
@@ -56,9 +60,9 @@ def torchrl_steps_per_second(name: str, steps: int, seed: int = 0) -> float:
     start = time.perf_counter()
     td = env.rollout(steps, policy, break_when_any_done=False)
     elapsed = time.perf_counter() - start
-    assert td.shape[0] == steps
+    assert td.shape[-1] == steps
     env.close()
-    return steps / elapsed
+    return steps * num_envs / elapsed
 
 
 def main() -> None:
@@ -72,13 +76,21 @@ def main() -> None:
         f"# {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
         f"torch {torch.__version__}, {args.steps} steps per cell, 1 process"
     )
-    header = f"{'env':<12} {'raw gym steps/s':>16} {'torchrl steps/s':>16} {'overhead':>9}"
+    header = (
+        f"{'env':<12} {'raw gym steps/s':>16} {'torchrl steps/s':>16} {'overhead':>9} "
+        f"{'batched x4 frames/s':>20} {'overhead':>9}"
+    )
     print(header)
     print("-" * len(header))
     for name in args.envs:
         raw = raw_steps_per_second(name, args.steps)
         wrapped = torchrl_steps_per_second(name, args.steps)
-        print(f"{name:<12} {raw:>16,.0f} {wrapped:>16,.0f} {raw / wrapped:>8.1f}x", flush=True)
+        batched = torchrl_steps_per_second(name, args.steps // 4, num_envs=4)
+        print(
+            f"{name:<12} {raw:>16,.0f} {wrapped:>16,.0f} {raw / wrapped:>8.1f}x "
+            f"{batched:>20,.0f} {raw / batched:>8.1f}x",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":
