@@ -72,10 +72,27 @@ def test_random_policy_and_callbacks_work_side_by_side():
     assert all(1 <= r.length <= 30 for r in results)
 
 
-def test_unfinished_episodes_and_deep_batches_are_reported():
-    env = make_env("static", seed=0, num_workers=2, parallel=False, max_episode_steps=50)
-    with pytest.raises(RuntimeError, match="did not finish an episode within max_steps=10"):
-        run_episodes(env, None, 2, max_steps=10)
+def test_max_steps_cuts_episodes_alike_and_deep_batches_are_refused():
+    batched = make_env("static", seed=0, num_workers=2, parallel=False, max_episode_steps=50)
+    cut = run_episodes(batched, None, 2, max_steps=10)
+    single = run_episodes(make_env("static", seed=0, max_episode_steps=50), None, 1, max_steps=10)
+    assert [r.length for r in cut] == [10, 10] == [single[0].length] * 2
     deep = MagicMock(batch_size=torch.Size([2, 2]))
     with pytest.raises(ValueError, match="one batch dimension"):
         run_episodes(deep, None, 1)
+
+
+def test_finished_sub_envs_are_not_stepped_while_the_others_finish():
+    env = make_env("tiny", seed=3, num_workers=4, parallel=False, max_episode_steps=60)
+    stepped = [0] * 4
+    for i, sub in enumerate(env.base_env.envs):
+        real_step = sub.step
+
+        def counting_step(action, i=i, real_step=real_step):
+            stepped[i] += 1
+            return real_step(action)
+
+        sub.step = counting_step
+    results = run_episodes(env, _policy("tiny"), 4, max_steps=60)
+    assert len({r.length for r in results}) > 1
+    assert stepped == [r.length for r in results]

@@ -42,7 +42,7 @@ def run_episodes(
     ``n`` envs (e.g. ``make_env(name, num_workers=n, parallel=False)``) they run
     ``n`` at a time, side by side: each sub-env contributes its first episode of a
     round (results in sub-env order), and a round stops once every sub-env needed
-    has finished one. Same episodes as ``n`` unbatched envs seeded like the
+    has finished one (or after ``max_steps``, which cuts an episode in both cases). Same episodes as ``n`` unbatched envs seeded like the
     sub-envs, for a fraction of the per-step overhead. (A policy evaluated on a
     batch may round differently from one evaluated on a single row, and the
     point-goal dynamics amplify such 1e-7 differences: individual episodes then
@@ -55,12 +55,12 @@ def run_episodes(
         num_episodes: how many episodes.
         deterministic: act with the policy's mode/mean (the paper's test episodes)
             instead of sampling.
-        max_steps: safety bound on one episode's length (the env truncates earlier).
+        max_steps: bound on one episode's length (normally the env truncates earlier;
+            an episode still running after ``max_steps`` steps is cut there).
         on_episode: called after each episode (e.g. to advance a progress bar).
 
     Raises:
         ValueError: an env with more than one batch dimension.
-        RuntimeError: a batched sub-env did not finish an episode within ``max_steps``.
     """
     if len(env.batch_size) > 1:
         raise ValueError(
@@ -107,9 +107,12 @@ def _side_by_side_episodes(
     length = torch.zeros(n, dtype=torch.int64)
     running = torch.zeros(n, dtype=torch.bool)
     running[:wanted] = True
+    partial = _steps_partially(env)
     td = env.reset()
     for _ in range(max_steps):
         td = env.rand_action(td) if policy is None else policy(td)
+        if partial and not running.all():  # finished sub-envs wait for the others
+            td.set("_step", running.unsqueeze(-1).clone())
         td, next_td = env.step_and_maybe_reset(td)
         nxt = td.get("next")
         active = running.clone()
@@ -126,11 +129,7 @@ def _side_by_side_episodes(
         if not running.any():
             break
         td = next_td
-    if running.any():
-        raise RuntimeError(
-            f"sub-envs {running.nonzero().flatten().tolist()} did not finish an episode "
-            f"within max_steps={max_steps}"
-        )
+    # an episode still running after max_steps ends there, as a rollout would end it
     return [
         EpisodeResult(
             ret=float(ret[i]),
@@ -141,6 +140,16 @@ def _side_by_side_episodes(
         )
         for i in range(wanted)
     ]
+
+
+def _steps_partially(env: EnvBase) -> bool:
+    """Whether ``env`` steps only the sub-envs a ``"_step"`` mask selects."""
+    from torchrl.envs import TransformedEnv
+
+    from wcsac_rl.envs.batched_gym import BatchedGymEnv
+
+    base = env.base_env if isinstance(env, TransformedEnv) else env
+    return isinstance(base, BatchedGymEnv)
 
 
 def summarize_episodes(results: list[EpisodeResult]) -> dict[str, float]:

@@ -18,7 +18,9 @@ a training run. Existing evaluation files are never overwritten unless ``force``
 training envs, seeded ``k``, and the per-epoch test episodes, ``k + 1 000 003``), and
 torch is seeded with the same number (the random policy draws its actions from
 torch), so an evaluation is reproducible and different seeds see different start
-states.
+states. The episodes run side by side, up to ten at a time, in one in-process batch
+of test envs (sub-env ``i`` seeded ``k + seed_offset + i``): episode ``j`` is the
+first episode of sub-env ``j mod 10`` in round ``j // 10``.
 """
 
 from __future__ import annotations
@@ -230,17 +232,27 @@ def _run(
         bar.close()
 
 
+def _side_by_side(episodes: Any) -> int:
+    """How many test episodes run at once (sub-envs of one in-process batch)."""
+    from wcsac_rl.training.trainer import EVAL_ENVS
+
+    if not isinstance(episodes, int) or episodes < 1:
+        return 1  # _run reports the bad value
+    return min(episodes, EVAL_ENVS)
+
+
 def _now() -> str:
     return _dt.datetime.now().astimezone().isoformat(timespec="seconds")
 
 
-def load_policy(run_dir: str | os.PathLike, env_seed: int) -> RestoredRun:
-    """:func:`~wcsac_rl.training.restore.load_run` with its env seeded ``env_seed``,
+def load_policy(run_dir: str | os.PathLike, env_seed: int, num_envs: int = 1) -> RestoredRun:
+    """:func:`~wcsac_rl.training.restore.load_run` with its env seeded ``env_seed``
+    (``num_envs`` sub-envs side by side),
     refusing a checkpoint that restores no policy for a learning algorithm (it
     would silently be evaluated as the random policy)."""
     from wcsac_rl.training.restore import load_run
 
-    restored = load_run(run_dir, seed=env_seed)
+    restored = load_run(run_dir, seed=env_seed, num_envs=num_envs)
     algo = str(restored.cfg.algo.name)
     if restored.policy is None and algo != "random":
         restored.env.close()
@@ -294,7 +306,7 @@ def evaluate_run(
     run_dir = Path(run_dir)
     check_can_write(run_dir, force)
     env_seed = _training_seed(run_dir) + int(seed_offset)
-    restored = load_policy(run_dir, env_seed)
+    restored = load_policy(run_dir, env_seed, num_envs=_side_by_side(episodes))
     cfg = restored.cfg
     steps = int(max_episode_steps or env_max_episode_steps(cfg))
     label = str(cfg.algo.get("label", cfg.algo.name))
@@ -367,7 +379,9 @@ def evaluate_random_policy(
     kwargs = {} if max_episode_steps is None else {"max_episode_steps": int(max_episode_steps)}
     steps = int(env_info(env_name, **kwargs)["max_episode_steps"])
     env_seed = int(seed) + int(seed_offset)
-    env = make_env(env_name, seed=env_seed, **kwargs)
+    env = make_env(
+        env_name, seed=env_seed, num_workers=_side_by_side(episodes), parallel=False, **kwargs
+    )
     try:
         results = _run(env, None, episodes, steps, env_seed, f"random seed {seed}", progress)
     finally:

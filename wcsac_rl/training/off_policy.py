@@ -91,7 +91,7 @@ class OffPolicyTrainer(Trainer):
         max_steps = env_max_episode_steps(cfg)
         loss = builders.make_loss(cfg, agent, max_steps)
         loss.load_state_dict(learner_state["loss"])  # the actor shares these parameters
-        return agent.actor
+        return TanhNormalPolicy(agent.actor)
 
     # ---------------------------------------------------------- checkpoint
     @property

@@ -25,8 +25,11 @@ class RestoredRun:
     Attributes:
         run_dir: the run directory.
         cfg: the run's resolved configuration.
-        policy: the trained actor (``None`` for the random policy: uniform actions).
-        env: an unbatched env of the run's preset, for test episodes.
+        policy: the trained policy (``None`` for the random policy: uniform actions);
+            for the SAC family a :class:`~wcsac_rl.objectives.tanh_normal.TanhNormalPolicy`
+            over the actor (``policy.actor``).
+        env: an env of the run's preset for test episodes: unbatched, or
+            ``num_envs`` sub-envs stepped side by side (see :func:`load_run`).
         frames: env steps the run was trained for.
         checkpoint: the raw checkpoint dict.
     """
@@ -39,17 +42,20 @@ class RestoredRun:
     checkpoint: dict[str, Any]
 
 
-def load_run(path: str | os.PathLike, *, seed: int | None = None) -> RestoredRun:
+def load_run(path: str | os.PathLike, *, seed: int | None = None, num_envs: int = 1) -> RestoredRun:
     """Rebuild a run's policy from ``path`` (a run dir or a checkpoint file).
 
-    ``seed`` seeds the returned env (default: the eval seed of the run's trainer).
+    ``seed`` seeds the returned env (default: the eval seed of the run's trainer);
+    with ``num_envs > 1`` it is a batch of that many sub-envs (seeded ``seed``,
+    ``seed + 1``, ...) for :func:`~wcsac_rl.evaluation.episodes.run_episodes` to
+    run episodes side by side.
     Raises :class:`~wcsac_rl.training.ConfigError` with one clear line when the
     directory holds no checkpoint or the checkpoint cannot be read.
     """
     checkpoint_path = find_checkpoint(path)
     checkpoint = load_checkpoint(checkpoint_path)
     cfg = OmegaConf.create(checkpoint["config"])
-    env = builders.make_eval_env(cfg, seed=seed)
+    env = builders.make_eval_env(cfg, seed=seed, num_envs=num_envs)
     policy = trainer_class(cfg.algo.name).restore_policy(cfg, checkpoint.get("learner", {}), env)
     if policy is not None:
         policy.eval()
