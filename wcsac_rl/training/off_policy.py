@@ -1,9 +1,11 @@
 """Off-policy learning for WCSAC, SAC-Lag and SAC: replay buffer, UTD updates, polyak targets.
 
 After each collector batch (``algo.collector.frames_per_batch`` frames) the entries
-of the batch the loss reads (``loss.in_keys``) go into the replay buffer and ``frames_per_batch × utd_ratio`` gradient steps
-follow (the authors' schedule: 100 steps per 400 frames), once
-``init_random_frames`` uniform-random frames have been collected.
+of the batch the loss reads (``loss.in_keys``) go into the replay buffer and
+``frames_per_batch × utd_ratio`` gradient steps follow (the authors' schedule: 100
+steps per 400 frames), once ``init_random_frames`` uniform-random frames have been
+collected. The actor collects and plays the test episodes as a
+:class:`~wcsac_rl.objectives.tanh_normal.TanhNormalPolicy`.
 """
 
 from __future__ import annotations

@@ -49,6 +49,7 @@ def load_run(path: str | os.PathLike, *, seed: int | None = None, num_envs: int 
     with ``num_envs > 1`` it is a batch of that many sub-envs (seeded ``seed``,
     ``seed + 1``, ...) for :func:`~wcsac_rl.evaluation.episodes.run_episodes` to
     run episodes side by side.
+
     Raises :class:`~wcsac_rl.training.ConfigError` with one clear line when the
     directory holds no checkpoint or the checkpoint cannot be read.
     """

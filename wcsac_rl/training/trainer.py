@@ -40,10 +40,10 @@ from wcsac_rl.training.config import ALGOS, ConfigError, validate_config
 from wcsac_rl.training.progress import EpisodeTracker, ProgressWriter
 from wcsac_rl.training.runtime import retain_freed_memory
 
+__all__ = ["RandomPolicyTrainer", "Trainer", "make_trainer", "seed_everything", "trainer_class"]
+
 EVAL_ENVS = 10
 """Most test episodes run side by side (each one sub-env of one in-process batch)."""
-
-__all__ = ["RandomPolicyTrainer", "Trainer", "make_trainer", "seed_everything", "trainer_class"]
 
 
 def seed_everything(seed: int) -> None:
