@@ -325,3 +325,14 @@ def test_progress_csv_gains_columns_that_first_appear_in_a_later_epoch(tmp_path)
     assert columns["epoch"] == [1, 2, 3]
     assert columns["time/update_s"][1:] == [2.0, 1.0]
     assert math.isnan(columns["time/update_s"][0]) and math.isnan(columns["time/collect_s"][2])
+
+
+@pytest.mark.slow
+def test_compile_option_trains_with_the_compiled_loss(tmp_path):
+    trainer, run_dir = _train(tmp_path, "env=tiny", "compile=true")
+    assert trainer._loss_forward is not trainer.loss  # the update went through torch.compile
+    rows = _rows(run_dir)
+    assert [int(r["updates"]) for r in rows] == [100, 200]
+    for row in rows:
+        for key in ("loss/loss_actor", "loss/loss_qvalue", "loss/loss_cost_value"):
+            assert math.isfinite(float(row[key])), key
