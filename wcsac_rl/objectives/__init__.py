@@ -1,4 +1,5 @@
-"""Loss modules (WCSAC, SAC-Lagrangian, CPO) and risk measures."""
+"""Loss modules (WCSAC, SAC-Lagrangian, CPO), risk measures, and the fast-path helpers
+(``PolyakUpdate`` for target networks, ``TanhNormalPolicy`` for acting)."""
 
 from wcsac_rl.objectives.cpo import CPOLoss
 from wcsac_rl.objectives.risk import (
@@ -7,6 +8,7 @@ from wcsac_rl.objectives.risk import (
     gaussian_cvar_multiplier,
     validate_risk_level,
 )
+from wcsac_rl.objectives.tanh_normal import TanhNormalPolicy
 from wcsac_rl.objectives.target_update import PolyakUpdate
 from wcsac_rl.objectives.wcsac import SACLagLoss, WCSACLoss, per_step_cost_threshold
 
@@ -14,6 +16,7 @@ __all__ = [
     "CPOLoss",
     "PolyakUpdate",
     "SACLagLoss",
+    "TanhNormalPolicy",
     "WCSACLoss",
     "empirical_cvar",
     "gaussian_cvar",
