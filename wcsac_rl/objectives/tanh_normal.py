@@ -62,6 +62,18 @@ class TanhNormalActorPlan:
     low: Tensor | None
     high: Tensor | None
 
+    def to_bounds(self, squashed: Tensor) -> tuple[Tensor, Tensor | None]:
+        """Map a tanh output in ``[-1, 1]`` to ``[low, high]`` (TorchRL's affine map).
+
+        Returns the action and the half range ``(high − low) / 2`` (whose log is the
+        map's log-Jacobian), or ``None`` for ``[-1, 1]`` (no map).
+        """
+        if self.low is None:
+            return squashed, None
+        low, high = self.low.to(squashed), self.high.to(squashed)
+        half_range = (high - low) / 2
+        return (high + low) / 2 + half_range * squashed, half_range
+
 
 def tanh_normal_actor_plan(actor: nn.Module) -> TanhNormalActorPlan | None:
     """The plan for ``actor`` if it is built like :func:`~wcsac_rl.modules.make_actor`, else ``None``.
@@ -128,11 +140,8 @@ def sample_tanh_normal(
     # dimensions separately (the order TorchRL's distribution sums them in)
     normal_log_prob = -((pre_tanh - loc) ** 2) / (2 * scale**2) - scale.log() - _HALF_LOG_2PI
     log_det = 2.0 * (_LOG_2 - pre_tanh - F.softplus(-2.0 * pre_tanh))
-    action = safetanh_noeps(pre_tanh)
-    if plan.low is not None:
-        low, high = plan.low.to(action), plan.high.to(action)
-        half_range = (high - low) / 2
-        action = (high + low) / 2 + half_range * action
+    action, half_range = plan.to_bounds(safetanh_noeps(pre_tanh))
+    if half_range is not None:
         log_det = log_det + half_range.abs().log()
     return action, normal_log_prob.sum(-1) - log_det.sum(-1)
 
@@ -178,10 +187,7 @@ class TanhNormalPolicy(TensorDictModuleBase):
         pre_tanh = (
             loc if kind is InteractionType.DETERMINISTIC else loc + torch.randn_like(loc) * scale
         )
-        action = safetanh_noeps(pre_tanh)
-        if self._plan.low is not None:
-            low, high = self._plan.low.to(action), self._plan.high.to(action)
-            action = (high + low) / 2 + (high - low) / 2 * action
+        action, _ = self._plan.to_bounds(safetanh_noeps(pre_tanh))
         tensordict.set(self._loc_key, loc)
         tensordict.set(self._scale_key, scale)
         tensordict.set(self._action_key, action)
