@@ -44,3 +44,20 @@ def make_loss(*, variance: bool = True, width: int = 32, seed: int = 0, **kwargs
     safety = make_safety_critic(OBS_DIM, ACT_DIM, variance=variance, width=width)
     kwargs.setdefault("risk_level", 0.5 if variance else 1.0)
     return WCSACLoss(actor, qvalues, safety, **kwargs)
+
+
+def assert_same_losses_and_gradients(first: WCSACLoss, second: WCSACLoss, batch) -> None:
+    """Both losses give the same outputs and parameter gradients on ``batch`` (same seed)."""
+    outputs = []
+    for loss in (first, second):
+        torch.manual_seed(5)
+        out = loss(batch.clone())
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        outputs.append((out, {n: p.grad.clone() for n, p in loss.named_parameters()}))
+    (out_a, grad_a), (out_b, grad_b) = outputs
+    assert out_a.keys() == out_b.keys()
+    for key in out_b.keys():
+        torch.testing.assert_close(out_a[key], out_b[key], rtol=1e-5, atol=1e-6)
+    assert grad_a.keys() == grad_b.keys()
+    for name in grad_b:
+        torch.testing.assert_close(grad_a[name], grad_b[name], rtol=1e-4, atol=1e-6)

@@ -7,8 +7,8 @@ import functools
 import gymnasium as gym
 import pytest
 import torch
+from _env_helpers import count_steps, tiny_goal_seeker
 from tensordict import TensorDict
-from tensordict.nn import TensorDictModule
 from torchrl.collectors import Collector
 from torchrl.envs.utils import check_env_specs
 
@@ -146,19 +146,8 @@ def test_partial_steps_leave_finished_envs_alone():
     # goal-seeking actions on the tiny task: sub-envs reach the goal at different steps
     env = _batched("tiny", max_episode_steps=60)
     env.set_seed(1)
-    stepped = [0] * N
-    for i, sub in enumerate(env.envs):
-        real_step = sub.step
-
-        def counting_step(action, i=i, real_step=real_step):
-            stepped[i] += 1
-            return real_step(action)
-
-        sub.step = counting_step
-    policy = TensorDictModule(
-        lambda obs: (10 * obs[..., 2:4]).clamp(-1, 1), in_keys=["observation"], out_keys=["action"]
-    )
-    td = env.rollout(60, policy, break_when_all_done=True)
+    stepped = count_steps(env.envs)
+    td = env.rollout(60, tiny_goal_seeker(), break_when_all_done=True)
     done = td["next", "done"].squeeze(-1)
     first_done = [int(d.nonzero()[0]) + 1 for d in done]
     assert len(set(first_done)) > 1  # the sub-envs finished at different steps

@@ -6,6 +6,7 @@ from unittest.mock import MagicMock
 
 import pytest
 import torch
+from _env_helpers import count_steps, tiny_goal_seeker
 from tensordict.nn import TensorDictModule
 from torchrl.data import Bounded
 
@@ -21,12 +22,8 @@ def _policy(name: str):
     point-goal dynamics amplify a 1e-7 action difference into visibly different
     returns within tens of steps.)
     """
-    if name == "tiny":  # straight for the goal (obs[2:4] is the goal offset): episodes end
-        return TensorDictModule(
-            lambda obs: (10 * obs[..., 2:4]).clamp(-1, 1),
-            in_keys=["observation"],
-            out_keys=["action"],
-        )
+    if name == "tiny":  # episodes end
+        return tiny_goal_seeker()
     obs_dim = make_env(name).observation_spec["observation"].shape[-1]
     torch.manual_seed(0)
     net = make_actor(obs_dim, Bounded(-1.0, 1.0, shape=(2,)), width=16).module[0].module
@@ -84,15 +81,7 @@ def test_max_steps_cuts_episodes_alike_and_deep_batches_are_refused():
 
 def test_finished_sub_envs_are_not_stepped_while_the_others_finish():
     env = make_env("tiny", seed=3, num_workers=4, parallel=False, max_episode_steps=60)
-    stepped = [0] * 4
-    for i, sub in enumerate(env.base_env.envs):
-        real_step = sub.step
-
-        def counting_step(action, i=i, real_step=real_step):
-            stepped[i] += 1
-            return real_step(action)
-
-        sub.step = counting_step
+    stepped = count_steps(env.base_env.envs)
     results = run_episodes(env, _policy("tiny"), 4, max_steps=60)
     assert len({r.length for r in results}) > 1
     assert stepped == [r.length for r in results]

@@ -9,7 +9,13 @@ from __future__ import annotations
 
 import pytest
 import torch
-from _loss_helpers import ACT_DIM, OBS_DIM, make_batch, make_loss
+from _loss_helpers import (
+    ACT_DIM,
+    OBS_DIM,
+    assert_same_losses_and_gradients,
+    make_batch,
+    make_loss,
+)
 from tensordict import TensorDict
 from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
@@ -73,31 +79,24 @@ def test_direct_sampling_gives_the_same_losses_and_gradients(variance):
     general = make_loss(variance=variance, direct_sampling=False, damp_scale=1.0)
     assert direct._actor_plan is not None and general._actor_plan is None
     general.load_state_dict(direct.state_dict())
-    batch = make_batch()
-    outputs = []
-    for loss in (direct, general):
-        torch.manual_seed(5)
-        out = loss(batch.clone())
-        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
-        outputs.append((out, {n: p.grad.clone() for n, p in loss.named_parameters()}))
-    (out_d, grad_d), (out_g, grad_g) = outputs
-    assert out_d.keys() == out_g.keys()
-    for key in out_g.keys():
-        torch.testing.assert_close(out_d[key], out_g[key], rtol=1e-5, atol=1e-6)
-    for name in grad_g:
-        torch.testing.assert_close(grad_d[name], grad_g[name], rtol=1e-4, atol=1e-6)
+    assert_same_losses_and_gradients(direct, general, make_batch())
+
+
+def _actor_not_from_make_actor() -> ProbabilisticActor:
+    """A tanh-Normal actor with TorchRL's NormalParamExtractor, not the kit's layout."""
+    net = nn.Sequential(nn.Linear(OBS_DIM, 2 * ACT_DIM), NormalParamExtractor())
+    return ProbabilisticActor(
+        TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
+        in_keys=["loc", "scale"],
+        spec=Bounded(-1.0, 1.0, shape=(ACT_DIM,)),
+        distribution_class=TanhNormal,
+    )
 
 
 def test_actors_not_built_like_make_actor_fall_back_or_are_refused():
     torch.manual_seed(0)
     spec = Bounded(-1.0, 1.0, shape=(ACT_DIM,))
-    net = nn.Sequential(nn.Linear(OBS_DIM, 2 * ACT_DIM), NormalParamExtractor())
-    actor = ProbabilisticActor(
-        TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
-        in_keys=["loc", "scale"],
-        spec=spec,
-        distribution_class=TanhNormal,
-    )
+    actor = _actor_not_from_make_actor()
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)]
     safety = make_safety_critic(OBS_DIM, ACT_DIM, width=8)
     loss = WCSACLoss(actor, qvalues, safety)
@@ -182,16 +181,8 @@ def test_tanh_normal_policy_acts_like_the_actor(low, high, exploration):
 
 
 def test_tanh_normal_policy_refuses_other_actors_and_follows_training():
-    spec = Bounded(-1.0, 1.0, shape=(ACT_DIM,))
-    net = nn.Sequential(nn.Linear(OBS_DIM, 2 * ACT_DIM), NormalParamExtractor())
-    other = ProbabilisticActor(
-        TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
-        in_keys=["loc", "scale"],
-        spec=spec,
-        distribution_class=TanhNormal,
-    )
     with pytest.raises(ValueError, match=r"built like wcsac_rl\.modules\.make_actor"):
-        TanhNormalPolicy(other)
+        TanhNormalPolicy(_actor_not_from_make_actor())
     loss = make_loss()
     policy = TanhNormalPolicy(loss.actor_network)
     td = TensorDict({"observation": torch.randn(4, OBS_DIM)}, [4])

@@ -6,7 +6,13 @@ import math
 
 import pytest
 import torch
-from _loss_helpers import ACT_DIM, OBS_DIM, make_batch, make_loss
+from _loss_helpers import (
+    ACT_DIM,
+    OBS_DIM,
+    assert_same_losses_and_gradients,
+    make_batch,
+    make_loss,
+)
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
@@ -440,19 +446,7 @@ def test_fused_critic_ensemble_gives_the_same_losses_and_gradients(variance):
     )
     assert fused._ensemble is not None and separate._ensemble is None
     separate.load_state_dict(fused.state_dict())
-    batch = make_batch()
-    outputs = []
-    for loss in (fused, separate):
-        torch.manual_seed(5)
-        out = loss(batch.clone())
-        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
-        outputs.append((out, {n: p.grad.clone() for n, p in loss.named_parameters()}))
-    (out_f, grad_f), (out_s, grad_s) = outputs
-    for key in out_s.keys():
-        torch.testing.assert_close(out_f[key], out_s[key], rtol=1e-5, atol=1e-6)
-    assert grad_f.keys() == grad_s.keys()
-    for name in grad_s:
-        torch.testing.assert_close(grad_f[name], grad_s[name], rtol=1e-4, atol=1e-6)
+    assert_same_losses_and_gradients(fused, separate, make_batch())
 
 
 def test_critics_that_cannot_be_fused_fall_back_or_are_refused():
