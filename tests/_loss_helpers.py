@@ -14,14 +14,20 @@ ACT_DIM = 2
 
 
 def make_batch(
-    batch: int = 16, *, terminated_every: int = 4, seed: int = 0, cost_shape_1: bool = True
+    batch: int = 16,
+    *,
+    terminated_every: int = 4,
+    seed: int = 0,
+    cost_shape_1: bool = True,
+    initial: bool = False,
 ):
-    """A replay batch with random observations, binary costs and some terminal steps."""
+    """A replay batch with random observations, binary costs and some terminal steps
+    (and, with ``initial``, a start state per row under ``"initial"``)."""
     g = torch.Generator().manual_seed(seed)
     cost = torch.bernoulli(torch.full((batch, 1), 0.3), generator=g)
     terminated = torch.zeros(batch, 1, dtype=torch.bool)
     terminated[::terminated_every] = True
-    return TensorDict(
+    td = TensorDict(
         {
             "observation": torch.randn(batch, OBS_DIM, generator=g),
             "action": torch.rand(batch, ACT_DIM, generator=g) * 2 - 1,
@@ -35,6 +41,11 @@ def make_batch(
         },
         [batch],
     )
+    if initial:
+        td["initial"] = TensorDict(
+            {"observation": torch.randn(batch, OBS_DIM, generator=g) + 1.0}, [batch]
+        )
+    return td
 
 
 def make_loss(*, variance: bool = True, width: int = 32, seed: int = 0, **kwargs) -> WCSACLoss:

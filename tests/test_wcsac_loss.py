@@ -51,14 +51,24 @@ def _grads_after(loss: WCSACLoss, key: str, batch) -> dict[str, torch.Tensor | N
 
 
 @pytest.mark.parametrize("fast", [True, False], ids=["fused+direct", "modules"])
-@pytest.mark.parametrize("kappa_actions", ["replay", "policy"])
+@pytest.mark.parametrize(
+    ("kappa_actions", "kappa_states"),
+    [("replay", "replay"), ("policy", "replay"), ("policy", "initial")],
+)
 @pytest.mark.parametrize("damp_scale", [0.0, 10.0])
 @pytest.mark.parametrize("key", LOSS_KEYS)
-def test_each_loss_term_reaches_exactly_its_own_parameters(key, kappa_actions, damp_scale, fast):
+def test_each_loss_term_reaches_exactly_its_own_parameters(
+    key, kappa_actions, kappa_states, damp_scale, fast
+):
     loss = make_loss(
-        kappa_actions=kappa_actions, damp_scale=damp_scale, fuse_critics=fast, direct_sampling=fast
+        kappa_actions=kappa_actions,
+        kappa_states=kappa_states,
+        variance_target="td" if kappa_states == "initial" else "moment",
+        damp_scale=damp_scale,
+        fuse_critics=fast,
+        direct_sampling=fast,
     )
-    grads = _grads_after(loss, key, make_batch())
+    grads = _grads_after(loss, key, make_batch(initial=kappa_states == "initial"))
     owner = OWNERS[key]
     owned = {n for n in grads if n.startswith(owner)}
     assert owned, f"no parameter matches {owner}"
@@ -272,6 +282,50 @@ def test_per_step_threshold_matches_spec_and_follows_gamma():
     assert float(explicit.cost_threshold) == pytest.approx(0.25)
 
 
+def test_kappa_at_initial_states_reads_only_the_start_states_and_holds_gamma_under_d():
+    loss = make_loss(risk_level=0.1, kappa_states="initial", cost_limit=15.0)
+    assert float(loss.cost_threshold) == pytest.approx(15.0)  # Γ(s₀) vs the episodic limit
+    batch = make_batch(initial=True)
+
+    def kappa_terms(td):
+        torch.manual_seed(3)
+        out = loss(td)
+        return out["loss_kappa"], out["cvar"]
+
+    base_kappa, base_cvar = kappa_terms(batch.clone())
+    # Γ(s₀, a₀ ~ π) recomputed through the public pieces, with the same action noise
+    torch.manual_seed(3)
+    loss.compute_targets(batch.clone())  # the forward draws a' ~ π(s') first, then a₀
+    action0, _ = loss._sample_policy(batch["initial"])
+    expected = loss.safety_estimates(batch["initial"].set("action", action0))["cvar"]
+    torch.testing.assert_close(base_cvar, expected.mean())
+    torch.testing.assert_close(base_kappa, loss.kappa * (15.0 - expected.mean()))
+    # other replay observations leave the κ term alone; other start states move it
+    moved = batch.clone()
+    moved["observation"] = moved["observation"] + 3.0
+    torch.testing.assert_close(kappa_terms(moved)[0], base_kappa)
+    moved_start = batch.clone()
+    moved_start["initial", "observation"] = moved_start["initial", "observation"] - 3.0
+    assert not torch.allclose(kappa_terms(moved_start)[0], base_kappa)
+    with pytest.raises(KeyError, match="start states"):
+        loss(make_batch())
+    assert loss.initial_state_keys == ["observation"]
+
+
+def test_safety_estimates_are_the_safety_critics_own_outputs():
+    loss = make_loss(risk_level=0.1)
+    batch = make_batch()
+    est = loss.safety_estimates(batch)
+    with loss.safety_network_params.to_module(loss.safety_network):
+        out = loss.safety_network(batch.select("observation", "action"))
+    torch.testing.assert_close(est["cost_value"], out["cost_value"].squeeze(-1))
+    torch.testing.assert_close(est["cost_variance"], out["cost_variance"].squeeze(-1))
+    torch.testing.assert_close(est["cvar"], loss.cvar(est["cost_value"], est["cost_variance"]))
+    assert not est["cvar"].requires_grad
+    lag = make_loss(variance=False)
+    assert set(lag.safety_estimates(batch).keys()) == {"cost_value", "cvar"}
+
+
 # ------------------------------------------------------------ analytic targets
 class _ReadOut(nn.Module):
     """Q^c = obs[0] and V^c = obs[1]: a 'critic' whose outputs are set by the batch."""
@@ -284,14 +338,14 @@ class _ReadOut(nn.Module):
         return self.scale * observation[..., :1], self.scale * observation[..., 1:2]
 
 
-def _readout_loss(variance_loss: str, gamma: float = 0.9) -> WCSACLoss:
+def _readout_loss(variance_loss: str, gamma: float = 0.9, **kwargs) -> WCSACLoss:
     torch.manual_seed(0)
     actor = make_actor(2, Bounded(-1.0, 1.0, shape=(1,)), width=8)
     qvalues = [make_qvalue(2, 1, width=8) for _ in range(2)]
     safety = TensorDictModule(
         _ReadOut(), in_keys=["observation", "action"], out_keys=["cost_value", "cost_variance"]
     )
-    loss = WCSACLoss(actor, qvalues, safety, risk_level=0.5, variance_loss=variance_loss)
+    loss = WCSACLoss(actor, qvalues, safety, risk_level=0.5, variance_loss=variance_loss, **kwargs)
     loss.make_value_estimator(gamma=gamma)
     return loss
 
@@ -331,12 +385,50 @@ def test_cost_mean_and_variance_targets_equal_eq7_and_eq8_with_terminal_mask():
     row1 = 0.0 + 0.0 + g**2 * 1.0 + g**2 * 0.5**2 - 1.0**2
     row2 = 2.0**2 - 3.0**2  # terminal: no bootstrap, and negative
     cost_value = torch.tensor([2.0, 1.0, 3.0])
-    y_v = loss.variance_target(targets["cost_second_moment"], cost_value)
+    y_v = loss.variance_target(targets, cost_value)
     torch.testing.assert_close(y_v, torch.tensor([row0, row1, row2]))
     # the W2 variant clamps the target to [1e-8, 1e8] as in the paper
     w2 = _readout_loss("w2", gamma=g)
-    y_w2 = w2.variance_target(targets["cost_second_moment"], cost_value)
+    y_w2 = w2.variance_target(targets, cost_value)
     torch.testing.assert_close(y_w2, torch.tensor([row0, max(row1, 1e-8), 1e-8]))
+
+
+def test_td_variance_target_is_squared_td_error_plus_discounted_next_variance():
+    g = 0.9
+    loss = _readout_loss("mse", gamma=g, variance_target="td")
+    targets = loss.compute_targets(_readout_batch())
+    cost_value = torch.tensor([2.0, 1.0, 3.0])
+    # (c + γ(1−term)Q̄' − Q)² + γ²(1−term)V̄'
+    row0 = (1.0 + g * 1.5 - 2.0) ** 2 + g**2 * 2.0
+    row1 = (0.0 + g * 0.5 - 1.0) ** 2 + g**2 * 1.0
+    row2 = (2.0 - 3.0) ** 2  # terminal: no bootstrap
+    y_v = loss.variance_target(targets, cost_value)
+    torch.testing.assert_close(y_v, torch.tensor([row0, row1, row2]))
+    # the moment form has the same value when Q is the mean of its target ...
+    moment = _readout_loss("mse", gamma=g)
+    at_mean = targets["cost_target"]
+    torch.testing.assert_close(
+        moment.variance_target(targets, at_mean), loss.variance_target(targets, at_mean)
+    )
+    # ... but goes negative where Q overshoots it; the td form never does
+    assert bool((moment.variance_target(targets, cost_value) < 0).any())
+    assert bool((y_v >= 0).all())
+
+
+def test_cost_gamma_discounts_the_safety_critic_only():
+    loss = _readout_loss("mse", gamma=0.9, cost_gamma=0.5)
+    assert loss.cost_gamma == 0.5
+    targets = loss.compute_targets(_readout_batch())
+    torch.testing.assert_close(
+        targets["cost_target"], torch.tensor([1.0 + 0.5 * 1.5, 0.0 + 0.5 * 0.5, 2.0])
+    )
+    torch.testing.assert_close(targets["cost_next_variance"], torch.tensor([0.25 * 2.0, 0.25, 0.0]))
+    # the reward target still uses γ = 0.9, and so does nothing else of the cost side
+    assert float(loss.value_estimator.gamma) == pytest.approx(0.9)
+    thr = per_step_cost_threshold(15.0, 0.5, 1000)
+    assert float(loss.cost_threshold) == pytest.approx(thr)
+    with pytest.raises(ValueError, match="cost_gamma"):
+        make_loss(cost_gamma=1.5)
 
 
 @pytest.mark.parametrize("variance_loss", ["w2", "mse"])
@@ -346,7 +438,7 @@ def test_variance_loss_values_on_hand_made_tensors(variance_loss):
     targets = loss.compute_targets(batch)
     _, loss_var, meta = loss.safety_loss(batch, targets)
     v = torch.tensor([0.5, 4.0, 1.0])
-    y = loss.variance_target(targets["cost_second_moment"], torch.tensor([2.0, 1.0, 3.0]))
+    y = loss.variance_target(targets, torch.tensor([2.0, 1.0, 3.0]))
     if variance_loss == "w2":
         expected = (v.sqrt() - y.sqrt()).pow(2).mean()
     else:
@@ -381,6 +473,8 @@ def test_risk_level_outside_unit_interval_is_refused_with_its_meaning(alpha):
         ({"kappa_actions": "target"}, "kappa_actions must be one of"),
         ({"damp_scale": -1.0}, "damp_scale must be >= 0"),
         ({"variance_loss": "l1"}, "variance_loss must be one of"),
+        ({"variance_target": "second"}, "variance_target must be one of"),
+        ({"kappa_states": "start"}, "kappa_states must be one of"),
     ],
 )
 def test_bad_constructor_arguments_are_refused(kwargs, message):

@@ -44,7 +44,9 @@ __all__ = ["CriticValues", "SACLagLoss", "WCSACLoss", "per_step_cost_threshold"]
 
 KAPPA_PARAMETRISATIONS = ("softplus", "log")
 KAPPA_ACTIONS = ("replay", "policy")
+KAPPA_STATES = ("replay", "initial")
 VARIANCE_LOSSES = ("w2", "mse")
+VARIANCE_TARGETS = ("moment", "td")
 
 
 def per_step_cost_threshold(cost_limit: float, gamma: float, max_episode_steps: int) -> float:
@@ -107,13 +109,22 @@ class WCSACLoss(SACLoss):
         max_episode_steps (int): episode length ``T`` used to convert ``d`` into the
             per-step threshold ``d·(1−γ^T)/((1−γ)T)`` for the discounted critic
             (γ from the value estimator). Default ``1000``.
-        cost_threshold (float, optional): give the per-step (discounted-critic)
-            threshold directly; when set, ``cost_limit`` and ``max_episode_steps`` are
-            not used.
+        cost_threshold (float, optional): give the threshold Γ is held under directly;
+            when set, ``cost_limit`` and ``max_episode_steps`` are not used. By default
+            it is the per-step threshold ``d·(1−γ_c^T)/((1−γ_c)T)`` when κ sees replay
+            states, and ``d`` itself when κ sees initial states (``kappa_states``).
+        cost_gamma (float, optional): discount γ_c of the safety critic. ``None``
+            (default) uses the value estimator's γ, as the paper does.
         kappa_init (float): initial safety weight κ > 0. Default ``softplus(0) ≈ 0.693``
             (the authors' code).
         kappa_parametrization (str): ``"softplus"`` (κ = softplus(raw), the authors'
             code) or ``"log"`` (κ = exp(raw)). Default ``"softplus"``.
+        kappa_states (str): the states at which the κ loss evaluates Γ: ``"replay"``
+            (the sampled batch, as the paper and the authors' code) or ``"initial"``
+            (episode start states, read from the sub-tensordict at the
+            ``initial_states`` key, one start state per batch row, with ``a ~ π``):
+            Γ(s₀, a₀) estimates the CVaR of the episode's discounted cost, so it is
+            held under the episodic limit ``d`` itself. Default ``"replay"``.
         kappa_actions (str): the actions at which the κ loss evaluates Γ: ``"replay"``
             (the stored actions, the authors' code) or ``"policy"`` (``a ~ π``, as the
             paper writes). Default ``"policy"`` (see README for the evidence).
@@ -123,6 +134,14 @@ class WCSACLoss(SACLoss):
             ``V + y − 2√(V y)``; ``"mse"`` — ``½ (V − y)²``, a consistent estimator of
             the variance when the TD target ``y`` is noisy (W2 on sampled targets
             converges to ``(E√y)²`` instead of ``E y``). Default ``"mse"`` (see README).
+        variance_target (str): ``"moment"`` — Eq. 8,
+            ``c² + γ_c(1−term)(2c Q̄' + γ_c(V̄' + Q̄'²)) − Q²``, the second moment minus the
+            squared mean; ``"td"`` — ``(c + γ_c(1−term) Q̄' − Q)² + γ_c²(1−term) V̄'``,
+            the squared TD error plus the discounted next variance. Both have the same
+            expectation when Q is the mean of its target, but ``"td"`` is never
+            negative (the moment form is negative wherever ``Q > γ_c Q̄'``, which
+            drives the variance head to its floor when costs are rare). Default
+            ``"moment"``.
         fuse_critics (bool, optional): evaluate the reward and safety critics as one
             batched ensemble (one matrix product per layer for all four networks).
             Needs plain MLP critics of one shape reading ``[observation, action]``, as
@@ -198,11 +217,16 @@ class WCSACLoss(SACLoss):
                 ``"cost_value"``.
             cost_variance (NestedKey): safety critic's cost variance V^c. Defaults to
                 ``"cost_variance"``.
+            initial_states (NestedKey): with ``kappa_states="initial"``, a
+                sub-tensordict shaped like the batch holding episode start states (the
+                actor's and critics' observation entries), where the κ loss evaluates
+                Γ. Defaults to ``"initial"``.
         """
 
         cost: NestedKey = "cost"
         cost_value: NestedKey = "cost_value"
         cost_variance: NestedKey = "cost_variance"
+        initial_states: NestedKey = "initial"
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -222,11 +246,14 @@ class WCSACLoss(SACLoss):
         cost_limit: float = 15.0,
         max_episode_steps: int = 1000,
         cost_threshold: float | None = None,
+        cost_gamma: float | None = None,
         kappa_init: float = math.log(2.0),
         kappa_parametrization: str = "softplus",
         kappa_actions: str = "policy",
+        kappa_states: str = "replay",
         damp_scale: float = 0.0,
         variance_loss: str = "mse",
+        variance_target: str = "moment",
         fuse_critics: bool | None = None,
         direct_sampling: bool | None = None,
         num_qvalue_nets: int = 2,
@@ -254,6 +281,14 @@ class WCSACLoss(SACLoss):
             )
         if kappa_actions not in KAPPA_ACTIONS:
             raise ValueError(f"kappa_actions must be one of {KAPPA_ACTIONS}, got {kappa_actions!r}")
+        if kappa_states not in KAPPA_STATES:
+            raise ValueError(f"kappa_states must be one of {KAPPA_STATES}, got {kappa_states!r}")
+        if variance_target not in VARIANCE_TARGETS:
+            raise ValueError(
+                f"variance_target must be one of {VARIANCE_TARGETS}, got {variance_target!r}"
+            )
+        if cost_gamma is not None and not 0.0 <= cost_gamma <= 1.0:
+            raise ValueError(f"cost_gamma must be in [0, 1], got {cost_gamma}")
         if damp_scale < 0:
             raise ValueError(f"damp_scale must be >= 0, got {damp_scale}")
         if variance_loss not in VARIANCE_LOSSES:
@@ -265,8 +300,11 @@ class WCSACLoss(SACLoss):
         self._explicit_cost_threshold = None if cost_threshold is None else float(cost_threshold)
         self.kappa_parametrization = kappa_parametrization
         self.kappa_actions = kappa_actions
+        self.kappa_states = kappa_states
         self.damp_scale = float(damp_scale)
         self.variance_loss = variance_loss
+        self.variance_target_kind = variance_target
+        self._explicit_cost_gamma = None if cost_gamma is None else float(cost_gamma)
 
         super().__init__(
             actor_network,
@@ -294,6 +332,8 @@ class WCSACLoss(SACLoss):
         )
         self.register_parameter("kappa_raw", torch.nn.Parameter(torch.tensor(raw, device=device)))
         self.register_buffer("cost_threshold", torch.zeros((), device=device))
+        # derived from cost_gamma / the value estimator: not part of the state dict
+        self.register_buffer("cost_discount", torch.zeros((), device=device), persistent=False)
         self.make_value_estimator(ValueEstimators.TD0)
         self._set_in_keys()
         self._ensemble = self._critic_ensemble() if fuse_critics is not False else None
@@ -345,14 +385,24 @@ class WCSACLoss(SACLoss):
                 f"is a one-step recursion), got {value_type}"
             )
         super().make_value_estimator(value_type, **hyperparams)
-        gamma = float(self.value_estimator.gamma)
+        gamma = self.cost_gamma
         if self._explicit_cost_threshold is not None:
             threshold = self._explicit_cost_threshold
+        elif self.kappa_states == "initial":
+            threshold = self.cost_limit
         else:
             threshold = per_step_cost_threshold(self.cost_limit, gamma, self.max_episode_steps)
         if "cost_threshold" in self._buffers:
             self.cost_threshold.fill_(threshold)
+            self.cost_discount.fill_(gamma)
         return self
+
+    @property
+    def cost_gamma(self) -> float:
+        """The safety critic's discount γ_c (``cost_gamma``, else the value estimator's γ)."""
+        if self._explicit_cost_gamma is not None:
+            return self._explicit_cost_gamma
+        return float(self.value_estimator.gamma)
 
     def _set_in_keys(self):
         super()._set_in_keys()
@@ -551,9 +601,11 @@ class WCSACLoss(SACLoss):
         Returns a dict (each entry shaped like the batch, no gradient) with
         ``reward_target`` (``r + γ(1−term)(min_i Q̄^r_i(s',a') − β log π(a'|s'))``,
         computed by TorchRL's TD(0) estimator), ``cost_target`` (Eq. 7:
-        ``c + γ(1−term) Q̄^c(s',a')``) and ``cost_second_moment``
-        (``c² + (1−term)(2γ c Q̄^c' + γ² V̄^c' + γ² Q̄^c'²)``; the variance target of
-        Eq. 8 is this minus ``Q^c(s, a)²``).
+        ``c + γ_c(1−term) Q̄^c(s',a')``), and with a variance head
+        ``cost_second_moment`` (``c² + (1−term)(2γ_c c Q̄^c' + γ_c² V̄^c' + γ_c² Q̄^c'²)``;
+        the variance target of Eq. 8 is this minus ``Q^c(s, a)²``) and
+        ``cost_next_variance`` (``γ_c² (1−term) V̄^c(s',a')``); otherwise these are
+        ``None``. See :meth:`variance_target`.
         """
         with torch.no_grad():
             next_td = tensordict.get("next")
@@ -563,21 +615,25 @@ class WCSACLoss(SACLoss):
             reward_target = self._reward_target(tensordict, next_value).squeeze(-1)
 
             cost = self._get_cost(tensordict)
-            gamma = self.value_estimator.gamma.to(cost.dtype)
+            gamma = self.cost_discount.to(cost.dtype)
             not_terminated = (
                 ~tensordict.get(("next", self.tensor_keys.terminated)).reshape(cost.shape)
             ).to(cost.dtype)
             cost_target = cost + gamma * not_terminated * qc_next
             if vc_next is None:
-                second_moment = None
+                second_moment = next_variance = None
             else:
-                second_moment = cost.pow(2) + not_terminated * (
-                    2 * gamma * cost * qc_next + gamma.pow(2) * (vc_next + qc_next.pow(2))
+                next_variance = not_terminated * gamma.pow(2) * vc_next
+                second_moment = (
+                    cost.pow(2)
+                    + not_terminated * (2 * gamma * cost * qc_next + gamma.pow(2) * qc_next.pow(2))
+                    + next_variance
                 )
         return {
             "reward_target": reward_target,
             "cost_target": cost_target,
             "cost_second_moment": second_moment,
+            "cost_next_variance": next_variance,
         }
 
     def _reward_target(self, tensordict: TensorDictBase, next_value: Tensor) -> Tensor:
@@ -660,7 +716,7 @@ class WCSACLoss(SACLoss):
         metadata = {"cost_value": qc.detach(), "cost_variance": None}
         if vc is None:
             return loss_mean, None, metadata
-        variance_target = self.variance_target(targets["cost_second_moment"], qc)
+        variance_target = self.variance_target(targets, qc)
         if self.variance_loss == "w2":
             # 2-Wasserstein distance between N(·, V) and N(·, y), variance part: (√V − √y)².
             loss_var = vc + variance_target - 2 * (vc * variance_target).sqrt()
@@ -670,16 +726,24 @@ class WCSACLoss(SACLoss):
         metadata["cost_variance"] = vc.detach()
         return loss_mean, loss_var, metadata
 
-    def variance_target(self, cost_second_moment: Tensor, cost_value: Tensor) -> Tensor:
-        """Eq. 8: ``y_v = E-sample of C² − Q^c(s, a)²`` with ``Q^c(s, a)`` detached.
+    def variance_target(self, targets: dict[str, Tensor], cost_value: Tensor) -> Tensor:
+        """The TD target of V^c(s, a) from :meth:`compute_targets`' ``targets``.
+
+        ``variance_target="moment"`` (Eq. 8): ``y_v = sampled C² − Q^c(s, a)²``;
+        ``"td"``: ``y_v = (y_c − Q^c(s, a))² + γ_c²(1−term) V̄^c(s', a')`` with ``y_c``
+        the mean target. ``Q^c(s, a)`` is detached in both.
 
         For the ``"w2"`` loss the target is clamped to [1e-8, 1e8] (the square root
         needs it positive), as in the paper. For ``"mse"`` it is only clamped to
-        [−1e8, 1e8]: a single sampled target may legitimately be negative, and
-        clamping it at 0 would bias the fit upwards (e.g. a cost of 10 with
-        probability 0.1 would give 9.9 instead of the true variance 9).
+        [−1e8, 1e8]: a single sampled moment-form target may legitimately be
+        negative, and clamping it at 0 would bias the fit upwards (e.g. a cost of 10
+        with probability 0.1 would give 9.9 instead of the true variance 9).
         """
-        target = cost_second_moment - cost_value.detach().pow(2)
+        cost_value = cost_value.detach()
+        if self.variance_target_kind == "td":
+            target = (targets["cost_target"] - cost_value).pow(2) + targets["cost_next_variance"]
+        else:
+            target = targets["cost_second_moment"] - cost_value.pow(2)
         if self.variance_loss == "w2":
             return target.clamp(VARIANCE_MIN, VARIANCE_MAX)
         return target.clamp(-VARIANCE_MAX, VARIANCE_MAX)
@@ -694,9 +758,11 @@ class WCSACLoss(SACLoss):
     def _actor_loss(
         self,
         tensordict: TensorDictBase,
-        cvar_replay: Tensor | None,
+        cvar_constraint: Tensor | None,
         layers: list[tuple[Tensor, Tensor]] | None = None,
     ) -> tuple[Tensor, dict[str, Tensor]]:
+        """The actor loss; ``cvar_constraint`` is the Γ the κ loss sees (``None``: Γ at
+        the actor's own actions on the batch)."""
         weights = self._maybe_get_priority_weight(tensordict)
         action, log_prob = self._sample_policy(tensordict)
         qvalue, cost_value, cost_variance = self._critic_values(
@@ -704,7 +770,8 @@ class WCSACLoss(SACLoss):
         )
         min_q = qvalue.min(0)[0]
         cvar_pi = self.cvar(cost_value, cost_variance)
-        cvar_constraint = cvar_pi.detach() if self.kappa_actions == "policy" else cvar_replay
+        if cvar_constraint is None:
+            cvar_constraint = cvar_pi.detach()
         penalty = self._constraint_gap_penalty(cvar_constraint)
         loss = self._alpha * log_prob - min_q + penalty * cvar_pi
         loss = self._reduce_loss(loss, tensordict=tensordict, weights=weights)
@@ -719,17 +786,70 @@ class WCSACLoss(SACLoss):
 
         β, κ and all critic parameters are detached: only the actor gets gradients.
         """
-        return self._actor_loss(tensordict, self._replay_cvar(tensordict))
+        cvar_replay = None
+        if self.kappa_actions == "replay" and self.kappa_states == "replay":
+            with torch.no_grad():
+                values = self._online_values(tensordict)
+                cvar_replay = self.cvar(values.cost_value, values.cost_variance)
+        return self._actor_loss(tensordict, self._constraint_cvar(tensordict, cvar_replay))
 
-    def _replay_cvar(self, tensordict: TensorDictBase) -> Tensor | None:
-        if self.kappa_actions != "replay":
-            return None
+    def _constraint_cvar(
+        self,
+        tensordict: TensorDictBase,
+        cvar_replay: Tensor | None,
+        layers: list[tuple[Tensor, Tensor]] | None = None,
+    ) -> Tensor | None:
+        """The Γ the κ loss sees: at the initial states (``a ~ π``), at the replay
+        actions, or ``None`` for Γ at the actor's actions on the batch."""
+        if self.kappa_states == "initial":
+            return self.initial_state_cvar(tensordict, layers)
+        if self.kappa_actions == "replay":
+            return cvar_replay
+        return None
+
+    def initial_state_cvar(
+        self, tensordict: TensorDictBase, layers: list[tuple[Tensor, Tensor]] | None = None
+    ) -> Tensor:
+        """Γ(s₀, a₀, α) with ``a₀ ~ π(·|s₀)`` at the start states the batch carries
+        under the ``initial_states`` key (no gradient)."""
+        key = self.tensor_keys.initial_states
+        initial = tensordict.get(key, None)
+        if initial is None:
+            raise KeyError(
+                f"kappa_states='initial' needs episode start states at {key!r} of the batch "
+                f"(a sub-tensordict shaped like the batch with the actor's observation "
+                f"entries); the batch has none. The wcsac_rl trainer attaches them; in your "
+                f"own loop sample start states and set batch[{key!r}] = them."
+            )
         with torch.no_grad():
-            values = self._online_values(tensordict)
+            action, _ = self._sample_policy(initial)
+            values = self._critic_values(initial, action, "detached", layers)
             return self.cvar(values.cost_value, values.cost_variance)
 
+    @property
+    def initial_state_keys(self) -> list[NestedKey]:
+        """What a start state must hold for :meth:`initial_state_cvar` (the actor's and
+        critics' inputs other than the action)."""
+        keys = list(self.actor_network.in_keys)
+        for key in (*self.qvalue_network.in_keys, *self.safety_network.in_keys):
+            if key != self.tensor_keys.action and key not in keys:
+                keys.append(key)
+        return keys
+
+    def safety_estimates(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """The safety critic at the state-actions of ``tensordict`` (online parameters,
+        no gradient): ``cost_value`` (Q^c), ``cvar`` (Γ_α) and, with a variance head,
+        ``cost_variance`` (V^c), each shaped like the batch. For diagnostics such as
+        :mod:`wcsac_rl.evaluation.calibration`."""
+        with torch.no_grad():
+            cost_value, cost_variance = self._safety_forward(tensordict, self.safety_network_params)
+            out = {"cost_value": cost_value, "cvar": self.cvar(cost_value, cost_variance)}
+            if cost_variance is not None:
+                out["cost_variance"] = cost_variance
+        return TensorDict(out, batch_size=tensordict.batch_size)
+
     def kappa_loss(self, cvar: Tensor, tensordict: TensorDictBase | None = None) -> Tensor:
-        """``κ · (d_step − Γ)`` with Γ detached: κ grows while Γ exceeds the threshold."""
+        """``κ · (threshold − Γ)`` with Γ detached: κ grows while Γ exceeds the threshold."""
         loss = self._kappa_param * (self.cost_threshold - cvar.detach())
         weights = None if tensordict is None else self._maybe_get_priority_weight(tensordict)
         return self._reduce_loss(loss, tensordict=tensordict, weights=weights)
@@ -748,7 +868,8 @@ class WCSACLoss(SACLoss):
         )
         cvar_replay = self.cvar(safety_metadata["cost_value"], safety_metadata["cost_variance"])
         detached = None if layers is None else [(w.detach(), b.detach()) for w, b in layers]
-        loss_actor, actor_metadata = self._actor_loss(tensordict, cvar_replay, detached)
+        cvar_constraint = self._constraint_cvar(tensordict, cvar_replay, detached)
+        loss_actor, actor_metadata = self._actor_loss(tensordict, cvar_constraint, detached)
         log_prob = actor_metadata["log_prob"]
         weights = self._maybe_get_priority_weight(tensordict)
         loss_alpha = self._reduce_loss(

@@ -32,6 +32,7 @@ __all__ = [
     "make_agent",
     "make_collector",
     "make_eval_env",
+    "make_initial_state_buffer",
     "make_logger",
     "make_loss",
     "make_optimizers",
@@ -141,8 +142,12 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
             "kappa_init": float(algo.kappa_init),
             "kappa_parametrization": str(algo.kappa_parametrization),
             "kappa_actions": str(algo.kappa_actions),
+            # (runs saved before these options existed had the paper's choices)
+            "kappa_states": str(algo.get("kappa_states", "replay")),
             "damp_scale": float(algo.damp_scale),
             "variance_loss": str(algo.variance_loss),
+            "variance_target": str(algo.get("variance_target", "moment")),
+            "cost_gamma": None if algo.get("cost_gamma") is None else float(algo.cost_gamma),
         }
         if algo.name == "wcsac":
             safety_kwargs["risk_level"] = float(algo.risk_level)
@@ -214,6 +219,17 @@ def make_replay_buffer(cfg: DictConfig) -> TensorDictReplayBuffer:
     """Uniform replay on a ``LazyTensorStorage`` (the paper: 10⁶ transitions, batch 256)."""
     return TensorDictReplayBuffer(
         storage=LazyTensorStorage(int(cfg.algo.buffer_size), device=cfg.device),
+        batch_size=int(cfg.algo.batch_size),
+    )
+
+
+INITIAL_STATE_CAPACITY = 10_000
+
+
+def make_initial_state_buffer(cfg: DictConfig) -> TensorDictReplayBuffer:
+    """Uniform replay of episode start states (the last 10⁴), for ``kappa_states=initial``."""
+    return TensorDictReplayBuffer(
+        storage=LazyTensorStorage(INITIAL_STATE_CAPACITY, device=cfg.device),
         batch_size=int(cfg.algo.batch_size),
     )
 

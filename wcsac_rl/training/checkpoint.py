@@ -13,6 +13,7 @@ from wcsac_rl.training.config import ConfigError
 
 __all__ = [
     "CHECKPOINT_DIR",
+    "INITIAL_STATE_BUFFER_DIR",
     "LAST_CHECKPOINT",
     "check_compatible",
     "find_checkpoint",
@@ -24,6 +25,7 @@ __all__ = [
 CHECKPOINT_DIR = "checkpoints"
 LAST_CHECKPOINT = "last.pt"
 REPLAY_BUFFER_DIR = "replay_buffer"
+INITIAL_STATE_BUFFER_DIR = "initial_state_buffer"
 
 # What a checkpoint's networks and losses depend on: these must match to resume or
 # evaluate. Anything else (frames, cadences, logger, threads) may change on resume.

@@ -120,11 +120,19 @@ def validate_config(cfg: DictConfig) -> None:
 
 def _validate_safety_keys(algo: DictConfig) -> None:
     """The WCSAC / SAC-Lag options of ``conf/algo`` (the loss would refuse them later)."""
-    from wcsac_rl.objectives.wcsac import KAPPA_ACTIONS, KAPPA_PARAMETRISATIONS, VARIANCE_LOSSES
+    from wcsac_rl.objectives.wcsac import (
+        KAPPA_ACTIONS,
+        KAPPA_PARAMETRISATIONS,
+        KAPPA_STATES,
+        VARIANCE_LOSSES,
+        VARIANCE_TARGETS,
+    )
 
     choices = {
         "variance_loss": VARIANCE_LOSSES,
+        "variance_target": VARIANCE_TARGETS,
         "kappa_actions": KAPPA_ACTIONS,
+        "kappa_states": KAPPA_STATES,
         "kappa_parametrization": KAPPA_PARAMETRISATIONS,
     }
     for key, allowed in choices.items():
@@ -138,5 +146,8 @@ def _validate_safety_keys(algo: DictConfig) -> None:
         )
     if not float(algo.damp_scale) >= 0:
         raise ConfigError(f"algo.damp_scale must be >= 0, got {algo.damp_scale}")
+    cost_gamma = algo.get("cost_gamma")
+    if cost_gamma is not None and not 0.0 <= float(cost_gamma) <= 1.0:
+        raise ConfigError(f"algo.cost_gamma must be null or in [0, 1], got {cost_gamma}")
     if not float(algo.kappa_lr_scale) > 0:
         raise ConfigError(f"algo.kappa_lr_scale must be > 0, got {algo.kappa_lr_scale}")

@@ -6,6 +6,11 @@ of the batch the loss reads (``loss.in_keys``) go into the replay buffer and
 steps per 400 frames), once ``init_random_frames`` uniform-random frames have been
 collected. The actor collects and plays the test episodes as a
 :class:`~wcsac_rl.objectives.tanh_normal.TanhNormalPolicy`.
+
+With ``algo.kappa_states=initial`` the trainer also keeps the episode start states
+it collects (``step_count == 0``) in a small buffer of their own and attaches one,
+drawn uniformly, to every row of each sampled batch (``batch["initial"]``), where
+the loss evaluates the CVaR its κ term holds under the limit.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from wcsac_rl.objectives.tanh_normal import TanhNormalPolicy
 from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import (
     CHECKPOINT_DIR,
+    INITIAL_STATE_BUFFER_DIR,
     REPLAY_BUFFER_DIR,
     load_optimizer_state,
 )
@@ -41,6 +47,9 @@ class OffPolicyTrainer(Trainer):
         self.replay_buffer = builders.make_replay_buffer(cfg)
         # only what the loss reads is stored: smaller buffer, faster sampling
         self.replay_keys = sorted(self.loss.in_keys, key=str)
+        self.initial_state_buffer = None
+        if getattr(self.loss, "kappa_states", "replay") == "initial":
+            self.initial_state_buffer = builders.make_initial_state_buffer(cfg)
         self.updates_per_batch = max(
             1, round(int(collector_cfg.frames_per_batch) * float(collector_cfg.utd_ratio))
         )
@@ -62,6 +71,20 @@ class OffPolicyTrainer(Trainer):
     def loss_keys(self) -> list[str]:
         return list(self.loss.out_keys)
 
+    def sample(self) -> TensorDictBase:
+        """A replay batch (with a start state per row when the loss needs them)."""
+        batch = self.replay_buffer.sample()
+        if self.initial_state_buffer is not None:
+            initial = self.initial_state_buffer.sample(batch.shape[0])
+            batch.set(self.loss.tensor_keys.initial_states, initial.exclude("index"))
+        return batch
+
+    def _store_initial_states(self, batch: TensorDictBase) -> None:
+        flat = batch.reshape(-1)
+        starts = flat.get("step_count").reshape(-1) == 0
+        if bool(starts.any()):
+            self.initial_state_buffer.extend(flat[starts].select(*self.loss.initial_state_keys))
+
     def update(self, batch: TensorDictBase) -> TensorDictBase:
         """One gradient step on every parameter group, then the polyak update of the targets.
 
@@ -82,10 +105,12 @@ class OffPolicyTrainer(Trainer):
     def learn(self, batch: TensorDictBase) -> list[TensorDictBase]:
         with timeit("replay_extend"):
             self.replay_buffer.extend(batch.reshape(-1).select(*self.replay_keys))
+            if self.initial_state_buffer is not None:
+                self._store_initial_states(batch)
         if self.tracker.frames < self.update_start_frames:
             return []
         with timeit("update"):
-            return [self.update(self.replay_buffer.sample()) for _ in range(self.updates_per_batch)]
+            return [self.update(self.sample()) for _ in range(self.updates_per_batch)]
 
     @classmethod
     def restore_policy(cls, cfg, learner_state, env):
@@ -100,10 +125,16 @@ class OffPolicyTrainer(Trainer):
     def _buffer_dir(self):
         return self.run_dir / CHECKPOINT_DIR / REPLAY_BUFFER_DIR
 
+    @property
+    def _initial_buffer_dir(self):
+        return self.run_dir / CHECKPOINT_DIR / INITIAL_STATE_BUFFER_DIR
+
     def learner_state(self) -> dict[str, Any]:
         if self.cfg.save_replay_buffer and len(self.replay_buffer):
             self._buffer_dir.parent.mkdir(parents=True, exist_ok=True)
             self.replay_buffer.dumps(self._buffer_dir)
+            if self.initial_state_buffer is not None and len(self.initial_state_buffer):
+                self.initial_state_buffer.dumps(self._initial_buffer_dir)
         return {
             "loss": self.loss.state_dict(),
             "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
@@ -115,6 +146,8 @@ class OffPolicyTrainer(Trainer):
             load_optimizer_state(optimizer, state["optimizers"][key])
         if self._buffer_dir.exists():
             self.replay_buffer.loads(self._buffer_dir)
+            if self.initial_state_buffer is not None and self._initial_buffer_dir.exists():
+                self.initial_state_buffer.loads(self._initial_buffer_dir)
             # exact resume: the warm-up threshold stays where an uninterrupted run has it
             self.update_start_frames = self.init_random_frames
         else:
