@@ -1,16 +1,27 @@
-"""Test episodes: run a policy for whole episodes and record return, cost and length."""
+"""Test episodes: run a policy for whole episodes and record return, cost and length.
+
+:func:`run_episodes` gives one :class:`EpisodeResult` per episode;
+:func:`record_episodes` runs the very same episodes and also keeps chosen entries of
+every step (e.g. observation, action and cost) as one TensorDict per episode.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import NestedKey, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-__all__ = ["EpisodeResult", "run_episodes", "summarize_episodes"]
+__all__ = [
+    "EpisodeResult",
+    "RecordedEpisode",
+    "record_episodes",
+    "run_episodes",
+    "summarize_episodes",
+]
 
 
 @dataclass(frozen=True)
@@ -25,6 +36,22 @@ class EpisodeResult:
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+@dataclass(frozen=True)
+class RecordedEpisode:
+    """One finished episode and the entries recorded at each of its steps.
+
+    Attributes:
+        result: the episode's :class:`EpisodeResult`.
+        steps: a TensorDict of batch size ``[result.length]``: step ``t`` holds the
+            recorded entries of the tensordict the env stepped (root entries as the
+            policy saw and wrote them, ``("next", ...)`` entries as the env returned
+            them).
+    """
+
+    result: EpisodeResult
+    steps: TensorDictBase | None
 
 
 def run_episodes(
@@ -62,43 +89,100 @@ def run_episodes(
     Raises:
         ValueError: an env with more than one batch dimension.
     """
+    return [
+        episode.result
+        for episode in _run(
+            env, policy, num_episodes, deterministic, max_steps, on_episode, record=None
+        )
+    ]
+
+
+def record_episodes(
+    env: EnvBase,
+    policy: Callable[[TensorDictBase], TensorDictBase] | None,
+    num_episodes: int,
+    keys: Sequence[NestedKey],
+    *,
+    deterministic: bool = True,
+    max_steps: int = 100_000,
+    on_episode: Callable[[EpisodeResult], None] | None = None,
+) -> list[RecordedEpisode]:
+    """:func:`run_episodes`, also keeping the entries ``keys`` of every step.
+
+    The episodes (and their results) are the ones :func:`run_episodes` gives for the
+    same env, policy and seeds: recording only copies entries, it draws no random
+    numbers and changes no step.
+
+    Args:
+        keys: the entries to keep per step, e.g. ``["observation", "action",
+            ("next", "cost")]``; each must be in every stepped tensordict.
+        env, policy, num_episodes, deterministic, max_steps, on_episode: as in
+            :func:`run_episodes`.
+
+    Raises:
+        ValueError: an env with more than one batch dimension.
+        KeyError: a key the stepped tensordicts do not have.
+    """
+    return _run(env, policy, num_episodes, deterministic, max_steps, on_episode, list(keys))
+
+
+def _run(
+    env: EnvBase,
+    policy,
+    num_episodes: int,
+    deterministic: bool,
+    max_steps: int,
+    on_episode: Callable[[EpisodeResult], None] | None,
+    record: list[NestedKey] | None,
+) -> list[RecordedEpisode]:
+    """The episodes of :func:`run_episodes`; ``steps`` is ``None`` unless ``record``."""
     if len(env.batch_size) > 1:
         raise ValueError(
             f"run_episodes needs an unbatched env or one batch dimension, got {env.batch_size}"
         )
     exploration = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
-    results: list[EpisodeResult] = []
+    results: list[RecordedEpisode] = []
     with torch.no_grad(), set_exploration_type(exploration):
         while len(results) < num_episodes:
             if env.batch_size == torch.Size([]):
-                episodes = [_single_episode(env, policy, max_steps)]
+                episodes = [_single_episode(env, policy, max_steps, record)]
             else:
                 wanted = min(num_episodes - len(results), env.batch_size[0])
-                episodes = _side_by_side_episodes(env, policy, max_steps, wanted)
-            for result in episodes:
-                results.append(result)
+                episodes = _side_by_side_episodes(env, policy, max_steps, wanted, record)
+            for episode in episodes:
+                results.append(episode)
                 if on_episode is not None:
-                    on_episode(result)
+                    on_episode(episode.result)
     return results
 
 
-def _single_episode(env: EnvBase, policy, max_steps: int) -> EpisodeResult:
-    nxt = env.rollout(max_steps, policy, break_when_any_done=True).get("next")
+def _single_episode(
+    env: EnvBase, policy, max_steps: int, record: list[NestedKey] | None
+) -> RecordedEpisode:
+    rollout = env.rollout(max_steps, policy, break_when_any_done=True)
+    nxt = rollout.get("next")
     goal = nxt.get("goal_reached", None)
     failure = nxt.get("numerical_failure", None)
-    return EpisodeResult(
+    result = EpisodeResult(
         ret=float(nxt.get("reward").sum()),
         cost=float(nxt.get("cost").sum()),
         length=int(nxt.shape[-1]),
         goal_reached=0 if goal is None else int(goal.sum()),
         numerical_failure=False if failure is None else bool(failure.any()),
     )
+    steps = None if record is None else rollout.select(*record, strict=True)
+    return RecordedEpisode(result, steps)
 
 
 def _side_by_side_episodes(
-    env: EnvBase, policy, max_steps: int, wanted: int
-) -> list[EpisodeResult]:
-    """The first episode of sub-envs ``0 .. wanted-1`` of a batched env, stepped together."""
+    env: EnvBase, policy, max_steps: int, wanted: int, record: list[NestedKey] | None
+) -> list[RecordedEpisode]:
+    """The first episode of sub-envs ``0 .. wanted-1`` of a batched env, stepped together.
+
+    With ``record``, those entries of each batched step are kept; a sub-env's
+    episode is the first ``length`` of them (it runs from the first step on and
+    only waits once it has finished).
+    """
     n = env.batch_size[0]
     ret = torch.zeros(n, dtype=torch.float64)
     cost = torch.zeros(n, dtype=torch.float64)
@@ -108,12 +192,15 @@ def _side_by_side_episodes(
     running = torch.zeros(n, dtype=torch.bool)
     running[:wanted] = True
     partial = _steps_partially(env)
+    recorded: list[TensorDictBase] = []
     td = env.reset()
     for _ in range(max_steps):
         td = env.rand_action(td) if policy is None else policy(td)
         if partial and not running.all():  # finished sub-envs wait for the others
             td.set("_step", running.unsqueeze(-1).clone())
         td, next_td = env.step_and_maybe_reset(td)
+        if record is not None:
+            recorded.append(td.select(*record, strict=True).clone())
         nxt = td.get("next")
         active = running.clone()
         ret += torch.where(active, nxt.get("reward").reshape(n).double(), 0.0)
@@ -130,13 +217,17 @@ def _side_by_side_episodes(
             break
         td = next_td
     # an episode still running after max_steps ends there, as a rollout would end it
+    steps = torch.stack(recorded, dim=1) if record is not None else None  # [n, T]
     return [
-        EpisodeResult(
-            ret=float(ret[i]),
-            cost=float(cost[i]),
-            length=int(length[i]),
-            goal_reached=int(goals[i]),
-            numerical_failure=bool(failed[i]),
+        RecordedEpisode(
+            EpisodeResult(
+                ret=float(ret[i]),
+                cost=float(cost[i]),
+                length=int(length[i]),
+                goal_reached=int(goals[i]),
+                numerical_failure=bool(failed[i]),
+            ),
+            None if steps is None else steps[i, : int(length[i])].clone(),
         )
         for i in range(wanted)
     ]
