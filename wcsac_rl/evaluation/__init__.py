@@ -6,6 +6,8 @@
 * :mod:`~wcsac_rl.evaluation.runs` — finding run / sweep / evaluated directories; row names.
 * :mod:`~wcsac_rl.evaluation.evaluator` — a run's final evaluation →
   ``evaluation.csv`` + ``evaluation.json`` (``python -m wcsac_rl.evaluate``).
+* :mod:`~wcsac_rl.evaluation.calibration` — the safety critic's predictions against the
+  realised cost-to-go of test episodes (``calib/*`` columns, ``python -m wcsac_rl.calibration``).
 * :mod:`~wcsac_rl.evaluation.trajectories` — robot paths and MuJoCo videos of test episodes.
 * :mod:`~wcsac_rl.evaluation.plots` — per-run curves and the paper's Figures 4, 5, 6.
 * :mod:`~wcsac_rl.evaluation.reporting` — Table 1 + figures for a set of runs

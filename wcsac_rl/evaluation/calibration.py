@@ -1,0 +1,488 @@
+"""Calibration of the safety critic on the states the policy visits: predicted vs realised cost.
+
+WCSAC's constraint acts on the safety critic's CVaR estimate Γ_α(s, a) = Q^c +
+α⁻¹φ(Φ⁻¹(α))√V^c. Whether the critic's numbers mean anything is measured here on
+deterministic test episodes of the current policy:
+
+* :func:`record_calibration_episodes` runs the test episodes
+  (:func:`~wcsac_rl.evaluation.episodes.record_episodes`, the very episodes
+  :func:`~wcsac_rl.evaluation.episodes.run_episodes` gives) and keeps, per step, the
+  entries the loss's actor and safety critic read, the action taken and the cost
+  ``("next", "cost")``.
+* :func:`compare_episodes` asks the loss for Q^c, Γ_α and V^c at every recorded
+  state-action (``loss.safety_estimates``) and computes the Monte-Carlo discounted
+  cost-to-go (:func:`discounted_cost_to_go`, γ_c = ``loss.cost_gamma``).
+* :func:`summarize_calibration` / :func:`calibration_metrics` reduce that to a flat
+  dict of floats, :data:`CALIBRATION_KEYS` (logged per epoch as ``calib/*`` columns by
+  the trainer, and written to ``calibration.json`` by ``python -m wcsac_rl.calibration``).
+
+**Truncation.** An episode cut by the time limit (or ``max_steps``) is not over: the
+critic bootstraps beyond the cut, the realised sum cannot. The realised cost-to-go
+is the sum of the costs actually seen, so near the end of a truncated episode it
+underestimates the true one (an episode that ends at the goal or by failure is
+complete). With γ_c = 0.99 and 1 000-step episodes this matters only in the last
+few hundred steps; the start-state numbers are the least affected.
+
+**On-policy caveat.** The test episodes act with the policy's mean action; the
+critic is trained for the stochastic policy. The comparison is the one the
+constraint relies on (Γ at the states and actions the policy picks), not an
+unbiased test of the critic's TD fixed point.
+
+Losses without a safety critic (TorchRL's ``SACLoss``, CPO) have no
+``safety_estimates``: :func:`supports_calibration` is ``False`` and nothing is measured.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import NestedKey, TensorDictBase
+from torchrl.envs import EnvBase
+
+from wcsac_rl.evaluation.episodes import EpisodeResult, RecordedEpisode, record_episodes
+from wcsac_rl.objectives.risk import empirical_cvar
+from wcsac_rl.training.config import ConfigError
+
+__all__ = [
+    "CALIBRATION_JSON",
+    "CALIBRATION_KEYS",
+    "SAFETY_ALGOS",
+    "CalibrationExistsError",
+    "EpisodeCalibration",
+    "calibrate_run",
+    "calibration_keys",
+    "calibration_metrics",
+    "compare_episodes",
+    "discounted_cost_to_go",
+    "load_safety_run",
+    "record_calibration_episodes",
+    "summarize_calibration",
+    "supports_calibration",
+]
+
+CALIBRATION_JSON = "calibration.json"
+SAFETY_ALGOS = ("wcsac", "sac_lag")
+"""The ``conf/algo`` entries whose loss has a safety critic."""
+
+PREFIX = "calib/"
+CALIBRATION_KEYS: tuple[str, ...] = tuple(
+    PREFIX + name
+    for name in (
+        # start state s0 (first step of each episode), averaged over episodes
+        "start_cost_value",  # predicted Q^c(s0, a0)
+        "start_cvar",  # predicted Γ_α(s0, a0), the CVaR the loss uses
+        "start_std",  # predicted √V^c(s0, a0) (NaN without a variance head)
+        "start_realised_cost_to_go",  # realised Σ_t γ_c^t c_t from s0
+        "start_realised_cvar",  # empirical CVaR_α over episodes of that sum
+        "start_cvar_ratio",  # start_cvar / start_realised_cvar
+        "realised_spread",  # std over episodes of the realised sum from s0
+        # every visited state, pooled over episodes (each step counts once)
+        "mean_cost_value",  # Q^c
+        "mean_cvar",  # Γ_α
+        "mean_std",  # √V^c (NaN without a variance head)
+        "mean_realised_cost_to_go",  # Σ_{k≥t} γ_c^{k−t} c_k
+        "correlation",  # Pearson correlation of Q^c and the realised cost-to-go
+        "negative_share",  # share of states with Q^c < 0
+        # undiscounted episodic cost
+        "episode_cost",  # mean over episodes
+        "episode_cvar",  # empirical CVaR_α over episodes
+    )
+)
+"""The names :func:`summarize_calibration` returns, in a fixed order."""
+
+
+def supports_calibration(loss: Any) -> bool:
+    """Whether ``loss`` has a safety critic to calibrate (``WCSACLoss``, ``SACLagLoss``)."""
+    return loss is not None and callable(getattr(loss, "safety_estimates", None))
+
+
+def _cost_key(loss: Any) -> tuple[str, ...]:
+    """Where the loss reads the per-step cost, under ``"next"``."""
+    key = getattr(loss.tensor_keys, "cost", "cost")
+    return ("next", *key) if isinstance(key, tuple) else ("next", key)
+
+
+def calibration_keys(loss: Any) -> list[NestedKey]:
+    """The per-step entries calibration records: the observation entries the loss's
+    safety critic and actor read, the action, and the cost under ``"next"``."""
+    action = loss.tensor_keys.action
+    keys: list[NestedKey] = []
+    for name in ("safety_network", "actor_network"):
+        network = getattr(loss, name, None)
+        if network is not None:
+            keys += [key for key in network.in_keys if key != action]
+    keys += [action, _cost_key(loss)]
+    return list(dict.fromkeys(keys))
+
+
+def record_calibration_episodes(
+    env: EnvBase,
+    policy: Callable[[TensorDictBase], TensorDictBase] | None,
+    loss: Any,
+    num_episodes: int,
+    *,
+    max_steps: int = 100_000,
+    on_episode: Callable[[EpisodeResult], None] | None = None,
+) -> list[RecordedEpisode]:
+    """``num_episodes`` deterministic test episodes with what :func:`compare_episodes` needs.
+
+    Same episodes (and :class:`~wcsac_rl.evaluation.episodes.EpisodeResult`) as
+    ``run_episodes(env, policy, num_episodes, deterministic=True, max_steps=...)``.
+    """
+    return record_episodes(
+        env,
+        policy,
+        num_episodes,
+        calibration_keys(loss),
+        deterministic=True,
+        max_steps=max_steps,
+        on_episode=on_episode,
+    )
+
+
+def discounted_cost_to_go(costs: Sequence[float] | np.ndarray, gamma: float) -> np.ndarray:
+    """Monte-Carlo cost-to-go ``G_t = Σ_{k≥t} γ^{k−t} c_k`` of one episode (float64).
+
+    Computed backwards (``G_t = c_t + γ G_{t+1}``, ``G_T = 0``) over the costs of
+    the episode as it happened: for an episode cut by a time limit this is the
+    truncated sum (see the module docstring).
+
+    >>> discounted_cost_to_go([1.0, 0.0, 2.0], 0.5).tolist()
+    [1.5, 1.0, 2.0]
+    """
+    costs = np.asarray(costs, dtype=np.float64).reshape(-1)
+    out = np.empty_like(costs)
+    running = 0.0
+    for t in range(costs.size - 1, -1, -1):
+        running = costs[t] + gamma * running
+        out[t] = running
+    return out
+
+
+@dataclass(frozen=True)
+class EpisodeCalibration:
+    """One episode's per-step predictions and realised costs (float64 arrays of length T).
+
+    Attributes:
+        cost: the per-step cost ``c_t``.
+        cost_to_go: the realised discounted cost-to-go ``Σ_{k≥t} γ_c^{k−t} c_k``.
+        cost_value: predicted Q^c(s_t, a_t).
+        cvar: predicted Γ_α(s_t, a_t).
+        std: predicted √V^c(s_t, a_t), all NaN without a variance head.
+    """
+
+    cost: np.ndarray
+    cost_to_go: np.ndarray
+    cost_value: np.ndarray
+    cvar: np.ndarray
+    std: np.ndarray
+
+    def as_dict(self) -> dict[str, float]:
+        """The episode's start-state numbers and its totals (for ``calibration.json``)."""
+        return {
+            "length": int(self.cost.size),
+            "cost": float(self.cost.sum()),
+            "start_cost_value": float(self.cost_value[0]),
+            "start_cvar": float(self.cvar[0]),
+            "start_std": float(self.std[0]),
+            "start_realised_cost_to_go": float(self.cost_to_go[0]),
+            "mean_cost_value": float(self.cost_value.mean()),
+            "mean_realised_cost_to_go": float(self.cost_to_go.mean()),
+        }
+
+
+def _as_float64(value: torch.Tensor) -> np.ndarray:
+    return value.detach().to("cpu", torch.float64).reshape(-1).numpy()
+
+
+def compare_episodes(episodes: Sequence[RecordedEpisode], loss: Any) -> list[EpisodeCalibration]:
+    """The loss's safety estimates and the realised cost-to-go at every recorded step.
+
+    All steps go through ``loss.safety_estimates`` in one batch (no gradient). Each
+    episode's ``steps`` must hold the entries of :func:`calibration_keys`.
+    """
+    if not episodes:
+        return []
+    cost_key = _cost_key(loss)
+    lengths = [episode.steps.shape[0] for episode in episodes]
+    inputs = torch.cat([episode.steps.exclude("next") for episode in episodes])
+    with torch.no_grad():
+        estimates = loss.safety_estimates(inputs)
+    split = np.cumsum(lengths)[:-1]
+    cost_value = np.split(_as_float64(estimates.get("cost_value")), split)
+    cvar = np.split(_as_float64(estimates.get("cvar")), split)
+    variance = estimates.get("cost_variance", None)
+    if variance is None:
+        std = [np.full(n, np.nan) for n in lengths]
+    else:
+        std = np.split(np.sqrt(np.clip(_as_float64(variance), 0.0, None)), split)
+    gamma = float(loss.cost_gamma)
+    out = []
+    for i, episode in enumerate(episodes):
+        cost = _as_float64(episode.steps.get(cost_key))
+        out.append(
+            EpisodeCalibration(
+                cost=cost,
+                cost_to_go=discounted_cost_to_go(cost, gamma),
+                cost_value=cost_value[i],
+                cvar=cvar[i],
+                std=std[i],
+            )
+        )
+    return out
+
+
+def _ratio(numerator: float, denominator: float) -> float:
+    if denominator == 0 or math.isnan(numerator) or math.isnan(denominator):
+        return math.nan
+    return numerator / denominator
+
+
+def _correlation(x: np.ndarray, y: np.ndarray) -> float:
+    """Pearson correlation; NaN for fewer than two points or a constant array."""
+    if x.size < 2:
+        return math.nan
+    dx, dy = x - x.mean(), y - y.mean()
+    denominator = math.sqrt(float(dx @ dx) * float(dy @ dy))
+    if denominator == 0:
+        return math.nan
+    return float(dx @ dy) / denominator
+
+
+def summarize_calibration(
+    episodes: Sequence[EpisodeCalibration], risk_level: float
+) -> dict[str, float]:
+    """The :data:`CALIBRATION_KEYS` of a set of episodes (NaN where undefined).
+
+    * ``start_*``: at each episode's first state-action, averaged over episodes;
+      ``start_realised_cvar`` and ``episode_cvar`` are the empirical CVaR_α over
+      episodes (the mean of the worst ``⌈n·α⌉``,
+      :func:`~wcsac_rl.objectives.risk.empirical_cvar`) of the discounted cost-to-go
+      from s0 and of the undiscounted episodic cost; ``start_cvar_ratio`` is
+      ``start_cvar / start_realised_cvar`` (NaN when the realised CVaR is 0).
+    * ``realised_spread``: sample standard deviation (n − 1) over episodes of the
+      realised discounted cost-to-go from s0 (NaN for one episode), to set against
+      ``start_std``.
+    * ``mean_*``, ``correlation``, ``negative_share``: over every visited state of
+      every episode pooled (each step counts once). ``correlation`` is NaN when
+      either side is constant.
+    * ``start_std`` / ``mean_std``: NaN without a variance head.
+
+    Everything is NaN for no episodes.
+    """
+    metrics = dict.fromkeys(CALIBRATION_KEYS, math.nan)
+    if not episodes:
+        return metrics
+    start_realised = np.array([e.cost_to_go[0] for e in episodes])
+    episode_cost = np.array([e.cost.sum() for e in episodes])
+    pooled = {
+        name: np.concatenate([getattr(e, name) for e in episodes])
+        for name in ("cost_value", "cvar", "std", "cost_to_go")
+    }
+    values = {
+        "start_cost_value": float(np.mean([e.cost_value[0] for e in episodes])),
+        "start_cvar": float(np.mean([e.cvar[0] for e in episodes])),
+        "start_std": float(np.mean([e.std[0] for e in episodes])),
+        "start_realised_cost_to_go": float(start_realised.mean()),
+        "start_realised_cvar": empirical_cvar(start_realised, risk_level),
+        "realised_spread": float(start_realised.std(ddof=1)) if len(episodes) > 1 else math.nan,
+        "mean_cost_value": float(pooled["cost_value"].mean()),
+        "mean_cvar": float(pooled["cvar"].mean()),
+        "mean_std": float(pooled["std"].mean()),
+        "mean_realised_cost_to_go": float(pooled["cost_to_go"].mean()),
+        "correlation": _correlation(pooled["cost_value"], pooled["cost_to_go"]),
+        "negative_share": float(np.mean(pooled["cost_value"] < 0)),
+        "episode_cost": float(episode_cost.mean()),
+        "episode_cvar": empirical_cvar(episode_cost, risk_level),
+    }
+    values["start_cvar_ratio"] = _ratio(values["start_cvar"], values["start_realised_cvar"])
+    metrics.update({PREFIX + name: value for name, value in values.items()})
+    return metrics
+
+
+def calibration_metrics(episodes: Sequence[RecordedEpisode], loss: Any) -> dict[str, float]:
+    """:func:`summarize_calibration` of :func:`compare_episodes` at ``loss.risk_level``."""
+    return summarize_calibration(compare_episodes(episodes, loss), float(loss.risk_level))
+
+
+# ----------------------------------------------------------------- a saved run
+class CalibrationExistsError(ConfigError):
+    """The run already has ``calibration.json`` and ``force`` was not given."""
+
+
+def load_safety_run(run_dir: str | os.PathLike, *, seed: int, num_envs: int = 1):
+    """A run's config, test env, policy and whole loss (safety critic included).
+
+    The loss is built like the trainer's (``builders.make_agent`` /
+    ``builders.make_loss``) and loaded from the checkpoint; the policy acts through
+    the loss's actor as in training and evaluation.
+
+    Returns:
+        ``(cfg, env, policy, loss, frames)``; ``env`` has ``num_envs`` sub-envs
+        seeded ``seed``, ``seed + 1``, ...
+
+    Raises:
+        ConfigError: no or unreadable checkpoint, a run without a safety critic (SAC,
+            CPO, random), or a checkpoint whose networks do not fit its config.
+    """
+    from omegaconf import OmegaConf
+
+    from wcsac_rl.objectives.tanh_normal import TanhNormalPolicy
+    from wcsac_rl.training import builders
+    from wcsac_rl.training.checkpoint import find_checkpoint, load_checkpoint
+    from wcsac_rl.training.trainer import env_max_episode_steps
+
+    path = find_checkpoint(run_dir)
+    checkpoint = load_checkpoint(path)
+    try:
+        cfg = OmegaConf.create(checkpoint["config"])
+        algo = str(cfg.algo.name)
+        learner = checkpoint["learner"]
+        frames = int(checkpoint["frames"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise ConfigError(f"{path}: not a training checkpoint ({err!r})") from None
+    if algo not in SAFETY_ALGOS:
+        raise ConfigError(
+            f"{path.parent.parent}: algo {algo!r} has no safety critic to calibrate "
+            f"(calibration needs one of {', '.join(SAFETY_ALGOS)})"
+        )
+    env = builders.make_eval_env(cfg, seed=seed, num_envs=num_envs)
+    try:
+        agent = builders.make_agent(cfg, env)
+        loss = builders.make_loss(cfg, agent, env_max_episode_steps(cfg))
+        loss.load_state_dict(learner["loss"])
+    except (KeyError, RuntimeError) as err:
+        env.close()
+        first = str(err).strip().splitlines()[0] if str(err).strip() else repr(err)
+        raise ConfigError(
+            f"{path}: the checkpoint's loss does not fit its config ({first})"
+        ) from None
+    if not supports_calibration(loss):
+        env.close()
+        raise ConfigError(f"{path}: the loss {type(loss).__name__} has no safety_estimates")
+    loss.eval()
+    policy = TanhNormalPolicy(agent.actor)  # as OffPolicyTrainer.restore_policy
+    policy.eval()
+    return cfg, env, policy, loss, frames
+
+
+def _finite_or_none(value: Any) -> Any:
+    """JSON has no NaN: undefined numbers are written as ``null``."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _atomic_write_json(path: Path, data: dict[str, Any]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
+    os.replace(tmp, path)
+
+
+def check_can_write(run_dir: Path, force: bool) -> None:
+    """Raise :class:`CalibrationExistsError` if ``calibration.json`` exists and not ``force``."""
+    path = Path(run_dir) / CALIBRATION_JSON
+    if path.exists() and not force:
+        raise CalibrationExistsError(f"{path} already exists; pass --force to overwrite")
+
+
+def calibrate_run(
+    run_dir: str | os.PathLike,
+    *,
+    episodes: int = 30,
+    seed_offset: int | None = None,
+    force: bool = False,
+    max_episode_steps: int | None = None,
+    on_episode: Callable[[EpisodeResult], None] | None = None,
+) -> tuple[Path, dict[str, Any]]:
+    """Calibrate a run's final safety critic on deterministic test episodes; write
+    ``calibration.json`` beside the run.
+
+    ``run_dir`` is a run directory (or a checkpoint in its ``checkpoints/``).
+
+    The test env is seeded like :func:`~wcsac_rl.evaluation.evaluator.evaluate_run`'s
+    (training seed + ``seed_offset``, default
+    :data:`~wcsac_rl.evaluation.evaluator.DEFAULT_SEED_OFFSET`; up to ten episodes side
+    by side), so the episodes are the first ``episodes`` of that evaluation.
+
+    Returns:
+        The path of ``calibration.json`` and what it holds:
+        ``{meta..., "metrics": {name: value}, "per_episode": [dict per episode]}``:
+        the meta data (run, α, γ_c, threshold, env seed, ``episodes``,
+        ``episodes_at_time_limit``...), the :data:`CALIBRATION_KEYS` without their
+        ``calib/`` prefix, and each episode's return and
+        :meth:`EpisodeCalibration.as_dict`. NaN is written as ``null``.
+
+    Raises:
+        ConfigError: see :func:`load_safety_run`; :class:`CalibrationExistsError`
+            (checked before any work).
+    """
+    from wcsac_rl.evaluation.evaluator import (
+        DEFAULT_SEED_OFFSET,
+        _side_by_side,
+        _training_seed,
+    )
+    from wcsac_rl.training.trainer import env_max_episode_steps
+
+    if not isinstance(episodes, int) or episodes < 1:
+        raise ConfigError(f"episodes must be a positive integer, got {episodes!r}")
+    from wcsac_rl.training.checkpoint import find_checkpoint
+
+    run_dir = find_checkpoint(run_dir).parent.parent
+    check_can_write(run_dir, force)
+    seed_offset = DEFAULT_SEED_OFFSET if seed_offset is None else int(seed_offset)
+    env_seed = _training_seed(run_dir) + seed_offset
+    cfg, env, policy, loss, frames = load_safety_run(
+        run_dir, seed=env_seed, num_envs=_side_by_side(episodes)
+    )
+    steps = int(max_episode_steps or env_max_episode_steps(cfg))
+    torch.manual_seed(env_seed)
+    try:
+        recorded = record_calibration_episodes(
+            env, policy, loss, episodes, max_steps=steps, on_episode=on_episode
+        )
+    finally:
+        env.close()
+    compared = compare_episodes(recorded, loss)
+    metrics = summarize_calibration(compared, float(loss.risk_level))
+    result = {
+        "label": str(cfg.algo.get("label", cfg.algo.name)),
+        "algo": str(cfg.algo.name),
+        "env": str(cfg.env.name),
+        "seed": int(cfg.seed),
+        "trained_frames": frames,
+        "risk_level": float(loss.risk_level),
+        "cost_gamma": float(loss.cost_gamma),
+        "cost_threshold": float(loss.cost_threshold),
+        "cost_limit": float(cfg.cost_limit),
+        "has_variance": bool(loss.has_variance),
+        "env_seed": env_seed,
+        "max_episode_steps": steps,
+        "episodes": len(recorded),
+        "episodes_at_time_limit": sum(r.result.length >= steps for r in recorded),
+        "created": _dt.datetime.now().astimezone().isoformat(timespec="seconds"),
+        "metrics": {key.removeprefix(PREFIX): value for key, value in metrics.items()},
+        "per_episode": [
+            {"return": r.result.ret, **c.as_dict()} for r, c in zip(recorded, compared)
+        ],
+    }
+    path = run_dir / CALIBRATION_JSON
+    _atomic_write_json(path, _nan_to_null(result))
+    return path, result
+
+
+def _nan_to_null(value: Any) -> Any:
+    if isinstance(value, dict):
+        return {k: _nan_to_null(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_nan_to_null(v) for v in value]
+    return _finite_or_none(value)
