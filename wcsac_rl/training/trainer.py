@@ -260,6 +260,9 @@ class Trainer:
         row.update(self.tracker.epoch_metrics())
         self.tracker.reset_epoch()
         row.update(self._loss_means(loss_outputs))
+        if "loss/cost_threshold" in row and "loss/cvar" in row:
+            # what the κ loss pushes on: > 0 lets κ shrink, < 0 makes it grow
+            row["loss/constraint_slack"] = row["loss/cost_threshold"] - row["loss/cvar"]
         with timeit("eval"):
             row.update(self._evaluate())
         row["time/fps"] = frames / seconds if seconds > 0 else math.nan
@@ -282,16 +285,30 @@ class Trainer:
         return {f"loss/{key}": float(stacked[key]) for key in keys}
 
     def _evaluate(self) -> dict[str, float]:
+        """The epoch's deterministic test episodes: ``eval/*`` means and, when the
+        learner's loss has a safety critic, its calibration on those very episodes
+        (``calib/*``, :mod:`wcsac_rl.evaluation.calibration`)."""
         if self.eval_env is None:
             return {}
-        episodes = run_episodes(
-            self.eval_env,
-            self.policy,
-            int(self.cfg.eval_episodes),
-            deterministic=True,
-            max_steps=self.max_episode_steps,
-        )
-        return {f"eval/{k}": v for k, v in summarize_episodes(episodes).items()}
+        from wcsac_rl.evaluation import calibration
+
+        loss = getattr(self, "loss", None)
+        episodes, calib = int(self.cfg.eval_episodes), {}
+        if calibration.supports_calibration(loss):
+            recorded = calibration.record_calibration_episodes(
+                self.eval_env, self.policy, loss, episodes, max_steps=self.max_episode_steps
+            )
+            results = [episode.result for episode in recorded]
+            calib = calibration.calibration_metrics(recorded, loss)
+        else:
+            results = run_episodes(
+                self.eval_env,
+                self.policy,
+                episodes,
+                deterministic=True,
+                max_steps=self.max_episode_steps,
+            )
+        return {**{f"eval/{k}": v for k, v in summarize_episodes(results).items()}, **calib}
 
     def _log(self, row: dict[str, float]) -> None:
         self.progress.write(row)
