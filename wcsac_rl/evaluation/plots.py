@@ -25,6 +25,7 @@ __all__ = [
     "plot_training_curves",
     "plot_trajectories",
     "row_color",
+    "run_curves_figure",
     "trajectory_figure_size",
 ]
 
@@ -33,6 +34,80 @@ _PANELS = (
     ("episode cost", ("train/episode_cost", "eval/episode_cost")),
     ("cost rate", ("train/cost_rate",)),
 )
+PANEL_SIZE = (4.0, 3.6)  # inches per panel of a run's curves
+
+# The safety critic at the test episodes' start states: (column, label, colour, style).
+_CALIBRATION_LINES = (
+    ("calib/start_cvar", r"predicted $\Gamma_\alpha(s_0, a_0)$", "C3", "-"),
+    ("calib/start_realised_cvar", r"realised CVaR$_\alpha$ of $\sum_t \gamma_c^t c_t$", "C3", "--"),
+    ("calib/start_cost_value", r"predicted $Q^c(s_0, a_0)$", "C0", "-"),
+    ("calib/start_realised_cost_to_go", r"realised mean of $\sum_t \gamma_c^t c_t$", "C0", "--"),
+)
+CALIBRATION_PANEL = r"safety critic at $s_0$ (test episodes)"
+SLACK_PANEL = r"$\kappa$-loss slack: threshold $-\ \Gamma$"
+
+
+def _has_values(columns: dict[str, list[float]], key: str) -> bool:
+    values = columns.get(key)
+    return values is not None and not all(math.isnan(v) for v in values)
+
+
+def run_curves_figure(
+    columns: dict[str, list[float]], *, cost_limit: float | None = None, title: str = ""
+) -> Figure:
+    """The figure of :func:`plot_run_curves` from ``read_progress`` columns.
+
+    Panels: return, cost, cost rate; then, when the run logged them, the safety
+    critic's calibration at the test episodes' start states (predicted Γ_α and Q^c
+    against the realised CVaR_α and mean of the discounted cost-to-go, ``calib/*``)
+    and the constraint slack the κ loss sees (``loss/constraint_slack``).
+    """
+    frames = columns["frames"]
+    panels: list[str] = [title for title, _ in _PANELS]
+    if any(_has_values(columns, key) for key, *_ in _CALIBRATION_LINES):
+        panels.append(CALIBRATION_PANEL)
+    if _has_values(columns, "loss/constraint_slack"):
+        panels.append(SLACK_PANEL)
+    fig = Figure(figsize=(PANEL_SIZE[0] * len(panels), PANEL_SIZE[1]), layout="constrained")
+    axes = fig.subplots(1, len(panels))
+    keys_of = dict(_PANELS)
+    for ax, panel in zip(axes, panels):
+        if panel in keys_of:
+            for key in keys_of[panel]:
+                if not _has_values(columns, key):
+                    continue
+                label = "test (deterministic)" if key.startswith("eval/") else "training"
+                ax.plot(frames, columns[key], marker="o", markersize=3, label=label)
+            if panel == "episode cost" and cost_limit is not None:
+                ax.axhline(
+                    cost_limit,
+                    color="k",
+                    linestyle="--",
+                    linewidth=1,
+                    label=f"limit d = {cost_limit:g}",
+                )
+        elif panel == CALIBRATION_PANEL:
+            for key, label, color, style in _CALIBRATION_LINES:
+                if _has_values(columns, key):
+                    ax.plot(
+                        frames,
+                        columns[key],
+                        color=color,
+                        linestyle=style,
+                        marker="o",
+                        markersize=3,
+                        label=label,
+                    )
+        else:
+            ax.plot(frames, columns["loss/constraint_slack"], color="C2", marker="o", markersize=3)
+            ax.axhline(0.0, color="k", linestyle="--", linewidth=1)
+        ax.set_title(panel)
+        ax.set_xlabel("env steps")
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    return fig
 
 
 def plot_run_curves(progress_csv: Path, out: Path, *, cost_limit: float | None = None) -> Path:
@@ -40,34 +115,12 @@ def plot_run_curves(progress_csv: Path, out: Path, *, cost_limit: float | None =
 
     Training curves are means over the episodes that ended in each epoch; test
     curves are the deterministic test episodes. A dashed line marks ``cost_limit``.
+    Runs with a safety critic get two more panels (:func:`run_curves_figure`).
     """
     columns = read_progress(progress_csv)
     if not columns:
         raise ValueError(f"{progress_csv} has no rows yet")
-    frames = columns["frames"]
-    fig = Figure(figsize=(12, 3.6), layout="constrained")
-    axes = fig.subplots(1, len(_PANELS))
-    for ax, (title, keys) in zip(axes, _PANELS):
-        for key in keys:
-            values = columns.get(key)
-            if values is None or all(math.isnan(v) for v in values):
-                continue
-            label = "test (deterministic)" if key.startswith("eval/") else "training"
-            ax.plot(frames, values, marker="o", markersize=3, label=label)
-        if title == "episode cost" and cost_limit is not None:
-            ax.axhline(
-                cost_limit,
-                color="k",
-                linestyle="--",
-                linewidth=1,
-                label=f"limit d = {cost_limit:g}",
-            )
-        ax.set_title(title)
-        ax.set_xlabel("env steps")
-        ax.grid(alpha=0.3)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=8)
-    fig.suptitle(Path(progress_csv).parent.name, fontsize=10)
+    fig = run_curves_figure(columns, cost_limit=cost_limit, title=Path(progress_csv).parent.name)
     out = Path(out)
     fig.savefig(out, dpi=100)
     return out
