@@ -1,0 +1,160 @@
+"""Safety-critic calibration of a trained run: ``python -m wcsac_rl.calibration RUN_DIR``.
+
+Loads the run's final checkpoint (the whole loss: actor and safety critic), runs
+deterministic test episodes of the policy, compares the critic's predictions Q^c,
+Γ_α and √V^c with the realised discounted cost-to-go
+(:mod:`wcsac_rl.evaluation.calibration`), prints a small table and writes
+``calibration.json`` beside the run. The test env is seeded as by
+``python -m wcsac_rl.evaluate`` (training seed + ``--seed``), so the episodes are the
+first ``--episodes`` of that evaluation.
+
+An existing ``calibration.json`` is not overwritten unless ``--force``. A path that
+is not a run directory, a run without a safety critic (SAC, CPO, random), an
+unreadable checkpoint or an existing file without ``--force`` prints one ``error:``
+line and exits with code 1.
+
+Examples::
+
+    python -m wcsac_rl.calibration outputs/2026-11-22/10-00-00_wcsac_0.5_static_seed0
+    python -m wcsac_rl.calibration RUN_DIR --episodes 100 --force
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from wcsac_rl.evaluation.evaluator import DEFAULT_SEED_OFFSET
+
+__all__ = ["DEFAULT_CALIBRATION_EPISODES", "format_table", "main", "parse_args"]
+
+DEFAULT_CALIBRATION_EPISODES = 30
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """The command line of ``python -m wcsac_rl.calibration``."""
+    parser = argparse.ArgumentParser(
+        prog="python -m wcsac_rl.calibration",
+        description=(
+            "Compare a trained run's safety critic (Q^c, Γ_α, √V^c) with the costs its "
+            "policy realises on deterministic test episodes; print a table and save "
+            "calibration.json beside the run."
+        ),
+    )
+    parser.add_argument("run_dir", type=Path, help="a run directory (with checkpoints/last.pt)")
+    parser.add_argument(
+        "--episodes",
+        type=int,
+        default=DEFAULT_CALIBRATION_EPISODES,
+        help=f"test episodes (default {DEFAULT_CALIBRATION_EPISODES})",
+    )
+    parser.add_argument(
+        "--seed",
+        type=int,
+        default=DEFAULT_SEED_OFFSET,
+        help=(
+            "seed offset of the test episodes: the env is seeded training seed + SEED "
+            f"(default {DEFAULT_SEED_OFFSET}, as python -m wcsac_rl.evaluate)"
+        ),
+    )
+    parser.add_argument(
+        "--max-episode-steps",
+        type=int,
+        default=None,
+        help="bound on an episode's length (default: the env's own)",
+    )
+    parser.add_argument("--force", action="store_true", help="overwrite calibration.json")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    if args.max_episode_steps is not None and args.max_episode_steps < 1:
+        parser.error(f"--max-episode-steps must be >= 1, got {args.max_episode_steps}")
+    return args
+
+
+def _number(value: float | None) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "—"
+    return f"{value:.3f}"
+
+
+def format_table(result: dict[str, Any]) -> str:
+    """A few readable lines from the result of
+    :func:`~wcsac_rl.evaluation.calibration.calibrate_run`."""
+    m = result["metrics"]
+    alpha = result["risk_level"]
+    rows = [
+        ("start state s0", "predicted", "realised", ""),
+        ("  mean Q^c / cost-to-go", m["start_cost_value"], m["start_realised_cost_to_go"], ""),
+        (
+            f"  Γ_α / CVaR_α (α = {alpha:g})",
+            m["start_cvar"],
+            m["start_realised_cvar"],
+            f"ratio {_number(m['start_cvar_ratio'])}",
+        ),
+        ("  √V^c / spread", m["start_std"], m["realised_spread"], ""),
+        ("all visited states", "", "", ""),
+        ("  mean Q^c / cost-to-go", m["mean_cost_value"], m["mean_realised_cost_to_go"], ""),
+        ("  correlation", m["correlation"], "", ""),
+        ("  share with Q^c < 0", m["negative_share"], "", ""),
+        ("episodic cost (undiscounted)", "", "", ""),
+        ("  mean", "", m["episode_cost"], ""),
+        (f"  CVaR_α (α = {alpha:g})", "", m["episode_cvar"], ""),
+    ]
+    lines = [
+        f"{result['label']} on {result['env']}, seed {result['seed']}, "
+        f"{result['trained_frames']} frames: {result['episodes']} deterministic episodes "
+        f"({result['episodes_at_time_limit']} cut at {result['max_episode_steps']} steps), "
+        f"γ_c = {result['cost_gamma']:g}, κ-loss threshold {result['cost_threshold']:.4g}"
+    ]
+    for name, predicted, realised, note in rows:
+        cells = [c if isinstance(c, str) else _number(c) for c in (predicted, realised)]
+        lines.append(f"{name:<32}{cells[0]:>10}{cells[1]:>10}  {note}".rstrip())
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Calibrate one run; return the exit code (1 on an error a user can cause)."""
+    args = parse_args(argv)
+    import torch
+
+    from wcsac_rl.evaluation.calibration import calibrate_run
+    from wcsac_rl.evaluation.evaluator import _progress
+    from wcsac_rl.training.config import ConfigError
+
+    torch.set_num_threads(max(1, args.threads))
+    progress: list = []  # (bar, callback), made at the first episode: none before an error
+
+    def on_episode(episode) -> None:
+        if not progress:
+            progress.extend(_progress(args.episodes, "calibration", not args.no_progress))
+        progress[1](episode)
+
+    try:
+        path, result = calibrate_run(
+            args.run_dir,
+            episodes=args.episodes,
+            seed_offset=args.seed,
+            force=args.force,
+            max_episode_steps=args.max_episode_steps,
+            on_episode=on_episode,
+        )
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        return 1
+    finally:
+        if progress:
+            progress[0].close()
+    print(format_table(result))
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
