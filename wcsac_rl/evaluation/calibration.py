@@ -444,7 +444,8 @@ def calibrate_run(
     cfg, env, policy, loss, frames = load_safety_run(
         run_dir, seed=env_seed, num_envs=_side_by_side(episodes)
     )
-    steps = int(max_episode_steps or env_max_episode_steps(cfg))
+    limit = env_max_episode_steps(cfg)  # the env truncates there whatever max_steps is
+    steps = min(int(max_episode_steps or limit), limit)
     torch.manual_seed(env_seed)
     try:
         recorded = record_calibration_episodes(
