@@ -155,13 +155,17 @@ def test_undefined_metrics_are_nan():
     assert all(math.isnan(v) for v in calibration_metrics([], StubLoss()).values())
 
 
-@pytest.mark.parametrize(("scale", "expected"), [(2.0, 1.0), (-3.0, -1.0), (0.0, math.nan)])
-def test_correlation_of_affine_predictions_is_plus_or_minus_one(scale, expected):
-    # realised cost-to-go with γ_c = 0.5: [1, 0, 0, 8] -> [2, 2, 4, 8], [4] -> [4]
+@pytest.mark.parametrize(
+    ("scale", "offset", "expected"),
+    [(2.0, 1.0, 1.0), (-3.0, 0.5, -1.0), (0.0, 1.0, math.nan)],
+)
+def test_correlation_of_affine_predictions_is_plus_or_minus_one(scale, offset, expected):
+    # realised cost-to-go with γ_c = 0.5: [1, 0, 0, 8] -> [2, 2, 4, 8], [4] -> [4];
+    # a constant Q^c has no correlation
     realised = [[2.0, 2.0, 4.0, 8.0], [4.0]]
     costs = [[1.0, 0.0, 0.0, 8.0], [4.0]]
     episodes = [
-        _episode([scale * g + 1 for g in gs], [0.0] * len(gs), cs)
+        _episode([scale * g + offset for g in gs], [0.0] * len(gs), cs)
         for gs, cs in zip(realised, costs)
     ]
     correlation = calibration_metrics(episodes, StubLoss())["calib/correlation"]

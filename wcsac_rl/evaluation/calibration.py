@@ -249,13 +249,11 @@ def _ratio(numerator: float, denominator: float) -> float:
 
 def _correlation(x: np.ndarray, y: np.ndarray) -> float:
     """Pearson correlation; NaN for fewer than two points or a constant array."""
-    if x.size < 2:
+    # constant: checked on the values themselves, not on a rounded x − mean(x)
+    if x.size < 2 or np.ptp(x) == 0 or np.ptp(y) == 0:
         return math.nan
     dx, dy = x - x.mean(), y - y.mean()
-    denominator = math.sqrt(float(dx @ dx) * float(dy @ dy))
-    if denominator == 0:
-        return math.nan
-    return float(dx @ dy) / denominator
+    return float(dx @ dy) / math.sqrt(float(dx @ dx) * float(dy @ dy))
 
 
 def summarize_calibration(
