@@ -158,6 +158,28 @@ def test_resume_with_saved_replay_buffer_updates_at_once(tmp_path):
     assert resumed.optimizers["actor"].state_dict()["state"]  # Adam's moments came back
 
 
+def test_start_states_and_nstep_cost_entries_reach_the_loss_through_the_trainer(tmp_path):
+    options = ("env=tiny", "algo.kappa_states=initial", "algo.cost_n_steps=4")
+    trainer, run_dir = _train(tmp_path, *options, "save_replay_buffer=true")
+    loss = trainer.loss
+    assert float(loss.cost_threshold) == pytest.approx(15.0)  # Γ(s₀) is held under d itself
+    starts = trainer.initial_state_buffer[:]
+    # each env began ≥ 4 episodes of ≤ 100 steps in 400 frames; the tiny env starts
+    # within 0.2 of (−1, 0), and nothing else is in the buffer
+    assert len(starts) >= 2 * 4
+    assert bool((starts["observation"][:, 0] - (-1.0)).abs().le(0.2 + 1e-6).all())
+    batch = trainer.sample()
+    assert batch["initial", "observation"].shape == batch["observation"].shape
+    stored = trainer.replay_buffer[:]
+    steps = stored["nstep", "steps"]
+    assert 1 <= int(steps.min()) and int(steps.max()) == 4
+    out = trainer.update(batch)
+    assert torch.isfinite(out["loss_kappa"]) and torch.isfinite(out["loss_cost_value"])
+    # both buffers come back on resume
+    resumed, _ = _train(tmp_path, *options, "save_replay_buffer=true", f"resume={run_dir}")
+    assert len(resumed.initial_state_buffer) == len(starts)
+
+
 def test_incompatible_checkpoint_and_occupied_run_dir_are_refused(tmp_path):
     _, run_dir = _train(tmp_path, "env=tiny")
     with pytest.raises(ConfigError, match=r"algo\.network: checkpoint="):
@@ -212,6 +234,11 @@ def test_keyboard_interrupt_writes_a_checkpoint_and_flushed_logs(tmp_path, monke
         ("algo.kappa_init=0", "algo.kappa_init must be > 0"),
         ("algo.damp_scale=-1", "algo.damp_scale must be >= 0"),
         ("algo.kappa_lr_scale=0", "algo.kappa_lr_scale must be > 0"),
+        ("algo.kappa_states=start", "algo.kappa_states must be one of replay, initial"),
+        ("algo.variance_target=mean", "algo.variance_target must be one of moment, td"),
+        ("algo.cost_gamma=1.2", "algo.cost_gamma must be null or in [0, 1]"),
+        ("algo.cost_n_steps=0", "algo.cost_n_steps must be an integer >= 1"),
+        ("algo.nonnegative_cost=yes", "algo.nonnegative_cost must be true or false"),
         ("retain_freed_memory=maybe", "retain_freed_memory must be true or false, got 'maybe'"),
         ("compile=2", "compile must be true or false, got 2"),
     ],

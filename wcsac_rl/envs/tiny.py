@@ -8,6 +8,12 @@ on arrival, which ends the episode; the cost is 1 while the point is strictly in
 the hazard. The reward-greedy path crosses the hazard; the safe one goes around it.
 Episodes last at most ``max_episode_steps`` (100) steps.
 
+With ``hazard_cost_prob < 1`` the hazard is a *risky* shortcut: each step inside
+costs ``hazard_cost`` with probability ``hazard_cost_prob`` and nothing otherwise,
+so a crossing has a small expected cost and a heavy tail (the ``tiny_risky``
+preset: the expected cost of the straight route is within a budget its CVaR_0.1
+is not).
+
 The observation (6 dims, ``float32``) is ``[x, y, goal_x - x, goal_y - y,
 hazard_x - x, hazard_y - y]``. ``info`` carries the same keys as
 :class:`~wcsac_rl.envs.point_goal.PointGoalEnv` so the same TorchRL wrapping,
@@ -42,6 +48,9 @@ class TinyHazardEnv(gym.Env):
         start_xy: mean start position.
         start_noise: start position is ``start_xy + U(-start_noise, start_noise)^2``.
         reward_goal: bonus on reaching the goal.
+        hazard_cost: cost of one step inside the hazard when it is charged.
+        hazard_cost_prob: probability that a step inside the hazard is charged
+            (independently per step; 1 charges every step).
         render_mode: only ``None`` (this env does not render).
 
     Examples:
@@ -68,12 +77,20 @@ class TinyHazardEnv(gym.Env):
         start_xy: tuple[float, float] = (-1.0, 0.0),
         start_noise: float = 0.2,
         reward_goal: float = 1.0,
+        hazard_cost: float = 1.0,
+        hazard_cost_prob: float = 1.0,
         render_mode: str | None = None,
     ) -> None:
         if render_mode is not None:
             raise ValueError(f"TinyHazardEnv does not render; got render_mode={render_mode!r}")
         if int(max_episode_steps) < 1:
             raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
+        if not 0.0 <= float(hazard_cost_prob) <= 1.0:
+            raise ValueError(f"hazard_cost_prob must be in [0, 1], got {hazard_cost_prob}")
+        if not float(hazard_cost) >= 0.0:
+            raise ValueError(f"hazard_cost must be >= 0, got {hazard_cost}")
+        self.hazard_cost = float(hazard_cost)
+        self.hazard_cost_prob = float(hazard_cost_prob)
         self.render_mode = None
         self.max_episode_steps = int(max_episode_steps)
         self.speed = float(speed)
@@ -153,7 +170,13 @@ class TinyHazardEnv(gym.Env):
         terminated = goal_reached
         truncated = self._steps >= self.max_episode_steps
         self._needs_reset = terminated or truncated
-        return self._obs(), reward, terminated, truncated, self._info(goal_reached=goal_reached)
+        info = self._info(goal_reached=goal_reached)
+        if info["cost"] > 0.0:
+            charged = self.hazard_cost_prob >= 1.0 or (
+                self.np_random.random() < self.hazard_cost_prob
+            )
+            info["cost"] = info["cost_hazards"] = self.hazard_cost if charged else 0.0
+        return self._obs(), reward, terminated, truncated, info
 
     def layout(self) -> dict[str, Any]:
         """Current layout with sizes, in the same format as ``PointGoalEnv.layout()``."""

@@ -2,6 +2,7 @@
 (``PolyakUpdate`` for target networks, ``TanhNormalPolicy`` for acting)."""
 
 from wcsac_rl.objectives.cpo import CPOLoss
+from wcsac_rl.objectives.nstep import NStepCost
 from wcsac_rl.objectives.risk import (
     empirical_cvar,
     gaussian_cvar,
@@ -14,6 +15,7 @@ from wcsac_rl.objectives.wcsac import SACLagLoss, WCSACLoss, per_step_cost_thres
 
 __all__ = [
     "CPOLoss",
+    "NStepCost",
     "PolyakUpdate",
     "SACLagLoss",
     "TanhNormalPolicy",

@@ -69,6 +69,11 @@ def per_step_cost_threshold(cost_limit: float, gamma: float, max_episode_steps: 
     return cost_limit * discounted_steps / horizon
 
 
+def _nested(*keys: NestedKey) -> tuple[str, ...]:
+    """One nested key from several (``_nested("nstep", ("a", "b")) == ("nstep", "a", "b")``)."""
+    return tuple(part for key in keys for part in ((key,) if isinstance(key, str) else key))
+
+
 def _inverse_softplus(x: float) -> float:
     return x + math.log(-math.expm1(-x))
 
@@ -115,6 +120,18 @@ class WCSACLoss(SACLoss):
             states, and ``d`` itself when κ sees initial states (``kappa_states``).
         cost_gamma (float, optional): discount γ_c of the safety critic. ``None``
             (default) uses the value estimator's γ, as the paper does.
+        cost_n_steps (int): ``1`` (default, the paper): one-step safety-critic
+            targets. ``n > 1``: the safety critic bootstraps from the n-step entries
+            :class:`~wcsac_rl.objectives.NStepCost` adds to collected data
+            (``Σ_{k<m} γ_c^k c_{t+k} + γ_c^m (1−term) Q̄^c(s_{t+m}, a')``, m ≤ n), so
+            sparse costs reach the states that lead to them n times faster. The
+            reward critic keeps its one-step target.
+        nonnegative_cost (bool): costs are never negative, so neither is their value:
+            use ``max(Q^c, 0)`` wherever Q^c is *used* (the bootstrapped targets and Γ
+            in the actor and κ losses; the regression itself is unchanged). Stops the
+            actor from steering into actions where the safety critic extrapolates
+            below zero, and those values from spreading through the targets.
+            Default ``False`` (the paper).
         kappa_init (float): initial safety weight κ > 0. Default ``softplus(0) ≈ 0.693``
             (the authors' code).
         kappa_parametrization (str): ``"softplus"`` (κ = softplus(raw), the authors'
@@ -221,12 +238,17 @@ class WCSACLoss(SACLoss):
                 sub-tensordict shaped like the batch holding episode start states (the
                 actor's and critics' observation entries), where the κ loss evaluates
                 Γ. Defaults to ``"initial"``.
+            nstep (NestedKey): with ``cost_n_steps > 1``, the sub-tensordict written
+                by :class:`~wcsac_rl.objectives.NStepCost` (discounted cost of the
+                next ``m`` steps, ``m``, termination and the state after them).
+                Defaults to ``"nstep"``.
         """
 
         cost: NestedKey = "cost"
         cost_value: NestedKey = "cost_value"
         cost_variance: NestedKey = "cost_variance"
         initial_states: NestedKey = "initial"
+        nstep: NestedKey = "nstep"
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -247,6 +269,8 @@ class WCSACLoss(SACLoss):
         max_episode_steps: int = 1000,
         cost_threshold: float | None = None,
         cost_gamma: float | None = None,
+        cost_n_steps: int = 1,
+        nonnegative_cost: bool = False,
         kappa_init: float = math.log(2.0),
         kappa_parametrization: str = "softplus",
         kappa_actions: str = "policy",
@@ -289,6 +313,10 @@ class WCSACLoss(SACLoss):
             )
         if cost_gamma is not None and not 0.0 <= cost_gamma <= 1.0:
             raise ValueError(f"cost_gamma must be in [0, 1], got {cost_gamma}")
+        if int(cost_n_steps) != cost_n_steps or cost_n_steps < 1:
+            raise ValueError(f"cost_n_steps must be an integer >= 1, got {cost_n_steps}")
+        self.cost_n_steps = int(cost_n_steps)
+        self.nonnegative_cost = bool(nonnegative_cost)
         if damp_scale < 0:
             raise ValueError(f"damp_scale must be >= 0, got {damp_scale}")
         if variance_loss not in VARIANCE_LOSSES:
@@ -412,6 +440,9 @@ class WCSACLoss(SACLoss):
             keys.add(("next", self.tensor_keys.cost))
             keys.update(safety.in_keys)
             keys.update(("next", k) for k in safety.in_keys if k != self.tensor_keys.action)
+            if self.__dict__.get("cost_n_steps", 1) > 1:
+                for key in ("cost", "steps", "terminated", *self.initial_state_keys):
+                    keys.add(_nested(self.tensor_keys.nstep, key))
             self._in_keys = list(keys)
 
     @property
@@ -469,6 +500,18 @@ class WCSACLoss(SACLoss):
                 f"or {(*batch_shape, 1)} for a batch of shape {tuple(batch_shape)}"
             )
         return cost.to(self.cost_threshold.dtype)
+
+    def _get_nstep(self, tensordict: TensorDictBase) -> TensorDictBase:
+        key = self.tensor_keys.nstep
+        nstep = tensordict.get(key, None)
+        if nstep is None:
+            raise KeyError(
+                f"cost_n_steps={self.cost_n_steps} needs the n-step cost entries at {key!r} "
+                f"of the batch (cost, steps, terminated and the state after them); the batch "
+                f"has none. Add them to collected data with "
+                f"wcsac_rl.objectives.NStepCost({self.cost_n_steps}, gamma=loss.cost_gamma)."
+            )
+        return nstep
 
     def _safety_forward(
         self, tensordict: TensorDictBase, params: TensorDictBase
@@ -577,7 +620,10 @@ class WCSACLoss(SACLoss):
         return CriticValues(qvalue.squeeze(-1), *self._safety_forward(td_s, s_params))
 
     def cvar(self, cost_value: Tensor, cost_variance: Tensor | None) -> Tensor:
-        """Γ(s, a, α) = Q^c + α⁻¹ φ(Φ⁻¹(α)) √V^c (Eq. 9)."""
+        """Γ(s, a, α) = Q^c + α⁻¹ φ(Φ⁻¹(α)) √V^c (Eq. 9); Q^c at least 0 with
+        ``nonnegative_cost``."""
+        if self.nonnegative_cost:
+            cost_value = cost_value.clamp(min=0.0)
         if self.cvar_multiplier == 0.0 or cost_variance is None:
             return cost_value
         return cost_value + self.cvar_multiplier * cost_variance.sqrt()
@@ -616,9 +662,19 @@ class WCSACLoss(SACLoss):
 
             cost = self._get_cost(tensordict)
             gamma = self.cost_discount.to(cost.dtype)
-            not_terminated = (
-                ~tensordict.get(("next", self.tensor_keys.terminated)).reshape(cost.shape)
-            ).to(cost.dtype)
+            if self.cost_n_steps > 1:
+                # bootstrap m ≤ n steps ahead from the batch's n-step entries
+                nstep = self._get_nstep(tensordict)
+                nstep_action, _ = self._sample_policy(nstep)
+                _, qc_next, vc_next = self._critic_values(nstep, nstep_action, "target")
+                cost = nstep.get("cost").reshape(cost.shape).to(cost.dtype)
+                gamma = gamma.pow(nstep.get("steps").reshape(cost.shape).to(cost.dtype))
+                terminated = nstep.get("terminated")
+            else:
+                terminated = tensordict.get(("next", self.tensor_keys.terminated))
+            not_terminated = (~terminated.reshape(cost.shape)).to(cost.dtype)
+            if self.nonnegative_cost:
+                qc_next = qc_next.clamp(min=0.0)
             cost_target = cost + gamma * not_terminated * qc_next
             if vc_next is None:
                 second_moment = next_variance = None

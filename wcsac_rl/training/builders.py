@@ -23,7 +23,7 @@ from torchrl.objectives import LossModule, SACLoss
 from torchrl.record.loggers import Logger
 
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import PolyakUpdate, SACLagLoss, WCSACLoss
+from wcsac_rl.objectives import NStepCost, PolyakUpdate, SACLagLoss, WCSACLoss
 
 __all__ = [
     "Agent",
@@ -36,6 +36,7 @@ __all__ = [
     "make_logger",
     "make_loss",
     "make_optimizers",
+    "make_postproc",
     "make_replay_buffer",
     "make_target_updater",
     "make_train_env",
@@ -148,6 +149,8 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
             "variance_loss": str(algo.variance_loss),
             "variance_target": str(algo.get("variance_target", "moment")),
             "cost_gamma": None if algo.get("cost_gamma") is None else float(algo.cost_gamma),
+            "cost_n_steps": int(algo.get("cost_n_steps", 1)),
+            "nonnegative_cost": bool(algo.get("nonnegative_cost", False)),
         }
         if algo.name == "wcsac":
             safety_kwargs["risk_level"] = float(algo.risk_level)
@@ -199,8 +202,12 @@ def make_collector(
     total_frames: int,
     init_random_frames: int,
     seed: int,
+    postproc=None,
 ) -> Collector:
-    """TorchRL ``Collector`` over the batched training envs (random actions first), seeded."""
+    """TorchRL ``Collector`` over the batched training envs (random actions first), seeded.
+
+    ``postproc`` (e.g. :class:`~wcsac_rl.objectives.NStepCost`) is applied to each batch.
+    """
     collector = Collector(
         env,
         policy,
@@ -210,6 +217,7 @@ def make_collector(
         exploration_type=ExplorationType.RANDOM,
         device=cfg.device,
         auto_register_policy_transforms=False,  # the MLP policy needs no env transforms
+        postproc=postproc,
     )
     collector.set_seed(int(seed))
     return collector
@@ -220,6 +228,21 @@ def make_replay_buffer(cfg: DictConfig) -> TensorDictReplayBuffer:
     return TensorDictReplayBuffer(
         storage=LazyTensorStorage(int(cfg.algo.buffer_size), device=cfg.device),
         batch_size=int(cfg.algo.batch_size),
+    )
+
+
+def make_postproc(loss: LossModule) -> NStepCost | None:
+    """The n-step cost entries the loss reads (``cost_n_steps > 1``), else ``None``."""
+    n_steps = getattr(loss, "cost_n_steps", 1)
+    if n_steps <= 1:
+        return None
+    return NStepCost(
+        n_steps,
+        loss.cost_gamma,
+        observation_keys=tuple(loss.initial_state_keys),
+        cost_key=loss.tensor_keys.cost,
+        terminated_key=loss.tensor_keys.terminated,
+        out_key=loss.tensor_keys.nstep,
     )
 
 

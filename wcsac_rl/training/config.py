@@ -149,5 +149,12 @@ def _validate_safety_keys(algo: DictConfig) -> None:
     cost_gamma = algo.get("cost_gamma")
     if cost_gamma is not None and not 0.0 <= float(cost_gamma) <= 1.0:
         raise ConfigError(f"algo.cost_gamma must be null or in [0, 1], got {cost_gamma}")
+    if not isinstance(algo.get("nonnegative_cost", False), bool):
+        raise ConfigError(
+            f"algo.nonnegative_cost must be true or false, got {algo.get('nonnegative_cost')!r}"
+        )
+    n_steps = algo.get("cost_n_steps", 1)
+    if not isinstance(n_steps, int) or isinstance(n_steps, bool) or n_steps < 1:
+        raise ConfigError(f"algo.cost_n_steps must be an integer >= 1, got {n_steps!r}")
     if not float(algo.kappa_lr_scale) > 0:
         raise ConfigError(f"algo.kappa_lr_scale must be > 0, got {algo.kappa_lr_scale}")

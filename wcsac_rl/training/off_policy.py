@@ -7,7 +7,9 @@ steps per 400 frames), once ``init_random_frames`` uniform-random frames have be
 collected. The actor collects and plays the test episodes as a
 :class:`~wcsac_rl.objectives.tanh_normal.TanhNormalPolicy`.
 
-With ``algo.kappa_states=initial`` the trainer also keeps the episode start states
+With ``algo.cost_n_steps > 1`` each collected batch gets the n-step cost entries
+(:class:`~wcsac_rl.objectives.NStepCost`) before it enters the buffer. With
+``algo.kappa_states=initial`` the trainer also keeps the episode start states
 it collects (``step_count == 0``) in a small buffer of their own and attaches one,
 drawn uniformly, to every row of each sampled batch (``batch["initial"]``), where
 the loss evaluates the CVaR its κ term holds under the limit.
@@ -47,6 +49,8 @@ class OffPolicyTrainer(Trainer):
         self.replay_buffer = builders.make_replay_buffer(cfg)
         # only what the loss reads is stored: smaller buffer, faster sampling
         self.replay_keys = sorted(self.loss.in_keys, key=str)
+        # n-step cost entries (cost_n_steps > 1), added to each collected batch
+        self.postproc = builders.make_postproc(self.loss)
         self.initial_state_buffer = None
         if getattr(self.loss, "kappa_states", "replay") == "initial":
             self.initial_state_buffer = builders.make_initial_state_buffer(cfg)
@@ -104,6 +108,8 @@ class OffPolicyTrainer(Trainer):
 
     def learn(self, batch: TensorDictBase) -> list[TensorDictBase]:
         with timeit("replay_extend"):
+            if self.postproc is not None:
+                batch = self.postproc(batch)
             self.replay_buffer.extend(batch.reshape(-1).select(*self.replay_keys))
             if self.initial_state_buffer is not None:
                 self._store_initial_states(batch)

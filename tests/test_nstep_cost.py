@@ -1,0 +1,137 @@
+"""n-step cost entries (NStepCost) and the safety critic's n-step targets."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from _loss_helpers import make_batch, make_loss
+from tensordict import TensorDict
+
+from wcsac_rl.objectives import NStepCost
+
+
+def _trajectories(envs: int = 3, steps: int = 12, seed: int = 0) -> TensorDict:
+    g = torch.Generator().manual_seed(seed)
+    done = torch.rand(envs, steps, 1, generator=g) < 0.2
+    truncated = done & (torch.rand(envs, steps, 1, generator=g) < 0.5)
+    return TensorDict(
+        {
+            "observation": torch.randn(envs, steps, 4, generator=g),
+            "next": {
+                "observation": torch.randn(envs, steps, 4, generator=g),
+                "cost": torch.bernoulli(torch.full((envs, steps, 1), 0.4), generator=g),
+                "done": done,
+                "terminated": done & ~truncated,
+            },
+        },
+        [envs, steps],
+    )
+
+
+def _brute_force(td: TensorDict, n: int, gamma: float):
+    """The n-step entries by walking each trajectory step by step."""
+    envs, steps = td.shape
+    nxt = td["next"]
+    cost = torch.zeros(envs, steps)
+    count = torch.zeros(envs, steps, dtype=torch.int64)
+    obs = torch.zeros(envs, steps, 4)
+    term = torch.zeros(envs, steps, dtype=torch.bool)
+    for e in range(envs):
+        for t in range(steps):
+            k = 0
+            while True:
+                cost[e, t] += gamma**k * nxt["cost"][e, t + k, 0]
+                k += 1
+                last = t + k - 1
+                if k == n or t + k == steps or nxt["done"][e, last, 0]:
+                    break
+            count[e, t] = k
+            obs[e, t] = nxt["observation"][e, last]
+            term[e, t] = nxt["terminated"][e, last, 0]
+    return cost, count, obs, term
+
+
+@pytest.mark.parametrize("n", [1, 2, 5, 20])
+def test_nstep_entries_equal_a_step_by_step_walk_of_each_trajectory(n):
+    td = _trajectories()
+    out = NStepCost(n, gamma=0.9)(td.clone())["nstep"]
+    cost, count, obs, term = _brute_force(td, n, 0.9)
+    # a sum of ≤ 20 terms in [0, 1]: float32 rounding of each term, accumulated
+    torch.testing.assert_close(out["cost"].squeeze(-1), cost, rtol=0, atol=20 * 2e-7)
+    assert torch.equal(out["steps"], count)
+    assert torch.equal(out["observation"], obs)
+    assert torch.equal(out["terminated"].squeeze(-1), term)
+
+
+def test_one_step_entries_are_the_transition_itself():
+    td = _trajectories()
+    out = NStepCost(1, gamma=0.5)(td.clone())["nstep"]
+    assert torch.equal(out["cost"], td["next", "cost"])
+    assert torch.equal(out["observation"], td["next", "observation"])
+    assert bool((out["steps"] == 1).all())
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"), [({"n_steps": 0}, "n_steps"), ({"gamma": 1.5}, "gamma")]
+)
+def test_bad_arguments_are_refused(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        NStepCost(**{"n_steps": 3, "gamma": 0.9, **kwargs})
+
+
+def test_loss_bootstraps_the_safety_critic_from_the_nstep_state():
+    torch.manual_seed(0)
+    loss = make_loss(cost_n_steps=3, variance_target="td")
+    loss.make_value_estimator(gamma=0.8)
+    batch = NStepCost(3, gamma=0.8)(_trajectories(envs=1, steps=16).squeeze(0).unsqueeze(0))
+    batch = batch.reshape(-1)
+    batch["observation"] = torch.randn(16, 5)  # the loss's critics read 5-dim observations
+    batch["next", "observation"] = torch.randn(16, 5)
+    batch["nstep", "observation"] = torch.randn(16, 5)
+    batch["action"] = torch.rand(16, 2) * 2 - 1
+    batch["next", "reward"] = torch.zeros(16, 1)
+    assert ("nstep", "cost") in loss.in_keys and ("nstep", "observation") in loss.in_keys
+    torch.manual_seed(1)
+    targets = loss.compute_targets(batch)
+    # the same draws: a' ~ π(s') for the reward target, then a_m ~ π(s_{t+m}) for the cost
+    torch.manual_seed(1)
+    loss._sample_policy(batch["next"])
+    action_m, _ = loss._sample_policy(batch["nstep"])
+    with torch.no_grad():
+        qc, vc = loss._safety_forward(
+            batch["nstep"].clone().set("action", action_m), loss.target_safety_network_params
+        )
+    steps = batch["nstep", "steps"].float()
+    alive = (~batch["nstep", "terminated"].squeeze(-1)).float()
+    discount = 0.8**steps
+    expected = batch["nstep", "cost"].squeeze(-1) + discount * alive * qc
+    torch.testing.assert_close(targets["cost_target"], expected)
+    torch.testing.assert_close(targets["cost_next_variance"], discount**2 * alive * vc)
+    with pytest.raises(KeyError, match="NStepCost"):
+        loss.compute_targets(batch.exclude("nstep"))
+
+
+def test_nonnegative_cost_clamps_q_where_it_is_used_not_where_it_is_fitted():
+    torch.manual_seed(0)
+    loss = make_loss(risk_level=0.1, nonnegative_cost=True)
+    value = torch.tensor([-2.0, 0.5])
+    variance = torch.tensor([4.0, 4.0])
+    torch.testing.assert_close(
+        loss.cvar(value, variance), torch.tensor([0.0, 0.5]) + loss.cvar_multiplier * 2.0
+    )
+    # the regression still sees the raw prediction: a negative Q^c gets a gradient
+    batch = make_batch()
+    with torch.no_grad():  # Q^c ≡ −3 for the online and the target mean network
+        for params in (loss.safety_network_params, loss.target_safety_network_params):
+            for p in params["module", "mean_net"].values(True, True):
+                p.zero_()
+            params["module", "mean_net", "4", "bias"].fill_(-3.0)
+    loss_mean, _, meta = loss.safety_loss(batch)
+    assert bool((meta["cost_value"] < 0).all())
+    loss_mean.backward()
+    grad = loss.safety_network_params["module", "mean_net", "4", "bias"].grad
+    assert grad is not None and float(grad) < 0  # pushes Q^c up towards targets ≥ 0
+    # ... whose bootstrapped part uses max(Q̄^c, 0) = 0
+    targets = loss.compute_targets(batch)
+    cost = batch["next", "cost"].squeeze(-1)
+    torch.testing.assert_close(targets["cost_target"], cost)

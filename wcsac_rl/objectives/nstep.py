@@ -1,0 +1,114 @@
+"""n-step cost returns for the safety critic, computed on collected trajectories.
+
+One-step TD moves a cost back by one state per target refresh; a cost met ~100
+steps after the start then needs many thousand updates to reach the start state's
+estimate, and the policy changes faster than that. :class:`NStepCost` adds to each
+transition of a collector batch the discounted cost of the next ``m ≤ n`` steps and
+the state reached after them, so the safety critic bootstraps ``m`` steps ahead:
+
+``y_c = Σ_{k<m} γ_c^k c_{t+k} + γ_c^m (1 − term) Q̄^c(s_{t+m}, a'),  a' ~ π(·|s_{t+m})``.
+
+``m`` is ``n`` unless the episode ends first (the steps up to and including the
+last one count) or the batch ends first (the collector hands over trajectories in
+pieces; the lookahead stops at the piece's end, which is still an exact target).
+The reward critic keeps its one-step target.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torch import nn
+
+__all__ = ["NStepCost"]
+
+
+class NStepCost(nn.Module):
+    """Collector postproc adding n-step cost returns under ``out_key`` (default ``"nstep"``).
+
+    Args:
+        n_steps: lookahead ``n ≥ 1`` (1 reproduces the one-step target exactly).
+        gamma: the safety critic's discount γ_c.
+
+    Keyword Args:
+        observation_keys: the state entries to carry from ``s_{t+m}`` (read under
+            ``"next"``). Default ``("observation",)``.
+        cost_key, done_key, terminated_key: read under ``"next"``.
+        out_key: where the sub-tensordict goes. It holds the state entries of
+            ``s_{t+m}``, ``"cost"`` (the discounted sum, shaped like the cost),
+            ``"steps"`` (``m``, int64) and ``"terminated"`` (at step ``t+m−1``).
+
+    The batch's last dimension must be time (TorchRL collectors' layout, e.g.
+    ``[num_envs, frames_per_env]``).
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> cost = torch.tensor([[0.0, 1.0, 0.0, 1.0]]).unsqueeze(-1)
+        >>> done = torch.tensor([[False, False, True, False]]).unsqueeze(-1)
+        >>> td = TensorDict({"next": {"observation": torch.arange(4.0).reshape(1, 4, 1),
+        ...                           "cost": cost, "done": done, "terminated": done.clone()}},
+        ...                 [1, 4])
+        >>> out = NStepCost(3, gamma=0.5)(td)["nstep"]
+        >>> out["cost"].squeeze(-1), out["steps"], out["observation"].squeeze(-1)
+        (tensor([[0.5000, 1.0000, 0.0000, 1.0000]]), tensor([[3, 2, 1, 1]]), tensor([[2., 2., 2., 3.]]))
+    """
+
+    def __init__(
+        self,
+        n_steps: int,
+        gamma: float,
+        *,
+        observation_keys: tuple[NestedKey, ...] = ("observation",),
+        cost_key: NestedKey = "cost",
+        done_key: NestedKey = "done",
+        terminated_key: NestedKey = "terminated",
+        out_key: NestedKey = "nstep",
+    ) -> None:
+        super().__init__()
+        if int(n_steps) != n_steps or n_steps < 1:
+            raise ValueError(f"n_steps must be an integer >= 1, got {n_steps}")
+        if not 0.0 <= gamma <= 1.0:
+            raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+        self.n_steps = int(n_steps)
+        self.gamma = float(gamma)
+        self.observation_keys = tuple(observation_keys)
+        self.cost_key, self.done_key, self.terminated_key = cost_key, done_key, terminated_key
+        self.out_key = out_key
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if tensordict.ndim == 0:
+            raise ValueError("NStepCost needs a batch whose last dimension is time")
+        nxt = tensordict.get("next")
+        shape = tensordict.shape
+        cost = nxt.get(self.cost_key)
+        flat_cost = cost.reshape(shape).to(torch.float64)
+        done = nxt.get(self.done_key).reshape(shape)
+        horizon = shape[-1]
+        time = torch.arange(horizon, device=flat_cost.device)
+
+        total = torch.zeros_like(flat_cost)
+        steps = torch.zeros(shape, dtype=torch.int64, device=flat_cost.device)
+        alive = torch.ones(shape, dtype=torch.bool, device=flat_cost.device)
+        for k in range(self.n_steps):
+            index = time + k
+            inside = index < horizon
+            index = index.clamp(max=horizon - 1)
+            valid = alive & inside  # broadcast over the leading (env) dimensions
+            total += torch.where(valid, self.gamma**k * flat_cost[..., index], 0.0)
+            steps += valid.long()
+            alive = valid & ~done[..., index]
+        last = (time + steps - 1).clamp(min=0)  # index of step t+m−1 (m ≥ 1 always)
+
+        def at_last(value: torch.Tensor) -> torch.Tensor:
+            gather_index = last.reshape(*shape, *([1] * (value.ndim - len(shape))))
+            gather_index = gather_index.expand(*shape, *value.shape[len(shape) :])
+            return value.gather(len(shape) - 1, gather_index)
+
+        out = {key: at_last(nxt.get(key)) for key in self.observation_keys}
+        out["cost"] = total.to(cost.dtype).reshape(cost.shape)
+        out["steps"] = steps
+        out["terminated"] = at_last(nxt.get(self.terminated_key))
+        tensordict.set(self.out_key, TensorDict(out, batch_size=shape))
+        return tensordict
