@@ -33,7 +33,7 @@ from omegaconf import DictConfig
 from wcsac_rl.envs import make_env
 from wcsac_rl.evaluation.episodes import run_episodes
 
-__all__ = ["DetourRun", "RISKY_HAZARD", "ROWS", "detour_config", "train_on_risky_detour"]
+__all__ = ["RISKY_HAZARD", "ROWS", "DetourRun", "detour_config", "train_on_risky_detour"]
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 COST_LIMIT = 3.0
