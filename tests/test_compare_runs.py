@@ -17,7 +17,9 @@ def _run(tmp_path, name, label, seed, ec, c01, ratio=None, kappa=0.5, calibrated
     (run / "evaluation.json").write_text(
         json.dumps({"label": label, "seed": seed, "trained_frames": 300000, "metrics": metrics})
     )
-    (run / "progress.csv").write_text(f"epoch,time_s,loss/kappa\n1,60,1.0\n2,1200,{kappa}\n")
+    (run / "progress.csv").write_text(
+        f"epoch,time_s,loss/kappa,train/cost_rate\n1,60,1.0,0.5\n2,1200,{kappa},0.02\n"
+    )
     if calibrated:
         calib = {"start_cvar": 8.0, "start_realised_cvar": 4.0, "start_cvar_ratio": ratio}
         (run / "calibration.json").write_text(json.dumps({"metrics": calib}))
@@ -34,6 +36,7 @@ def test_rows_and_per_label_means(tmp_path):
     assert [r["label"] for r in rows] == ["wcsac_x", "wcsac_x", "sac_lag"]
     assert rows[0]["minutes"] == pytest.approx(20.0)
     assert rows[0]["kappa"] == pytest.approx(1.0)
+    assert rows[0]["cost_rate"] == pytest.approx(0.02)
     assert math.isnan(rows[1]["start_cvar_ratio"])  # null in calibration.json
     assert math.isnan(rows[2]["start_cvar"])  # no calibration.json at all
     assert [m["label"] for m in means] == ["wcsac_x", "sac_lag"]

@@ -2,8 +2,9 @@
 
 For each run directory (already evaluated by ``python -m wcsac_rl.evaluate`` and,
 for WCSAC / SAC-Lag runs, ``python -m wcsac_rl.calibration``) one row: the Table-1
-metrics of its test episodes (EC, C0.1, ER, share over budget), the κ and wall time
-at the end of training, and the calibration of the start-state estimate (predicted
+metrics of its test episodes (EC, C0.1, ER, share over budget), the κ, training
+cost rate (cost of all training episodes per frame) and wall time at the end of
+training, and the calibration of the start-state estimate (predicted
 Γ_α(s0) vs the realised CVaR_α of the discounted cost-to-go, their ratio, Q^c(s0) vs
 the realised mean, the share of visited states with Q^c < 0, √V^c(s0) vs the spread
 of realised costs). Then one row per label: the mean over its seeds.
@@ -36,6 +37,7 @@ COLUMNS = (
     ("ER", "ER"),
     ("over_budget", "> d"),
     ("kappa", "κ end"),
+    ("cost_rate", "cost rate"),
     ("start_cvar", "Γ(s0)"),
     ("start_realised_cvar", "CVaR real"),
     ("start_cvar_ratio", "ratio"),
@@ -66,6 +68,8 @@ def run_row(run_dir: Path) -> dict[str, float | str]:
     progress = read_progress(run_dir / "progress.csv")
     row["minutes"] = progress["time_s"][-1] / 60 if progress else math.nan
     row["kappa"] = progress.get("loss/kappa", [math.nan])[-1] if progress else math.nan
+    # the paper's training cost rate: all training cost so far / frames
+    row["cost_rate"] = progress.get("train/cost_rate", [math.nan])[-1] if progress else math.nan
     calibration = _read_json(run_dir / "calibration.json")
     for key, _ in COLUMNS:
         if key not in row:
