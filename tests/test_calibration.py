@@ -135,6 +135,19 @@ def test_metrics_of_hand_made_episodes_match_closed_form_values():
     q = [0.5, 1.5, 3, -1, 0, -0.5, 1, 2, 3, 6]
     g = [1, 2, 4, 0, 0, 0, 2, 2, 4, 8]
     assert m["calib/correlation"] == pytest.approx(np.corrcoef(q, g)[0, 1], rel=F64)
+    # the start-state Gaussians N(Q^c, V^c) mixed, CVaR_0.5 by an independent route:
+    # scipy's root of the tail mass, then Rockafellar–Uryasev (the σ = 0 start state
+    # is an atom, held at σ = 1e-6 as the kit does)
+    from scipy import optimize, stats
+
+    mu, sd = np.array([0.5, 3.0, -1.0, 1.0]), np.array([1.0, 0.5, 1e-6, 1.0])
+    var = optimize.brentq(lambda v: stats.norm.sf((v - mu) / sd).mean() - 0.5, -20, 20)
+    z = (var - mu) / sd
+    tail = var + (sd * stats.norm.pdf(z) + (mu - var) * stats.norm.sf(z)).mean() / 0.5
+    # bisection over a bracket of width ~25 in 50 halvings, float64 throughout
+    assert m["calib/start_tail_cvar"] == pytest.approx(tail, abs=1e-9)
+    assert m["calib/start_tail_ratio"] == pytest.approx(tail / 3.0, abs=1e-9)
+    assert m["calib/start_tail_cvar"] >= m["calib/start_cost_value"]
 
 
 def test_undefined_metrics_are_nan():
@@ -144,6 +157,11 @@ def test_undefined_metrics_are_nan():
     for key in CALIBRATION_KEYS:
         if key in ("calib/start_std", "calib/mean_std"):
             assert math.isnan(without[key]), key
+        elif key in ("calib/start_tail_cvar", "calib/start_tail_ratio"):
+            # the mixture of the start-state means alone: CVaR_0.5 of (0.5, 3, −1, 1)
+            tail = (3.0 + 1.0) / 2
+            expected = tail if key.endswith("cvar") else tail / 3.0
+            assert without[key] == pytest.approx(expected, abs=1e-9), key
         else:
             assert without[key] == with_variance[key], key
     # one cost-free episode: no spread, realised CVaR 0 (no ratio), constant realised

@@ -52,17 +52,23 @@ def _grads_after(loss: WCSACLoss, key: str, batch) -> dict[str, torch.Tensor | N
 
 @pytest.mark.parametrize("fast", [True, False], ids=["fused+direct", "modules"])
 @pytest.mark.parametrize(
-    ("kappa_actions", "kappa_states"),
-    [("replay", "replay"), ("policy", "replay"), ("policy", "initial")],
+    ("kappa_actions", "kappa_states", "kappa_statistic"),
+    [
+        ("replay", "replay", "mean"),
+        ("policy", "replay", "mean"),
+        ("policy", "initial", "mean"),
+        ("policy", "initial", "tail"),
+    ],
 )
 @pytest.mark.parametrize("damp_scale", [0.0, 10.0])
 @pytest.mark.parametrize("key", LOSS_KEYS)
 def test_each_loss_term_reaches_exactly_its_own_parameters(
-    key, kappa_actions, kappa_states, damp_scale, fast
+    key, kappa_actions, kappa_states, kappa_statistic, damp_scale, fast
 ):
     loss = make_loss(
         kappa_actions=kappa_actions,
         kappa_states=kappa_states,
+        kappa_statistic=kappa_statistic,
         variance_target="td" if kappa_states == "initial" else "moment",
         damp_scale=damp_scale,
         fuse_critics=fast,
@@ -310,6 +316,29 @@ def test_kappa_at_initial_states_reads_only_the_start_states_and_holds_gamma_und
     with pytest.raises(KeyError, match="start states"):
         loss(make_batch())
     assert loss.initial_state_keys == ["observation"]
+
+
+@pytest.mark.parametrize("kappa_states", ["initial", "replay"])
+def test_tail_statistic_is_the_cvar_of_the_critic_mixed_over_the_states(kappa_states):
+    from wcsac_rl.objectives import gaussian_mixture_cvar
+
+    loss = make_loss(risk_level=0.1, kappa_states=kappa_states, kappa_statistic="tail")
+    batch = make_batch(initial=True)
+    torch.manual_seed(3)
+    out = loss(batch.clone())
+    torch.manual_seed(3)
+    loss.compute_targets(batch.clone())
+    states = batch["initial"] if kappa_states == "initial" else batch
+    action, _ = loss._sample_policy(states)
+    est = loss.safety_estimates(states.clone().set("action", action))
+    expected = gaussian_mixture_cvar(est["cost_value"], est["cost_variance"], 0.1)
+    # the same Γ recomputed from the same draws; bisection to 2⁻⁵⁰ of the bracket
+    torch.testing.assert_close(out["cvar"], expected, rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(out["loss_kappa"], loss.kappa * (loss.cost_threshold - expected))
+    # the tail of the mixture is above the mean of per-state Γ
+    assert float(expected) >= float(est["cvar"].mean())
+    with pytest.raises(ValueError, match="kappa_statistic must be one of"):
+        make_loss(kappa_statistic="max")
 
 
 def test_safety_estimates_are_the_safety_critics_own_outputs():

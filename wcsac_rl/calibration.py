@@ -98,6 +98,12 @@ def format_table(result: dict[str, Any]) -> str:
             m["start_realised_cvar"],
             f"ratio {_number(m['start_cvar_ratio'])}",
         ),
+        (
+            "  mixture CVaR_α over s0",
+            m["start_tail_cvar"],
+            m["start_realised_cvar"],
+            f"ratio {_number(m['start_tail_ratio'])}",
+        ),
         ("  √V^c / spread", m["start_std"], m["realised_spread"], ""),
         ("all visited states", "", "", ""),
         ("  mean Q^c / cost-to-go", m["mean_cost_value"], m["mean_realised_cost_to_go"], ""),

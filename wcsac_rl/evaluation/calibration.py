@@ -49,7 +49,7 @@ from tensordict import NestedKey, TensorDictBase
 from torchrl.envs import EnvBase
 
 from wcsac_rl.evaluation.episodes import EpisodeResult, RecordedEpisode, record_episodes
-from wcsac_rl.objectives.risk import empirical_cvar
+from wcsac_rl.objectives.risk import empirical_cvar, gaussian_mixture_cvar
 from wcsac_rl.training.config import ConfigError
 
 __all__ = [
@@ -84,6 +84,8 @@ CALIBRATION_KEYS: tuple[str, ...] = tuple(
         "start_realised_cost_to_go",  # realised Σ_t γ_c^t c_t from s0
         "start_realised_cvar",  # empirical CVaR_α over episodes of that sum
         "start_cvar_ratio",  # start_cvar / start_realised_cvar
+        "start_tail_cvar",  # CVaR_α of the predicted start-state Gaussians, mixed
+        "start_tail_ratio",  # start_tail_cvar / start_realised_cvar
         "realised_spread",  # std over episodes of the realised sum from s0
         # every visited state, pooled over episodes (each step counts once)
         "mean_cost_value",  # Q^c
@@ -257,7 +259,7 @@ def _correlation(x: np.ndarray, y: np.ndarray) -> float:
 
 
 def summarize_calibration(
-    episodes: Sequence[EpisodeCalibration], risk_level: float
+    episodes: Sequence[EpisodeCalibration], risk_level: float, *, nonnegative: bool = False
 ) -> dict[str, float]:
     """The :data:`CALIBRATION_KEYS` of a set of episodes (NaN where undefined).
 
@@ -267,6 +269,12 @@ def summarize_calibration(
       :func:`~wcsac_rl.objectives.risk.empirical_cvar`) of the discounted cost-to-go
       from s0 and of the undiscounted episodic cost; ``start_cvar_ratio`` is
       ``start_cvar / start_realised_cvar`` (NaN when the realised CVaR is 0).
+    * ``start_tail_cvar``: the CVaR_α of the equal mixture of the predicted
+      start-state distributions ``N(Q^c(s0), V^c(s0))`` over the episodes
+      (:func:`~wcsac_rl.objectives.risk.gaussian_mixture_cvar`; Q^c at least 0 with
+      ``nonnegative``), the critic's own estimate of ``start_realised_cvar``: the
+      realised tail is made of episodes with different start states, which a mean of
+      per-state CVaRs misses. ``start_tail_ratio`` is its ratio to the realised one.
     * ``realised_spread``: sample standard deviation (n − 1) over episodes of the
       realised discounted cost-to-go from s0 (NaN for one episode), to set against
       ``start_std``.
@@ -303,13 +311,24 @@ def summarize_calibration(
         "episode_cvar": empirical_cvar(episode_cost, risk_level),
     }
     values["start_cvar_ratio"] = _ratio(values["start_cvar"], values["start_realised_cvar"])
+    start_mean = torch.tensor([float(e.cost_value[0]) for e in episodes], dtype=torch.float64)
+    if nonnegative:
+        start_mean = start_mean.clamp(min=0.0)
+    start_std = torch.tensor([float(e.std[0]) for e in episodes], dtype=torch.float64)
+    start_variance = None if torch.isnan(start_std).any() else start_std.pow(2)
+    values["start_tail_cvar"] = float(gaussian_mixture_cvar(start_mean, start_variance, risk_level))
+    values["start_tail_ratio"] = _ratio(values["start_tail_cvar"], values["start_realised_cvar"])
     metrics.update({PREFIX + name: value for name, value in values.items()})
     return metrics
 
 
 def calibration_metrics(episodes: Sequence[RecordedEpisode], loss: Any) -> dict[str, float]:
     """:func:`summarize_calibration` of :func:`compare_episodes` at ``loss.risk_level``."""
-    return summarize_calibration(compare_episodes(episodes, loss), float(loss.risk_level))
+    return summarize_calibration(
+        compare_episodes(episodes, loss),
+        float(loss.risk_level),
+        nonnegative=bool(getattr(loss, "nonnegative_cost", False)),
+    )
 
 
 # ----------------------------------------------------------------- a saved run

@@ -5,7 +5,8 @@ for WCSAC / SAC-Lag runs, ``python -m wcsac_rl.calibration``) one row: the Table
 metrics of its test episodes (EC, C0.1, ER, share over budget), the κ, training
 cost rate (cost of all training episodes per frame) and wall time at the end of
 training, and the calibration of the start-state estimate (predicted
-Γ_α(s0) vs the realised CVaR_α of the discounted cost-to-go, their ratio, Q^c(s0) vs
+Γ_α(s0), and the CVaR_α of the critic's start-state distributions mixed over the
+episodes, vs the realised CVaR_α of the discounted cost-to-go, with their ratios, Q^c(s0) vs
 the realised mean, the share of visited states with Q^c < 0, √V^c(s0) vs the spread
 of realised costs). Then one row per label: the mean over its seeds.
 
@@ -41,6 +42,8 @@ COLUMNS = (
     ("start_cvar", "Γ(s0)"),
     ("start_realised_cvar", "CVaR real"),
     ("start_cvar_ratio", "ratio"),
+    ("start_tail_cvar", "mixture Γ"),
+    ("start_tail_ratio", "mix ratio"),
     ("start_cost_value", "Q^c(s0)"),
     ("start_realised_cost_to_go", "mean real"),
     ("start_std", "√V(s0)"),

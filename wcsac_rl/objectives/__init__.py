@@ -7,6 +7,7 @@ from wcsac_rl.objectives.risk import (
     empirical_cvar,
     gaussian_cvar,
     gaussian_cvar_multiplier,
+    gaussian_mixture_cvar,
     validate_risk_level,
 )
 from wcsac_rl.objectives.tanh_normal import TanhNormalPolicy
@@ -23,6 +24,7 @@ __all__ = [
     "empirical_cvar",
     "gaussian_cvar",
     "gaussian_cvar_multiplier",
+    "gaussian_mixture_cvar",
     "per_step_cost_threshold",
     "validate_risk_level",
 ]

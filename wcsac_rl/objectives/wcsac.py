@@ -37,7 +37,11 @@ from wcsac_rl.objectives.critic_ensemble import (
     mlp_layout,
     stack_layers,
 )
-from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
+from wcsac_rl.objectives.risk import (
+    gaussian_cvar_multiplier,
+    gaussian_mixture_cvar,
+    validate_risk_level,
+)
 from wcsac_rl.objectives.tanh_normal import sample_tanh_normal, tanh_normal_actor_plan
 
 __all__ = ["CriticValues", "SACLagLoss", "WCSACLoss", "per_step_cost_threshold"]
@@ -45,6 +49,7 @@ __all__ = ["CriticValues", "SACLagLoss", "WCSACLoss", "per_step_cost_threshold"]
 KAPPA_PARAMETRISATIONS = ("softplus", "log")
 KAPPA_ACTIONS = ("replay", "policy")
 KAPPA_STATES = ("replay", "initial")
+KAPPA_STATISTICS = ("mean", "tail")
 VARIANCE_LOSSES = ("w2", "mse")
 VARIANCE_TARGETS = ("moment", "td")
 
@@ -142,6 +147,15 @@ class WCSACLoss(SACLoss):
             ``initial_states`` key, one start state per batch row, with ``a ~ π``):
             Γ(s₀, a₀) estimates the CVaR of the episode's discounted cost, so it is
             held under the episodic limit ``d`` itself. Default ``"replay"``.
+        kappa_statistic (str): what of the critic at those states the κ loss holds
+            under the threshold. ``"mean"`` (the paper): the mean of the per-state
+            Γ(s, a, α). ``"tail"``: the CVaR_α of the critic's cost distribution
+            *mixed over the states* (:func:`~wcsac_rl.objectives.risk.gaussian_mixture_cvar`)
+            — at initial states, the CVaR_α of an episode's discounted cost when the
+            start state is random too, which is what the worst-α share of test
+            episodes measures; the mean of per-state CVaRs is never larger and
+            misses a tail made of a few risky start states. Equal at α = 1.
+            Default ``"mean"``.
         kappa_actions (str): the actions at which the κ loss evaluates Γ: ``"replay"``
             (the stored actions, the authors' code) or ``"policy"`` (``a ~ π``, as the
             paper writes). Default ``"policy"`` (see README for the evidence).
@@ -271,6 +285,7 @@ class WCSACLoss(SACLoss):
         cost_gamma: float | None = None,
         cost_n_steps: int = 1,
         nonnegative_cost: bool = False,
+        kappa_statistic: str = "mean",
         kappa_init: float = math.log(2.0),
         kappa_parametrization: str = "softplus",
         kappa_actions: str = "policy",
@@ -317,6 +332,11 @@ class WCSACLoss(SACLoss):
             raise ValueError(f"cost_n_steps must be an integer >= 1, got {cost_n_steps}")
         self.cost_n_steps = int(cost_n_steps)
         self.nonnegative_cost = bool(nonnegative_cost)
+        if kappa_statistic not in KAPPA_STATISTICS:
+            raise ValueError(
+                f"kappa_statistic must be one of {KAPPA_STATISTICS}, got {kappa_statistic!r}"
+            )
+        self.kappa_statistic = kappa_statistic
         if damp_scale < 0:
             raise ValueError(f"damp_scale must be >= 0, got {damp_scale}")
         if variance_loss not in VARIANCE_LOSSES:
@@ -827,7 +847,9 @@ class WCSACLoss(SACLoss):
         min_q = qvalue.min(0)[0]
         cvar_pi = self.cvar(cost_value, cost_variance)
         if cvar_constraint is None:
-            cvar_constraint = cvar_pi.detach()
+            cvar_constraint = self._constraint_statistic(
+                cost_value.detach(), None if cost_variance is None else cost_variance.detach()
+            )
         penalty = self._constraint_gap_penalty(cvar_constraint)
         loss = self._alpha * log_prob - min_q + penalty * cvar_pi
         loss = self._reduce_loss(loss, tensordict=tensordict, weights=weights)
@@ -842,32 +864,51 @@ class WCSACLoss(SACLoss):
 
         β, κ and all critic parameters are detached: only the actor gets gradients.
         """
-        cvar_replay = None
+        replay_values = None
         if self.kappa_actions == "replay" and self.kappa_states == "replay":
             with torch.no_grad():
                 values = self._online_values(tensordict)
-                cvar_replay = self.cvar(values.cost_value, values.cost_variance)
-        return self._actor_loss(tensordict, self._constraint_cvar(tensordict, cvar_replay))
+                replay_values = (values.cost_value, values.cost_variance)
+        return self._actor_loss(tensordict, self._constraint_cvar(tensordict, replay_values))
 
     def _constraint_cvar(
         self,
         tensordict: TensorDictBase,
-        cvar_replay: Tensor | None,
+        replay_values: tuple[Tensor, Tensor | None] | None,
         layers: list[tuple[Tensor, Tensor]] | None = None,
     ) -> Tensor | None:
-        """The Γ the κ loss sees: at the initial states (``a ~ π``), at the replay
-        actions, or ``None`` for Γ at the actor's actions on the batch."""
+        """What the κ loss holds under the threshold, per batch row: the statistic
+        (``kappa_statistic``) of the safety critic at the initial states (``a ~ π``)
+        or at the replay actions; ``None`` when it is taken at the actor's own
+        actions on the batch (computed with the actor loss)."""
         if self.kappa_states == "initial":
-            return self.initial_state_cvar(tensordict, layers)
+            return self._constraint_statistic(*self._initial_state_values(tensordict, layers))
         if self.kappa_actions == "replay":
-            return cvar_replay
+            return self._constraint_statistic(*replay_values)
         return None
+
+    def _constraint_statistic(self, cost_value: Tensor, cost_variance: Tensor | None) -> Tensor:
+        """Per-state Γ (``"mean"``: the κ loss averages it) or, for ``"tail"``, the
+        CVaR_α of the critic's cost distribution mixed over the states, repeated per row."""
+        if self.kappa_statistic == "mean":
+            return self.cvar(cost_value, cost_variance)
+        if self.nonnegative_cost:
+            cost_value = cost_value.clamp(min=0.0)
+        if self.cvar_multiplier == 0.0:
+            cost_variance = None
+        tail = gaussian_mixture_cvar(cost_value, cost_variance, self.risk_level)
+        return tail.detach().expand(cost_value.shape)
 
     def initial_state_cvar(
         self, tensordict: TensorDictBase, layers: list[tuple[Tensor, Tensor]] | None = None
     ) -> Tensor:
         """Γ(s₀, a₀, α) with ``a₀ ~ π(·|s₀)`` at the start states the batch carries
         under the ``initial_states`` key (no gradient)."""
+        return self.cvar(*self._initial_state_values(tensordict, layers))
+
+    def _initial_state_values(
+        self, tensordict: TensorDictBase, layers: list[tuple[Tensor, Tensor]] | None = None
+    ) -> tuple[Tensor, Tensor | None]:
         key = self.tensor_keys.initial_states
         initial = tensordict.get(key, None)
         if initial is None:
@@ -880,7 +921,7 @@ class WCSACLoss(SACLoss):
         with torch.no_grad():
             action, _ = self._sample_policy(initial)
             values = self._critic_values(initial, action, "detached", layers)
-            return self.cvar(values.cost_value, values.cost_variance)
+            return values.cost_value, values.cost_variance
 
     @property
     def initial_state_keys(self) -> list[NestedKey]:
@@ -922,9 +963,9 @@ class WCSACLoss(SACLoss):
         loss_cost_value, loss_cost_variance, safety_metadata = self.safety_loss(
             tensordict, targets, values
         )
-        cvar_replay = self.cvar(safety_metadata["cost_value"], safety_metadata["cost_variance"])
+        replay_values = (safety_metadata["cost_value"], safety_metadata["cost_variance"])
         detached = None if layers is None else [(w.detach(), b.detach()) for w, b in layers]
-        cvar_constraint = self._constraint_cvar(tensordict, cvar_replay, detached)
+        cvar_constraint = self._constraint_cvar(tensordict, replay_values, detached)
         loss_actor, actor_metadata = self._actor_loss(tensordict, cvar_constraint, detached)
         log_prob = actor_metadata["log_prob"]
         weights = self._maybe_get_priority_weight(tensordict)

@@ -151,6 +151,7 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
             "cost_gamma": None if algo.get("cost_gamma") is None else float(algo.cost_gamma),
             "cost_n_steps": int(algo.get("cost_n_steps", 1)),
             "nonnegative_cost": bool(algo.get("nonnegative_cost", False)),
+            "kappa_statistic": str(algo.get("kappa_statistic", "mean")),
         }
         if algo.name == "wcsac":
             safety_kwargs["risk_level"] = float(algo.risk_level)

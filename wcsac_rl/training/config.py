@@ -124,6 +124,7 @@ def _validate_safety_keys(algo: DictConfig) -> None:
         KAPPA_ACTIONS,
         KAPPA_PARAMETRISATIONS,
         KAPPA_STATES,
+        KAPPA_STATISTICS,
         VARIANCE_LOSSES,
         VARIANCE_TARGETS,
     )
@@ -133,6 +134,7 @@ def _validate_safety_keys(algo: DictConfig) -> None:
         "variance_target": VARIANCE_TARGETS,
         "kappa_actions": KAPPA_ACTIONS,
         "kappa_states": KAPPA_STATES,
+        "kappa_statistic": KAPPA_STATISTICS,
         "kappa_parametrization": KAPPA_PARAMETRISATIONS,
     }
     for key, allowed in choices.items():
