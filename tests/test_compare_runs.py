@@ -1,4 +1,8 @@
-"""The side-by-side table of evaluated runs (wcsac_rl.experiments.compare)."""
+"""The side-by-side table of evaluated runs (wcsac_rl.experiments.compare).
+
+Tolerances: float64 arithmetic on a few hand-written numbers; approx's default
+``rel=1e-6`` is 10⁹ float64 roundings.
+"""
 
 from __future__ import annotations
 

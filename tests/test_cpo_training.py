@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from _tolerance import assert_close_f32, f32_tolerance
 from _training_helpers import COMMON_COLUMNS as BASE_COLUMNS
 from _training_helpers import CONF, ROOT, compose_config
 from omegaconf import OmegaConf
@@ -75,9 +76,12 @@ def test_cpo_trains_through_the_trainer_and_logs_its_diagnostics(tmp_path):
     assert [int(r["train/episodes"]) for r in rows] == [4, 4]
     for row in rows:
         assert float(row["loss/kl"]) <= 0.01 + 1e-6  # within the trust region
-        # J_C is the mean cost of the batch's finished episodes, d = 15
+        # J_C is the mean cost of the batch's finished episodes, d = 15; both columns
+        # are J_C − d and J_C rounded to float32 once (2⁻²⁴ of J_C each), so the
+        # difference can be far below its terms
+        estimate = float(row["loss/episode_cost_estimate"])
         assert float(row["loss/constraint"]) == pytest.approx(
-            float(row["loss/episode_cost_estimate"]) - 15.0
+            estimate - 15.0, abs=f32_tolerance(2, max(abs(estimate), 15.0))
         )
         assert float(row["loss/loss_value"]) >= 0 and float(row["loss/loss_cost_value"]) >= 0
     checkpoint = load_checkpoint(trainer.checkpoint_path)
@@ -100,7 +104,11 @@ def test_cpo_on_static_env_estimates_the_episode_cost_from_the_cost_rate(tmp_pat
     row = _rows(run_dir)[-1]
     assert int(row["train/episodes"]) == 0 and int(row["updates"]) == 1
     rate = trainer.tracker.total_cost / 400
-    assert float(row["loss/episode_cost_estimate"]) == pytest.approx(rate * 1000, abs=1e-3)
+    # integer cost sums are exact in float32; the mean and the product by 1000 round
+    # twice there, twice in float64
+    assert float(row["loss/episode_cost_estimate"]) == pytest.approx(
+        rate * 1000, abs=f32_tolerance(4, rate * 1000)
+    )
 
 
 def test_resume_continues_the_frame_counter_and_the_optimizer(tmp_path):
@@ -133,7 +141,9 @@ def test_load_run_restores_the_trained_policy(tmp_path):
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         expected = trainer.actor(obs.clone())["action"]
         got = restored.policy(obs.clone())["action"]
-    torch.testing.assert_close(got, expected)
+    # the same network on the same input; BLAS may still block a product differently
+    # for another memory alignment: the 16-wide layers' sums, relative to the largest action
+    assert_close_f32(got, expected, ops=16)
     assert not torch.equal(got, torch.zeros_like(got))
     restored.env.close()
 

@@ -1,4 +1,9 @@
-"""Layout sampling: keepouts, fixed objects, seeding, explicit layouts."""
+"""Layout sampling: keepouts, fixed objects, seeding, explicit layouts.
+
+Tolerances: positions are float64 (default ``assert_allclose`` rtol 1e-7 is 10⁸ ulps);
+observations are float32 roundings of float64 values ≤ 10 (½ ulp ≤ 4.8e-7), so
+``atol=1e-6`` allows one float32 rounding at the largest entry.
+"""
 
 from __future__ import annotations
 

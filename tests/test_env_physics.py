@@ -1,4 +1,11 @@
-"""Physics facts of the point robot (specs/point_goal.md, "World and robot")."""
+"""Physics facts of the point robot (specs/point_goal.md, "World and robot").
+
+Tolerances: MuJoCo integrates in float64 (ε = 2⁻⁵²), so rounding is 10⁸ times below
+every tolerance here; ``rel=1e-9`` and the ``1e-6`` on sensors at rest are float64 sums
+of a few terms and float32 observations (2⁻²⁴ ≈ 6e-8 relative); the percent-level ones
+(``rel=0.01``–``0.03``) bound the gap between the closed-form physics and the
+integrated dynamics (discretisation, contact), not rounding.
+"""
 
 from __future__ import annotations
 

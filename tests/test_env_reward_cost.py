@@ -1,4 +1,8 @@
-"""Reward (progress, goal bonus, goal re-draw, termination, truncation) and cost."""
+"""Reward (progress, goal bonus, goal re-draw, termination, truncation) and cost.
+
+Tolerances: rewards and distances are float64 sums of a few terms of size ≤ 2 (a few
+× 2⁻⁵² × 2 ≈ 1e-15), so ``abs=1e-12`` and approx's default ``rel=1e-6`` hold on any CPU.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,8 @@
-"""The tiny numpy env: dynamics, reward, cost, episode length, explicit layout."""
+"""The tiny numpy env: dynamics, reward, cost, episode length, explicit layout.
+
+Tolerances: the dynamics are float64; the observation rounds each float64 entry to
+float32 once (≤ 2⁻²⁴ ≈ 6e-8 relative), within ``rtol=1e-6``.
+"""
 
 from __future__ import annotations
 

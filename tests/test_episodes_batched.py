@@ -52,6 +52,8 @@ def test_side_by_side_episodes_equal_one_env_per_sub_env(name, steps):
         assert got.length == want.length
         assert got.goal_reached == want.goal_reached
         assert got.numerical_failure == want.numerical_failure
+        # the same float32 rewards summed in float64 by both (≤ 60 × 2⁻⁵³ relative to
+        # Σ|r|); 1e-6 is far above that and far below one step's reward
         assert got.ret == pytest.approx(want.ret, rel=1e-6, abs=1e-6)
         assert got.cost == pytest.approx(want.cost, rel=1e-6, abs=1e-6)
     if name == "tiny":  # the terminating task really ends episodes, at different times

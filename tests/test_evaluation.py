@@ -1,4 +1,9 @@
-"""``python -m wcsac_rl.evaluate``: test episodes of real (tiny) runs → evaluation.csv/json."""
+"""``python -m wcsac_rl.evaluate``: test episodes of real (tiny) runs → evaluation.csv/json.
+
+Tolerances: the metrics are float64 means of the per-episode sums written to the CSV
+(repr round-trips exactly); approx's default ``rel=1e-6`` covers a different summation
+order of ≤ 10 values (10 × 2⁻⁵²).
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,9 @@
-"""``python -m wcsac_rl.report``: Table 1 and Figures 4-6 from real (tiny) runs."""
+"""``python -m wcsac_rl.report``: Table 1 and Figures 4-6 from real (tiny) runs.
+
+Tolerances: Table-1 cells are float64 metrics written with repr (exact round trip);
+approx's default ``rel=1e-6`` covers another summation order of ≤ 20 values
+(20 × 2⁻⁵²). Layout comparisons are float64 copies (``np.allclose``: 1e-8 absolute).
+"""
 
 from __future__ import annotations
 

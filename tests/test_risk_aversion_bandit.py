@@ -3,6 +3,10 @@
 On :class:`~wcsac_rl.envs.risky_bandit.RiskyBanditEnv` the expected cost is under
 the limit for every action, but the CVaR_0.1 is not: SAC-Lag must take the
 high-reward end, WCSAC-0.1 must settle at the closed-form CVaR-feasible action.
+
+Tolerances: ``abs=1e-3`` is the quoted a* = −0.621's precision, ``abs=1e-6`` the
+float64 root finder's; ``0.2`` and ``0.5`` bound what a trained policy reaches
+(behaviour, not rounding).
 """
 
 from __future__ import annotations

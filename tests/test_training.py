@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from _tolerance import assert_close_f32
 from _training_helpers import COMMON_COLUMNS, ROOT, compose_config
 
 from wcsac_rl.training import ConfigError, make_trainer
@@ -91,7 +92,9 @@ def test_wcsac_trains_on_static_env_with_the_paper_networks(tmp_path):
     )
     row = _rows(run_dir)[-1]
     assert int(row["updates"]) == 100  # 2 batches of 200 frames, 50 updates after each
-    assert float(row["loss/cost_threshold"]) == pytest.approx(1.49994, abs=1e-4)
+    assert float(row["loss/cost_threshold"]) == pytest.approx(
+        1.49994, abs=1e-4
+    )  # 1.49994 is rounded
     assert float(row["eval/episode_length"]) <= 1000
     assert trainer.loss.has_variance and trainer.loss.risk_level == 0.5
 
@@ -99,6 +102,7 @@ def test_wcsac_trains_on_static_env_with_the_paper_networks(tmp_path):
 def test_cost_rate_is_total_cost_over_frames(tmp_path):
     trainer, run_dir = _train(tmp_path, "algo=random", "env=tiny")
     rows = _rows(run_dir)
+    # the same float64 division of the same numbers (repr round-trips through the CSV)
     assert float(rows[-1]["train/cost_rate"]) == pytest.approx(trainer.tracker.total_cost / 800)
 
 
@@ -331,7 +335,9 @@ def test_load_run_restores_the_trained_policy_exactly(tmp_path):
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
         expected = trainer.agent.actor(obs.clone())["action"]
         got = restored.policy(obs.clone())["action"]
-    torch.testing.assert_close(got, expected)
+    # the fast TanhNormalPolicy against the ProbabilisticActor: the same 32-wide MLP then
+    # tanh, relative to the largest action (see _tolerance.py)
+    assert_close_f32(got, expected, ops=32)
     restored.env.close()
     random_run = load_run(_train(tmp_path, "algo=random", "env=tiny", name="rnd")[1])
     assert random_run.policy is None

@@ -164,8 +164,9 @@ def _single_episode(
     goal = nxt.get("goal_reached", None)
     failure = nxt.get("numerical_failure", None)
     result = EpisodeResult(
-        ret=float(nxt.get("reward").sum()),
-        cost=float(nxt.get("cost").sum()),
+        # summed in float64, like the side-by-side episodes (the same numbers on any CPU)
+        ret=float(nxt.get("reward").double().sum()),
+        cost=float(nxt.get("cost").double().sum()),
         length=int(nxt.shape[-1]),
         goal_reached=0 if goal is None else int(goal.sum()),
         numerical_failure=False if failure is None else bool(failure.any()),
