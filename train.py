@@ -13,19 +13,25 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from wcsac_rl.training import ConfigError, make_trainer
+from wcsac_rl.envs import NonFiniteStepError
+from wcsac_rl.training import ConfigError, TrainingError, make_trainer
+
+# errors a user can cause or fix: printed as one line (exit code 1), never a traceback
+USER_ERRORS = (ConfigError, TrainingError, NonFiniteStepError)
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> None:
     try:
         trainer = make_trainer(cfg, Path(HydraConfig.get().runtime.output_dir))
-    except ConfigError as err:
+    except USER_ERRORS as err:
         sys.exit(f"error: {err}")
     try:
         run_dir = trainer.run()
     except KeyboardInterrupt:
         sys.exit(130)
+    except USER_ERRORS as err:
+        sys.exit(f"error: {err}")
     finally:
         trainer.close()
     print(f"run directory: {run_dir}")

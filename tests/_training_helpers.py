@@ -47,6 +47,7 @@ COMMON_COLUMNS = {
     "train/episode_length",
     "train/cost_rate",
     "train/numerical_failures",
+    "train/skipped_updates",
     "eval/episode_return",
     "eval/episode_cost",
     "eval/episode_length",

@@ -20,6 +20,10 @@ key                        shape / dtype  meaning
 (the non-cost info entries live at the root of reset tensordicts and under
 ``"next"`` after a step, like any observation.)
 
+Every gymnasium env under ``make_env`` is wrapped in :class:`RejectNonFinite`: a
+NaN or infinite reward, cost or observation stops the step with a
+:class:`NonFiniteStepError` that names the env, before it can reach a replay buffer.
+
 With ``num_workers > 1`` the base envs run in a :class:`~torchrl.envs.ParallelEnv`
 (one process each) and the transforms are applied on top. For TorchRL's
 multi-process collectors, pass :func:`make_env_creator` (picklable) instead.
@@ -28,6 +32,7 @@ multi-process collectors, pass :func:`make_env_creator` (picklable) instead.
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -57,6 +62,8 @@ __all__ = [
     "CostKeyError",
     "CostSum",
     "InfoReader",
+    "NonFiniteStepError",
+    "RejectNonFinite",
     "check_cost_key",
     "env_info",
     "env_transforms",
@@ -81,6 +88,70 @@ COST_KEY = "cost"
 
 class CostKeyError(ValueError):
     """An env or a tensordict lacks a usable per-step cost entry."""
+
+
+class NonFiniteStepError(ValueError):
+    """An env step (or reset) gave a NaN or infinite reward, cost or observation."""
+
+
+def _finite(value: Any) -> bool:
+    if isinstance(value, (float, int)):  # the common case: a Python or NumPy float
+        return math.isfinite(value)
+    return bool(np.isfinite(np.asarray(value, dtype=np.float64)).all())
+
+
+def _env_name(env: gym.Env) -> str:
+    spec = getattr(env, "spec", None)
+    return spec.id if spec is not None and spec.id else type(env.unwrapped).__name__
+
+
+class RejectNonFinite(gym.Wrapper):
+    """Raise :class:`NonFiniteStepError` when a step's reward, ``info["cost"]`` or
+    observation is not finite (NaN or ±inf), naming the env and the step.
+
+    One non-finite cost in a replay buffer makes every loss that samples it NaN, and
+    one optimizer step on a NaN loss poisons the networks for good; stopping at the
+    env says where the number came from. The check is a few scalar comparisons per
+    step (and one ``np.isfinite`` over the observation).
+
+    Args:
+        env: the gymnasium env.
+        name: how messages name it (default: its gymnasium id, else its class name).
+    """
+
+    def __init__(self, env: gym.Env, name: str | None = None) -> None:
+        super().__init__(env)
+        self.name = name or _env_name(env)
+        self._steps = 0
+
+    def _reject(self, what: str, value: Any) -> None:
+        where = f"at step {self._steps} of an episode" if self._steps else "at reset"
+        raise NonFiniteStepError(
+            f"env {self.name} returned a non-finite {what} ({value}) {where}; "
+            "rewards, costs and observations must be finite numbers"
+        )
+
+    def _check_observation(self, observation: Any) -> None:
+        if isinstance(observation, np.ndarray) and not np.isfinite(observation).all():
+            bad = observation[~np.isfinite(observation)].reshape(-1)[0]
+            self._reject("observation", bad)
+
+    def reset(self, **kwargs: Any):
+        self._steps = 0
+        observation, info = self.env.reset(**kwargs)
+        self._check_observation(observation)
+        return observation, info
+
+    def step(self, action: Any):
+        observation, reward, terminated, truncated, info = self.env.step(action)
+        self._steps += 1
+        if not _finite(reward):
+            self._reject("reward", reward)
+        cost = None if info is None else info.get(COST_KEY)
+        if cost is not None and not _finite(cost):
+            self._reject("cost", cost)
+        self._check_observation(observation)
+        return observation, reward, terminated, truncated, info
 
 
 def step_info_spec(device: torch.device | str | None = None) -> Composite:
@@ -233,7 +304,8 @@ def make_base_env(
     from_pixels: bool = False,
     **kwargs: Any,
 ) -> EnvBase:
-    """One untransformed TorchRL env of a preset: ``GymWrapper`` + :class:`InfoReader`.
+    """One untransformed TorchRL env of a preset: ``GymWrapper`` + :class:`InfoReader`
+    over the gymnasium env in :class:`RejectNonFinite`.
 
     Args:
         name: preset short name (``"static"``, ``"dynamic"``, ``"point_goal1"``,
@@ -249,7 +321,7 @@ def make_base_env(
     """
     if from_pixels:
         kwargs.setdefault("render_mode", "rgb_array")
-    gym_env = make_gym_env(name, max_episode_steps=max_episode_steps, **kwargs)
+    gym_env = _checked_gym_env(name, max_episode_steps=max_episode_steps, **kwargs)
     if from_pixels:
         gym_env = _PixelsAndObservation(gym_env)
     env = GymWrapper(gym_env, device=device)
@@ -314,7 +386,7 @@ def make_env(
         base = base_fn()
     elif not parallel and not from_pixels:
         gym_fn = functools.partial(
-            make_gym_env, name, max_episode_steps=max_episode_steps, **kwargs
+            _checked_gym_env, name, max_episode_steps=max_episode_steps, **kwargs
         )
         base = BatchedGymEnv([gym_fn] * num_workers, info_spec=step_info_spec(), device=device)
     else:
@@ -324,6 +396,13 @@ def make_env(
     if seed is not None:
         env.set_seed(int(seed))
     return env
+
+
+def _checked_gym_env(name: str, **kwargs: Any) -> RejectNonFinite:
+    """The preset's gymnasium env in :class:`RejectNonFinite`, named ``short (gym id)``."""
+    preset = get_preset(name)
+    env = make_gym_env(name, **kwargs)
+    return RejectNonFinite(env, name=f"{preset.name} ({preset.gym_id})")
 
 
 def make_env_creator(name: str, **kwargs: Any) -> Callable[[], TransformedEnv]:

@@ -9,7 +9,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from wcsac_rl.objectives.risk import validate_risk_level
 
-__all__ = ["ALGOS", "OFF_POLICY_ALGOS", "ON_POLICY_ALGOS", "ConfigError", "validate_config"]
+__all__ = [
+    "ALGOS",
+    "OFF_POLICY_ALGOS",
+    "ON_POLICY_ALGOS",
+    "ConfigError",
+    "TrainingError",
+    "validate_config",
+]
 
 OFF_POLICY_ALGOS = ("wcsac", "sac_lag", "sac")
 ON_POLICY_ALGOS = ("cpo",)
@@ -18,6 +25,13 @@ ALGOS = (*OFF_POLICY_ALGOS, *ON_POLICY_ALGOS, "random")
 
 class ConfigError(ValueError):
     """A configuration a run cannot start from; the message says what to change."""
+
+
+class TrainingError(RuntimeError):
+    """A run that cannot go on (or cannot be saved); the message says why and what to do.
+
+    Raised after the last good checkpoint is safe: ``train.py`` prints it as one line.
+    """
 
 
 def _positive_int(cfg: Mapping[str, Any], key: str, *, allow_zero: bool = False) -> None:
@@ -75,6 +89,8 @@ def validate_config(cfg: DictConfig) -> None:
         )
     for key in ("total_frames", "epoch_frames", "threads", "checkpoint_every_epochs"):
         _positive_int(cfg, key)
+    if cfg.get("max_nonfinite_updates") is not None:
+        _positive_int(cfg, "max_nonfinite_updates")
     _positive_int(cfg, "eval_episodes", allow_zero=True)
     for key in ("compile", "retain_freed_memory", "save_replay_buffer", "progress_bar"):
         value = cfg.get(key, False)

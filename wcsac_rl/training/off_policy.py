@@ -89,22 +89,46 @@ class OffPolicyTrainer(Trainer):
         if bool(starts.any()):
             self.initial_state_buffer.extend(flat[starts].select(*self.loss.initial_state_keys))
 
-    def update(self, batch: TensorDictBase) -> TensorDictBase:
+    def update(self, batch: TensorDictBase) -> TensorDictBase | None:
         """One gradient step on every parameter group, then the polyak update of the targets.
 
         Each loss term reaches only its own parameters, so one backward of their sum
         equals separate backwards; all terms are computed from the same parameters
         (critics, actor, β and κ are then stepped together).
+
+        A non-finite loss (one NaN or inf in the batch makes the cost losses NaN) or
+        gradient is never stepped on: the update is skipped (nothing changes: networks,
+        targets, optimizer moments) and counted (:meth:`skip_update`); returns ``None``.
         """
         out = self._loss_forward(batch)
         total = sum(value for key, value in out.items() if key.startswith("loss_"))
+        # one host synchronisation per update (microseconds on CPU)
+        if not bool(torch.isfinite(total)):
+            bad = [k for k, v in out.items() if k.startswith("loss_") and not v.isfinite().all()]
+            self.skip_update(f"loss ({', '.join(bad)})")
+            return None
         total.backward()
+        if not bool(torch.isfinite(torch.nn.utils.get_total_norm(self._grads()))):
+            for optimizer in self.optimizers.values():
+                optimizer.zero_grad(set_to_none=True)
+            self.skip_update("gradient")
+            return None
         for optimizer in self.optimizers.values():
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
         self.target_updater.step()
         self.updates += 1
+        self.nonfinite_streak = 0
         return out.detach()
+
+    def _grads(self) -> list[torch.Tensor]:
+        return [
+            p.grad
+            for optimizer in self.optimizers.values()
+            for group in optimizer.param_groups
+            for p in group["params"]
+            if p.grad is not None
+        ]
 
     def learn(self, batch: TensorDictBase) -> list[TensorDictBase]:
         with timeit("replay_extend"):
@@ -116,7 +140,8 @@ class OffPolicyTrainer(Trainer):
         if self.tracker.frames < self.update_start_frames:
             return []
         with timeit("update"):
-            return [self.update(self.sample()) for _ in range(self.updates_per_batch)]
+            outputs = [self.update(self.sample()) for _ in range(self.updates_per_batch)]
+        return [out for out in outputs if out is not None]
 
     @classmethod
     def restore_policy(cls, cfg, learner_state, env):

@@ -36,7 +36,7 @@ from wcsac_rl.training.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
-from wcsac_rl.training.config import ALGOS, ConfigError, validate_config
+from wcsac_rl.training.config import ALGOS, ConfigError, TrainingError, validate_config
 from wcsac_rl.training.progress import EpisodeTracker, ProgressWriter
 from wcsac_rl.training.runtime import retain_freed_memory
 
@@ -97,6 +97,9 @@ class Trainer:
             raise
 
         self.updates = 0
+        self.skipped_updates = 0  # updates not taken: non-finite loss or gradient (whole run)
+        self.epoch_skipped_updates = 0
+        self.nonfinite_streak = 0  # ... of which the last ones in a row
         self.epoch = 0
         self.elapsed = 0.0  # training wall time over all sessions of this run
         self.tracker = EpisodeTracker()
@@ -259,6 +262,8 @@ class Trainer:
         }
         row.update(self.tracker.epoch_metrics())
         self.tracker.reset_epoch()
+        row["train/skipped_updates"] = self.epoch_skipped_updates
+        self.epoch_skipped_updates = 0
         row.update(self._loss_means(loss_outputs))
         if "loss/cost_threshold" in row and "loss/cvar" in row:
             # what the κ loss pushes on: > 0 lets κ shrink, < 0 makes it grow
@@ -319,6 +324,26 @@ class Trainer:
                 ):
                     self.logger.log_scalar(key, value, step=int(row["frames"]))
 
+    def skip_update(self, what: str) -> None:
+        """Count an update not taken because ``what`` was not finite (NaN or inf).
+
+        Raises :class:`TrainingError` once ``max_nonfinite_updates`` updates in a row
+        were skipped: the networks are still those of the last finite update, and the
+        last checkpoint is kept.
+        """
+        self.skipped_updates += 1
+        self.epoch_skipped_updates += 1
+        self.nonfinite_streak += 1
+        limit = self.cfg.get("max_nonfinite_updates")
+        if limit is not None and self.nonfinite_streak >= int(limit):
+            raise TrainingError(
+                f"{self.nonfinite_streak} updates in a row had a non-finite {what} and were "
+                f"skipped (at {self.tracker.frames} frames, {self.skipped_updates} skipped in "
+                f"all); the networks are those of the last finite update and "
+                f"{self.checkpoint_path} is kept. Check the env's rewards, costs and "
+                "observations, try a lower algo.lr, or raise max_nonfinite_updates"
+            )
+
     # ---------------------------------------------------------- checkpoint
     def state_dict(self) -> dict[str, Any]:
         state: dict[str, Any] = {
@@ -326,6 +351,7 @@ class Trainer:
             "frames": self.tracker.frames,
             "total_cost": self.tracker.total_cost,
             "updates": self.updates,
+            "skipped_updates": self.skipped_updates,
             "epoch": self.epoch,
             "elapsed": self.elapsed,
             "rng": {
@@ -347,6 +373,7 @@ class Trainer:
             frames=int(state["frames"]), total_cost=float(state["total_cost"])
         )
         self.updates = int(state["updates"])
+        self.skipped_updates = int(state.get("skipped_updates", 0))
         self.epoch = int(state["epoch"])
         self.elapsed = float(state.get("elapsed", 0.0))
         rng = state["rng"]
