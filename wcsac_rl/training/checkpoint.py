@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import errno
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from wcsac_rl.training.config import ConfigError
+from wcsac_rl.training.config import ConfigError, TrainingError
 
 __all__ = [
     "CHECKPOINT_DIR",
@@ -43,12 +45,67 @@ IDENTITY_KEYS = (
 )
 
 
+REQUIRED_ENTRIES = ("config", "frames", "learner")
+"""What every reader of a training checkpoint needs (resume needs the counters too)."""
+
+# How torch.save and the OS report a full disk (torch: "unexpected pos 704 vs 598" on
+# a full tmpfs, measured; "file write failed" from its zip writer)
+_DISK_FULL_ERRNOS = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)}
+_DISK_FULL_MESSAGES = ("unexpected pos", "file write failed", "no space left")
+
+
+def write_error_reason(err: BaseException, directory: Path) -> str:
+    """A short reason for a failed write into ``directory`` (says so when the disk is full)."""
+    text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+    full = (isinstance(err, OSError) and err.errno in _DISK_FULL_ERRNOS) or any(
+        m in text.lower() for m in _DISK_FULL_MESSAGES
+    )
+    if not full:
+        return text
+    try:
+        free = shutil.disk_usage(directory).free
+        return f"no space left on its disk ({free / 2**20:.1f} MB free)"
+    except OSError:
+        return "no space left on its disk"
+
+
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    """Write ``state`` with ``torch.save`` atomically (a crash never leaves half a file)."""
+    """Write ``state`` with ``torch.save`` atomically: to ``<path>.tmp``, flushed to disk,
+    then renamed over ``path``. A crash never leaves half a file, and a failed write
+    (a full disk) removes the temporary file, keeps the previous ``path`` and raises
+    :class:`~wcsac_rl.training.TrainingError` with one line that says why.
+    """
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+    try:
+        with tmp.open("wb") as f:
+            torch.save(state, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as err:  # Ctrl-C mid-write too: never leave the temporary file
+        tmp.unlink(missing_ok=True)
+        if not isinstance(err, Exception):
+            raise
+        raise TrainingError(
+            f"cannot write checkpoint {path}: {write_error_reason(err, path.parent)}; the "
+            f"previous checkpoint is kept (free some space, then resume={path.parent.parent})"
+        ) from None
+    fsync_directory(path.parent)
+
+
+def fsync_directory(directory: Path) -> None:
+    """Make a rename inside ``directory`` durable (no-op where directories cannot be opened)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def find_checkpoint(path: str | os.PathLike) -> Path:
@@ -70,12 +127,29 @@ def find_checkpoint(path: str | os.PathLike) -> Path:
     raise ConfigError(f"{path} holds no checkpoint (expected {candidate})")
 
 
-def load_checkpoint(path: Path) -> dict[str, Any]:
-    """Load a checkpoint written by :func:`save_checkpoint` (on CPU)."""
+def load_checkpoint(path: Path, *, required: tuple[str, ...] = REQUIRED_ENTRIES) -> dict[str, Any]:
+    """Load a checkpoint written by :func:`save_checkpoint` (on CPU).
+
+    Raises :class:`~wcsac_rl.training.ConfigError` (one line) for a file that cannot
+    be read or is not a training checkpoint (a dict with the ``required`` entries).
+    """
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
+        state = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as err:  # a corrupt or foreign file: one clear line
-        raise ConfigError(f"cannot read checkpoint {path}: {err}") from None
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ConfigError(f"cannot read checkpoint {path}: {reason}") from None
+    if not isinstance(state, dict):
+        raise ConfigError(
+            f"{path} is not a wcsac_rl training checkpoint (it holds a {type(state).__name__}, "
+            "not the dict train.py writes)"
+        )
+    missing = [key for key in required if key not in state]
+    if missing:
+        raise ConfigError(
+            f"{path} is not a wcsac_rl training checkpoint (no {', '.join(map(repr, missing))} "
+            "entry); pass a run directory written by train.py"
+        )
+    return state
 
 
 def _select(cfg: DictConfig | dict, key: str) -> Any:

@@ -87,6 +87,7 @@ def validate_config(cfg: DictConfig) -> None:
         raise ConfigError(
             f"cost_limit must be a number >= 0 (episodic budget d), got {cfg.cost_limit!r}"
         )
+    _positive_int(cfg, "seed", allow_zero=True)  # gymnasium and NumPy need seeds >= 0
     for key in ("total_frames", "epoch_frames", "threads", "checkpoint_every_epochs"):
         _positive_int(cfg, key)
     if cfg.get("max_nonfinite_updates") is not None:
@@ -130,8 +131,50 @@ def validate_config(cfg: DictConfig) -> None:
         raise ConfigError(
             f"logger.backend must be csv, wandb, tensorboard or none, got {cfg.logger.backend!r}"
         )
-    if str(cfg.device) != "cpu" and not str(cfg.device).startswith(("cuda", "mps")):
-        raise ConfigError(f"device must be cpu, cuda[:N] or mps, got {cfg.device!r}")
+    _check_logger_package(str(cfg.logger.backend))
+    _check_device(str(cfg.device))
+
+
+LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb"}
+"""The package each optional logger backend needs (also the name of its pip extra)."""
+
+
+def _check_logger_package(backend: str) -> None:
+    import importlib.util
+
+    package = LOGGER_PACKAGES.get(backend)
+    if package is not None and importlib.util.find_spec(package) is None:
+        raise ConfigError(
+            f"logger={backend} needs the {package} package, which is not installed: "
+            f'pip install -e ".[{package}]" (or pip install {package}), or use logger=csv'
+        )
+
+
+def _check_device(device: str) -> None:
+    import torch
+
+    if device == "cpu":
+        return
+    kind, _, index = device.partition(":")
+    if kind not in ("cuda", "mps") or (index and not index.isdigit()):
+        raise ConfigError(f"device must be cpu, cuda[:N] or mps, got {device!r}")
+    if kind == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            build = (
+                "a CPU-only build" if torch.version.cuda is None else f"CUDA {torch.version.cuda}"
+            )
+            raise ConfigError(
+                f"device={device} but this machine has no CUDA device (torch {torch.__version__}, "
+                f"{build}); use device=cpu"
+            )
+        if index and int(index) >= count:
+            raise ConfigError(
+                f"device={device} but only {count} CUDA device(s) are visible (cuda:0"
+                f"{f'..cuda:{count - 1}' if count > 1 else ''}); choose one of them"
+            )
+    elif not torch.backends.mps.is_available():
+        raise ConfigError("device=mps but MPS is not available on this machine; use device=cpu")
 
 
 def _validate_safety_keys(algo: DictConfig) -> None:

@@ -11,6 +11,7 @@ algorithm does with a collected batch is its subclass's :meth:`Trainer.learn`
 
 from __future__ import annotations
 
+import errno
 import math
 import random
 import time
@@ -35,12 +36,19 @@ from wcsac_rl.training.checkpoint import (
     find_checkpoint,
     load_checkpoint,
     save_checkpoint,
+    write_error_reason,
 )
 from wcsac_rl.training.config import ALGOS, ConfigError, TrainingError, validate_config
 from wcsac_rl.training.progress import EpisodeTracker, ProgressWriter
 from wcsac_rl.training.runtime import retain_freed_memory
 
 __all__ = ["RandomPolicyTrainer", "Trainer", "make_trainer", "seed_everything", "trainer_class"]
+
+# a run's own files cannot be written: disk full, quota, read-only, permissions
+WRITE_ERRNOS = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EROFS, errno.EACCES}
+
+RESUME_ENTRIES = ("config", "frames", "total_cost", "updates", "epoch", "rng", "learner")
+"""What a checkpoint must hold to resume a run (:meth:`Trainer.state_dict`)."""
 
 EVAL_ENVS = 10
 """Most test episodes run side by side (each one sub-env of one in-process batch)."""
@@ -133,7 +141,7 @@ class Trainer:
         cfg = self.cfg
         if cfg.resume:
             path = find_checkpoint(cfg.resume)
-            checkpoint = load_checkpoint(path)
+            checkpoint = load_checkpoint(path, required=RESUME_ENTRIES)
             check_compatible(checkpoint["config"], cfg, path)
             self.run_dir = path.parent.parent
             return checkpoint
@@ -232,6 +240,14 @@ class Trainer:
             pbar.close()
             print(f"\ninterrupted: checkpoint written to {self.checkpoint_path}")
             raise
+        except OSError as err:
+            if err.errno not in WRITE_ERRNOS:
+                raise
+            raise TrainingError(
+                f"cannot write to {self.run_dir}: {write_error_reason(err, self.run_dir)}; "
+                f"the last checkpoint {self.checkpoint_path} is kept (free some space, then "
+                f"resume={self.run_dir})"
+            ) from None
         finally:
             pbar.close()
             self.collector.shutdown()
