@@ -15,6 +15,7 @@ from omegaconf import DictConfig
 
 from wcsac_rl.envs import NonFiniteStepError
 from wcsac_rl.training import ConfigError, TrainingError, make_trainer
+from wcsac_rl.training.checkpoint import resume_config
 
 # errors a user can cause or fix: printed as one line (exit code 1), never a traceback
 USER_ERRORS = (ConfigError, TrainingError, NonFiniteStepError)
@@ -23,6 +24,8 @@ USER_ERRORS = (ConfigError, TrainingError, NonFiniteStepError)
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> None:
     try:
+        if cfg.resume:  # the run's own config, with only the explicit overrides applied
+            cfg = resume_config(cfg, list(HydraConfig.get().overrides.task))
         trainer = make_trainer(cfg, Path(HydraConfig.get().runtime.output_dir))
     except USER_ERRORS as err:
         sys.exit(f"error: {err}")

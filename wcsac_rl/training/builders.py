@@ -258,8 +258,20 @@ def make_initial_state_buffer(cfg: DictConfig) -> TensorDictReplayBuffer:
     )
 
 
-def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:
-    """A ``torchrl.record.loggers`` logger writing under ``run_dir/logs`` (or ``None``)."""
+def make_logger(
+    cfg: DictConfig,
+    run_dir: Path,
+    *,
+    state: dict | None = None,
+    resume_frames: int | None = None,
+) -> Logger | None:
+    """A ``torchrl.record.loggers`` logger writing under ``run_dir/logs`` (or ``None``).
+
+    A resumed run passes the logger's ``state_dict()`` from its checkpoint (``state``)
+    and the checkpoint's frame count: wandb continues the same run (same id), and
+    TensorBoard hides the events logged after the checkpoint (``purge_step``), as the
+    CSV files are cut back (:func:`~wcsac_rl.training.run_dir.cut_records_to`).
+    """
     backend = cfg.logger.backend
     log_dir = run_dir / "logs"
     name = str(cfg.run_name)
@@ -268,27 +280,48 @@ def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:
     if backend == "csv":
         from torchrl.record.loggers.csv import CSVLogger
 
-        return CSVLogger(exp_name=name, log_dir=str(log_dir))
-    if backend == "tensorboard":
-        from torchrl.record.loggers.tensorboard import TensorboardLogger
-
-        return TensorboardLogger(exp_name=name, log_dir=str(log_dir))
-    if backend == "wandb":
+        logger = CSVLogger(exp_name=name, log_dir=str(log_dir))
+    elif backend == "tensorboard":
+        logger = _tensorboard_logger(
+            name, log_dir, purge_step=None if resume_frames is None else resume_frames + 1
+        )
+    elif backend == "wandb":
         from torchrl.record.loggers.wandb import WandbLogger
 
         mode = cfg.logger.get("mode", "auto")
         if mode == "auto":
             mode = "online" if _wandb_key_available() else "offline"
         log_dir.mkdir(parents=True, exist_ok=True)
-        return WandbLogger(
+        run_id = ((state or {}).get("local") or {}).get("id")
+        logger = WandbLogger(
             exp_name=name,
             offline=mode == "offline",
             save_dir=str(log_dir),
             project=str(cfg.logger.project),
             group=str(cfg.logger.group),
             config=OmegaConf.to_container(cfg, resolve=True),
+            id=run_id,  # None: a new wandb run; else the resumed run's own
         )
-    raise ValueError(f"unknown logger backend {backend!r}")
+    else:
+        raise ValueError(f"unknown logger backend {backend!r}")
+    if state and state.get("exp_name") == name and hasattr(logger, "load_state_dict"):
+        logger.load_state_dict(state)
+    return logger
+
+
+def _tensorboard_logger(name: str, log_dir: Path, *, purge_step: int | None) -> Logger:
+    """TorchRL's ``TensorboardLogger`` whose writer hides events at steps ≥ ``purge_step``."""
+    from torchrl.record.loggers.tensorboard import TensorboardLogger
+
+    class _Logger(TensorboardLogger):
+        def _create_experiment(self):
+            from torch.utils.tensorboard import SummaryWriter
+
+            return SummaryWriter(
+                log_dir=str(Path(self.log_dir) / self.exp_name), purge_step=purge_step
+            )
+
+    return _Logger(exp_name=name, log_dir=str(log_dir))
 
 
 def _wandb_key_available() -> bool:

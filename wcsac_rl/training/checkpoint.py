@@ -17,10 +17,13 @@ __all__ = [
     "CHECKPOINT_DIR",
     "INITIAL_STATE_BUFFER_DIR",
     "LAST_CHECKPOINT",
+    "RESUME_CHANGEABLE",
     "check_compatible",
+    "check_resume_changes",
     "find_checkpoint",
     "load_checkpoint",
     "load_optimizer_state",
+    "resume_config",
     "save_checkpoint",
 ]
 
@@ -173,6 +176,103 @@ def check_compatible(saved_config: dict, cfg: DictConfig, path: Path) -> None:
             f"checkpoint {path} was made by another configuration ({'; '.join(diffs)}); "
             "run with the same settings or start a new run"
         )
+
+
+RESUME_CHANGEABLE = (
+    "resume",
+    "total_frames",
+    "logger",
+    "progress_bar",
+    "threads",
+    "device",
+    "retain_freed_memory",
+    "compile",
+    "checkpoint_every_epochs",
+    "save_replay_buffer",
+    "eval_episodes",
+    "max_nonfinite_updates",
+    "algo.lr",
+    "algo.kappa_lr_scale",
+)
+"""What a resumed session may change (a key or a whole config group): extending the
+run, where and how it logs, how the process runs, and the learning rates (Adam's
+moments come from the checkpoint, the rates from the config). Everything else is the
+run's and stays as it was configured."""
+
+CONFIG_GROUPS = {"algo": "name", "env": "name", "logger": "backend"}
+"""Config groups (``conf/<group>/``) and the entry that names the chosen option."""
+
+
+def _leaves(node: Any, prefix: str = "") -> dict[str, Any]:
+    if isinstance(node, dict):
+        out: dict[str, Any] = {}
+        for key, value in node.items():
+            out.update(_leaves(value, f"{prefix}{key}."))
+        return out
+    return {prefix[:-1]: node}
+
+
+def _changeable(key: str) -> bool:
+    return any(key == k or key.startswith(k + ".") for k in RESUME_CHANGEABLE)
+
+
+def check_resume_changes(saved_config: dict, cfg: DictConfig, path: Path) -> None:
+    """Refuse a resumed session whose config differs from the run's in a key that is not
+    :data:`RESUME_CHANGEABLE` (keys the run's config does not have yet are new options
+    and take their defaults)."""
+    saved = _leaves(
+        saved_config
+        if isinstance(saved_config, dict)
+        else OmegaConf.to_container(saved_config, resolve=True)
+    )
+    now = _leaves(OmegaConf.to_container(cfg, resolve=True))
+    diffs = [
+        f"{key}: run={saved[key]!r}, now={value!r}"
+        for key, value in now.items()
+        if key in saved and saved[key] != value and not _changeable(key)
+    ]
+    if diffs:
+        raise ConfigError(
+            f"resume continues {path.parent.parent} as it was configured, and "
+            f"{'; '.join(diffs)} cannot change on resume (these can: "
+            f"{', '.join(RESUME_CHANGEABLE[1:])}); start a new run to change the others"
+        )
+
+
+def resume_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
+    """The config a resumed session runs with: the run's own (from its checkpoint), with
+    only the command line's explicit ``overrides`` applied on top.
+
+    ``cfg`` is the config Hydra composed (defaults + overrides); taking the values of
+    the overridden keys from it, and nothing else, keeps the defaults from leaking into
+    the run. A group override naming the run's own option (``env=static`` on a static
+    run) changes nothing. Whether a changed key may change is checked by the trainer
+    (:func:`check_resume_changes`).
+    """
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    path = find_checkpoint(cfg.resume)
+    run = OmegaConf.create(load_checkpoint(path)["config"])
+    for override in OverridesParser.create().parse_overrides(list(overrides)):
+        key = override.key_or_group
+        if key == "hydra" or key.startswith("hydra.") or key == "resume":
+            continue
+        if override.is_delete():
+            raise ConfigError(f"~{key}: nothing can be removed from a run's config on resume")
+        if key in ("experiment", "row"):
+            raise ConfigError(
+                f"{key}=... cannot be given on resume: the run keeps its own configuration"
+            )
+        value = OmegaConf.select(cfg, key)
+        if key in CONFIG_GROUPS:
+            entry = f"{key}.{CONFIG_GROUPS[key]}"
+            if OmegaConf.select(run, entry) == OmegaConf.select(cfg, entry):
+                continue  # the run's own option: keep its (possibly overridden) values
+        if isinstance(value, DictConfig):
+            value = OmegaConf.to_container(value, resolve=True)
+        OmegaConf.update(run, key, value, merge=False, force_add=True)
+    run.resume = str(cfg.resume)
+    return run
 
 
 def load_optimizer_state(optimizer: torch.optim.Optimizer, state: dict[str, Any]) -> None:

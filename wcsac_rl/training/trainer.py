@@ -33,6 +33,7 @@ from wcsac_rl.training.checkpoint import (
     CHECKPOINT_DIR,
     LAST_CHECKPOINT,
     check_compatible,
+    check_resume_changes,
     find_checkpoint,
     load_checkpoint,
     save_checkpoint,
@@ -40,6 +41,7 @@ from wcsac_rl.training.checkpoint import (
 )
 from wcsac_rl.training.config import ALGOS, ConfigError, TrainingError, validate_config
 from wcsac_rl.training.progress import EpisodeTracker, ProgressWriter
+from wcsac_rl.training.run_dir import RunLock, check_new_run_dir, cut_records_to, replace_text
 from wcsac_rl.training.runtime import retain_freed_memory
 
 __all__ = ["RandomPolicyTrainer", "Trainer", "make_trainer", "seed_everything", "trainer_class"]
@@ -59,6 +61,14 @@ def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed % 2**32)
     torch.manual_seed(seed)
+
+
+def _logger_state(checkpoint: dict[str, Any] | None, backend: str) -> dict | None:
+    """The checkpoint's logger state if it was written by the same logger backend."""
+    saved = None if checkpoint is None else checkpoint.get("logger")
+    if not saved or saved.get("backend") != backend:
+        return None
+    return saved.get("state")
 
 
 def env_max_episode_steps(cfg: DictConfig) -> int:
@@ -81,7 +91,16 @@ class Trainer:
         validate_config(cfg)
         self.cfg = cfg
         self.run_dir = Path(run_dir)
-        checkpoint = self._resume_checkpoint()
+        self.lock: RunLock | None = None
+        self.env = self.eval_env = self.logger = None
+        try:
+            self._set_up(self._resume_checkpoint())
+        except BaseException:
+            self.close()  # releases the run directory's lock too
+            raise
+
+    def _set_up(self, checkpoint: dict[str, Any] | None) -> None:
+        cfg = self.cfg
         torch.set_num_threads(int(cfg.threads))
         if cfg.get("retain_freed_memory", False):
             retain_freed_memory()
@@ -98,11 +117,7 @@ class Trainer:
         )
         self.policy = None  # set by _build_learner; None acts uniformly at random
         self.init_random_frames = 0  # collector frames with random actions at the start
-        try:
-            self._build_learner()
-        except Exception:
-            self.close()
-            raise
+        self._build_learner()
 
         self.updates = 0
         self.skipped_updates = 0  # updates not taken: non-finite loss or gradient (whole run)
@@ -114,6 +129,14 @@ class Trainer:
         if checkpoint is not None:
             self._load_state(checkpoint)
             self.load_learner_state(checkpoint.get("learner", {}))
+            # rows logged after this checkpoint (by a session killed before its next
+            # checkpoint) are dropped: the resumed session logs those epochs again
+            dropped = cut_records_to(self.run_dir, epoch=self.epoch, frames=self.tracker.frames)
+            if dropped:
+                print(
+                    f"{self.run_dir}: dropped {dropped} progress.csv row(s) logged after the "
+                    f"checkpoint (epoch {self.epoch}, {self.tracker.frames} frames)"
+                )
         remaining = max(0, int(cfg.total_frames) - self.tracker.frames)
         self.collector = (
             builders.make_collector(
@@ -128,9 +151,25 @@ class Trainer:
             if remaining > 0
             else None
         )
-        self.logger = builders.make_logger(cfg, self.run_dir)
+        self.logger = builders.make_logger(
+            cfg,
+            self.run_dir,
+            state=_logger_state(checkpoint, str(cfg.logger.backend)),
+            resume_frames=None if checkpoint is None else self.tracker.frames,
+        )
         self.progress = ProgressWriter(self.run_dir / "progress.csv")
-        OmegaConf.save(cfg, self.run_dir / "config.yaml", resolve=True)
+        self.config_path = self._write_config(resumed=checkpoint is not None)
+
+    def _write_config(self, *, resumed: bool) -> Path:
+        """``config.yaml`` for a new run; a resumed session never rewrites it but writes
+        its own beside it (``config.resume1.yaml``, ``config.resume2.yaml``, ...)."""
+        path = self.run_dir / "config.yaml"
+        if resumed and path.exists():
+            k = 1
+            while (path := self.run_dir / f"config.resume{k}.yaml").exists():
+                k += 1
+        replace_text(path, OmegaConf.to_yaml(self.cfg, resolve=True))
+        return path
 
     # ------------------------------------------------------------- set-up
     @property
@@ -138,19 +177,22 @@ class Trainer:
         return self.run_dir / CHECKPOINT_DIR / LAST_CHECKPOINT
 
     def _resume_checkpoint(self) -> dict[str, Any] | None:
+        """Take the run directory's lock; return the checkpoint to resume (``None``: new run)."""
         cfg = self.cfg
         if cfg.resume:
-            path = find_checkpoint(cfg.resume)
+            given = Path(str(cfg.resume)).expanduser()
+            if given.is_dir():  # lock first: no other run may be writing it
+                self.lock = RunLock(given)
+            path = find_checkpoint(given)
+            self.run_dir = path.parent.parent
+            if self.lock is None:
+                self.lock = RunLock(self.run_dir)
             checkpoint = load_checkpoint(path, required=RESUME_ENTRIES)
             check_compatible(checkpoint["config"], cfg, path)
-            self.run_dir = path.parent.parent
+            check_resume_changes(checkpoint["config"], cfg, path)
             return checkpoint
-        if self.checkpoint_path.exists():
-            raise ConfigError(
-                f"{self.run_dir} already holds a run (checkpoint {self.checkpoint_path}); "
-                f"continue it with resume={self.run_dir} or choose another directory"
-            )
-        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.lock = RunLock(self.run_dir)
+        check_new_run_dir(self.run_dir)
         return None
 
     # ---------------------------------------------------------- algorithm
@@ -224,10 +266,13 @@ class Trainer:
                         self.updates - epoch_start_updates,
                     )
                     self._log(row)
-                    pbar.set_postfix(
-                        ret=f"{row['train/episode_return']:.2f}",
-                        cost=f"{row['train/episode_cost']:.1f}",
-                    )
+                    if row["train/episodes"]:
+                        pbar.set_postfix(
+                            ret=f"{row['train/episode_return']:.2f}",
+                            cost=f"{row['train/episode_cost']:.1f}",
+                        )
+                    else:  # episodes longer than the epoch so far
+                        pbar.set_postfix_str("no finished episode")
                     if self.epoch % int(cfg.checkpoint_every_epochs) == 0:
                         self.save()
                     loss_outputs = []
@@ -368,6 +413,10 @@ class Trainer:
             "total_cost": self.tracker.total_cost,
             "updates": self.updates,
             "skipped_updates": self.skipped_updates,
+            # flushes the logger; on resume wandb continues the same run from it
+            "logger": None
+            if self.logger is None
+            else {"backend": str(self.cfg.logger.backend), "state": self.logger.state_dict()},
             "epoch": self.epoch,
             "elapsed": self.elapsed,
             "rng": {
@@ -398,7 +447,7 @@ class Trainer:
         random.setstate(rng["python"])
 
     def close(self) -> None:
-        """Release envs and flush the logger."""
+        """Release envs, flush the logger and give up the run directory's lock."""
         for env in (self.env, self.eval_env):
             if env is not None and not env.is_closed:
                 env.close()
@@ -407,6 +456,10 @@ class Trainer:
             experiment.finish()
         for handle in getattr(experiment, "files", {}).values():  # TorchRL's CSV logger
             handle.close()
+        if hasattr(experiment, "close") and not hasattr(experiment, "files"):  # tensorboard
+            experiment.close()
+        if self.lock is not None:
+            self.lock.release()
 
 
 class RandomPolicyTrainer(Trainer):

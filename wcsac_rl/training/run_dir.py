@@ -1,0 +1,179 @@
+"""A run directory: one run at a time (a lock), new runs only in empty directories, and
+records that never run ahead of the checkpoint they are resumed from.
+
+* :class:`RunLock` — an OS-level lock (``fcntl.flock``) on ``<run dir>/.lock`` held for
+  the trainer's life. The OS drops it when the process ends, however it ends
+  (``kill -9`` included), so a lock file left by a dead process is recognised as stale
+  by simply being lockable again; the file holds the owner's host and pid for the
+  message the second run prints.
+* :func:`check_new_run_dir` — a new run refuses a directory that holds anything but
+  Hydra's own files (``.hydra/``, the job's ``*.log``) and the lock file.
+* :func:`cut_records_to` — on resume, ``progress.csv`` and the CSV logger's scalar
+  files are cut back to the checkpoint's epoch (rows logged after the checkpoint, by
+  a session that was killed before its next checkpoint, are dropped), each file
+  rewritten atomically (temporary file, then rename).
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import socket
+from pathlib import Path
+
+from wcsac_rl.training.config import ConfigError
+
+__all__ = ["LOCK_FILE", "RunLock", "check_new_run_dir", "cut_records_to", "replace_text"]
+
+LOCK_FILE = ".lock"
+HYDRA_ENTRIES = (".hydra",)
+"""What Hydra writes into a run directory before the trainer starts (and ``*.log``)."""
+
+
+def _is_hydra_entry(path: Path) -> bool:
+    return path.name in HYDRA_ENTRIES or (path.is_file() and path.suffix == ".log")
+
+
+class RunLock:
+    """Hold ``<run dir>/.lock`` exclusively until :meth:`release` (or the process ends).
+
+    Raises :class:`~wcsac_rl.training.ConfigError` (one line, naming the holder) when
+    another live process holds it. Where ``fcntl`` does not exist (Windows) the lock
+    is a no-op.
+    """
+
+    def __init__(self, run_dir: Path) -> None:
+        self.path = Path(run_dir) / LOCK_FILE
+        self._fd: int | None = None
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - not POSIX
+            return
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            raise ConfigError(
+                f"{self.path.parent} is in use by another run ({holder}); wait for it to "
+                "finish or choose another directory"
+            ) from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"host {socket.gethostname()}, pid {os.getpid()}\n".encode(), 0)
+        self._fd = fd
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def release(self) -> None:
+        """Give the lock up (the file stays: an unlocked file is a free directory)."""
+        if self._fd is not None:
+            os.close(self._fd)  # closing the descriptor releases the flock
+            self._fd = None
+
+
+def check_new_run_dir(run_dir: Path) -> None:
+    """Refuse a new run in a directory that already holds files of a run (or anything else)."""
+    run_dir = Path(run_dir)
+    if not run_dir.exists():
+        return
+    entries = sorted(
+        p.name for p in run_dir.iterdir() if p.name != LOCK_FILE and not _is_hydra_entry(p)
+    )
+    if entries:
+        shown = ", ".join(entries[:4]) + (", ..." if len(entries) > 4 else "")
+        has_checkpoint = (run_dir / "checkpoints" / "last.pt").is_file()
+        fix = (
+            f"continue it with resume={run_dir} or choose another directory"
+            if has_checkpoint
+            else "a new run needs an empty directory: choose another one"
+        )
+        raise ConfigError(f"{run_dir} already holds a run ({shown}); {fix}")
+
+
+def replace_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (a temporary file, flushed, then renamed)."""
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with tmp.open("w", newline="") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def _number(text: str | None) -> float | None:
+    try:
+        return float(text) if text not in (None, "") else None
+    except ValueError:
+        return None
+
+
+def _cut_progress(path: Path, epoch: int) -> int:
+    """Keep the rows of ``progress.csv`` up to ``epoch``; returns how many were dropped."""
+    with path.open(newline="") as f:
+        reader = csv.reader(f)
+        header = next(reader, None)
+        rows = list(reader)
+    if header is None:
+        return 0
+    col = header.index("epoch") if "epoch" in header else None
+    kept = [
+        row
+        for row in rows
+        if col is not None
+        and len(row) == len(header)  # a row cut short by a kill is dropped too
+        and (e := _number(row[col])) is not None
+        and e <= epoch
+    ]
+    if len(kept) == len(rows):
+        return 0
+    import io
+
+    buf = io.StringIO()
+    writer = csv.writer(buf)
+    writer.writerow(header)
+    writer.writerows(kept)
+    replace_text(path, buf.getvalue())
+    return len(rows) - len(kept)
+
+
+def _cut_scalar_file(path: Path, frames: int) -> int:
+    """TorchRL's CSV logger writes ``step,value`` lines; keep those with step ≤ ``frames``."""
+    lines = path.read_text().splitlines(keepends=True)
+    kept = []
+    for line in lines:
+        step, sep, _ = line.partition(",")
+        value = _number(step)
+        if sep and line.endswith("\n") and value is not None and value <= frames:
+            kept.append(line)
+    if len(kept) == len(lines):
+        return 0
+    replace_text(path, "".join(kept))
+    return len(lines) - len(kept)
+
+
+def cut_records_to(run_dir: Path, *, epoch: int, frames: int) -> int:
+    """Cut the run's records back to a checkpoint taken after ``epoch`` (at ``frames``).
+
+    ``progress.csv`` keeps its rows up to ``epoch``, the CSV logger's files under
+    ``logs/`` their lines up to step ``frames``. Returns the number of rows dropped
+    from ``progress.csv``.
+    """
+    run_dir = Path(run_dir)
+    dropped = 0
+    progress = run_dir / "progress.csv"
+    if progress.is_file():
+        dropped = _cut_progress(progress, epoch)
+    logs = run_dir / "logs"
+    if logs.is_dir():
+        for scalars in logs.rglob("scalars"):
+            for path in scalars.rglob("*.csv"):
+                _cut_scalar_file(path, frames)
+    return dropped
