@@ -140,7 +140,7 @@ def test_resume_continues_the_frame_counter_and_appends_to_the_log(tmp_path):
 
 def test_resume_with_saved_replay_buffer_updates_at_once(tmp_path):
     trainer, run_dir = _train(tmp_path, "env=tiny", "save_replay_buffer=true")
-    assert (run_dir / "checkpoints" / "replay_buffer").is_dir()
+    assert (run_dir / "checkpoints" / "buffers-800" / "replay_buffer").is_dir()
     resumed, _ = _train(
         tmp_path,
         "env=tiny",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import hashlib
 import os
 import shutil
 from pathlib import Path
@@ -57,14 +58,21 @@ _DISK_FULL_ERRNOS = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)}
 _DISK_FULL_MESSAGES = ("unexpected pos", "file write failed", "no space left")
 
 
+def _first_line(err: BaseException) -> str:
+    return str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+
+
+def is_disk_full(err: BaseException) -> bool:
+    """Whether a failed write failed because the disk (or the quota) is full."""
+    if isinstance(err, OSError) and err.errno in _DISK_FULL_ERRNOS:
+        return True
+    return any(m in _first_line(err).lower() for m in _DISK_FULL_MESSAGES)
+
+
 def write_error_reason(err: BaseException, directory: Path) -> str:
     """A short reason for a failed write into ``directory`` (says so when the disk is full)."""
-    text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-    full = (isinstance(err, OSError) and err.errno in _DISK_FULL_ERRNOS) or any(
-        m in text.lower() for m in _DISK_FULL_MESSAGES
-    )
-    if not full:
-        return text
+    if not is_disk_full(err):
+        return _first_line(err)
     try:
         free = shutil.disk_usage(directory).free
         return f"no space left on its disk ({free / 2**20:.1f} MB free)"
@@ -90,9 +98,10 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
         tmp.unlink(missing_ok=True)
         if not isinstance(err, Exception):
             raise
+        hint = f" (free some space, then resume={path.parent.parent})" if is_disk_full(err) else ""
         raise TrainingError(
             f"cannot write checkpoint {path}: {write_error_reason(err, path.parent)}; the "
-            f"previous checkpoint is kept (free some space, then resume={path.parent.parent})"
+            f"previous checkpoint is kept{hint}"
         ) from None
     fsync_directory(path.parent)
 
@@ -109,6 +118,111 @@ def fsync_directory(directory: Path) -> None:
         pass
     finally:
         os.close(fd)
+
+
+# ------------------------------------------------------------ replay buffers
+BUFFERS_PREFIX = "buffers-"
+"""Saved buffers live in ``checkpoints/buffers-<frames>/<name>/`` (one directory per
+checkpoint that saved them), named by the checkpoint's ``learner["buffers"]`` manifest."""
+
+
+def _file_digest(path: Path) -> str:
+    digest = hashlib.sha256()
+    with path.open("rb") as f:
+        while chunk := f.read(1 << 22):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _fsync_file(path: Path) -> None:
+    with path.open("rb") as f:
+        os.fsync(f.fileno())
+
+
+def save_buffers(checkpoint_dir: Path, buffers: dict[str, Any], *, frames: int) -> dict[str, Any]:
+    """Write replay buffers (``ReplayBuffer.dumps``) for the checkpoint about to be saved.
+
+    They go to a temporary directory, are flushed to disk and measured (size and
+    SHA-256 of every file), and the directory is then renamed to
+    ``buffers-<frames>``: the previous checkpoint's buffers are untouched until the
+    new checkpoint that names these is in place (:func:`remove_unreferenced_buffers`).
+    Returns the manifest to store in the checkpoint. A failed write (a full disk)
+    removes the temporary directory and raises :class:`~wcsac_rl.training.TrainingError`.
+    """
+    name = f"{BUFFERS_PREFIX}{int(frames)}"
+    final = checkpoint_dir / name
+    tmp = checkpoint_dir / f".tmp-{name}"
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        tmp.mkdir(parents=True)
+        for key, buffer in buffers.items():
+            buffer.dumps(tmp / key)
+        files = {}
+        for path in sorted(p for p in tmp.rglob("*") if p.is_file()):
+            _fsync_file(path)
+            files[str(path.relative_to(tmp))] = [path.stat().st_size, _file_digest(path)]
+        if final.exists():  # buffers of an earlier save at the same frame count
+            shutil.rmtree(final)
+        os.replace(tmp, final)
+        fsync_directory(checkpoint_dir)
+    except BaseException as err:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if not isinstance(err, Exception):
+            raise
+        hint = (
+            f" (free some space or set save_replay_buffer=false, then "
+            f"resume={checkpoint_dir.parent})"
+            if is_disk_full(err)
+            else ""
+        )
+        raise TrainingError(
+            f"cannot write the replay buffer into {checkpoint_dir}: "
+            f"{write_error_reason(err, checkpoint_dir)}; the previous checkpoint is kept{hint}"
+        ) from None
+    return {"dir": name, "buffers": sorted(buffers), "files": files}
+
+
+def verify_buffers(checkpoint_dir: Path, manifest: dict[str, Any], checkpoint: Path) -> Path | None:
+    """The directory of a checkpoint's saved buffers after checking every file's size and
+    hash (``None`` when the directory is gone: the buffers are then refilled).
+
+    Raises :class:`~wcsac_rl.training.ConfigError` (one line) when a file is missing,
+    truncated or changed.
+    """
+    directory = checkpoint_dir / manifest["dir"]
+    if not directory.is_dir():
+        return None
+    fix = f"delete {directory} to resume without it (the buffer is then refilled)"
+    for rel, (size, digest) in manifest["files"].items():
+        path = directory / rel
+        if not path.is_file():
+            raise ConfigError(
+                f"the replay buffer saved with {checkpoint} is damaged ({rel} is missing); {fix}"
+            )
+        actual = path.stat().st_size
+        if actual != size:
+            raise ConfigError(
+                f"the replay buffer saved with {checkpoint} is damaged ({rel}: {actual} bytes, "
+                f"expected {size}); {fix}"
+            )
+        if _file_digest(path) != digest:
+            raise ConfigError(
+                f"the replay buffer saved with {checkpoint} is damaged ({rel}: its contents "
+                f"changed since it was saved); {fix}"
+            )
+    return directory
+
+
+def remove_unreferenced_buffers(checkpoint_dir: Path, keep: str | None) -> None:
+    """Delete saved buffers no checkpoint names any more (older ``buffers-*``, temporary
+    leftovers of an interrupted save, and the pre-manifest ``replay_buffer/``)."""
+    if not checkpoint_dir.is_dir():
+        return
+    for path in checkpoint_dir.iterdir():
+        stale = path.name.startswith((BUFFERS_PREFIX, f".tmp-{BUFFERS_PREFIX}"))
+        stale = stale or path.name in (REPLAY_BUFFER_DIR, INITIAL_STATE_BUFFER_DIR)
+        if path.is_dir() and stale and path.name != keep:
+            shutil.rmtree(path, ignore_errors=True)
 
 
 def find_checkpoint(path: str | os.PathLike) -> Path:

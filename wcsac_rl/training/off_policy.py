@@ -30,6 +30,9 @@ from wcsac_rl.training.checkpoint import (
     INITIAL_STATE_BUFFER_DIR,
     REPLAY_BUFFER_DIR,
     load_optimizer_state,
+    remove_unreferenced_buffers,
+    save_buffers,
+    verify_buffers,
 )
 from wcsac_rl.training.trainer import Trainer, env_max_episode_steps
 
@@ -152,33 +155,65 @@ class OffPolicyTrainer(Trainer):
         return TanhNormalPolicy(agent.actor)
 
     # ---------------------------------------------------------- checkpoint
-    @property
-    def _buffer_dir(self):
-        return self.run_dir / CHECKPOINT_DIR / REPLAY_BUFFER_DIR
-
-    @property
-    def _initial_buffer_dir(self):
-        return self.run_dir / CHECKPOINT_DIR / INITIAL_STATE_BUFFER_DIR
+    # With save_replay_buffer=true the replay buffer (and the start-state buffer) are
+    # saved beside each checkpoint in checkpoints/buffers-<frames>/, atomically and
+    # with a manifest (sizes, SHA-256) in the checkpoint; a resume checks them first.
+    _saved_buffers: dict[str, Any] | None = None
 
     def learner_state(self) -> dict[str, Any]:
-        if self.cfg.save_replay_buffer and len(self.replay_buffer):
-            self._buffer_dir.parent.mkdir(parents=True, exist_ok=True)
-            self.replay_buffer.dumps(self._buffer_dir)
-            if self.initial_state_buffer is not None and len(self.initial_state_buffer):
-                self.initial_state_buffer.dumps(self._initial_buffer_dir)
-        return {
+        state = {
             "loss": self.loss.state_dict(),
             "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
         }
+        if self.cfg.save_replay_buffer and len(self.replay_buffer):
+            state["buffers"] = self._save_buffers()
+        return state
+
+    def _save_buffers(self) -> dict[str, Any]:
+        frames = self.tracker.frames
+        saved = self._saved_buffers
+        if saved is not None and saved["frames"] == frames:
+            return saved  # nothing was added since the last save (e.g. the final one)
+        buffers = {REPLAY_BUFFER_DIR: self.replay_buffer}
+        if self.initial_state_buffer is not None and len(self.initial_state_buffer):
+            buffers[INITIAL_STATE_BUFFER_DIR] = self.initial_state_buffer
+        manifest = save_buffers(self.run_dir / CHECKPOINT_DIR, buffers, frames=frames)
+        self._saved_buffers = {**manifest, "frames": frames}
+        return self._saved_buffers
+
+    def after_save(self, state: dict[str, Any]) -> None:
+        # the new checkpoint is in place: older checkpoints' buffers can go
+        keep = (state["learner"].get("buffers") or {}).get("dir")
+        remove_unreferenced_buffers(self.run_dir / CHECKPOINT_DIR, keep)
+
+    def _buffers_to_load(self, state: dict[str, Any]):
+        """The directory holding the checkpoint's saved buffers (verified), or ``None``."""
+        checkpoint_dir = self.run_dir / CHECKPOINT_DIR
+        manifest = state.get("buffers")
+        if manifest:
+            directory = verify_buffers(checkpoint_dir, manifest, self.checkpoint_path)
+            if directory is None:
+                print(
+                    f"{self.run_dir}: the replay buffer saved with the checkpoint is gone "
+                    f"({checkpoint_dir / manifest['dir']}); it is refilled instead"
+                )
+            else:
+                self._saved_buffers = {**manifest, "frames": self.tracker.frames}
+            return directory
+        if (checkpoint_dir / REPLAY_BUFFER_DIR).is_dir():  # saved before manifests (unchecked)
+            return checkpoint_dir
+        return None
 
     def load_learner_state(self, state: dict[str, Any]) -> None:
         self.loss.load_state_dict(state["loss"])
         for key, optimizer in self.optimizers.items():
             load_optimizer_state(optimizer, state["optimizers"][key])
-        if self._buffer_dir.exists():
-            self.replay_buffer.loads(self._buffer_dir)
-            if self.initial_state_buffer is not None and self._initial_buffer_dir.exists():
-                self.initial_state_buffer.loads(self._initial_buffer_dir)
+        directory = self._buffers_to_load(state)
+        if directory is not None:
+            self.replay_buffer.loads(directory / REPLAY_BUFFER_DIR)
+            initial = directory / INITIAL_STATE_BUFFER_DIR
+            if self.initial_state_buffer is not None and initial.exists():
+                self.initial_state_buffer.loads(initial)
             # exact resume: the warm-up threshold stays where an uninterrupted run has it
             self.update_start_frames = self.init_random_frames
         else:

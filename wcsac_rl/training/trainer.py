@@ -429,9 +429,15 @@ class Trainer:
         return state
 
     def save(self) -> Path:
-        """Write ``checkpoints/last.pt`` atomically."""
-        save_checkpoint(self.checkpoint_path, self.state_dict())
+        """Write ``checkpoints/last.pt`` atomically (then :meth:`after_save`)."""
+        state = self.state_dict()
+        save_checkpoint(self.checkpoint_path, state)
+        self.after_save(state)
         return self.checkpoint_path
+
+    def after_save(self, state: dict[str, Any]) -> None:
+        """Called once the checkpoint holding ``state`` is in place (e.g. to remove files
+        that only older checkpoints needed)."""
 
     def _load_state(self, state: dict[str, Any]) -> None:
         self.tracker = EpisodeTracker(
