@@ -122,7 +122,7 @@ def test_a_failed_buffer_save_keeps_the_previous_checkpoint_and_its_buffers(tmp_
 
     monkeypatch.setattr(type(trainer.replay_buffer), "dumps", dumps)
     try:
-        with pytest.raises(TrainingError, match="cannot write the replay buffer .* no space left"):
+        with pytest.raises(TrainingError, match=r"cannot write the replay buffer .* no space left"):
             trainer.run()
     finally:
         trainer.close()
