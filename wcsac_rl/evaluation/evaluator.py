@@ -11,7 +11,11 @@ runs the paper's deterministic (mean-action) test episodes and writes, beside th
   goals per episode and numerical failures).
 
 :func:`evaluate_random_policy` does the same for the uniform random policy without
-a training run. Existing evaluation files are never overwritten unless ``force``.
+a training run. Existing evaluation files are never overwritten unless ``force``
+— or unless they are *stale*: ``evaluation.json`` records the SHA-256 of the
+checkpoint it evaluated (and its frames), and a run whose checkpoint has changed
+since (it was resumed and trained further) is evaluated again
+(:func:`stale_evaluation`); ``report`` refuses stale evaluations.
 
 **Seeds.** The test env of a run trained with seed ``k`` is seeded with
 ``k + seed_offset`` (default :data:`DEFAULT_SEED_OFFSET` = 2 000 003, apart from the
@@ -54,6 +58,7 @@ __all__ = [
     "evaluate_run",
     "load_policy",
     "read_evaluation",
+    "stale_evaluation",
     "summarize",
     "write_evaluation",
 ]
@@ -122,6 +127,41 @@ def check_can_write(directory: Path, force: bool) -> None:
             f"{directory} already has {', '.join(p.name for p in existing)}; "
             "pass --force to overwrite"
         )
+
+
+def stale_evaluation(directory: str | os.PathLike) -> str | None:
+    """Why the evaluation in ``directory`` no longer describes its run's checkpoint
+    (``None``: it does, or there is no checkpoint to compare with — e.g. the random
+    policy's evaluations without a run).
+
+    Compares the checkpoint's SHA-256 with the one ``evaluation.json`` recorded;
+    evaluations written before hashes were recorded are compared by trained frames.
+    """
+    from wcsac_rl.training.checkpoint import CHECKPOINT_DIR, LAST_CHECKPOINT, load_checkpoint
+
+    directory = Path(directory)
+    checkpoint = directory / CHECKPOINT_DIR / LAST_CHECKPOINT
+    if not checkpoint.is_file():
+        return None
+    try:
+        meta = json.loads((directory / EVALUATION_JSON).read_text())
+    except (OSError, ValueError):
+        return "its evaluation.json cannot be read"
+    if not isinstance(meta, dict) or meta.get("checkpoint") is None:
+        return None
+    from wcsac_rl.training.checkpoint import checkpoint_digest
+
+    recorded = meta.get("checkpoint_sha256")
+    if recorded is not None and recorded == checkpoint_digest(checkpoint):
+        return None
+    try:
+        frames = int(load_checkpoint(checkpoint, required=("frames",))["frames"])
+    except ConfigError:
+        return "its checkpoint cannot be read"
+    evaluated = meta.get("trained_frames")
+    if recorded is None and evaluated == frames:
+        return None  # an evaluation from before hashes were recorded, of these frames
+    return f"evaluated at {evaluated} frames, its checkpoint now has {frames}"
 
 
 def _atomic_write(path: Path, write: Callable[[Any], None]) -> None:
@@ -285,6 +325,7 @@ def evaluate_run(
     force: bool = False,
     progress: bool = True,
     max_episode_steps: int | None = None,
+    log: Callable[[str], None] | None = None,
 ) -> Evaluation:
     """Evaluate a run's final policy on ``episodes`` deterministic test episodes and save them.
 
@@ -292,19 +333,27 @@ def evaluate_run(
         run_dir: a run directory holding ``checkpoints/last.pt``.
         episodes: number of test episodes (the paper: 100 per seed).
         seed_offset: the test env is seeded with ``run seed + seed_offset``.
-        force: overwrite an existing evaluation.
+        force: overwrite an existing evaluation (a stale one is always replaced).
         progress: show a tqdm bar over the episodes.
         max_episode_steps: bound on episode length (default: the run's env's).
+        log: where the note about re-evaluating a stale evaluation goes (default:
+            ``print`` when ``progress``).
 
     Raises:
         ConfigError: no checkpoint / unreadable checkpoint (one line), or an
-            evaluation exists and not ``force`` (:class:`EvaluationExistsError`;
-            checked before any work).
+            evaluation of the run's current checkpoint exists and not ``force``
+            (:class:`EvaluationExistsError`; checked before any work).
     """
     from wcsac_rl.training.trainer import env_max_episode_steps
 
     run_dir = Path(run_dir)
-    check_can_write(run_dir, force)
+    if not force and _existing(run_dir):
+        reason = stale_evaluation(run_dir)
+        if reason is None:
+            check_can_write(run_dir, force)  # up to date: EvaluationExistsError
+        if progress or log is not None:
+            (log or print)(f"{run_dir}: evaluating again ({reason})")
+        force = True
     env_seed = _training_seed(run_dir) + int(seed_offset)
     restored = load_policy(run_dir, env_seed, num_envs=_side_by_side(episodes))
     cfg = restored.cfg
@@ -332,6 +381,7 @@ def evaluate_run(
         "trained_frames": int(restored.frames),
         "policy": "uniform random" if restored.policy is None else "trained (deterministic)",
         "checkpoint": str(Path("checkpoints") / "last.pt"),
+        "checkpoint_sha256": restored.checkpoint_sha256,
         "env_seed": env_seed,
         "max_episode_steps": steps,
         "episodes": len(results),

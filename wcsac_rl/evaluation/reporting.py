@@ -38,7 +38,12 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from wcsac_rl.evaluation import plots
-from wcsac_rl.evaluation.evaluator import DEFAULT_SEED_OFFSET, Evaluation, read_evaluation
+from wcsac_rl.evaluation.evaluator import (
+    DEFAULT_SEED_OFFSET,
+    Evaluation,
+    read_evaluation,
+    stale_evaluation,
+)
 from wcsac_rl.evaluation.metrics import RISK_LEVELS, aggregate_seeds, cvar_key
 from wcsac_rl.evaluation.runs import (
     find_evaluated_dirs,
@@ -363,11 +368,22 @@ def build_report(
         if not Path(raw).expanduser().is_dir():
             raise ReportError(f"{raw}: no such directory")
     evaluations: list[Evaluation] = []
+    stale: list[str] = []
     for directory in find_evaluated_dirs(paths):
         try:
             evaluations.append(read_evaluation(directory))
         except ConfigError as err:
             warn(f"skipped: {err}")
+            continue
+        reason = stale_evaluation(directory)
+        if reason is not None:
+            stale.append(f"{directory.name} ({reason})")
+    if stale:  # stale numbers must not enter Table 1
+        raise ReportError(
+            f"{len(stale)} evaluation(s) no longer match their run's checkpoint: "
+            f"{'; '.join(stale)}; evaluate them again (python -m wcsac_rl.evaluate "
+            f"{' '.join(map(str, paths))}) and re-run the report"
+        )
     runs = []
     for directory in find_progress_dirs(paths):
         try:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import io
 import os
 import shutil
 from pathlib import Path
@@ -21,9 +22,11 @@ __all__ = [
     "RESUME_CHANGEABLE",
     "check_compatible",
     "check_resume_changes",
+    "checkpoint_digest",
     "find_checkpoint",
     "load_checkpoint",
     "load_optimizer_state",
+    "read_checkpoint",
     "resume_config",
     "save_checkpoint",
 ]
@@ -250,8 +253,17 @@ def load_checkpoint(path: Path, *, required: tuple[str, ...] = REQUIRED_ENTRIES)
     Raises :class:`~wcsac_rl.training.ConfigError` (one line) for a file that cannot
     be read or is not a training checkpoint (a dict with the ``required`` entries).
     """
+    return read_checkpoint(path, required=required)[0]
+
+
+def read_checkpoint(
+    path: Path, *, required: tuple[str, ...] = REQUIRED_ENTRIES
+) -> tuple[dict[str, Any], str]:
+    """:func:`load_checkpoint`, and the SHA-256 of the very bytes it loaded (what an
+    evaluation records to know later whether the run's checkpoint has changed)."""
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        data = Path(path).read_bytes()
+        state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=False)
     except Exception as err:  # a corrupt or foreign file: one clear line
         reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"cannot read checkpoint {path}: {reason}") from None
@@ -266,7 +278,12 @@ def load_checkpoint(path: Path, *, required: tuple[str, ...] = REQUIRED_ENTRIES)
             f"{path} is not a wcsac_rl training checkpoint (no {', '.join(map(repr, missing))} "
             "entry); pass a run directory written by train.py"
         )
-    return state
+    return state, hashlib.sha256(data).hexdigest()
+
+
+def checkpoint_digest(path: Path) -> str:
+    """SHA-256 of a checkpoint file (see :func:`read_checkpoint`)."""
+    return _file_digest(Path(path))
 
 
 def _select(cfg: DictConfig | dict, key: str) -> Any:

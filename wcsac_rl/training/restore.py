@@ -12,7 +12,7 @@ from tensordict.nn import TensorDictModule
 from torchrl.envs import EnvBase
 
 from wcsac_rl.training import builders
-from wcsac_rl.training.checkpoint import find_checkpoint, load_checkpoint
+from wcsac_rl.training.checkpoint import find_checkpoint, read_checkpoint
 from wcsac_rl.training.trainer import trainer_class
 
 __all__ = ["RestoredRun", "load_run"]
@@ -32,6 +32,7 @@ class RestoredRun:
             ``num_envs`` sub-envs stepped side by side (see :func:`load_run`).
         frames: env steps the run was trained for.
         checkpoint: the raw checkpoint dict.
+        checkpoint_sha256: SHA-256 of the checkpoint file that was loaded.
     """
 
     run_dir: Path
@@ -40,6 +41,7 @@ class RestoredRun:
     env: EnvBase
     frames: int
     checkpoint: dict[str, Any]
+    checkpoint_sha256: str = ""
 
 
 def load_run(path: str | os.PathLike, *, seed: int | None = None, num_envs: int = 1) -> RestoredRun:
@@ -54,7 +56,7 @@ def load_run(path: str | os.PathLike, *, seed: int | None = None, num_envs: int 
     directory holds no checkpoint or the checkpoint cannot be read.
     """
     checkpoint_path = find_checkpoint(path)
-    checkpoint = load_checkpoint(checkpoint_path)
+    checkpoint, digest = read_checkpoint(checkpoint_path)
     cfg = OmegaConf.create(checkpoint["config"])
     env = builders.make_eval_env(cfg, seed=seed, num_envs=num_envs)
     policy = trainer_class(cfg.algo.name).restore_policy(cfg, checkpoint.get("learner", {}), env)
@@ -67,4 +69,5 @@ def load_run(path: str | os.PathLike, *, seed: int | None = None, num_envs: int 
         env=env,
         frames=int(checkpoint["frames"]),
         checkpoint=checkpoint,
+        checkpoint_sha256=digest,
     )
