@@ -199,9 +199,9 @@ class WCSACLoss(SACLoss):
     ``loss_cost_value``, ``loss_cost_variance`` (only with a variance head) and
     ``loss_kappa``, plus the detached diagnostics ``alpha`` (entropy weight β),
     ``kappa``, ``entropy``, ``cost_value`` (mean Q^c), ``cost_variance`` (mean V^c),
-    ``cvar`` (what the κ loss holds under the threshold, see ``kappa_statistic``) and ``cost_threshold``. Each loss term
-    sends gradients only to its own parameters, so their sum can be back-propagated
-    at once.
+    ``cvar`` (what the κ loss holds under the threshold, see ``kappa_statistic``) and
+    ``cost_threshold``. Each loss term sends gradients only to its own parameters, so
+    their sum can be back-propagated at once.
 
     Example:
         >>> import torch
