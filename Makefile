@@ -35,6 +35,7 @@ train: $(STAMP)
 bench: $(STAMP)
 	$(PY) benchmarks/bench_envs.py
 	$(PY) benchmarks/bench_update.py
+	$(PY) benchmarks/bench_memory.py
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache

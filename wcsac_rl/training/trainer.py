@@ -40,7 +40,7 @@ from wcsac_rl.training.checkpoint import (
     write_error_reason,
 )
 from wcsac_rl.training.config import ALGOS, ConfigError, TrainingError, validate_config
-from wcsac_rl.training.progress import EpisodeTracker, ProgressWriter
+from wcsac_rl.training.progress import EpisodeTracker, LossMeans, ProgressWriter
 from wcsac_rl.training.run_dir import RunLock, check_new_run_dir, cut_records_to, replace_text
 from wcsac_rl.training.runtime import retain_freed_memory
 
@@ -231,7 +231,7 @@ class Trainer:
             return self.run_dir
         epoch_frames = int(cfg.epoch_frames)
         next_epoch_end = (self.tracker.frames // epoch_frames + 1) * epoch_frames
-        loss_outputs: list[TensorDictBase] = []
+        loss_means = LossMeans(self.loss_keys)
         epoch_start, epoch_start_frames, epoch_start_updates = (
             time.time(),
             self.tracker.frames,
@@ -254,13 +254,13 @@ class Trainer:
                     break
                 self.tracker.add(batch)
                 pbar.update(batch.numel())
-                loss_outputs.extend(self.learn(batch))
+                loss_means.add(self.learn(batch))
                 if self.tracker.frames >= next_epoch_end or self.tracker.frames >= cfg.total_frames:
                     seconds = time.time() - epoch_start
                     self.elapsed += seconds
                     self.epoch += 1
                     row = self._epoch_row(
-                        loss_outputs,
+                        loss_means,
                         seconds,
                         self.tracker.frames - epoch_start_frames,
                         self.updates - epoch_start_updates,
@@ -275,7 +275,7 @@ class Trainer:
                         pbar.set_postfix_str("no finished episode")
                     if self.epoch % int(cfg.checkpoint_every_epochs) == 0:
                         self.save()
-                    loss_outputs = []
+                    loss_means.reset()
                     next_epoch_end += epoch_frames
                     epoch_start = time.time()
                     epoch_start_frames, epoch_start_updates = self.tracker.frames, self.updates
@@ -313,7 +313,7 @@ class Trainer:
         )
 
     def _epoch_row(
-        self, loss_outputs: list[TensorDictBase], seconds: float, frames: int, updates: int
+        self, loss_means: LossMeans, seconds: float, frames: int, updates: int
     ) -> dict[str, float]:
         row: dict[str, float] = {
             "epoch": self.epoch,
@@ -325,7 +325,7 @@ class Trainer:
         self.tracker.reset_epoch()
         row["train/skipped_updates"] = self.epoch_skipped_updates
         self.epoch_skipped_updates = 0
-        row.update(self._loss_means(loss_outputs))
+        row.update(loss_means.means())
         if "loss/cost_threshold" in row and "loss/cvar" in row:
             # what the κ loss pushes on: > 0 lets κ shrink, < 0 makes it grow
             row["loss/constraint_slack"] = row["loss/cost_threshold"] - row["loss/cvar"]
@@ -342,13 +342,6 @@ class Trainer:
     def loss_keys(self) -> list[str]:
         """The loss outputs logged as ``loss/<key>`` (fixed, so every row has them)."""
         return []
-
-    def _loss_means(self, outputs: list[TensorDictBase]) -> dict[str, float]:
-        keys = self.loss_keys
-        if not outputs:
-            return {f"loss/{key}": math.nan for key in keys}
-        stacked = torch.stack([td.select(*keys) for td in outputs]).float().mean(0)
-        return {f"loss/{key}": float(stacked[key]) for key in keys}
 
     def _evaluate(self) -> dict[str, float]:
         """The epoch's deterministic test episodes: ``eval/*`` means and, when the
