@@ -309,3 +309,34 @@ def test_an_epoch_without_a_finished_episode_says_so_on_the_progress_bar(tmp_pat
     assert "no finished episode" in capsys.readouterr().err
     row = _rows(run_dir)[0]
     assert row["train/episodes"] == "0" and row["train/episode_return"] == "nan"
+
+
+def test_an_epoch_interrupted_by_ctrl_c_is_completed_by_the_resumed_session(tmp_path):
+    run_dir = tmp_path / "run"
+    options = (
+        "env=tiny",
+        "algo=random",
+        "algo.collector.num_envs=2",
+        "algo.collector.frames_per_batch=200",  # 100 steps per env: one episode each
+        "total_frames=1600",
+    )
+    trainer = make_trainer(compose_config(*options), run_dir)
+    real_learn = trainer.learn
+
+    def interrupting_learn(batch):
+        out = real_learn(batch)
+        if trainer.tracker.frames == 600:  # half-way through epoch 2 (400-800)
+            raise KeyboardInterrupt
+        return out
+
+    trainer.learn = interrupting_learn
+    with pytest.raises(KeyboardInterrupt):
+        trainer.run()
+    trainer.close()
+    progress = load_checkpoint(run_dir / "checkpoints" / "last.pt")["epoch_progress"]
+    assert progress["start_frames"] == 400 and len(progress["returns"]) == 2
+    _train(compose_config(*options, f"resume={run_dir}"), run_dir)
+    rows = _rows(run_dir)
+    assert [int(r["frames"]) for r in rows] == [400, 800, 1200, 1600]
+    # 100-step episodes, 2 envs: 4 finish in every epoch, the interrupted one included
+    assert [int(r["train/episodes"]) for r in rows] == [4, 4, 4, 4]

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
 from torchrl import timeit
 from torchrl.envs import EnvBase
@@ -126,6 +126,11 @@ class Trainer:
         self.epoch = 0
         self.elapsed = 0.0  # training wall time over all sessions of this run
         self.tracker = EpisodeTracker()
+        # the epoch in progress (carried over by a checkpoint taken mid-epoch)
+        self.loss_means = LossMeans(self.loss_keys)
+        self.epoch_start_frames = self.epoch_start_updates = 0
+        self.epoch_seconds = 0.0  # of the epoch in progress, in earlier sessions
+        self._epoch_clock: float | None = None  # when this session's part of it began
         if checkpoint is not None:
             self._load_state(checkpoint)
             self.load_learner_state(checkpoint.get("learner", {}))
@@ -159,6 +164,9 @@ class Trainer:
         )
         self.progress = ProgressWriter(self.run_dir / "progress.csv")
         self.config_path = self._write_config(resumed=checkpoint is not None)
+        if checkpoint is not None:
+            # last: building the collector and the logger draws from the global RNGs
+            self._restore_rng(checkpoint["rng"])
 
     def _write_config(self, *, resumed: bool) -> Path:
         """``config.yaml`` for a new run; a resumed session never rewrites it but writes
@@ -231,12 +239,7 @@ class Trainer:
             return self.run_dir
         epoch_frames = int(cfg.epoch_frames)
         next_epoch_end = (self.tracker.frames // epoch_frames + 1) * epoch_frames
-        loss_means = LossMeans(self.loss_keys)
-        epoch_start, epoch_start_frames, epoch_start_updates = (
-            time.time(),
-            self.tracker.frames,
-            self.updates,
-        )
+        self._epoch_clock = time.time()
         timeit.erase()
         pbar = tqdm(
             total=int(cfg.total_frames),
@@ -254,18 +257,26 @@ class Trainer:
                     break
                 self.tracker.add(batch)
                 pbar.update(batch.numel())
-                loss_means.add(self.learn(batch))
+                self.loss_means.add(self.learn(batch))
                 if self.tracker.frames >= next_epoch_end or self.tracker.frames >= cfg.total_frames:
-                    seconds = time.time() - epoch_start
-                    self.elapsed += seconds
+                    session = time.time() - self._epoch_clock
+                    self.elapsed += session
                     self.epoch += 1
                     row = self._epoch_row(
-                        loss_means,
-                        seconds,
-                        self.tracker.frames - epoch_start_frames,
-                        self.updates - epoch_start_updates,
+                        self.loss_means,
+                        self.epoch_seconds + session,
+                        self.tracker.frames - self.epoch_start_frames,
+                        self.updates - self.epoch_start_updates,
                     )
                     self._log(row)
+                    # a new epoch begins (before the checkpoint, which must not carry
+                    # the finished epoch's sums over)
+                    self.loss_means.reset()
+                    self.epoch_seconds, self._epoch_clock = 0.0, time.time()
+                    self.epoch_start_frames, self.epoch_start_updates = (
+                        self.tracker.frames,
+                        self.updates,
+                    )
                     if row["train/episodes"]:
                         pbar.set_postfix(
                             ret=f"{row['train/episode_return']:.2f}",
@@ -275,13 +286,12 @@ class Trainer:
                         pbar.set_postfix_str("no finished episode")
                     if self.epoch % int(cfg.checkpoint_every_epochs) == 0:
                         self.save()
-                    loss_means.reset()
                     next_epoch_end += epoch_frames
-                    epoch_start = time.time()
-                    epoch_start_frames, epoch_start_updates = self.tracker.frames, self.updates
         except KeyboardInterrupt:
-            self.elapsed += time.time() - epoch_start
-            self.save()
+            session = time.time() - self._epoch_clock
+            self.elapsed += session
+            self.epoch_seconds, self._epoch_clock = self.epoch_seconds + session, time.time()
+            self.save()  # with the epoch in progress: the resumed session completes its row
             pbar.close()
             print(f"\ninterrupted: checkpoint written to {self.checkpoint_path}")
             raise
@@ -412,6 +422,7 @@ class Trainer:
             else {"backend": str(self.cfg.logger.backend), "state": self.logger.state_dict()},
             "epoch": self.epoch,
             "elapsed": self.elapsed,
+            "epoch_progress": self._epoch_progress(),
             "rng": {
                 "torch": torch.get_rng_state(),
                 "numpy": np.random.get_state(),
@@ -420,6 +431,44 @@ class Trainer:
         }
         state["learner"] = self.learner_state()
         return state
+
+    def _epoch_progress(self) -> dict[str, Any]:
+        """What the epoch in progress has gathered so far (empty at an epoch's end)."""
+        clock = self._epoch_clock
+        means = self.loss_means
+        return {
+            "start_frames": self.epoch_start_frames,
+            "start_updates": self.epoch_start_updates,
+            "seconds": self.epoch_seconds + (time.time() - clock if clock is not None else 0.0),
+            "returns": list(self.tracker.returns),
+            "costs": list(self.tracker.costs),
+            "lengths": list(self.tracker.lengths),
+            "failures": self.tracker.failures,
+            "skipped_updates": self.epoch_skipped_updates,
+            "loss_sums": None
+            if means.total is None
+            else {key: float(means.total[key]) for key in means.keys},
+            "loss_count": means.count,
+        }
+
+    def _load_epoch_progress(self, progress: dict[str, Any] | None) -> None:
+        if not progress:  # checkpoints from before: the epoch restarts its statistics
+            self.epoch_start_frames, self.epoch_start_updates = self.tracker.frames, self.updates
+            return
+        self.epoch_start_frames = int(progress["start_frames"])
+        self.epoch_start_updates = int(progress["start_updates"])
+        self.epoch_seconds = float(progress["seconds"])
+        self.tracker.returns = list(progress["returns"])
+        self.tracker.costs = list(progress["costs"])
+        self.tracker.lengths = list(progress["lengths"])
+        self.tracker.failures = int(progress["failures"])
+        self.epoch_skipped_updates = int(progress["skipped_updates"])
+        sums = progress.get("loss_sums")
+        if sums is not None and set(sums) == set(self.loss_means.keys):
+            self.loss_means.total = TensorDict(
+                {k: torch.tensor(v, dtype=torch.float64) for k, v in sums.items()}
+            )
+            self.loss_means.count = int(progress["loss_count"])
 
     def save(self) -> Path:
         """Write ``checkpoints/last.pt`` atomically (then :meth:`after_save`)."""
@@ -440,7 +489,10 @@ class Trainer:
         self.skipped_updates = int(state.get("skipped_updates", 0))
         self.epoch = int(state["epoch"])
         self.elapsed = float(state.get("elapsed", 0.0))
-        rng = state["rng"]
+        self._load_epoch_progress(state.get("epoch_progress"))
+
+    @staticmethod
+    def _restore_rng(rng: dict[str, Any]) -> None:
         torch.set_rng_state(rng["torch"])
         np.random.set_state(rng["numpy"])
         random.setstate(rng["python"])
