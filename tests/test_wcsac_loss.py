@@ -13,6 +13,7 @@ from _loss_helpers import (
     make_batch,
     make_loss,
 )
+from _tolerance import assert_close_f32
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torch import nn
@@ -304,8 +305,12 @@ def test_kappa_at_initial_states_reads_only_the_start_states_and_holds_gamma_und
     loss.compute_targets(batch.clone())  # the forward draws a' ~ π(s') first, then a₀
     action0, _ = loss._sample_policy(batch["initial"])
     expected = loss.safety_estimates(batch["initial"].set("action", action0))["cvar"]
-    torch.testing.assert_close(base_cvar, expected.mean())
-    torch.testing.assert_close(base_kappa, loss.kappa * (15.0 - expected.mean()))
+    # the forward evaluates the critics fused, safety_estimates one module at a time:
+    # ~130 roundings (3 layers over 7 + 32 + 32 inputs, √V, the mean over 16 rows) of
+    # values of order 1 + |Γ|
+    scale = 1.0 + float(expected.abs().max())
+    assert_close_f32(base_cvar, expected.mean(), ops=160, magnitude=scale)
+    assert_close_f32(base_kappa, loss.kappa * (15.0 - expected.mean()), ops=160, magnitude=15.0)
     # other replay observations leave the κ term alone; other start states move it
     moved = batch.clone()
     moved["observation"] = moved["observation"] + 3.0
@@ -333,8 +338,12 @@ def test_tail_statistic_is_the_cvar_of_the_critic_mixed_over_the_states(kappa_st
     est = loss.safety_estimates(states.clone().set("action", action))
     expected = gaussian_mixture_cvar(est["cost_value"], est["cost_variance"], 0.1)
     # the same Γ recomputed from the same draws; bisection to 2⁻⁵⁰ of the bracket
-    torch.testing.assert_close(out["cvar"], expected, rtol=1e-5, atol=1e-5)
-    torch.testing.assert_close(out["loss_kappa"], loss.kappa * (loss.cost_threshold - expected))
+    # fused vs module-by-module critics (as above), then the same bisection on both
+    scale = 1.0 + float(est["cvar"].abs().max())
+    assert_close_f32(out["cvar"], expected, ops=160, magnitude=scale)
+    assert_close_f32(
+        out["loss_kappa"], loss.kappa * (loss.cost_threshold - expected), ops=160, magnitude=scale
+    )
     # the tail of the mixture is above the mean of per-state Γ
     assert float(expected) >= float(est["cvar"].mean())
     with pytest.raises(ValueError, match="kappa_statistic must be one of"):
@@ -555,7 +564,10 @@ def test_forward_compiles_with_fullgraph_and_matches_eager():
         torch.manual_seed(0)
         expected = loss(batch.clone())
     for key in expected.keys():
-        torch.testing.assert_close(got[key], expected[key], rtol=1e-4, atol=1e-5)
+        # inductor fuses and reorders the whole update (3 layers of width 16 over a batch
+        # of 16, the losses' sums and means): a few hundred roundings of terms of order
+        # 1 + |value| for these small networks, and terms cancel in e.g. κ(d − Γ)
+        assert_close_f32(got[key], expected[key], ops=512, magnitude=1.0 + expected[key].abs())
     total = sum(v for k, v in got.items() if k.startswith("loss_"))
     total.backward()
     assert loss.kappa_raw.grad is not None
