@@ -521,17 +521,23 @@ class WCSACLoss(SACLoss):
             )
         return cost.to(self.cost_threshold.dtype)
 
+    @staticmethod
+    def _required_entry(tensordict: TensorDictBase, key: NestedKey, what: str, how: str):
+        """``tensordict[key]``, or a ``KeyError`` saying what it is and how to provide it."""
+        value = tensordict.get(key, None)
+        if value is None:
+            raise KeyError(f"{what} at {key!r} of the batch; the batch has none. {how}")
+        return value
+
     def _get_nstep(self, tensordict: TensorDictBase) -> TensorDictBase:
-        key = self.tensor_keys.nstep
-        nstep = tensordict.get(key, None)
-        if nstep is None:
-            raise KeyError(
-                f"cost_n_steps={self.cost_n_steps} needs the n-step cost entries at {key!r} "
-                f"of the batch (cost, steps, terminated and the state after them); the batch "
-                f"has none. Add them to collected data with "
-                f"wcsac_rl.objectives.NStepCost({self.cost_n_steps}, gamma=loss.cost_gamma)."
-            )
-        return nstep
+        return self._required_entry(
+            tensordict,
+            self.tensor_keys.nstep,
+            f"cost_n_steps={self.cost_n_steps} needs the n-step cost entries (cost, steps, "
+            f"terminated and the state after them)",
+            f"Add them to collected data with "
+            f"wcsac_rl.objectives.NStepCost({self.cost_n_steps}, gamma=loss.cost_gamma).",
+        )
 
     def _safety_forward(
         self, tensordict: TensorDictBase, params: TensorDictBase
@@ -910,14 +916,14 @@ class WCSACLoss(SACLoss):
         self, tensordict: TensorDictBase, layers: list[tuple[Tensor, Tensor]] | None = None
     ) -> tuple[Tensor, Tensor | None]:
         key = self.tensor_keys.initial_states
-        initial = tensordict.get(key, None)
-        if initial is None:
-            raise KeyError(
-                f"kappa_states='initial' needs episode start states at {key!r} of the batch "
-                f"(a sub-tensordict shaped like the batch with the actor's observation "
-                f"entries); the batch has none. The wcsac_rl trainer attaches them; in your "
-                f"own loop sample start states and set batch[{key!r}] = them."
-            )
+        initial = self._required_entry(
+            tensordict,
+            key,
+            "kappa_states='initial' needs episode start states (a sub-tensordict shaped like "
+            "the batch with the actor's observation entries)",
+            f"The wcsac_rl trainer attaches them; in your own loop sample start states and "
+            f"set batch[{key!r}] = them.",
+        )
         with torch.no_grad():
             action, _ = self._sample_policy(initial)
             values = self._critic_values(initial, action, "detached", layers)
