@@ -160,7 +160,7 @@ class WCSACLoss(SACLoss):
             (the stored actions, the authors' code) or ``"policy"`` (``a ~ π``, as the
             paper writes). Default ``"policy"`` (see README for the evidence).
         damp_scale (float): MDMM damping in the actor's penalty,
-            ``(κ − damp_scale · mean(d_step − Γ)) · Γ_π``. Default ``0`` (none).
+            ``(κ − damp_scale · mean(threshold − Γ)) · Γ_π``. Default ``0`` (none).
         variance_loss (str): ``"w2"`` — the paper's 2-Wasserstein variance loss
             ``V + y − 2√(V y)``; ``"mse"`` — ``½ (V − y)²``, a consistent estimator of
             the variance when the TD target ``y`` is noisy (W2 on sampled targets
