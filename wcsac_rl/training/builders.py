@@ -203,12 +203,8 @@ def make_collector(
     total_frames: int,
     init_random_frames: int,
     seed: int,
-    postproc=None,
 ) -> Collector:
-    """TorchRL ``Collector`` over the batched training envs (random actions first), seeded.
-
-    ``postproc`` (e.g. :class:`~wcsac_rl.objectives.NStepCost`) is applied to each batch.
-    """
+    """TorchRL ``Collector`` over the batched training envs (random actions first), seeded."""
     collector = Collector(
         env,
         policy,
@@ -218,7 +214,6 @@ def make_collector(
         exploration_type=ExplorationType.RANDOM,
         device=cfg.device,
         auto_register_policy_transforms=False,  # the MLP policy needs no env transforms
-        postproc=postproc,
     )
     collector.set_seed(int(seed))
     return collector
