@@ -692,7 +692,9 @@ class WCSACLoss(SACLoss):
                 # bootstrap m ≤ n steps ahead from the batch's n-step entries
                 nstep = self._get_nstep(tensordict)
                 nstep_action, _ = self._sample_policy(nstep)
-                _, qc_next, vc_next = self._critic_values(nstep, nstep_action, "target")
+                # only the safety critic is needed at s_{t+m}
+                nstep_sa = nstep.clone(False).set(self.tensor_keys.action, nstep_action)
+                qc_next, vc_next = self._safety_forward(nstep_sa, self.target_safety_network_params)
                 cost = nstep.get("cost").reshape(cost.shape).to(cost.dtype)
                 gamma = gamma.pow(nstep.get("steps").reshape(cost.shape).to(cost.dtype))
                 terminated = nstep.get("terminated")
@@ -900,8 +902,6 @@ class WCSACLoss(SACLoss):
             return self.cvar(cost_value, cost_variance)
         if self.nonnegative_cost:
             cost_value = cost_value.clamp(min=0.0)
-        if self.cvar_multiplier == 0.0:
-            cost_variance = None
         tail = gaussian_mixture_cvar(cost_value, cost_variance, self.risk_level)
         return tail.detach().expand(cost_value.shape)
 
