@@ -1,5 +1,6 @@
 """Loss modules (WCSAC, SAC-Lagrangian, CPO), risk measures, and the fast-path helpers
-(``PolyakUpdate`` for target networks, ``TanhNormalPolicy`` for acting)."""
+(``PolyakUpdate`` for target networks, ``TanhNormalPolicy`` for acting), and the data the
+safety critic's options read (``NStepCost``, ``StartStateBuffer``)."""
 
 from wcsac_rl.objectives.cpo import CPOLoss
 from wcsac_rl.objectives.nstep import NStepCost
@@ -10,6 +11,7 @@ from wcsac_rl.objectives.risk import (
     gaussian_mixture_cvar,
     validate_risk_level,
 )
+from wcsac_rl.objectives.start_states import StartStateBuffer
 from wcsac_rl.objectives.tanh_normal import TanhNormalPolicy
 from wcsac_rl.objectives.target_update import PolyakUpdate
 from wcsac_rl.objectives.wcsac import SACLagLoss, WCSACLoss, per_step_cost_threshold
@@ -19,6 +21,7 @@ __all__ = [
     "NStepCost",
     "PolyakUpdate",
     "SACLagLoss",
+    "StartStateBuffer",
     "TanhNormalPolicy",
     "WCSACLoss",
     "empirical_cvar",

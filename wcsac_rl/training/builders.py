@@ -23,7 +23,13 @@ from torchrl.objectives import LossModule, SACLoss
 from torchrl.record.loggers import Logger
 
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import NStepCost, PolyakUpdate, SACLagLoss, WCSACLoss
+from wcsac_rl.objectives import (
+    NStepCost,
+    PolyakUpdate,
+    SACLagLoss,
+    StartStateBuffer,
+    WCSACLoss,
+)
 
 __all__ = [
     "Agent",
@@ -245,12 +251,9 @@ def make_postproc(loss: LossModule) -> NStepCost | None:
 INITIAL_STATE_CAPACITY = 10_000
 
 
-def make_initial_state_buffer(cfg: DictConfig) -> TensorDictReplayBuffer:
-    """Uniform replay of episode start states (the last 10⁴), for ``kappa_states=initial``."""
-    return TensorDictReplayBuffer(
-        storage=LazyTensorStorage(INITIAL_STATE_CAPACITY, device=cfg.device),
-        batch_size=int(cfg.algo.batch_size),
-    )
+def make_initial_state_buffer(cfg: DictConfig, loss: LossModule) -> StartStateBuffer:
+    """The start states the κ loss reads (the last 10⁴), for ``kappa_states=initial``."""
+    return StartStateBuffer.for_loss(loss, capacity=INITIAL_STATE_CAPACITY, device=cfg.device)
 
 
 def make_logger(

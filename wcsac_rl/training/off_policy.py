@@ -10,9 +10,10 @@ collected. The actor collects and plays the test episodes as a
 With ``algo.cost_n_steps > 1`` each collected batch gets the n-step cost entries
 (:class:`~wcsac_rl.objectives.NStepCost`) before it enters the buffer. With
 ``algo.kappa_states=initial`` the trainer also keeps the episode start states
-it collects (``step_count == 0``) in a small buffer of their own and attaches one,
-drawn uniformly, to every row of each sampled batch (``batch["initial"]``), where
-the loss evaluates the CVaR its κ term holds under the limit.
+it collects (``step_count == 0``) in a :class:`~wcsac_rl.objectives.StartStateBuffer`
+and attaches one, drawn uniformly, to every row of each sampled batch
+(``batch["initial"]``), where the loss evaluates the CVaR its κ term holds under the
+limit.
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ class OffPolicyTrainer(Trainer):
         self.postproc = builders.make_postproc(self.loss)
         self.initial_state_buffer = None
         if getattr(self.loss, "kappa_states", "replay") == "initial":
-            self.initial_state_buffer = builders.make_initial_state_buffer(cfg)
+            self.initial_state_buffer = builders.make_initial_state_buffer(cfg, self.loss)
         self.updates_per_batch = max(
             1, round(int(collector_cfg.frames_per_batch) * float(collector_cfg.utd_ratio))
         )
@@ -82,15 +83,8 @@ class OffPolicyTrainer(Trainer):
         """A replay batch (with a start state per row when the loss needs them)."""
         batch = self.replay_buffer.sample()
         if self.initial_state_buffer is not None:
-            initial = self.initial_state_buffer.sample(batch.shape[0])
-            batch.set(self.loss.tensor_keys.initial_states, initial.exclude("index"))
+            batch = self.initial_state_buffer.attach(batch)
         return batch
-
-    def _store_initial_states(self, batch: TensorDictBase) -> None:
-        flat = batch.reshape(-1)
-        starts = flat.get("step_count").reshape(-1) == 0
-        if bool(starts.any()):
-            self.initial_state_buffer.extend(flat[starts].select(*self.loss.initial_state_keys))
 
     def update(self, batch: TensorDictBase) -> TensorDictBase | None:
         """One gradient step on every parameter group, then the polyak update of the targets.
@@ -139,7 +133,7 @@ class OffPolicyTrainer(Trainer):
                 batch = self.postproc(batch)
             self.replay_buffer.extend(batch.reshape(-1).select(*self.replay_keys))
             if self.initial_state_buffer is not None:
-                self._store_initial_states(batch)
+                self.initial_state_buffer.add_starts(batch)
         if self.tracker.frames < self.update_start_frames:
             return []
         with timeit("update"):
