@@ -55,11 +55,14 @@ def make_batch(
     return td
 
 
-def make_loss(*, variance: bool = True, width: int = 32, seed: int = 0, **kwargs) -> WCSACLoss:
+def make_loss(
+    *, variance: bool = True, width: int = 32, seed: int = 0, kind: str = "gaussian", **kwargs
+) -> WCSACLoss:
+    """A small WCSACLoss; ``kind="iqn"`` gives it an implicit-quantile safety critic."""
     torch.manual_seed(seed)
     actor = make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=width)
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=width) for _ in range(2)]
-    safety = make_safety_critic(OBS_DIM, ACT_DIM, variance=variance, width=width)
+    safety = make_safety_critic(OBS_DIM, ACT_DIM, kind=kind, variance=variance, width=width)
     kwargs.setdefault("risk_level", 0.5 if variance else 1.0)
     return WCSACLoss(actor, qvalues, safety, **kwargs)
 

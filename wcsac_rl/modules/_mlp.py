@@ -15,11 +15,14 @@ def make_mlp(
     width: int = 256,
     depth: int = 2,
     activation: str = "relu",
+    activate_last_layer: bool = False,
 ) -> MLP:
     """An MLP with ``depth`` hidden layers of ``width`` units (paper: 2 × 256, ReLU).
 
     TorchRL's :class:`~torchrl.modules.MLP` concatenates several inputs along the
     last dimension, so the same network serves ``Q(s, a)`` (two inputs) and ``π(s)``.
+    ``activate_last_layer`` applies the activation to the output too (a feature
+    extractor, as in the IQN safety critic).
     """
     if in_features <= 0 or out_features <= 0:
         raise ValueError(
@@ -38,4 +41,5 @@ def make_mlp(
         out_features=out_features,
         num_cells=[width] * depth,
         activation_class=activation_class,
+        activate_last_layer=activate_last_layer,
     )

@@ -1,4 +1,6 @@
-"""The Gaussian safety critic of WCSAC: C(s, a) ~ N(Q^c(s, a), V^c(s, a)).
+"""The safety critics of WCSAC: the Gaussian C(s, a) ~ N(Q^c(s, a), V^c(s, a)) of the
+paper, its mean-only ablation (SAC-Lagrangian), and the implicit-quantile critic of the
+journal version (:class:`~wcsac_rl.modules.quantile_critic.IQNSafetyCritic`).
 
 Mean and variance are two *separate* MLPs, as the paper requires: removing the
 variance network leaves exactly the cost critic of SAC-Lagrangian.
@@ -13,8 +15,18 @@ from torch import nn
 from torch.nn import functional as F
 
 from wcsac_rl.modules._mlp import make_mlp
+from wcsac_rl.modules.quantile_critic import IQNSafetyCritic
 
-__all__ = ["VARIANCE_MAX", "VARIANCE_MIN", "GaussianSafetyCritic", "make_safety_critic"]
+__all__ = [
+    "SAFETY_CRITIC_KINDS",
+    "VARIANCE_MAX",
+    "VARIANCE_MIN",
+    "GaussianSafetyCritic",
+    "make_safety_critic",
+]
+
+SAFETY_CRITIC_KINDS = ("gaussian", "iqn")
+"""What :func:`make_safety_critic` builds (``kind``)."""
 
 #: V^c is clamped to this range wherever it is produced or used (spec, authors' code).
 VARIANCE_MIN = 1e-8
@@ -57,14 +69,18 @@ def make_safety_critic(
     observation_dim: int,
     action_dim: int,
     *,
+    kind: str = "gaussian",
     variance: bool = True,
     observation_key: NestedKey = "observation",
     action_key: NestedKey = "action",
     cost_value_key: NestedKey = "cost_value",
     cost_variance_key: NestedKey = "cost_variance",
+    quantile_fractions_key: NestedKey = "quantile_fractions",
+    cost_quantiles_key: NestedKey = "cost_quantiles",
     width: int = 256,
     depth: int = 2,
     activation: str = "relu",
+    num_cosines: int = 64,
 ) -> TensorDictModule:
     """The safety critic as a ``TensorDictModule`` reading observation and action.
 
@@ -73,13 +89,23 @@ def make_safety_critic(
         action_dim: size of the action.
 
     Keyword Args:
-        variance: ``True`` (WCSAC) writes ``cost_value`` (Q^c) and ``cost_variance``
-            (V^c > 0) from two separate MLPs; ``False`` (SAC-Lag) writes only
-            ``cost_value``.
+        kind: ``"gaussian"`` (the paper's critic, or its mean-only ablation, see
+            ``variance``) or ``"iqn"``: an implicit quantile network
+            (:class:`~wcsac_rl.modules.quantile_critic.IQNSafetyCritic`) that also
+            reads quantile fractions τ ``[*B, N]`` at ``quantile_fractions_key`` and
+            writes the τ-quantiles of the cost return ``[*B, N]`` at
+            ``cost_quantiles_key`` (``WCSACLoss`` samples τ itself).
+        variance: Gaussian only. ``True`` (WCSAC) writes ``cost_value`` (Q^c) and
+            ``cost_variance`` (V^c > 0) from two separate MLPs; ``False`` (SAC-Lag)
+            writes only ``cost_value``.
         observation_key, action_key: input keys.
-        cost_value_key, cost_variance_key: output keys (``WCSACLoss`` reads them in
-            this order: mean first, variance second).
-        width, depth, activation: MLP shape (paper: 2 × 256, ReLU).
+        cost_value_key, cost_variance_key: output keys of the Gaussian critic
+            (``WCSACLoss`` reads them in this order: mean first, variance second).
+        quantile_fractions_key, cost_quantiles_key: input τ and output quantiles of
+            the IQN critic.
+        width, depth, activation: MLP shape (paper: 2 × 256, ReLU); for the IQN
+            critic, the hidden layers before the merge with the τ embedding.
+        num_cosines: IQN only: cosines of τ in its embedding (64, as IQN).
 
     Example:
         >>> import torch
@@ -89,8 +115,31 @@ def make_safety_critic(
         >>> td = critic(td)
         >>> td["cost_value"].shape, bool((td["cost_variance"] > 0).all())
         (torch.Size([4, 1]), True)
+        >>> iqn = make_safety_critic(44, 2, kind="iqn")
+        >>> td["quantile_fractions"] = torch.rand(4, 20)
+        >>> iqn(td)["cost_quantiles"].shape
+        torch.Size([4, 20])
     """
+    if kind not in SAFETY_CRITIC_KINDS:
+        raise ValueError(f"kind must be one of {SAFETY_CRITIC_KINDS}, got {kind!r}")
     in_keys = [observation_key, action_key]
+    if kind == "iqn":
+        if not variance:
+            raise ValueError(
+                "variance=False is the Gaussian critic's mean-only ablation; an IQN "
+                "critic learns the whole distribution (leave variance at its default)"
+            )
+        net = IQNSafetyCritic(
+            observation_dim,
+            action_dim,
+            width=width,
+            depth=depth,
+            activation=activation,
+            num_cosines=num_cosines,
+        )
+        return TensorDictModule(
+            net, in_keys=[*in_keys, quantile_fractions_key], out_keys=[cost_quantiles_key]
+        )
     if variance:
         net = GaussianSafetyCritic(
             observation_dim, action_dim, width=width, depth=depth, activation=activation

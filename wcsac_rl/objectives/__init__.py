@@ -9,6 +9,7 @@ from wcsac_rl.objectives.risk import (
     gaussian_cvar,
     gaussian_cvar_multiplier,
     gaussian_mixture_cvar,
+    quantile_mixture_cvar,
     validate_risk_level,
 )
 from wcsac_rl.objectives.start_states import StartStateBuffer
@@ -29,5 +30,6 @@ __all__ = [
     "gaussian_cvar_multiplier",
     "gaussian_mixture_cvar",
     "per_step_cost_threshold",
+    "quantile_mixture_cvar",
     "validate_risk_level",
 ]

@@ -11,6 +11,10 @@ network) plus
 * a Lagrange multiplier ``κ`` trained to keep ``Γ`` under the per-step threshold.
 
 ``SACLagLoss`` is the same loss at ``α = 1`` with a mean-only safety critic.
+
+Beyond the paper, the safety critic may be an implicit quantile network (the
+journal version of WCSAC): quantile-Huber TD loss instead of the mean and variance
+losses, ``Γ`` = the mean of its quantiles over ``τ ∈ [1 − α, 1]``.
 """
 
 from __future__ import annotations
@@ -30,6 +34,7 @@ from torchrl.objectives import SACLoss
 from torchrl.objectives.sac import compute_rsample_log_prob
 from torchrl.objectives.utils import ValueEstimators, _cache_values, distance_loss
 
+from wcsac_rl.modules.quantile_critic import IQNSafetyCritic
 from wcsac_rl.modules.safety_critic import VARIANCE_MAX, VARIANCE_MIN, GaussianSafetyCritic
 from wcsac_rl.objectives.critic_ensemble import (
     EnsembleMember,
@@ -37,9 +42,15 @@ from wcsac_rl.objectives.critic_ensemble import (
     mlp_layout,
     stack_layers,
 )
+from wcsac_rl.objectives.quantile import (
+    midpoint_fractions,
+    quantile_huber_loss,
+    stratified_fractions,
+)
 from wcsac_rl.objectives.risk import (
     gaussian_cvar_multiplier,
     gaussian_mixture_cvar,
+    quantile_mixture_cvar,
     validate_risk_level,
 )
 from wcsac_rl.objectives.tanh_normal import sample_tanh_normal, tanh_normal_actor_plan
@@ -87,12 +98,23 @@ class CriticValues(NamedTuple):
     """Every critic at one batch of state-actions, squeezed to the batch shape.
 
     ``qvalue`` is ``[num_qvalue_nets, *B]``; ``cost_variance`` is ``None`` for a
-    mean-only safety critic.
+    mean-only safety critic. For an IQN safety critic, ``cost_quantiles`` ``[*B, N]``
+    are its quantiles at ``quantile_fractions`` ``[N]`` (one stratified draw over
+    [0, 1], shared by the batch), ``cost_value`` and ``cost_variance`` their mean and
+    variance, and ``tail_quantiles`` ``[*B, N]`` the quantiles at a stratified draw
+    over ``[1 − α, 1]`` (whose mean is Γ), or ``None`` where not needed.
     """
 
     qvalue: Tensor
     cost_value: Tensor
     cost_variance: Tensor | None
+    cost_quantiles: Tensor | None = None
+    quantile_fractions: Tensor | None = None
+    tail_quantiles: Tensor | None = None
+
+    def detach(self) -> CriticValues:
+        """The same values without gradient."""
+        return CriticValues(*(None if v is None else v.detach() for v in self))
 
 
 class WCSACLoss(SACLoss):
@@ -108,7 +130,12 @@ class WCSACLoss(SACLoss):
             ``V^c > 0`` (keys ``"cost_value"`` and ``"cost_variance"``; if its out_keys
             are named otherwise, the first is taken as the mean and the second as the
             variance). A mean-only critic (one out key) is allowed at ``risk_level=1``.
-            See :func:`wcsac_rl.modules.make_safety_critic`.
+            Or an implicit quantile network (``make_safety_critic(..., kind="iqn")``,
+            detected by its :class:`~wcsac_rl.modules.IQNSafetyCritic` or by its
+            reading the ``quantile_fractions`` key): it reads state, action and
+            quantile fractions τ ``[*B, N]`` and writes the τ-quantiles of the cost
+            return ``[*B, N]`` (``"cost_quantiles"``, or its single out key); the
+            loss draws τ. See :func:`wcsac_rl.modules.make_safety_critic`.
 
     Keyword Args:
         risk_level (float): the paper's α ∈ (0, 1], the tail fraction whose mean cost
@@ -161,6 +188,14 @@ class WCSACLoss(SACLoss):
             paper writes). Default ``"policy"`` (see README for the evidence).
         damp_scale (float): MDMM damping in the actor's penalty,
             ``(κ − damp_scale · mean(threshold − Γ)) · Γ_π``. Default ``0`` (none).
+        num_quantiles (int): IQN critic only: ``N``, the fractions τ drawn per
+            evaluation of the online critic (quantile loss, Γ, diagnostics), one per
+            equal stratum of [0, 1] (of [1 − α, 1] for Γ) and shared by the batch
+            rows. Default ``20`` (the journal version).
+        num_target_quantiles (int): IQN critic only: ``N'``, the target fractions τ'
+            per update. Default ``20``.
+        huber_kappa (float): IQN critic only: the threshold κ_H > 0 of the quantile
+            Huber loss. Default ``1.0`` (IQN).
         variance_loss (str): ``"w2"`` — the paper's 2-Wasserstein variance loss
             ``V + y − 2√(V y)``; ``"mse"`` — ``½ (V − y)²``, a consistent estimator of
             the variance when the TD target ``y`` is noisy (W2 on sampled targets
@@ -172,13 +207,16 @@ class WCSACLoss(SACLoss):
             expectation when Q is the mean of its target, but ``"td"`` is never
             negative (the moment form is negative wherever ``Q > γ_c Q̄'``, which
             drives the variance head to its floor when costs are rare). Default
-            ``"moment"``.
+            ``"moment"``. ``variance_loss`` and ``variance_target`` configure the
+            Gaussian critic's variance head: with an IQN critic any other value than
+            their defaults is a ``ValueError``.
         fuse_critics (bool, optional): evaluate the reward and safety critics as one
             batched ensemble (one matrix product per layer for all four networks).
             Needs plain MLP critics of one shape reading ``[observation, action]``, as
             :mod:`wcsac_rl.modules` builds them; ``None`` (default) fuses when
             possible, ``False`` calls the modules one by one. Same values and
-            gradients either way.
+            gradients either way. An IQN safety critic is never fused (``True`` is
+            a ``ValueError``).
         direct_sampling (bool, optional): draw the actor's reparametrised actions
             straight from its parameters instead of building TorchRL's
             ``TanhNormal`` each time. Needs an actor built like
@@ -202,6 +240,18 @@ class WCSACLoss(SACLoss):
     ``cvar`` (what the κ loss holds under the threshold, see ``kappa_statistic``) and
     ``cost_threshold``. Each loss term sends gradients only to its own parameters, so
     their sum can be back-propagated at once.
+
+    With an IQN safety critic ``loss_cost_quantile`` (the quantile Huber TD loss)
+    replaces ``loss_cost_value`` and ``loss_cost_variance``: with ``N`` fractions τ_i
+    over [0, 1] and ``N'`` fractions τ'_j, the targets are
+    ``y_j = c + γ_c(1−term) Z̄(s', a', τ'_j)`` (``a' ~ π(s')``, target critic; the
+    n-step form with ``cost_n_steps > 1``; ``max(Z̄, 0)`` with ``nonnegative_cost``)
+    and the loss is ``Σ_i (1/N') Σ_j ρ^κ_{τ_i}(y_j − Z(s, a, τ_i))``. Γ is the mean
+    of ``Z(s, a, τ)`` over ``N`` fractions in ``[1 − α, 1]`` (``max(Z, 0)`` with
+    ``nonnegative_cost``); ``cost_value`` and ``cost_variance`` are the mean and
+    variance of the quantiles over [0, 1], and ``kappa_statistic="tail"`` is the
+    CVaR_α of the quantiles of all states pooled
+    (:func:`~wcsac_rl.objectives.risk.quantile_mixture_cvar`).
 
     Example:
         >>> import torch
@@ -248,6 +298,10 @@ class WCSACLoss(SACLoss):
                 ``"cost_value"``.
             cost_variance (NestedKey): safety critic's cost variance V^c. Defaults to
                 ``"cost_variance"``.
+            quantile_fractions (NestedKey): where an IQN safety critic reads its
+                fractions τ (the loss writes them). Defaults to ``"quantile_fractions"``.
+            cost_quantiles (NestedKey): the IQN safety critic's quantiles.
+                Defaults to ``"cost_quantiles"``.
             initial_states (NestedKey): with ``kappa_states="initial"``, a
                 sub-tensordict shaped like the batch holding episode start states (the
                 actor's and critics' observation entries), where the κ loss evaluates
@@ -261,6 +315,8 @@ class WCSACLoss(SACLoss):
         cost: NestedKey = "cost"
         cost_value: NestedKey = "cost_value"
         cost_variance: NestedKey = "cost_variance"
+        quantile_fractions: NestedKey = "quantile_fractions"
+        cost_quantiles: NestedKey = "cost_quantiles"
         initial_states: NestedKey = "initial"
         nstep: NestedKey = "nstep"
 
@@ -291,6 +347,9 @@ class WCSACLoss(SACLoss):
         kappa_actions: str = "policy",
         kappa_states: str = "replay",
         damp_scale: float = 0.0,
+        num_quantiles: int = 20,
+        num_target_quantiles: int = 20,
+        huber_kappa: float = 1.0,
         variance_loss: str = "mse",
         variance_target: str = "moment",
         fuse_critics: bool | None = None,
@@ -343,6 +402,17 @@ class WCSACLoss(SACLoss):
             raise ValueError(
                 f"variance_loss must be one of {VARIANCE_LOSSES}, got {variance_loss!r}"
             )
+        for name, count in (
+            ("num_quantiles", num_quantiles),
+            ("num_target_quantiles", num_target_quantiles),
+        ):
+            if int(count) != count or count < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {count}")
+        if not huber_kappa > 0:
+            raise ValueError(f"huber_kappa must be > 0 (the Huber threshold), got {huber_kappa}")
+        self.num_quantiles = int(num_quantiles)
+        self.num_target_quantiles = int(num_target_quantiles)
+        self.huber_kappa = float(huber_kappa)
         self.cost_limit = float(cost_limit)
         self.max_episode_steps = int(max_episode_steps)
         self._explicit_cost_threshold = None if cost_threshold is None else float(cost_threshold)
@@ -363,8 +433,16 @@ class WCSACLoss(SACLoss):
             **sac_kwargs,
         )
         self.convert_to_functional(safety_network, "safety_network", create_target_params=True)
+        self._quantile_critic = self._reads_quantile_fractions(safety_network)
         self._adopt_safety_keys(safety_network)
-        if self.cvar_multiplier != 0.0 and not self.has_variance:
+        if self._quantile_critic and (variance_loss, variance_target) != ("mse", "moment"):
+            raise ValueError(
+                f"variance_loss={variance_loss!r} and variance_target={variance_target!r} "
+                "configure the Gaussian critic's variance head; an IQN safety critic has "
+                "none (it learns quantiles with the quantile Huber loss): leave them at "
+                "their defaults ('mse', 'moment')"
+            )
+        if self.cvar_multiplier != 0.0 and not self.has_variance and not self._quantile_critic:
             raise ValueError(
                 f"risk_level={self.risk_level} needs a safety critic with a variance head "
                 f"(out_keys {self.tensor_keys.cost_value!r} and {self.tensor_keys.cost_variance!r}); "
@@ -385,6 +463,12 @@ class WCSACLoss(SACLoss):
         self.make_value_estimator(ValueEstimators.TD0)
         self._set_in_keys()
         self._ensemble = self._critic_ensemble() if fuse_critics is not False else None
+        if fuse_critics and self._quantile_critic:
+            raise ValueError(
+                "fuse_critics=True: an IQN safety critic is not fused with the reward "
+                "critics (it also reads quantile fractions); use fuse_critics=None, which "
+                "evaluates it as a module and still fuses nothing else"
+            )
         if fuse_critics and self._ensemble is None:
             raise ValueError(
                 "fuse_critics=True needs the reward and safety critics to be MLPs of one "
@@ -402,7 +486,16 @@ class WCSACLoss(SACLoss):
             )
 
     # ------------------------------------------------------------------ set-up
+    def _reads_quantile_fractions(self, safety_network: TensorDictModule) -> bool:
+        """Whether the safety critic is an implicit quantile network."""
+        return isinstance(
+            getattr(safety_network, "module", None), IQNSafetyCritic
+        ) or self.tensor_keys.quantile_fractions in list(safety_network.in_keys)
+
     def _adopt_safety_keys(self, safety_network: TensorDictModule) -> None:
+        if self._quantile_critic:
+            self._adopt_quantile_keys(safety_network)
+            return
         out_keys = list(safety_network.out_keys)
         defaults = (self.tensor_keys.cost_value, self.tensor_keys.cost_variance)
         if not any(k in out_keys for k in defaults):
@@ -420,10 +513,32 @@ class WCSACLoss(SACLoss):
                 f"from {self.tensor_keys.cost_value!r}"
             )
 
+    def _adopt_quantile_keys(self, safety_network: TensorDictModule) -> None:
+        in_keys, out_keys = list(safety_network.in_keys), list(safety_network.out_keys)
+        keys = self.tensor_keys
+        if keys.quantile_fractions not in in_keys:
+            # an IQNSafetyCritic reads (observation, action, fractions) in that order
+            keys.quantile_fractions = in_keys[-1]
+        if keys.cost_quantiles not in out_keys:
+            if len(out_keys) != 1:
+                raise ValueError(
+                    f"cannot tell which of the IQN safety critic's out_keys {out_keys} holds "
+                    "the quantiles; call set_keys(cost_quantiles=...)"
+                )
+            keys.cost_quantiles = out_keys[0]
+
     @property
     def has_variance(self) -> bool:
-        """Whether the safety critic has a variance head (WCSAC) or not (SAC-Lag)."""
+        """Whether the safety critic has a variance head (WCSAC) or not (SAC-Lag, IQN)."""
         return self.tensor_keys.cost_variance in self.safety_network.out_keys
+
+    @property
+    def safety_critic_kind(self) -> str:
+        """``"iqn"`` (implicit quantile network), ``"gaussian"`` (mean and variance
+        heads) or ``"mean"`` (mean only, SAC-Lag)."""
+        if self._quantile_critic:
+            return "iqn"
+        return "gaussian" if self.has_variance else "mean"
 
     def make_value_estimator(self, value_type: ValueEstimators = None, **hyperparams):
         """Set γ (TD(0) only), and the per-step cost threshold that depends on it."""
@@ -458,8 +573,10 @@ class WCSACLoss(SACLoss):
         if safety is not None:
             keys = set(self._in_keys)
             keys.add(("next", self.tensor_keys.cost))
-            keys.update(safety.in_keys)
-            keys.update(("next", k) for k in safety.in_keys if k != self.tensor_keys.action)
+            fractions = self.tensor_keys.quantile_fractions  # written by the loss
+            inputs = [k for k in safety.in_keys if k != fractions]
+            keys.update(inputs)
+            keys.update(("next", k) for k in inputs if k != self.tensor_keys.action)
             if self.__dict__.get("cost_n_steps", 1) > 1:
                 for key in ("cost", "steps", "terminated", *self.initial_state_keys):
                     keys.add(_nested(self.tensor_keys.nstep, key))
@@ -468,11 +585,16 @@ class WCSACLoss(SACLoss):
     @property
     def out_keys(self):
         if self._out_keys is None:
-            keys = ["loss_actor", "loss_qvalue", "loss_alpha", "loss_cost_value"]
+            keys = ["loss_actor", "loss_qvalue", "loss_alpha"]
+            quantile = self.__dict__.get("_quantile_critic", False)
+            if quantile:
+                keys.append("loss_cost_quantile")
+            else:
+                keys.append("loss_cost_value")
             if self.has_variance:
                 keys.append("loss_cost_variance")
             keys += ["loss_kappa", "alpha", "kappa", "entropy", "cost_value"]
-            if self.has_variance:
+            if self.has_variance or quantile:
                 keys.append("cost_variance")
             keys += ["cvar", "cost_threshold"]
             self._out_keys = keys
@@ -551,6 +673,54 @@ class WCSACLoss(SACLoss):
             return mean, None
         variance = td.get(self.tensor_keys.cost_variance).squeeze(-1)
         return mean, variance.clamp(VARIANCE_MIN, VARIANCE_MAX)
+
+    def _quantile_forward(
+        self, tensordict: TensorDictBase, params: TensorDictBase, fractions: Tensor
+    ) -> Tensor:
+        """The IQN critic's quantiles ``[*B, N]`` at the state-action in ``tensordict``
+        and the fractions ``[N]`` (given to it expanded over the batch: one embedding
+        of τ serves every row)."""
+        key = self.tensor_keys.quantile_fractions
+        inputs = [k for k in self.safety_network.in_keys if k != key]
+        td = tensordict.select(*inputs, strict=False)
+        td.set(key, fractions.expand(*td.batch_size, fractions.shape[-1]))
+        with params.to_module(self.safety_network, preserve_module_state=False):
+            td = self.safety_network(td)
+        return td.get(self.tensor_keys.cost_quantiles)
+
+    def _fractions(self, count: int, tail: bool = False, *, stratified: bool = True) -> Tensor:
+        """``count`` fractions over [0, 1] (``tail``: over [1 − α, 1]), one per stratum,
+        drawn (``stratified``) or at the strata's midpoints."""
+        draw = stratified_fractions if stratified else midpoint_fractions
+        low = 1.0 - self.risk_level if tail else 0.0
+        device, dtype = self.cost_threshold.device, self.cost_threshold.dtype
+        return draw(count, low, 1.0, device=device, dtype=dtype)
+
+    def _quantile_values(
+        self,
+        tensordict: TensorDictBase,
+        params: TensorDictBase,
+        *,
+        target: bool = False,
+        stratified: bool = True,
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None]:
+        """The IQN critic at the state-action in ``tensordict``: the mean and variance of
+        its quantiles over [0, 1], those quantiles, their fractions and (not for the
+        ``target``) the quantiles over [1 − α, 1], from one call of the network."""
+        count = self.num_target_quantiles if target else self.num_quantiles
+        fractions = self._fractions(count, stratified=stratified)
+        if target:
+            quantiles, tail = self._quantile_forward(tensordict, params, fractions), None
+        else:
+            both = torch.cat(
+                [fractions, self._fractions(self.num_quantiles, True, stratified=stratified)]
+            )
+            quantiles, tail = self._quantile_forward(tensordict, params, both).split(
+                [count, self.num_quantiles], dim=-1
+            )
+        mean = quantiles.mean(-1)
+        variance = (quantiles - mean.unsqueeze(-1)).pow(2).mean(-1)
+        return mean, variance, quantiles, fractions, tail
 
     def _critic_ensemble(self) -> list[EnsembleMember] | None:
         """The fused-evaluation plan if every critic is a same-shaped MLP, else ``None``."""
@@ -643,16 +813,32 @@ class WCSACLoss(SACLoss):
         qvalue = self._vmap_qnetworkN0(td_q, q_params).get(self.tensor_keys.state_action_value)
         td_s = tensordict.select(*self.safety_network.in_keys, strict=False)
         td_s.set(self.tensor_keys.action, action)
+        if self._quantile_critic:
+            values = self._quantile_values(td_s, s_params, target=which == "target")
+            return CriticValues(qvalue.squeeze(-1), *values)
         return CriticValues(qvalue.squeeze(-1), *self._safety_forward(td_s, s_params))
 
     def cvar(self, cost_value: Tensor, cost_variance: Tensor | None) -> Tensor:
-        """Γ(s, a, α) = Q^c + α⁻¹ φ(Φ⁻¹(α)) √V^c (Eq. 9); Q^c at least 0 with
-        ``nonnegative_cost``."""
+        """Γ(s, a, α) = Q^c + α⁻¹ φ(Φ⁻¹(α)) √V^c (Eq. 9) of the Gaussian critic; Q^c at
+        least 0 with ``nonnegative_cost``."""
         if self.nonnegative_cost:
             cost_value = cost_value.clamp(min=0.0)
         if self.cvar_multiplier == 0.0 or cost_variance is None:
             return cost_value
         return cost_value + self.cvar_multiplier * cost_variance.sqrt()
+
+    def quantile_cvar(self, tail_quantiles: Tensor) -> Tensor:
+        """Γ(s, a, α) of the IQN critic: the mean of its quantiles ``[*B, N]`` at
+        fractions spread over [1 − α, 1] (each at least 0 with ``nonnegative_cost``)."""
+        if self.nonnegative_cost:
+            tail_quantiles = tail_quantiles.clamp(min=0.0)
+        return tail_quantiles.mean(-1)
+
+    def _cvar_of(self, values: CriticValues) -> Tensor:
+        """Γ(s, a, α) per row from the critic's values, whichever the critic."""
+        if self._quantile_critic:
+            return self.quantile_cvar(values.tail_quantiles)
+        return self.cvar(values.cost_value, values.cost_variance)
 
     def _sample_policy(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor]:
         """A reparametrised action ``a ~ π(·|s)`` and its log-probability."""
@@ -678,11 +864,20 @@ class WCSACLoss(SACLoss):
         the variance target of Eq. 8 is this minus ``Q^c(s, a)²``) and
         ``cost_next_variance`` (``γ_c² (1−term) V̄^c(s',a')``); otherwise these are
         ``None``. See :meth:`variance_target`.
+
+        With an IQN critic, ``cost_target_quantiles`` ``[*B, N']`` holds the target
+        samples ``c + γ_c(1−term) Z̄(s', a', τ'_j)`` (``num_target_quantiles`` fractions
+        τ' over [0, 1]), and ``cost_target`` is their mean.
         """
         with torch.no_grad():
             next_td = tensordict.get("next")
             next_action, next_log_prob = self._sample_policy(next_td)
-            q_next, qc_next, vc_next = self._critic_values(next_td, next_action, "target")
+            next_values = self._critic_values(next_td, next_action, "target")
+            q_next, vc_next = next_values.qvalue, next_values.cost_variance
+            # an IQN critic's next "value" is its quantiles [*B, N']
+            qc_next = (
+                next_values.cost_quantiles if self._quantile_critic else next_values.cost_value
+            )
             next_value = (q_next - self._alpha * next_log_prob).min(0)[0].unsqueeze(-1)
             reward_target = self._reward_target(tensordict, next_value).squeeze(-1)
 
@@ -694,7 +889,12 @@ class WCSACLoss(SACLoss):
                 nstep_action, _ = self._sample_policy(nstep)
                 # only the safety critic is needed at s_{t+m}
                 nstep_sa = nstep.clone(False).set(self.tensor_keys.action, nstep_action)
-                qc_next, vc_next = self._safety_forward(nstep_sa, self.target_safety_network_params)
+                target_params = self.target_safety_network_params
+                if self._quantile_critic:
+                    fractions = self._fractions(self.num_target_quantiles)
+                    qc_next = self._quantile_forward(nstep_sa, target_params, fractions)
+                else:
+                    qc_next, vc_next = self._safety_forward(nstep_sa, target_params)
                 cost = nstep.get("cost").reshape(cost.shape).to(cost.dtype)
                 gamma = gamma.pow(nstep.get("steps").reshape(cost.shape).to(cost.dtype))
                 terminated = nstep.get("terminated")
@@ -703,6 +903,16 @@ class WCSACLoss(SACLoss):
             not_terminated = (~terminated.reshape(cost.shape)).to(cost.dtype)
             if self.nonnegative_cost:
                 qc_next = qc_next.clamp(min=0.0)
+            if self._quantile_critic:
+                discount = (gamma * not_terminated).unsqueeze(-1)
+                target_quantiles = cost.unsqueeze(-1) + discount * qc_next
+                return {
+                    "reward_target": reward_target,
+                    "cost_target": target_quantiles.mean(-1),
+                    "cost_target_quantiles": target_quantiles,
+                    "cost_second_moment": None,
+                    "cost_next_variance": None,
+                }
             cost_target = cost + gamma * not_terminated * qc_next
             if vc_next is None:
                 second_moment = next_variance = None
@@ -787,12 +997,16 @@ class WCSACLoss(SACLoss):
 
         Returns ``(loss_cost_value, loss_cost_variance or None, metadata)`` with
         ``metadata["cost_value"]`` / ``["cost_variance"]`` the detached predictions at
-        the replay actions.
+        the replay actions. For an IQN critic: ``(loss_cost_quantile, None, metadata)``
+        (:meth:`quantile_loss`).
         """
         if targets is None:
             targets = self.compute_targets(tensordict)
         if values is None:
             values = self._online_values(tensordict)
+        if self._quantile_critic:
+            loss, metadata = self.quantile_loss(tensordict, targets, values)
+            return loss, None, metadata
         weights = self._maybe_get_priority_weight(tensordict)
         qc, vc = values.cost_value, values.cost_variance
         loss_mean = 0.5 * (targets["cost_target"] - qc).pow(2)
@@ -809,6 +1023,40 @@ class WCSACLoss(SACLoss):
         loss_var = self._reduce_loss(loss_var, tensordict=tensordict, weights=weights)
         metadata["cost_variance"] = vc.detach()
         return loss_mean, loss_var, metadata
+
+    def quantile_loss(
+        self,
+        tensordict: TensorDictBase,
+        targets: dict[str, Tensor] | None = None,
+        values: CriticValues | None = None,
+    ) -> tuple[Tensor, dict[str, Tensor]]:
+        """The IQN critic's quantile Huber TD loss (κ_H = ``huber_kappa``).
+
+        ``Σ_i (1/N') Σ_j ρ^κ_{τ_i}(y_j − Z(s, a, τ_i))`` per row
+        (:func:`~wcsac_rl.objectives.quantile.quantile_huber_loss`), with the targets
+        ``y_j`` of :meth:`compute_targets` and the online quantiles at the replay
+        actions; reduced over the batch like every term. ``metadata`` holds the
+        detached mean and variance of the quantiles (``"cost_value"``,
+        ``"cost_variance"``).
+        """
+        if not self._quantile_critic:
+            raise TypeError("quantile_loss needs an IQN safety critic; use safety_loss")
+        if targets is None:
+            targets = self.compute_targets(tensordict)
+        if values is None:
+            values = self._online_values(tensordict)
+        weights = self._maybe_get_priority_weight(tensordict)
+        loss = quantile_huber_loss(
+            values.cost_quantiles,
+            values.quantile_fractions,
+            targets["cost_target_quantiles"],
+            self.huber_kappa,
+        )
+        loss = self._reduce_loss(loss, tensordict=tensordict, weights=weights)
+        return loss, {
+            "cost_value": values.cost_value.detach(),
+            "cost_variance": values.cost_variance.detach(),
+        }
 
     def variance_target(self, targets: dict[str, Tensor], cost_value: Tensor) -> Tensor:
         """The TD target of V^c(s, a) from :meth:`compute_targets`' ``targets``.
@@ -849,15 +1097,11 @@ class WCSACLoss(SACLoss):
         the actor's own actions on the batch)."""
         weights = self._maybe_get_priority_weight(tensordict)
         action, log_prob = self._sample_policy(tensordict)
-        qvalue, cost_value, cost_variance = self._critic_values(
-            tensordict, action, "detached", layers
-        )
-        min_q = qvalue.min(0)[0]
-        cvar_pi = self.cvar(cost_value, cost_variance)
+        values = self._critic_values(tensordict, action, "detached", layers)
+        min_q = values.qvalue.min(0)[0]
+        cvar_pi = self._cvar_of(values)
         if cvar_constraint is None:
-            cvar_constraint = self._constraint_statistic(
-                cost_value.detach(), None if cost_variance is None else cost_variance.detach()
-            )
+            cvar_constraint = self._constraint_statistic(values.detach())
         penalty = self._constraint_gap_penalty(cvar_constraint)
         loss = self._alpha * log_prob - min_q + penalty * cvar_pi
         loss = self._reduce_loss(loss, tensordict=tensordict, weights=weights)
@@ -875,14 +1119,13 @@ class WCSACLoss(SACLoss):
         replay_values = None
         if self.kappa_actions == "replay" and self.kappa_states == "replay":
             with torch.no_grad():
-                values = self._online_values(tensordict)
-                replay_values = (values.cost_value, values.cost_variance)
+                replay_values = self._online_values(tensordict).detach()
         return self._actor_loss(tensordict, self._constraint_cvar(tensordict, replay_values))
 
     def _constraint_cvar(
         self,
         tensordict: TensorDictBase,
-        replay_values: tuple[Tensor, Tensor | None] | None,
+        replay_values: CriticValues | None,
         layers: list[tuple[Tensor, Tensor]] | None = None,
     ) -> Tensor | None:
         """What the κ loss holds under the threshold, per batch row: the statistic
@@ -890,19 +1133,29 @@ class WCSACLoss(SACLoss):
         or at the replay actions; ``None`` when it is taken at the actor's own
         actions on the batch (computed with the actor loss)."""
         if self.kappa_states == "initial":
-            return self._constraint_statistic(*self._initial_state_values(tensordict, layers))
+            return self._constraint_statistic(self._initial_state_values(tensordict, layers))
         if self.kappa_actions == "replay":
-            return self._constraint_statistic(*replay_values)
+            return self._constraint_statistic(replay_values)
         return None
 
-    def _constraint_statistic(self, cost_value: Tensor, cost_variance: Tensor | None) -> Tensor:
+    def _constraint_statistic(self, values: CriticValues) -> Tensor:
         """Per-state Γ (``"mean"``: the κ loss averages it) or, for ``"tail"``, the
-        CVaR_α of the critic's cost distribution mixed over the states, repeated per row."""
+        CVaR_α of the critic's cost distribution mixed over the states, repeated per
+        row: of the Gaussians (:func:`~wcsac_rl.objectives.risk.gaussian_mixture_cvar`)
+        or of the IQN critic's quantiles over [0, 1] of every state pooled
+        (:func:`~wcsac_rl.objectives.risk.quantile_mixture_cvar`)."""
         if self.kappa_statistic == "mean":
-            return self.cvar(cost_value, cost_variance)
-        if self.nonnegative_cost:
-            cost_value = cost_value.clamp(min=0.0)
-        tail = gaussian_mixture_cvar(cost_value, cost_variance, self.risk_level)
+            return self._cvar_of(values)
+        cost_value = values.cost_value
+        if self._quantile_critic:
+            quantiles = values.cost_quantiles
+            if self.nonnegative_cost:
+                quantiles = quantiles.clamp(min=0.0)
+            tail = quantile_mixture_cvar(quantiles, self.risk_level)
+        else:
+            if self.nonnegative_cost:
+                cost_value = cost_value.clamp(min=0.0)
+            tail = gaussian_mixture_cvar(cost_value, values.cost_variance, self.risk_level)
         return tail.detach().expand(cost_value.shape)
 
     def initial_state_cvar(
@@ -910,11 +1163,11 @@ class WCSACLoss(SACLoss):
     ) -> Tensor:
         """Γ(s₀, a₀, α) with ``a₀ ~ π(·|s₀)`` at the start states the batch carries
         under the ``initial_states`` key (no gradient)."""
-        return self.cvar(*self._initial_state_values(tensordict, layers))
+        return self._cvar_of(self._initial_state_values(tensordict, layers))
 
     def _initial_state_values(
         self, tensordict: TensorDictBase, layers: list[tuple[Tensor, Tensor]] | None = None
-    ) -> tuple[Tensor, Tensor | None]:
+    ) -> CriticValues:
         key = self.tensor_keys.initial_states
         initial = self._required_entry(
             tensordict,
@@ -926,16 +1179,16 @@ class WCSACLoss(SACLoss):
         )
         with torch.no_grad():
             action, _ = self._sample_policy(initial)
-            values = self._critic_values(initial, action, "detached", layers)
-            return values.cost_value, values.cost_variance
+            return self._critic_values(initial, action, "detached", layers).detach()
 
     @property
     def initial_state_keys(self) -> list[NestedKey]:
         """What a start state must hold for :meth:`initial_state_cvar` (the actor's and
         critics' inputs other than the action)."""
         keys = list(self.actor_network.in_keys)
+        loss_inputs = (self.tensor_keys.action, self.tensor_keys.quantile_fractions)
         for key in (*self.qvalue_network.in_keys, *self.safety_network.in_keys):
-            if key != self.tensor_keys.action and key not in keys:
+            if key not in loss_inputs and key not in keys:
                 keys.append(key)
         return keys
 
@@ -943,7 +1196,24 @@ class WCSACLoss(SACLoss):
         """The safety critic at the state-actions of ``tensordict`` (online parameters,
         no gradient): ``cost_value`` (Q^c), ``cvar`` (Γ_α) and, with a variance head,
         ``cost_variance`` (V^c), each shaped like the batch. For diagnostics such as
-        :mod:`wcsac_rl.evaluation.calibration`."""
+        :mod:`wcsac_rl.evaluation.calibration`.
+
+        An IQN critic is read at deterministic fractions, the midpoints of
+        ``num_quantiles`` equal strata: ``cost_quantiles`` ``[*B, N]`` over [0, 1],
+        ``cost_value`` and ``cost_variance`` their mean and variance, and ``cvar`` the
+        mean of the quantiles at the midpoints of [1 − α, 1]."""
+        if self._quantile_critic:
+            with torch.no_grad():
+                mean, variance, quantiles, _, tail = self._quantile_values(
+                    tensordict, self.safety_network_params, stratified=False
+                )
+                out = {
+                    "cost_value": mean,
+                    "cost_variance": variance,
+                    "cvar": self.quantile_cvar(tail),
+                    "cost_quantiles": quantiles,
+                }
+            return TensorDict(out, batch_size=tensordict.batch_size)
         with torch.no_grad():
             cost_value, cost_variance = self._safety_forward(tensordict, self.safety_network_params)
             out = {"cost_value": cost_value, "cvar": self.cvar(cost_value, cost_variance)}
@@ -969,7 +1239,7 @@ class WCSACLoss(SACLoss):
         loss_cost_value, loss_cost_variance, safety_metadata = self.safety_loss(
             tensordict, targets, values
         )
-        replay_values = (safety_metadata["cost_value"], safety_metadata["cost_variance"])
+        replay_values = values.detach()
         detached = None if layers is None else [(w.detach(), b.detach()) for w, b in layers]
         cvar_constraint = self._constraint_cvar(tensordict, replay_values, detached)
         loss_actor, actor_metadata = self._actor_loss(tensordict, cvar_constraint, detached)
@@ -986,7 +1256,7 @@ class WCSACLoss(SACLoss):
             "loss_actor": loss_actor,
             "loss_qvalue": loss_qvalue,
             "loss_alpha": loss_alpha,
-            "loss_cost_value": loss_cost_value,
+            "loss_cost_quantile" if self._quantile_critic else "loss_cost_value": loss_cost_value,
         }
         if loss_cost_variance is not None:
             out["loss_cost_variance"] = loss_cost_variance
