@@ -150,6 +150,33 @@ def test_metrics_of_hand_made_episodes_match_closed_form_values():
     assert m["calib/start_tail_cvar"] >= m["calib/start_cost_value"]
 
 
+@pytest.mark.parametrize("nonnegative", [False, True])
+def test_start_tail_of_an_iqn_critic_pools_the_start_state_quantiles(nonnegative):
+    from wcsac_rl.evaluation.calibration import EpisodeCalibration, summarize_calibration
+
+    def episode(start_quantiles):
+        quantiles = np.array([start_quantiles, [0.0, 0.0, 0.0, 0.0]])
+        return EpisodeCalibration(
+            cost=np.array([0.0, 1.0]),
+            cost_to_go=np.array([0.5, 1.0]),
+            cost_value=quantiles.mean(1),
+            cvar=quantiles.max(1),
+            std=quantiles.std(1),
+            quantiles=quantiles,
+        )
+
+    episodes = [episode([-1.0, 0.0, 1.0, 2.0]), episode([0.0, 0.0, 4.0, 8.0])]
+    # 8 pooled atoms of mass 1/8: CVaR_0.25 is the mean of the top two, (8 + 4) / 2
+    m = summarize_calibration(episodes, 0.25, nonnegative=nonnegative)
+    assert m["calib/start_tail_cvar"] == pytest.approx(6.0, rel=F64)
+    # α = 1: the mean of all atoms, the −1 counted as 0 with nonnegative costs
+    m = summarize_calibration(episodes, 1.0, nonnegative=nonnegative)
+    expected = (15.0 if nonnegative else 14.0) / 8
+    assert m["calib/start_tail_cvar"] == pytest.approx(expected, rel=F64)
+    start_std = (np.std([-1.0, 0.0, 1.0, 2.0]) + np.std([0.0, 0.0, 4.0, 8.0])) / 2
+    assert m["calib/start_std"] == pytest.approx(start_std, rel=F64)
+
+
 def test_undefined_metrics_are_nan():
     # no variance head: the std columns are NaN, the rest is unchanged
     with_variance = calibration_metrics([_episode(*e) for e in EPISODES], StubLoss())

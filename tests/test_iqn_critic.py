@@ -632,3 +632,132 @@ def test_learned_quantiles_match_the_chain_return_distribution(n_steps):
             closed = distribution_cvar(atoms, probs, alpha)
             assert got == pytest.approx(fixed, abs=tol), f"state {i} CVaR_{alpha}"
             assert abs(got - closed) <= abs(fixed - closed) + tol, f"state {i} CVaR_{alpha}"
+
+
+# ------------------------------------------------------------- through the trainer
+def _train(run_dir, *overrides):
+    from _training_helpers import compose_config
+
+    from wcsac_rl.training import make_trainer
+
+    trainer = make_trainer(compose_config("env=tiny", *overrides), run_dir)
+    try:
+        return trainer, trainer.run()
+    finally:
+        trainer.close()
+
+
+def _rows(run_dir) -> list[dict[str, str]]:
+    import csv
+
+    with (run_dir / "progress.csv").open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+IQN_RUN = (
+    "algo.safety_critic=iqn",
+    "algo.risk_level=0.1",
+    "algo.kappa_states=initial",
+    "algo.kappa_statistic=tail",
+    "algo.cost_n_steps=4",
+    "algo.nonnegative_cost=true",
+    "algo.variance_target=td",  # a Gaussian option: not used by the IQN critic
+    "eval_episodes=3",
+)
+
+
+def test_trainer_runs_resumes_and_calibrates_an_iqn_critic(tmp_path, capsys):
+    import json
+
+    from wcsac_rl.calibration import main as calibration_main
+    from wcsac_rl.evaluation.calibration import CALIBRATION_KEYS
+    from wcsac_rl.training import ConfigError
+    from wcsac_rl.training.checkpoint import load_checkpoint
+
+    trainer, run_dir = _train(tmp_path / "run", *IQN_RUN, "save_replay_buffer=true")
+    loss = trainer.loss
+    assert loss.safety_critic_kind == "iqn" and loss.num_quantiles == 20
+    assert isinstance(trainer.agent.safety.module, IQNSafetyCritic)
+    rows = _rows(run_dir)
+    assert [int(r["frames"]) for r in rows] == [400, 800]
+    columns = set(rows[0])
+    assert {
+        "loss/loss_cost_quantile",
+        "loss/cost_value",
+        "loss/cost_variance",
+        "loss/cvar",
+    } <= columns
+    assert not {"loss/loss_cost_value", "loss/loss_cost_variance"} & columns
+    for row in rows:
+        for key in ("loss/loss_cost_quantile", "loss/cvar", "loss/kappa"):
+            assert math.isfinite(float(row[key])), key
+        # the per-epoch calibration reads the critic's quantiles
+        for key in ("start_cost_value", "start_cvar", "start_std", "start_tail_cvar"):
+            assert math.isfinite(float(row[f"calib/{key}"])), key
+        assert float(row["calib/start_tail_cvar"]) >= 0.0  # nonnegative_cost
+    checkpoint = load_checkpoint(trainer.checkpoint_path)
+    assert checkpoint["config"]["algo"]["safety_critic"] == "iqn"
+
+    # resume: the same run goes on, with its replay and start-state buffers
+    resumed, same_dir = _train(
+        tmp_path / "ignored",
+        *IQN_RUN,
+        "save_replay_buffer=true",
+        "total_frames=1200",
+        f"resume={run_dir}",
+    )
+    assert same_dir == run_dir
+    assert [int(r["frames"]) for r in _rows(run_dir)] == [400, 800, 1200]
+    assert resumed.updates == trainer.updates + 100
+    before = checkpoint["learner"]["loss"]
+    after = load_checkpoint(resumed.checkpoint_path)["learner"]["loss"]
+    moved = [k for k in before if k.startswith("safety_network_params")]
+    assert moved and all(not torch.equal(before[k], after[k]) for k in moved)
+    # a Gaussian critic cannot continue an IQN run
+    with pytest.raises(ConfigError, match="safety_critic"):
+        _train(tmp_path / "x", *IQN_RUN, "algo.safety_critic=gaussian", f"resume={run_dir}")
+
+    # the calibration CLI on the finished run
+    assert calibration_main([str(run_dir), "--episodes", "4", "--no-progress"]) == 0
+    capsys.readouterr()
+    data = json.loads((run_dir / "calibration.json").read_text())
+    assert data["safety_critic"] == "iqn" and not data["has_variance"]
+    assert set(data["metrics"]) == {k.removeprefix("calib/") for k in CALIBRATION_KEYS}
+    metrics = data["metrics"]
+    assert math.isfinite(metrics["start_cost_value"])  # the mean quantile, not clamped
+    # Γ and the pooled tail use max(Z, 0) (nonnegative_cost); standard deviations
+    for key in ("start_cvar", "start_std", "start_tail_cvar", "mean_std"):
+        assert metrics[key] is not None and metrics[key] >= 0.0, key
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("algo.safety_critic=categorical", "algo.safety_critic must be one of gaussian, iqn"),
+        ("algo.iqn.num_quantiles=0", "algo.iqn.num_quantiles must be an integer >= 1"),
+        ("algo.iqn.num_cosines=2.5", "algo.iqn.num_cosines must be an integer >= 1"),
+        ("algo.iqn.huber_kappa=0", "algo.iqn.huber_kappa must be > 0"),
+    ],
+)
+def test_bad_iqn_config_fails_before_any_work(tmp_path, override, message):
+    import re
+
+    from _training_helpers import compose_config
+
+    from wcsac_rl.training import ConfigError, make_trainer
+
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        make_trainer(compose_config("env=tiny", "algo.safety_critic=iqn", override), tmp_path / "r")
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("alpha", ["0.9", "0.5", "0.1"])
+def test_table1_rows_of_the_iqn_critic_compose_and_are_named(alpha):
+    from _training_helpers import compose_config
+
+    from wcsac_rl.evaluation.runs import row_name
+
+    cfg = compose_config(f"+row=wcsac_iqn_{alpha}", small=False)
+    assert cfg.algo.name == "wcsac" and cfg.algo.safety_critic == "iqn"
+    assert cfg.algo.risk_level == float(alpha) and cfg.algo.label == f"wcsac_iqn_{alpha}"
+    assert row_name(cfg.algo.label) == f"WCSAC-IQN-{alpha}"

@@ -116,3 +116,54 @@ def test_mixture_cvar_special_cases():
     gaussian_mixture_cvar(mean_p, var_p, 0.1).backward()
     assert mean_p.grad is not None and var_p.grad is not None
     assert float(mean_p.grad.sum()) == pytest.approx(1.0, abs=1e-4)  # a shift moves it 1:1
+
+
+# ----------------------------------------------------- pooled quantiles (IQN)
+@pytest.mark.parametrize("alpha", [0.05, 0.1, 0.3, 0.5, 1.0])
+@pytest.mark.parametrize("shape", [(1, 7), (6, 20), (300, 20)])
+def test_quantile_mixture_cvar_is_the_tail_mean_of_the_pooled_atoms(alpha, shape):
+    from wcsac_rl.objectives import gaussian_mixture_cvar, quantile_mixture_cvar
+
+    g = torch.Generator().manual_seed(1)
+    quantiles = torch.randn(shape, generator=g, dtype=torch.float64).exp()
+    got = float(quantile_mixture_cvar(quantiles, alpha))
+    # each pooled value an atom of mass 1/M: the upper α of the mass, the last atom in part
+    ordered = sorted(quantiles.flatten().tolist(), reverse=True)
+    remaining, total = alpha, 0.0
+    for value in ordered:
+        share = min(1.0 / len(ordered), remaining)
+        total, remaining = total + share * value, remaining - share
+    # float64 sums of ≤ 6000 positive terms of size ≤ e⁴
+    assert got == pytest.approx(total / alpha, rel=1e-12)
+    # a pool of zero-variance Gaussians is the same mixture; gaussian_mixture_cvar
+    # smooths each atom into a Gaussian of σ = min_std = 1e-6, which moves a tail mean
+    # by ≲ σ/α ≤ 2e-5
+    means = quantiles.flatten()
+    assert got == pytest.approx(float(gaussian_mixture_cvar(means, None, alpha)), abs=2e-5)
+
+
+def test_quantile_mixture_cvar_of_dense_gaussian_quantiles_is_the_gaussian_mixture_cvar():
+    from statistics import NormalDist
+
+    from wcsac_rl.objectives import gaussian_mixture_cvar, quantile_mixture_cvar
+
+    mean = torch.tensor([0.0, 0.5, 1.0, 8.0], dtype=torch.float64)
+    std = torch.tensor([0.1, 1.0, 0.5, 2.0], dtype=torch.float64)
+    k = 4000  # quantiles per state at the midpoints of k strata
+    z = torch.tensor([NormalDist().inv_cdf((i + 0.5) / k) for i in range(k)], dtype=torch.float64)
+    quantiles = mean.unsqueeze(-1) + std.unsqueeze(-1) * z
+    for alpha in (0.1, 0.5):
+        got = float(quantile_mixture_cvar(quantiles, alpha))
+        # the midpoints miss the part of each stratum's mass beyond its midpoint: in
+        # the top stratum of the widest component that is ≲ σ·φ(Φ⁻¹(1 − 1/k))/k ≈ 1e-6
+        # per unit of mass, far below 1e-3 after dividing by α
+        assert got == pytest.approx(float(gaussian_mixture_cvar(mean, std**2, alpha)), abs=1e-3)
+
+
+def test_quantile_mixture_cvar_refuses_an_empty_pool():
+    from wcsac_rl.objectives import quantile_mixture_cvar
+
+    with pytest.raises(ValueError, match="at least one"):
+        quantile_mixture_cvar(torch.empty(0, 5), 0.1)
+    with pytest.raises(ValueError, match="tail fraction"):
+        quantile_mixture_cvar(torch.ones(2, 2), 0.0)

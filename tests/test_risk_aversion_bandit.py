@@ -46,3 +46,28 @@ def test_wcsac_settles_at_the_cvar_feasible_action(seed):
     # average over seeds 0-3
     assert run.mean_action == pytest.approx(a_star, abs=0.2)
     assert run.true_cvar == pytest.approx(COST_LIMIT, abs=0.5)
+
+
+def test_bandit_exact_cvar_facts():
+    env = RiskyBanditEnv()
+    # the cost's own CVaR_0.1 is 10·min(p/0.1, 1) = 100 p: 3 at p = 0.03, i.e. a = −0.5
+    a_exact = env.cvar_feasible_action(0.1, COST_LIMIT, exact=True)
+    assert a_exact == pytest.approx(-0.5, abs=1e-6)
+    assert float(env.exact_cvar(a_exact, 0.1)) == pytest.approx(COST_LIMIT, abs=1e-6)
+    assert float(env.exact_cvar(1.0, 0.1)) == pytest.approx(9.0)
+    assert float(env.exact_cvar(1.0, 1.0)) == pytest.approx(float(env.expected_cost(1.0)))
+    # beyond p = α the whole tail is the hit itself
+    assert float(env.exact_cvar(1.0, 0.05)) == pytest.approx(10.0)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_wcsac_with_an_iqn_critic_settles_at_the_exact_cvar_feasible_action(seed):
+    """An implicit-quantile critic learns the cost's own CVaR, not the Gaussian one:
+    its feasible optimum is a* = −0.5 (the Gaussian critic's is −0.621)."""
+    a_star = RiskyBanditEnv().cvar_feasible_action(0.1, COST_LIMIT, exact=True)
+    run = train_on_risky_bandit(risk_level=0.1, seed=seed, safety_critic="iqn")
+    # measured: E_π[a] = −0.49, −0.51, −0.38 and E_π[exact CVaR_0.1] 3.03, 2.98, 3.46
+    assert run.mean_action == pytest.approx(a_star, abs=0.2)
+    # d CVaR/da = hit·(p_high − p_low)/(2α) = 4 here: the action's 0.2 is 0.8 of CVaR
+    assert run.exact_cvar == pytest.approx(COST_LIMIT, abs=0.8)

@@ -11,7 +11,10 @@ is known in closed form:
 * the Gaussian CVaR_α that WCSAC's safety critic estimates,
   ``hit·p + α⁻¹φ(Φ⁻¹(α))·hit·√(p(1−p))``, exceeds it for large ``a``, so WCSAC at
   small α should settle at the largest action whose CVaR meets the limit
-  (:meth:`RiskyBanditEnv.cvar_feasible_action`).
+  (:meth:`RiskyBanditEnv.cvar_feasible_action`);
+* the cost's exact CVaR_α, ``hit · min(p/α, 1)`` (what an implicit-quantile safety
+  critic estimates, :meth:`RiskyBanditEnv.exact_cvar`), gives another feasible
+  optimum (``exact=True``).
 
 It is the smallest task on which the paper's central claim can be checked, and it
 runs at millions of steps per second.
@@ -90,19 +93,29 @@ class RiskyBanditEnv(EnvBase):
         std = self.hit * (p * (1.0 - p)).sqrt()
         return self.hit * p + gaussian_cvar_multiplier(risk_level) * std
 
-    def cvar_feasible_action(self, risk_level: float, cost_limit: float) -> float:
-        """The largest action whose Gaussian CVaR_α is within ``cost_limit`` (bisection).
+    def exact_cvar(self, action: torch.Tensor | float, risk_level: float) -> torch.Tensor:
+        """The cost's own CVaR_α, ``hit · min(p(a)/α, 1)``: the mean of its worst α share."""
+        p = self.hit_probability(action)
+        return self.hit * (p / risk_level).clamp(max=1.0)
+
+    def cvar_feasible_action(
+        self, risk_level: float, cost_limit: float, *, exact: bool = False
+    ) -> float:
+        """The largest action whose CVaR_α is within ``cost_limit`` (bisection): the
+        Gaussian CVaR (default, what WCSAC's Gaussian critic estimates) or, with
+        ``exact``, the cost's own (:meth:`exact_cvar`).
 
         Returns 1.0 if every action is feasible and raises ``ValueError`` if none is.
         """
-        if float(self.gaussian_cvar(1.0, risk_level)) <= cost_limit:
+        cvar = self.exact_cvar if exact else self.gaussian_cvar
+        if float(cvar(1.0, risk_level)) <= cost_limit:
             return 1.0
-        if float(self.gaussian_cvar(-1.0, risk_level)) > cost_limit:
+        if float(cvar(-1.0, risk_level)) > cost_limit:
             raise ValueError(f"no action meets CVaR_{risk_level} <= {cost_limit}")
         low, high = -1.0, 1.0
         for _ in range(60):
             mid = 0.5 * (low + high)
-            if float(self.gaussian_cvar(mid, risk_level)) <= cost_limit:
+            if float(cvar(mid, risk_level)) <= cost_limit:
                 low = mid
             else:
                 high = mid

@@ -1,7 +1,8 @@
 """Calibration of the safety critic on the states the policy visits: predicted vs realised cost.
 
 WCSAC's constraint acts on the safety critic's CVaR estimate Γ_α(s, a) = Q^c +
-α⁻¹φ(Φ⁻¹(α))√V^c. Whether the critic's numbers mean anything is measured here on
+α⁻¹φ(Φ⁻¹(α))√V^c (with an IQN critic: the mean of its quantiles over τ ∈ [1 − α, 1]).
+Whether the critic's numbers mean anything is measured here on
 deterministic test episodes of the current policy:
 
 * :func:`record_calibration_episodes` runs the test episodes
@@ -49,7 +50,11 @@ from tensordict import NestedKey, TensorDictBase
 from torchrl.envs import EnvBase
 
 from wcsac_rl.evaluation.episodes import EpisodeResult, RecordedEpisode, record_episodes
-from wcsac_rl.objectives.risk import empirical_cvar, gaussian_mixture_cvar
+from wcsac_rl.objectives.risk import (
+    empirical_cvar,
+    gaussian_mixture_cvar,
+    quantile_mixture_cvar,
+)
 from wcsac_rl.training.config import ConfigError
 
 __all__ = [
@@ -80,17 +85,17 @@ CALIBRATION_KEYS: tuple[str, ...] = tuple(
         # start state s0 (first step of each episode), averaged over episodes
         "start_cost_value",  # predicted Q^c(s0, a0)
         "start_cvar",  # predicted Γ_α(s0, a0), the CVaR the loss uses
-        "start_std",  # predicted √V^c(s0, a0) (NaN without a variance head)
+        "start_std",  # predicted √V^c(s0, a0) (IQN: std of its quantiles; NaN for a mean-only critic)
         "start_realised_cost_to_go",  # realised Σ_t γ_c^t c_t from s0
         "start_realised_cvar",  # empirical CVaR_α over episodes of that sum
         "start_cvar_ratio",  # start_cvar / start_realised_cvar
-        "start_tail_cvar",  # CVaR_α of the predicted start-state Gaussians, mixed
+        "start_tail_cvar",  # CVaR_α of the predicted start-state distributions, mixed
         "start_tail_ratio",  # start_tail_cvar / start_realised_cvar
         "realised_spread",  # std over episodes of the realised sum from s0
         # every visited state, pooled over episodes (each step counts once)
         "mean_cost_value",  # Q^c
         "mean_cvar",  # Γ_α
-        "mean_std",  # √V^c (NaN without a variance head)
+        "mean_std",  # √V^c (NaN for a mean-only critic)
         "mean_realised_cost_to_go",  # Σ_{k≥t} γ_c^{k−t} c_k
         "correlation",  # Pearson correlation of Q^c and the realised cost-to-go
         "negative_share",  # share of states with Q^c < 0
@@ -117,11 +122,13 @@ def calibration_keys(loss: Any) -> list[NestedKey]:
     """The per-step entries calibration records: the observation entries the loss's
     safety critic and actor read, the action, and the cost under ``"next"``."""
     action = loss.tensor_keys.action
+    # an IQN critic's quantile fractions are drawn by the loss, not recorded
+    fractions = getattr(loss.tensor_keys, "quantile_fractions", None)
     keys: list[NestedKey] = []
     for name in ("safety_network", "actor_network"):
         network = getattr(loss, name, None)
         if network is not None:
-            keys += [key for key in network.in_keys if key != action]
+            keys += [key for key in network.in_keys if key not in (action, fractions)]
     keys += [action, _cost_key(loss)]
     return list(dict.fromkeys(keys))
 
@@ -179,7 +186,10 @@ class EpisodeCalibration:
         cost_to_go: the realised discounted cost-to-go ``Σ_{k≥t} γ_c^{k−t} c_k``.
         cost_value: predicted Q^c(s_t, a_t).
         cvar: predicted Γ_α(s_t, a_t).
-        std: predicted √V^c(s_t, a_t), all NaN without a variance head.
+        std: predicted √V^c(s_t, a_t) (IQN: the standard deviation of its quantiles),
+            all NaN for a mean-only critic.
+        quantiles: an IQN critic's quantiles ``[T, N]`` at ``N`` evenly spread
+            fractions of [0, 1] (``None`` for the other critics).
     """
 
     cost: np.ndarray
@@ -187,6 +197,7 @@ class EpisodeCalibration:
     cost_value: np.ndarray
     cvar: np.ndarray
     std: np.ndarray
+    quantiles: np.ndarray | None = None
 
     def as_dict(self) -> dict[str, float]:
         """The episode's start-state numbers and its totals (for ``calibration.json``)."""
@@ -227,6 +238,11 @@ def compare_episodes(episodes: Sequence[RecordedEpisode], loss: Any) -> list[Epi
         std = [np.full(n, np.nan) for n in lengths]
     else:
         std = np.split(np.sqrt(np.clip(_as_float64(variance), 0.0, None)), split)
+    quantiles = estimates.get("cost_quantiles", None)
+    if quantiles is None:
+        quantiles = [None] * len(episodes)
+    else:
+        quantiles = np.split(quantiles.detach().to("cpu", torch.float64).numpy(), split)
     gamma = float(loss.cost_gamma)
     out = []
     for i, episode in enumerate(episodes):
@@ -238,6 +254,7 @@ def compare_episodes(episodes: Sequence[RecordedEpisode], loss: Any) -> list[Epi
                 cost_value=cost_value[i],
                 cvar=cvar[i],
                 std=std[i],
+                quantiles=quantiles[i],
             )
         )
     return out
@@ -272,7 +289,10 @@ def summarize_calibration(
     * ``start_tail_cvar``: the CVaR_α of the equal mixture of the predicted
       start-state distributions ``N(Q^c(s0), V^c(s0))`` over the episodes
       (:func:`~wcsac_rl.objectives.risk.gaussian_mixture_cvar`; Q^c at least 0 with
-      ``nonnegative``), the critic's own estimate of ``start_realised_cvar``: the
+      ``nonnegative``) — for an IQN critic, of its start-state quantiles of all
+      episodes pooled (:func:`~wcsac_rl.objectives.risk.quantile_mixture_cvar`, each
+      at least 0 with ``nonnegative``) —, the critic's own estimate of
+      ``start_realised_cvar``: the
       realised tail is made of episodes with different start states, which a mean of
       per-state CVaRs misses. ``start_tail_ratio`` is its ratio to the realised one.
     * ``realised_spread``: sample standard deviation (n − 1) over episodes of the
@@ -281,7 +301,7 @@ def summarize_calibration(
     * ``mean_*``, ``correlation``, ``negative_share``: over every visited state of
       every episode pooled (each step counts once). ``correlation`` is NaN when
       either side is constant.
-    * ``start_std`` / ``mean_std``: NaN without a variance head.
+    * ``start_std`` / ``mean_std``: NaN for a mean-only critic.
 
     Everything is NaN for no episodes.
     """
@@ -311,12 +331,19 @@ def summarize_calibration(
         "episode_cvar": empirical_cvar(episode_cost, risk_level),
     }
     values["start_cvar_ratio"] = _ratio(values["start_cvar"], values["start_realised_cvar"])
-    start_mean = torch.tensor([float(e.cost_value[0]) for e in episodes], dtype=torch.float64)
-    if nonnegative:
-        start_mean = start_mean.clamp(min=0.0)
-    start_std = torch.tensor([float(e.std[0]) for e in episodes], dtype=torch.float64)
-    start_variance = None if torch.isnan(start_std).any() else start_std.pow(2)
-    values["start_tail_cvar"] = float(gaussian_mixture_cvar(start_mean, start_variance, risk_level))
+    if all(e.quantiles is not None for e in episodes):
+        start_quantiles = torch.from_numpy(np.stack([e.quantiles[0] for e in episodes]))
+        if nonnegative:
+            start_quantiles = start_quantiles.clamp(min=0.0)
+        tail = quantile_mixture_cvar(start_quantiles, risk_level)
+    else:
+        start_mean = torch.tensor([float(e.cost_value[0]) for e in episodes], dtype=torch.float64)
+        if nonnegative:
+            start_mean = start_mean.clamp(min=0.0)
+        start_std = torch.tensor([float(e.std[0]) for e in episodes], dtype=torch.float64)
+        start_variance = None if torch.isnan(start_std).any() else start_std.pow(2)
+        tail = gaussian_mixture_cvar(start_mean, start_variance, risk_level)
+    values["start_tail_cvar"] = float(tail)
     values["start_tail_ratio"] = _ratio(values["start_tail_cvar"], values["start_realised_cvar"])
     metrics.update({PREFIX + name: value for name, value in values.items()})
     return metrics
@@ -471,7 +498,11 @@ def calibrate_run(
     finally:
         env.close()
     compared = compare_episodes(recorded, loss)
-    metrics = summarize_calibration(compared, float(loss.risk_level))
+    metrics = summarize_calibration(
+        compared,
+        float(loss.risk_level),
+        nonnegative=bool(getattr(loss, "nonnegative_cost", False)),  # as the trainer's
+    )
     result = {
         "label": str(cfg.algo.get("label", cfg.algo.name)),
         "algo": str(cfg.algo.name),
@@ -483,6 +514,7 @@ def calibrate_run(
         "cost_threshold": float(loss.cost_threshold),
         "cost_limit": float(cfg.cost_limit),
         "has_variance": bool(loss.has_variance),
+        "safety_critic": str(getattr(loss, "safety_critic_kind", "gaussian")),
         "env_seed": env_seed,
         "max_episode_steps": steps,
         "episodes": len(recorded),

@@ -45,6 +45,9 @@ ROW_ORDER: tuple[str, ...] = (
 )
 """Table 1's rows (``algo.label`` values) in the paper's order."""
 
+_WCSAC_LABEL = re.compile(r"wcsac_(iqn_)?([0-9.]+)")
+"""``algo.label`` of a WCSAC row: ``wcsac_<α>`` or, with the IQN critic, ``wcsac_iqn_<α>``."""
+
 ROW_NAMES: dict[str, str] = {
     "sac": "SAC",
     "sac_lag": "SAC-Lag",
@@ -54,30 +57,32 @@ ROW_NAMES: dict[str, str] = {
 
 
 def row_name(label: str) -> str:
-    """The paper's name of a row: ``"sac_lag"`` → ``"SAC-Lag"``, ``"wcsac_0.5"`` → ``"WCSAC-0.5"``.
+    """The paper's name of a row: ``"sac_lag"`` → ``"SAC-Lag"``, ``"wcsac_0.5"`` → ``"WCSAC-0.5"``
+    (and ``"wcsac_iqn_0.5"``, WCSAC with the IQN safety critic, → ``"WCSAC-IQN-0.5"``).
 
-    >>> row_name("wcsac_0.1"), row_name("random"), row_name("my_algo")
-    ('WCSAC-0.1', 'Random Policy', 'my_algo')
+    >>> row_name("wcsac_0.1"), row_name("wcsac_iqn_0.1"), row_name("random"), row_name("my_algo")
+    ('WCSAC-0.1', 'WCSAC-IQN-0.1', 'Random Policy', 'my_algo')
     """
     if label in ROW_NAMES:
         return ROW_NAMES[label]
-    match = re.fullmatch(r"wcsac_([0-9.]+)", label)
+    match = _WCSAC_LABEL.fullmatch(label)
     if match:
-        return f"WCSAC-{match.group(1)}"
+        return f"WCSAC-{'IQN-' if match.group(1) else ''}{match.group(2)}"
     return label
 
 
 def row_sort_key(label: str) -> tuple[int, float, str]:
     """Sort key putting rows in the paper's order: SAC, SAC-Lag, WCSAC by decreasing α
-    (any α), CPO, Random Policy, then unknown labels alphabetically.
+    (any α; the IQN critic's row after the Gaussian one of the same α), CPO, Random
+    Policy, then unknown labels alphabetically.
 
-    >>> sorted(["random", "wcsac_0.1", "wcsac_0.7", "sac", "wcsac_0.9"], key=row_sort_key)
-    ['sac', 'wcsac_0.9', 'wcsac_0.7', 'wcsac_0.1', 'random']
+    >>> sorted(["random", "wcsac_iqn_0.1", "wcsac_0.1", "sac", "wcsac_0.9"], key=row_sort_key)
+    ['sac', 'wcsac_0.9', 'wcsac_0.1', 'wcsac_iqn_0.1', 'random']
     """
-    match = re.fullmatch(r"wcsac_([0-9.]+)", label)
+    match = _WCSAC_LABEL.fullmatch(label)
     if match:
         try:
-            alpha = float(match.group(1))
+            alpha = float(match.group(2))
         except ValueError:
             alpha = 0.0
         return (ROW_ORDER.index("wcsac_0.9"), -alpha, label)

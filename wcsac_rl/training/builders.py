@@ -104,7 +104,8 @@ class Agent:
 
 
 def make_agent(cfg: DictConfig, env: EnvBase) -> Agent:
-    """Actor, twin reward critic and (for WCSAC / SAC-Lag) the safety critic."""
+    """Actor, twin reward critic and (for WCSAC / SAC-Lag) the safety critic
+    (``algo.safety_critic``: Gaussian or IQN)."""
     net = cfg.algo.network
     shape = {"width": int(net.width), "depth": int(net.depth), "activation": str(net.activation)}
     action_spec = env.action_spec_unbatched
@@ -120,7 +121,13 @@ def make_agent(cfg: DictConfig, env: EnvBase) -> Agent:
     qvalues = [make_qvalue(obs_dim, act_dim, **shape) for _ in range(2)]
     safety = None
     if cfg.algo.name in ("wcsac", "sac_lag"):
-        safety = make_safety_critic(obs_dim, act_dim, variance=bool(cfg.algo.variance), **shape)
+        if cfg.algo.get("safety_critic", "gaussian") == "iqn":
+            num_cosines = int(cfg.algo.iqn.num_cosines)
+            safety = make_safety_critic(
+                obs_dim, act_dim, kind="iqn", num_cosines=num_cosines, **shape
+            )
+        else:
+            safety = make_safety_critic(obs_dim, act_dim, variance=bool(cfg.algo.variance), **shape)
     device = torch.device(cfg.device)
     actor.to(device)
     for module in [*qvalues, safety]:
@@ -159,6 +166,12 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
             "nonnegative_cost": bool(algo.get("nonnegative_cost", False)),
             "kappa_statistic": str(algo.get("kappa_statistic", "mean")),
         }
+        if algo.get("safety_critic", "gaussian") == "iqn":
+            # the variance options configure the Gaussian critic's variance head
+            del safety_kwargs["variance_loss"], safety_kwargs["variance_target"]
+            safety_kwargs["num_quantiles"] = int(algo.iqn.num_quantiles)
+            safety_kwargs["num_target_quantiles"] = int(algo.iqn.num_target_quantiles)
+            safety_kwargs["huber_kappa"] = float(algo.iqn.huber_kappa)
         if algo.name == "wcsac":
             safety_kwargs["risk_level"] = float(algo.risk_level)
         loss = cls(agent.actor, agent.qvalues, agent.safety, **safety_kwargs, **common)

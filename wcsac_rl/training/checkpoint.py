@@ -42,6 +42,8 @@ IDENTITY_KEYS = (
     "algo.name",
     "algo.risk_level",
     "algo.variance",
+    "algo.safety_critic",
+    "algo.iqn",
     "algo.network",
     "algo.gamma",
     "algo.kappa_parametrization",

@@ -178,7 +178,11 @@ def _check_device(device: str) -> None:
 
 
 def _validate_safety_keys(algo: DictConfig) -> None:
-    """The WCSAC / SAC-Lag options of ``conf/algo`` (the loss would refuse them later)."""
+    """The WCSAC / SAC-Lag options of ``conf/algo`` (the loss would refuse them later).
+
+    With ``safety_critic=iqn`` the variance options (``variance``, ``variance_loss``,
+    ``variance_target``) are not used: they configure the Gaussian critic."""
+    from wcsac_rl.modules.safety_critic import SAFETY_CRITIC_KINDS
     from wcsac_rl.objectives.wcsac import (
         KAPPA_ACTIONS,
         KAPPA_PARAMETRISATIONS,
@@ -214,6 +218,19 @@ def _validate_safety_keys(algo: DictConfig) -> None:
         raise ConfigError(
             f"algo.nonnegative_cost must be true or false, got {algo.get('nonnegative_cost')!r}"
         )
+    kind = algo.get("safety_critic", "gaussian")
+    if kind not in SAFETY_CRITIC_KINDS:
+        raise ConfigError(
+            f"algo.safety_critic must be one of {', '.join(SAFETY_CRITIC_KINDS)}, got {kind!r}"
+        )
+    if kind == "iqn":
+        iqn = algo.get("iqn") or {}
+        for key in ("num_quantiles", "num_target_quantiles", "num_cosines"):
+            value = iqn.get(key)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ConfigError(f"algo.iqn.{key} must be an integer >= 1, got {value!r}")
+        if not isinstance(iqn.get("huber_kappa"), (int, float)) or not iqn.huber_kappa > 0:
+            raise ConfigError(f"algo.iqn.huber_kappa must be > 0, got {iqn.get('huber_kappa')!r}")
     n_steps = algo.get("cost_n_steps", 1)
     if not isinstance(n_steps, int) or isinstance(n_steps, bool) or n_steps < 1:
         raise ConfigError(f"algo.cost_n_steps must be an integer >= 1, got {n_steps!r}")
