@@ -12,8 +12,11 @@ Prints, with one torch thread by default:
   TorchRL user runs), (a') the same with the kit's ``PolyakUpdate``, (b) ``WCSACLoss``
   as the trainer runs it (fused critics, direct sampling, ``PolyakUpdate``),
   (b-) ``WCSACLoss`` through TorchRL's general paths (module calls, ``TanhNormal``,
-  ``SoftUpdate``), (b') ``WCSACLoss`` under ``torch.compile`` (``--compile``) and
-  (c) a plain-PyTorch WCSAC update (``plain_wcsac.py``), all with the paper's
+  ``SoftUpdate``), (b') ``WCSACLoss`` under ``torch.compile`` (``--compile``),
+  (c) a plain-PyTorch WCSAC update (``plain_wcsac.py``) and (d) ``WCSACLoss`` with
+  the implicit-quantile safety critic (``algo.safety_critic=iqn``: N = N' = 20
+  fractions, as the trainer runs it), with its time per update against (b)'s, all
+  with the paper's
   sizes (2 × 256 MLPs, batch 256, obs 44, action 2), timed in interleaved rounds
   (median reported), each with its FLOPs per update (forward + backward matrix
   products) and the achieved GFLOP/s as a fraction of the matmul peak;
@@ -120,11 +123,11 @@ def build_variants(with_compile: bool) -> dict[str, callable]:
         "(a') SACLoss, PolyakUpdate": torchrl_update_fn(sac()),
     }
 
-    def wcsac(**kwargs):
+    def wcsac(kind: str = "gaussian", **kwargs):
         return WCSACLoss(
             make_actor(OBS, spec),
             [make_qvalue(OBS, ACT) for _ in range(2)],
-            make_safety_critic(OBS, ACT),
+            make_safety_critic(OBS, ACT, kind=kind),
             **kwargs,
         )
 
@@ -136,7 +139,11 @@ def build_variants(with_compile: bool) -> dict[str, callable]:
         variants["(b') WCSACLoss, compiled"] = torchrl_update_fn(wcsac(), compile_loss=True)
     plain = PlainWCSAC(OBS, ACT)
     variants["(c) plain PyTorch WCSAC"] = plain_update_fn(plain)
+    variants[IQN] = torchrl_update_fn(wcsac("iqn"))
     return variants
+
+
+IQN = "(d) WCSACLoss, IQN critic"
 
 
 def plain_update_fn(plain: PlainWCSAC):
@@ -308,6 +315,8 @@ def main() -> None:
             f"  {name:<32} {rate:10.1f} {rate / reference:10.2f} {gflops:10.3f} "
             f"{gflops * rate:8.1f} {gflops * rate / peak:8.0%}"
         )
+    ratio = rates["(b) WCSACLoss"] / rates[IQN]
+    print(f"\nIQN critic: {ratio:.2f}× the time per update of the Gaussian critic (b)")
     if not args.no_loop:
         wcsac_rate = rates["(b) WCSACLoss"]  # the training run below is eager
         print("\nenvironment and loop:")
