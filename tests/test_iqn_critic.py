@@ -719,7 +719,8 @@ def test_trainer_runs_resumes_and_calibrates_an_iqn_critic(tmp_path, capsys):
 
     # the calibration CLI on the finished run
     assert calibration_main([str(run_dir), "--episodes", "4", "--no-progress"]) == 0
-    capsys.readouterr()
+    printed = capsys.readouterr().out
+    assert "(IQN safety critic)" in printed and "std of quantiles / spread" in printed
     data = json.loads((run_dir / "calibration.json").read_text())
     assert data["safety_critic"] == "iqn" and not data["has_variance"]
     assert set(data["metrics"]) == {k.removeprefix("calib/") for k in CALIBRATION_KEYS}

@@ -89,6 +89,7 @@ def format_table(result: dict[str, Any]) -> str:
     :func:`~wcsac_rl.evaluation.calibration.calibrate_run`."""
     m = result["metrics"]
     alpha = result["risk_level"]
+    iqn = result.get("safety_critic") == "iqn"
     rows = [
         ("start state s0", "predicted", "realised", ""),
         ("  mean Q^c / cost-to-go", m["start_cost_value"], m["start_realised_cost_to_go"], ""),
@@ -104,7 +105,12 @@ def format_table(result: dict[str, Any]) -> str:
             m["start_realised_cvar"],
             f"ratio {_number(m['start_tail_ratio'])}",
         ),
-        ("  √V^c / spread", m["start_std"], m["realised_spread"], ""),
+        (
+            "  std of quantiles / spread" if iqn else "  √V^c / spread",
+            m["start_std"],
+            m["realised_spread"],
+            "",
+        ),
         ("all visited states", "", "", ""),
         ("  mean Q^c / cost-to-go", m["mean_cost_value"], m["mean_realised_cost_to_go"], ""),
         ("  correlation", m["correlation"], "", ""),
@@ -114,7 +120,8 @@ def format_table(result: dict[str, Any]) -> str:
         (f"  CVaR_α (α = {alpha:g})", "", m["episode_cvar"], ""),
     ]
     lines = [
-        f"{result['label']} on {result['env']}, seed {result['seed']}, "
+        f"{result['label']}{' (IQN safety critic)' if iqn else ''} on {result['env']}, "
+        f"seed {result['seed']}, "
         f"{result['trained_frames']} frames: {result['episodes']} deterministic episodes "
         f"({result['episodes_at_time_limit']} cut at {result['max_episode_steps']} steps), "
         f"γ_c = {result['cost_gamma']:g}, κ-loss threshold {result['cost_threshold']:.4g}"
