@@ -264,6 +264,26 @@ def test_direct_sampling_gives_the_same_losses_and_gradients():
     assert_same_losses_and_gradients(direct, general, make_batch())
 
 
+def test_sac_lag_with_an_iqn_critic_holds_the_mean_quantile_under_the_threshold(midpoints):
+    from wcsac_rl import SACLagLoss
+
+    loss = SACLagLoss(
+        make_actor(2, Bounded(-1.0, 1.0, shape=(1,)), width=8),
+        [make_qvalue(2, 1, width=8) for _ in range(2)],
+        _linear_critic(),
+        num_quantiles=4,
+        cost_threshold=1.0,
+    )
+    assert loss.safety_critic_kind == "iqn" and loss.risk_level == 1.0
+    out = loss(_linear_batch())
+    a, b = _linear_batch()["observation"].unbind(-1)
+    # α = 1: Γ is the mean of Z = a + bτ over [0, 1], Z at τ = 1/2
+    assert_close_f32(out["cvar"], (a + b / 2).mean(), ops=16, magnitude=10.0)
+    assert "loss_cost_quantile" in out.keys()
+    with pytest.raises(TypeError, match="quantile_cvar"):
+        loss.cvar(a, b)
+
+
 def test_fusing_falls_back_for_an_iqn_critic_or_is_refused():
     assert make_loss()._ensemble is None  # fuse_critics=None: module calls
     assert make_loss(fuse_critics=False)._ensemble is None
@@ -298,13 +318,17 @@ class _LinearQuantiles(nn.Module):
         return self.scale * (observation[..., :1] + observation[..., 1:2] * quantile_fractions)
 
 
-def _linear_loss(gamma: float = 0.9, **kwargs) -> WCSACLoss:
-    torch.manual_seed(0)
-    safety = TensorDictModule(
+def _linear_critic() -> TensorDictModule:
+    return TensorDictModule(
         _LinearQuantiles(),
         in_keys=["observation", "action", "quantile_fractions"],
         out_keys=["cost_quantiles"],
     )
+
+
+def _linear_loss(gamma: float = 0.9, **kwargs) -> WCSACLoss:
+    torch.manual_seed(0)
+    safety = _linear_critic()
     kwargs.setdefault("risk_level", 0.2)
     kwargs.setdefault("num_quantiles", 4)
     kwargs.setdefault("num_target_quantiles", 5)

@@ -820,7 +820,12 @@ class WCSACLoss(SACLoss):
 
     def cvar(self, cost_value: Tensor, cost_variance: Tensor | None) -> Tensor:
         """Γ(s, a, α) = Q^c + α⁻¹ φ(Φ⁻¹(α)) √V^c (Eq. 9) of the Gaussian critic; Q^c at
-        least 0 with ``nonnegative_cost``."""
+        least 0 with ``nonnegative_cost``. (An IQN critic's Γ is :meth:`quantile_cvar`.)"""
+        if self._quantile_critic:
+            raise TypeError(
+                "cvar(cost_value, cost_variance) is the Gaussian critic's Γ; an IQN "
+                "critic's is quantile_cvar(tail_quantiles) (or safety_estimates()['cvar'])"
+            )
         if self.nonnegative_cost:
             cost_value = cost_value.clamp(min=0.0)
         if self.cvar_multiplier == 0.0 or cost_variance is None:
@@ -1297,7 +1302,8 @@ class SACLagLoss(WCSACLoss):
 
     Use a mean-only safety critic (``make_safety_critic(..., variance=False)``): no
     variance network exists or is trained, which is the paper's ablation. With a
-    Gaussian critic the variance is still learned (a diagnostic) but never used.
+    Gaussian critic the variance is still learned (a diagnostic) but never used; with
+    an IQN critic (``kind="iqn"``) Γ is the mean of its quantiles over [0, 1].
 
     Example:
         >>> from torchrl.data import Bounded
