@@ -9,6 +9,7 @@ from torchrl.data import Bounded
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
+from wcsac_rl.objectives import PAPER_OPTIONS
 
 OBS_DIM = 5
 ACT_DIM = 2
@@ -55,6 +56,11 @@ def make_batch(
     return td
 
 
+def paper_options(kind: str = "gaussian") -> dict:
+    """``PAPER_OPTIONS`` for a safety critic of ``kind`` (an IQN critic has no variance target)."""
+    return {k: v for k, v in PAPER_OPTIONS.items() if kind == "gaussian" or k != "variance_target"}
+
+
 def make_loss(
     *, variance: bool = True, width: int = 32, seed: int = 0, kind: str = "gaussian", **kwargs
 ) -> WCSACLoss:
@@ -64,6 +70,7 @@ def make_loss(
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=width) for _ in range(2)]
     safety = make_safety_critic(OBS_DIM, ACT_DIM, kind=kind, variance=variance, width=width)
     kwargs.setdefault("risk_level", 0.5 if variance else 1.0)
+    kwargs = {**paper_options(kind), **kwargs}  # the paper's loss unless a test asks otherwise
     return WCSACLoss(actor, qvalues, safety, **kwargs)
 
 

@@ -248,12 +248,13 @@ def test_calibration_keys_and_support_follow_the_loss():
 
     from wcsac_rl import SACLagLoss, WCSACLoss
     from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
+    from wcsac_rl.objectives import PAPER_OPTIONS
 
     def parts():
         return make_actor(6, Bounded(-1.0, 1.0, shape=(2,))), [make_qvalue(6, 2) for _ in range(2)]
 
-    wcsac = WCSACLoss(*parts(), make_safety_critic(6, 2))
-    sac_lag = SACLagLoss(*parts(), make_safety_critic(6, 2, variance=False))
+    wcsac = WCSACLoss(*parts(), make_safety_critic(6, 2), **PAPER_OPTIONS)
+    sac_lag = SACLagLoss(*parts(), make_safety_critic(6, 2, variance=False), **PAPER_OPTIONS)
     assert supports_calibration(wcsac) and supports_calibration(sac_lag)
     assert not supports_calibration(SACLoss(*parts()))
     assert not supports_calibration(None)

@@ -27,7 +27,7 @@ from torchrl.objectives import SoftUpdate
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import PolyakUpdate
+from wcsac_rl.objectives import PAPER_OPTIONS, PolyakUpdate
 from wcsac_rl.objectives.tanh_normal import (
     TanhNormalPolicy,
     sample_tanh_normal,
@@ -105,7 +105,7 @@ def test_actors_not_built_like_make_actor_fall_back_or_are_refused():
     actor = _actor_not_from_make_actor()
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)]
     safety = make_safety_critic(OBS_DIM, ACT_DIM, width=8)
-    loss = WCSACLoss(actor, qvalues, safety)
+    loss = WCSACLoss(actor, qvalues, safety, **PAPER_OPTIONS)
     assert loss._actor_plan is None
     out = loss(make_batch())  # the general path still works
     assert torch.isfinite(out["loss_actor"])

@@ -16,7 +16,13 @@ import math
 
 import pytest
 import torch
-from _loss_helpers import ACT_DIM, OBS_DIM, assert_same_losses_and_gradients, make_batch
+from _loss_helpers import (
+    ACT_DIM,
+    OBS_DIM,
+    assert_same_losses_and_gradients,
+    make_batch,
+    paper_options,
+)
 from _loss_helpers import make_loss as _make_loss
 from _tolerance import assert_close_f32
 from tensordict import TensorDict
@@ -273,6 +279,7 @@ def test_sac_lag_with_an_iqn_critic_holds_the_mean_quantile_under_the_threshold(
         _linear_critic(),
         num_quantiles=4,
         cost_threshold=1.0,
+        **paper_options("iqn"),
     )
     assert loss.safety_critic_kind == "iqn" and loss.risk_level == 1.0
     out = loss(_linear_batch())
@@ -294,7 +301,7 @@ def test_fusing_falls_back_for_an_iqn_critic_or_is_refused():
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"variance_target": "td"}, "variance head"),
+        ({"variance_target": "moment"}, "variance head"),
         ({"variance_loss": "w2"}, "variance head"),
         ({"num_quantiles": 0}, "num_quantiles must be an integer >= 1"),
         ({"num_target_quantiles": 1.5}, "num_target_quantiles must be an integer >= 1"),
@@ -336,7 +343,7 @@ def _linear_loss(gamma: float = 0.9, **kwargs) -> WCSACLoss:
         make_actor(2, Bounded(-1.0, 1.0, shape=(1,)), width=8),
         [make_qvalue(2, 1, width=8) for _ in range(2)],
         safety,
-        **kwargs,
+        **{**paper_options("iqn"), **kwargs},
     )
     loss.make_value_estimator(gamma=gamma)
     return loss
@@ -613,7 +620,7 @@ def test_learned_quantiles_match_the_chain_return_distribution(n_steps):
         [make_qvalue(N, 1, width=16) for _ in range(2)],
         make_safety_critic(N, 1, kind="iqn", width=64),
         risk_level=0.5,
-        cost_n_steps=n_steps,
+        **{**paper_options("iqn"), "cost_n_steps": n_steps},
     )
     loss.make_value_estimator(gamma=GAMMA)
     steps = 3000

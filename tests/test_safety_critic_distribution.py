@@ -15,6 +15,7 @@ from torchrl.objectives import SoftUpdate
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
+from wcsac_rl.objectives import PAPER_OPTIONS
 
 GAMMA = 0.9
 # per-state cost: `hit` with probability `prob`, independently at each step
@@ -43,7 +44,7 @@ def _loss(variance_loss: str, obs_dim: int, seed: int = 0, **kwargs) -> WCSACLos
         make_safety_critic(obs_dim, 1, width=64),
         risk_level=0.5,
         variance_loss=variance_loss,
-        **kwargs,
+        **{**PAPER_OPTIONS, **kwargs},
     )
     loss.make_value_estimator(gamma=GAMMA)
     return loss

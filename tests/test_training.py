@@ -92,9 +92,9 @@ def test_wcsac_trains_on_static_env_with_the_paper_networks(tmp_path):
     )
     row = _rows(run_dir)[-1]
     assert int(row["updates"]) == 100  # 2 batches of 200 frames, 50 updates after each
-    assert float(row["loss/cost_threshold"]) == pytest.approx(
-        1.49994, abs=1e-4
-    )  # 1.49994 is rounded
+    # κ holds the CVaR of the episode's (undiscounted) cost at start states under d
+    # itself (the paper's per-step threshold 1.49994: tests/test_config_defaults.py)
+    assert float(row["loss/cost_threshold"]) == 15.0
     assert float(row["eval/episode_length"]) <= 1000
     assert trainer.loss.has_variance and trainer.loss.risk_level == 0.5
 

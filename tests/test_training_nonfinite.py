@@ -24,9 +24,19 @@ def _trainer(tmp_path, *overrides):
 def _poisoned_batch(trainer, key=("next", "cost"), value=math.nan):
     """A replay batch of real transitions (random actions) with one entry poisoned."""
     env = trainer.env
-    batch = env.rollout(40, break_when_any_done=False).reshape(-1)
-    batch = batch.select(*trainer.replay_keys)[: trainer.cfg.algo.batch_size]
-    batch[key][3] = value
+    rollout = env.rollout(40, break_when_any_done=False)
+    # poison transition 3 of the flattened batch as collected (the n-step sums below
+    # then carry it too)
+    entry = rollout[key].clone()
+    flat = entry.flatten(0, rollout.ndim - 1)
+    flat[3] = value
+    rollout[key] = flat.reshape(entry.shape)
+    if trainer.postproc is not None:  # the n-step cost entries the loss reads
+        rollout = trainer.postproc(rollout)
+    batch = rollout.reshape(-1).select(*trainer.replay_keys)[: trainer.cfg.algo.batch_size]
+    if trainer.initial_state_buffer is not None:  # start states (rollout starts at a reset)
+        trainer.initial_state_buffer.add_starts(rollout)
+        batch = trainer.initial_state_buffer.attach(batch)
     return batch
 
 

@@ -23,6 +23,7 @@ from torchrl.objectives.utils import ValueEstimators
 
 from wcsac_rl import SACLagLoss, WCSACLoss, per_step_cost_threshold
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
+from wcsac_rl.objectives import PAPER_OPTIONS
 
 LOSS_KEYS = [
     "loss_actor",
@@ -224,7 +225,7 @@ def test_set_keys_with_custom_names_gives_the_same_losses():
         cost_variance_key=("safety", "var"),
         width=16,
     )
-    custom = WCSACLoss(actor, qvalues, safety, risk_level=0.5)
+    custom = WCSACLoss(actor, qvalues, safety, risk_level=0.5, **PAPER_OPTIONS)
     # the safety critic's out keys are adopted (mean first, variance second)
     assert custom.tensor_keys.cost_value == ("safety", "mean")
     assert custom.tensor_keys.cost_variance == ("safety", "var")
@@ -260,6 +261,7 @@ def test_mean_only_critic_is_sac_lag_without_variance_parameters():
         make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=8),
         [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)],
         make_safety_critic(OBS_DIM, ACT_DIM, variance=False, width=8),
+        **PAPER_OPTIONS,
     )
     assert isinstance(lag, WCSACLoss) and lag.risk_level == 1.0 and lag.cvar_multiplier == 0.0
     assert set(lag(make_batch()).keys()) == set(lag.out_keys)
@@ -383,7 +385,14 @@ def _readout_loss(variance_loss: str, gamma: float = 0.9, **kwargs) -> WCSACLoss
     safety = TensorDictModule(
         _ReadOut(), in_keys=["observation", "action"], out_keys=["cost_value", "cost_variance"]
     )
-    loss = WCSACLoss(actor, qvalues, safety, risk_level=0.5, variance_loss=variance_loss, **kwargs)
+    loss = WCSACLoss(
+        actor,
+        qvalues,
+        safety,
+        risk_level=0.5,
+        variance_loss=variance_loss,
+        **{**PAPER_OPTIONS, **kwargs},
+    )
     loss.make_value_estimator(gamma=gamma)
     return loss
 

@@ -45,12 +45,14 @@ ROW_ORDER: tuple[str, ...] = (
 )
 """Table 1's rows (``algo.label`` values) in the paper's order."""
 
-_WCSAC_LABEL = re.compile(r"wcsac_(iqn_)?([0-9.]+)")
-"""``algo.label`` of a WCSAC row: ``wcsac_<α>`` or, with the IQN critic, ``wcsac_iqn_<α>``."""
+_WCSAC_LABEL = re.compile(r"wcsac_(iqn_|paper_)?([0-9.]+)")
+"""``algo.label`` of a WCSAC row: ``wcsac_<α>``, with the IQN critic ``wcsac_iqn_<α>``, with
+the paper's safety critic and κ (``algo=wcsac_paper``) ``wcsac_paper_<α>``."""
 
 ROW_NAMES: dict[str, str] = {
     "sac": "SAC",
     "sac_lag": "SAC-Lag",
+    "sac_lag_paper": "SAC-Lag-paper",
     "cpo": "CPO",
     "random": "Random Policy",
 }
@@ -58,16 +60,20 @@ ROW_NAMES: dict[str, str] = {
 
 def row_name(label: str) -> str:
     """The paper's name of a row: ``"sac_lag"`` → ``"SAC-Lag"``, ``"wcsac_0.5"`` → ``"WCSAC-0.5"``
-    (and ``"wcsac_iqn_0.5"``, WCSAC with the IQN safety critic, → ``"WCSAC-IQN-0.5"``).
+    (and ``"wcsac_iqn_0.5"``, WCSAC with the IQN safety critic, → ``"WCSAC-IQN-0.5"``;
+    ``"wcsac_paper_0.5"``, with the paper's safety critic and κ, → ``"WCSAC-paper-0.5"``).
 
     >>> row_name("wcsac_0.1"), row_name("wcsac_iqn_0.1"), row_name("random"), row_name("my_algo")
     ('WCSAC-0.1', 'WCSAC-IQN-0.1', 'Random Policy', 'my_algo')
+    >>> row_name("wcsac_paper_0.1"), row_name("sac_lag_paper")
+    ('WCSAC-paper-0.1', 'SAC-Lag-paper')
     """
     if label in ROW_NAMES:
         return ROW_NAMES[label]
     match = _WCSAC_LABEL.fullmatch(label)
     if match:
-        return f"WCSAC-{'IQN-' if match.group(1) else ''}{match.group(2)}"
+        variant = {"iqn_": "IQN-", "paper_": "paper-"}.get(match.group(1) or "", "")
+        return f"WCSAC-{variant}{match.group(2)}"
     return label
 
 

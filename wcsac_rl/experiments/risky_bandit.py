@@ -88,7 +88,10 @@ def train_on_risky_bandit(
         cost_limit=cost_limit,
         max_episode_steps=1,
         damp_scale=damp_scale,
-        **loss_kwargs,
+        # one-step episodes: every replayed state is a start state and a one-step
+        # target is the whole return, so κ over the replay batch and 1-step targets
+        # are the start-state / n-step defaults here, without their extra entries
+        **{"kappa_states": "replay", "cost_n_steps": 1, **loss_kwargs},
     )
     updater = SoftUpdate(loss, tau=0.005)
     kappa = [loss.kappa_raw]

@@ -15,9 +15,15 @@ from wcsac_rl.objectives.risk import (
 from wcsac_rl.objectives.start_states import StartStateBuffer
 from wcsac_rl.objectives.tanh_normal import TanhNormalPolicy
 from wcsac_rl.objectives.target_update import PolyakUpdate
-from wcsac_rl.objectives.wcsac import SACLagLoss, WCSACLoss, per_step_cost_threshold
+from wcsac_rl.objectives.wcsac import (
+    PAPER_OPTIONS,
+    SACLagLoss,
+    WCSACLoss,
+    per_step_cost_threshold,
+)
 
 __all__ = [
+    "PAPER_OPTIONS",
     "CPOLoss",
     "NStepCost",
     "PolyakUpdate",

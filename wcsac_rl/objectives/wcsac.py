@@ -20,8 +20,10 @@ losses, ``Γ`` = the mean of its quantiles over ``τ ∈ [1 − α, 1]``.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import NamedTuple
+from types import MappingProxyType
+from typing import Any, NamedTuple
 
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
@@ -55,7 +57,7 @@ from wcsac_rl.objectives.risk import (
 )
 from wcsac_rl.objectives.tanh_normal import sample_tanh_normal, tanh_normal_actor_plan
 
-__all__ = ["CriticValues", "SACLagLoss", "WCSACLoss", "per_step_cost_threshold"]
+__all__ = ["PAPER_OPTIONS", "CriticValues", "SACLagLoss", "WCSACLoss", "per_step_cost_threshold"]
 
 KAPPA_PARAMETRISATIONS = ("softplus", "log")
 KAPPA_ACTIONS = ("replay", "policy")
@@ -63,6 +65,21 @@ KAPPA_STATES = ("replay", "initial")
 KAPPA_STATISTICS = ("mean", "tail")
 VARIANCE_LOSSES = ("w2", "mse")
 VARIANCE_TARGETS = ("moment", "td")
+
+PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(
+    {
+        "variance_target": "moment",
+        "cost_gamma": None,
+        "cost_n_steps": 1,
+        "nonnegative_cost": False,
+        "kappa_states": "replay",
+        "kappa_statistic": "mean",
+    }
+)
+"""The safety critic and κ as the paper writes them (Eq. 7–8, one-step targets with the
+reward's γ, κ on the mean Γ over replay states against the per-step threshold):
+``WCSACLoss(..., **PAPER_OPTIONS)``. The defaults differ, on StaticEnv evidence (README,
+"Defaults chosen on evidence"); ``algo=wcsac_paper`` is the same in the config."""
 
 
 def per_step_cost_threshold(cost_limit: float, gamma: float, max_episode_steps: int) -> float:
@@ -151,9 +168,13 @@ class WCSACLoss(SACLoss):
             it is the per-step threshold ``d·(1−γ_c^T)/((1−γ_c)T)`` when κ sees replay
             states, and ``d`` itself when κ sees initial states (``kappa_states``).
         cost_gamma (float, optional): discount γ_c of the safety critic. ``None``
-            (default) uses the value estimator's γ, as the paper does.
-        cost_n_steps (int): ``1`` (default, the paper): one-step safety-critic
-            targets. ``n > 1``: the safety critic bootstraps from the n-step entries
+            uses the value estimator's γ, as the paper does. Default ``1.0``: the
+            critic's value at a start state is then the expected episode cost itself,
+            which the limit ``d`` is about (with γ_c = γ = 0.99 a cost met 60 steps
+            into an episode counts 0.55 times). For a task without episode ends use
+            γ_c < 1 (the undiscounted value of an endless episode is unbounded).
+        cost_n_steps (int): ``1`` (the paper): one-step safety-critic
+            targets. ``n > 1`` (default ``10``): the safety critic bootstraps from the n-step entries
             :class:`~wcsac_rl.objectives.NStepCost` adds to collected data
             (``Σ_{k<m} γ_c^k c_{t+k} + γ_c^m (1−term) Q̄^c(s_{t+m}, a')``, m ≤ n), so
             sparse costs reach the states that lead to them n times faster. The
@@ -163,7 +184,7 @@ class WCSACLoss(SACLoss):
             in the actor and κ losses; the regression itself is unchanged). Stops the
             actor from steering into actions where the safety critic extrapolates
             below zero, and those values from spreading through the targets.
-            Default ``False`` (the paper).
+            Default ``True`` (the paper: ``False``).
         kappa_init (float): initial safety weight κ > 0. Default ``softplus(0) ≈ 0.693``
             (the authors' code).
         kappa_parametrization (str): ``"softplus"`` (κ = softplus(raw), the authors'
@@ -173,7 +194,9 @@ class WCSACLoss(SACLoss):
             (episode start states, read from the sub-tensordict at the
             ``initial_states`` key, one start state per batch row, with ``a ~ π``):
             Γ(s₀, a₀) estimates the CVaR of the episode's discounted cost, so it is
-            held under the episodic limit ``d`` itself. Default ``"replay"``.
+            held under the episodic limit ``d`` itself. Default ``"initial"``: the
+            batch must then carry start states
+            (:class:`~wcsac_rl.objectives.StartStateBuffer` provides them).
         kappa_statistic (str): what of the critic at those states the κ loss holds
             under the threshold. ``"mean"`` (the paper): the mean of the per-state
             Γ(s, a, α). ``"tail"``: the CVaR_α of the critic's cost distribution
@@ -182,7 +205,7 @@ class WCSACLoss(SACLoss):
             start state is random too, which is what the worst-α share of test
             episodes measures; the mean of per-state CVaRs is never larger and
             misses a tail made of a few risky start states. Equal at α = 1.
-            Default ``"mean"``.
+            Default ``"tail"``.
         kappa_actions (str): the actions at which the κ loss evaluates Γ: ``"replay"``
             (the stored actions, the authors' code) or ``"policy"`` (``a ~ π``, as the
             paper writes). Default ``"policy"`` (see README for the evidence).
@@ -207,7 +230,7 @@ class WCSACLoss(SACLoss):
             expectation when Q is the mean of its target, but ``"td"`` is never
             negative (the moment form is negative wherever ``Q > γ_c Q̄'``, which
             drives the variance head to its floor when costs are rare). Default
-            ``"moment"``. ``variance_loss`` and ``variance_target`` configure the
+            ``"td"``. ``variance_loss`` and ``variance_target`` configure the
             Gaussian critic's variance head: with an IQN critic any other value than
             their defaults is a ``ValueError``.
         fuse_critics (bool, optional): evaluate the reward and safety critics as one
@@ -338,20 +361,20 @@ class WCSACLoss(SACLoss):
         cost_limit: float = 15.0,
         max_episode_steps: int = 1000,
         cost_threshold: float | None = None,
-        cost_gamma: float | None = None,
-        cost_n_steps: int = 1,
-        nonnegative_cost: bool = False,
-        kappa_statistic: str = "mean",
+        cost_gamma: float | None = 1.0,
+        cost_n_steps: int = 10,
+        nonnegative_cost: bool = True,
+        kappa_statistic: str = "tail",
         kappa_init: float = math.log(2.0),
         kappa_parametrization: str = "softplus",
         kappa_actions: str = "policy",
-        kappa_states: str = "replay",
+        kappa_states: str = "initial",
         damp_scale: float = 0.0,
         num_quantiles: int = 20,
         num_target_quantiles: int = 20,
         huber_kappa: float = 1.0,
         variance_loss: str = "mse",
-        variance_target: str = "moment",
+        variance_target: str = "td",
         fuse_critics: bool | None = None,
         direct_sampling: bool | None = None,
         num_qvalue_nets: int = 2,
@@ -435,12 +458,12 @@ class WCSACLoss(SACLoss):
         self.convert_to_functional(safety_network, "safety_network", create_target_params=True)
         self._quantile_critic = self._reads_quantile_fractions(safety_network)
         self._adopt_safety_keys(safety_network)
-        if self._quantile_critic and (variance_loss, variance_target) != ("mse", "moment"):
+        if self._quantile_critic and (variance_loss, variance_target) != ("mse", "td"):
             raise ValueError(
                 f"variance_loss={variance_loss!r} and variance_target={variance_target!r} "
                 "configure the Gaussian critic's variance head; an IQN safety critic has "
                 "none (it learns quantiles with the quantile Huber loss): leave them at "
-                "their defaults ('mse', 'moment')"
+                "their defaults ('mse', 'td')"
             )
         if self.cvar_multiplier != 0.0 and not self.has_variance and not self._quantile_critic:
             raise ValueError(

@@ -1,0 +1,60 @@
+"""The config's defaults are the loss's code defaults; the paper presets are PAPER_OPTIONS."""
+
+from __future__ import annotations
+
+import inspect
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from wcsac_rl import WCSACLoss
+from wcsac_rl.objectives import PAPER_OPTIONS
+
+CONF = Path(__file__).resolve().parents[1] / "conf"
+# the safety critic's and κ's options: config keys with the loss keywords' names
+OPTIONS = (*PAPER_OPTIONS, "variance_loss", "kappa_actions", "kappa_init", "kappa_parametrization")
+
+
+def _algo(*overrides: str):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose("config", overrides=list(overrides)).algo
+
+
+@pytest.mark.parametrize("algo", ["wcsac", "sac_lag"])
+def test_config_defaults_equal_the_loss_code_defaults(algo):
+    defaults = inspect.signature(WCSACLoss.__init__).parameters
+    cfg = _algo(f"algo={algo}")
+    for key in OPTIONS:
+        assert cfg[key] == defaults[key].default, key
+
+
+@pytest.mark.parametrize(
+    ("preset", "name"), [("wcsac_paper", "wcsac"), ("sac_lag_paper", "sac_lag")]
+)
+def test_paper_presets_are_the_paper_options_and_nothing_else(preset, name):
+    paper, base = _algo(f"algo={preset}"), _algo(f"algo={name}")
+    assert paper.name == name
+    for key, value in PAPER_OPTIONS.items():
+        assert paper[key] == value, key
+    different = {k for k in base if base[k] != paper[k]}
+    assert different == {"label", *(k for k in PAPER_OPTIONS if base[k] != PAPER_OPTIONS[k])}
+
+
+def test_paper_preset_builds_the_papers_loss():
+    from wcsac_rl.envs import make_env
+    from wcsac_rl.training import builders
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("config", overrides=["algo=wcsac_paper", "env=tiny", "risk_level=0.1"])
+    env = make_env("tiny", seed=0)
+    try:
+        loss = builders.make_loss(cfg, builders.make_agent(cfg, env), 100)
+    finally:
+        env.close()
+    assert loss.kappa_states == "replay" and loss.cost_n_steps == 1
+    assert loss.cost_gamma == pytest.approx(float(cfg.algo.gamma))
+    # the per-step threshold of a discounted critic, not d itself
+    expected = cfg.cost_limit * (1 - cfg.algo.gamma**100) / ((1 - cfg.algo.gamma) * 100)
+    assert float(loss.cost_threshold) == pytest.approx(expected, rel=1e-6)
+    assert builders.make_postproc(loss) is None
