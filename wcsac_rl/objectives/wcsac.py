@@ -283,18 +283,24 @@ class WCSACLoss(SACLoss):
         >>> from torchrl.objectives import SoftUpdate
         >>> from wcsac_rl import WCSACLoss
         >>> from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
+        >>> from wcsac_rl.objectives import NStepCost, StartStateBuffer
         >>> actor = make_actor(4, Bounded(-1.0, 1.0, shape=(2,)))
         >>> loss = WCSACLoss(
         ...     actor, [make_qvalue(4, 2) for _ in range(2)], make_safety_critic(4, 2),
         ...     risk_level=0.1, cost_limit=15.0, max_episode_steps=1000)
         >>> updater = SoftUpdate(loss, tau=0.005)
-        >>> batch = TensorDict({
-        ...     "observation": torch.randn(8, 4), "action": torch.rand(8, 2) * 2 - 1,
-        ...     "next": {"observation": torch.randn(8, 4), "reward": torch.randn(8, 1),
-        ...              "cost": torch.bernoulli(torch.full((8, 1), 0.1)),
-        ...              "done": torch.zeros(8, 1, dtype=torch.bool),
-        ...              "terminated": torch.zeros(8, 1, dtype=torch.bool)}}, [8])
-        >>> out = loss(batch)
+        >>> traj = TensorDict({  # one env's first 8 steps, as a collector hands them over
+        ...     "observation": torch.randn(1, 8, 4), "action": torch.rand(1, 8, 2) * 2 - 1,
+        ...     "step_count": torch.arange(8).reshape(1, 8, 1),
+        ...     "next": {"observation": torch.randn(1, 8, 4), "reward": torch.randn(1, 8, 1),
+        ...              "cost": torch.bernoulli(torch.full((1, 8, 1), 0.1)),
+        ...              "done": torch.zeros(1, 8, 1, dtype=torch.bool),
+        ...              "terminated": torch.zeros(1, 8, 1, dtype=torch.bool)}}, [1, 8])
+        >>> traj = NStepCost(loss.cost_n_steps, loss.cost_gamma)(traj)  # n-step cost targets
+        >>> starts = StartStateBuffer.for_loss(loss)  # κ looks at episode start states
+        >>> starts.add_starts(traj)
+        1
+        >>> out = loss(starts.attach(traj.reshape(-1)))
         >>> sum(v for k, v in out.items() if k.startswith("loss_")).backward()
         >>> sorted(k for k in out.keys() if k.startswith("loss_"))
         ['loss_actor', 'loss_alpha', 'loss_cost_value', 'loss_cost_variance', 'loss_kappa', 'loss_qvalue']
