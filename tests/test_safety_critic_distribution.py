@@ -119,13 +119,21 @@ def _predict(loss: WCSACLoss, obs: torch.Tensor, repeats: int = 64):
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    ("variance_target", "n_steps"), [("moment", 1), ("td", 1), ("td", 3), ("moment", 3)]
+    ("variance_loss", "variance_target", "n_steps"),
+    [
+        ("mse", "moment", 1),
+        ("mse", "td", 1),
+        ("mse", "td", 3),
+        ("mse", "moment", 3),
+        ("glm", "td", 1),
+        ("glm", "td", 3),
+    ],
 )
 def test_consistent_variance_loss_recovers_closed_form_mean_and_variance_on_a_chain(
-    variance_target, n_steps
+    variance_loss, variance_target, n_steps
 ):
     g = torch.Generator().manual_seed(0)
-    loss = _loss("mse", N, variance_target=variance_target, cost_n_steps=n_steps)
+    loss = _loss(variance_loss, N, variance_target=variance_target, cost_n_steps=n_steps)
     _train_safety_critic(loss, _chain_sampler(256, g, n_steps), steps=3000)
     mean, var = _predict(loss, torch.eye(N))
     true_mean, true_var = chain_moments()

@@ -233,7 +233,7 @@ def test_keyboard_interrupt_writes_a_checkpoint_and_flushed_logs(tmp_path, monke
         ("cost_limit=-1", "cost_limit must be a number >= 0"),
         ("env.name=moon", "unknown env 'moon'"),
         ("algo.collector.frames_per_batch=201", "must be a multiple"),
-        ("algo.variance_loss=W2", "algo.variance_loss must be one of w2, mse"),
+        ("algo.variance_loss=W2", "algo.variance_loss must be one of w2, mse, glm"),
         ("algo.kappa_actions=target", "algo.kappa_actions must be one of replay, policy"),
         ("algo.kappa_init=0", "algo.kappa_init must be > 0"),
         ("algo.damp_scale=-1", "algo.damp_scale must be >= 0"),

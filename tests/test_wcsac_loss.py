@@ -87,6 +87,20 @@ def test_each_loss_term_reaches_exactly_its_own_parameters(
             assert grad is None or grad.abs().sum() == 0, f"{key} leaked a gradient into {name}"
 
 
+@pytest.mark.parametrize("fast", [False, True])
+@pytest.mark.parametrize("variance_loss", ["w2", "glm"])
+def test_every_variance_loss_reaches_only_the_variance_network(variance_loss, fast):
+    loss = make_loss(variance_loss=variance_loss, fuse_critics=fast, direct_sampling=fast)
+    grads = _grads_after(loss, "loss_cost_variance", make_batch())
+    owner = OWNERS["loss_cost_variance"]
+    assert any(name.startswith(owner) for name in grads)
+    for name, grad in grads.items():
+        if name.startswith(owner):
+            assert grad is not None and grad.abs().sum() > 0, f"no gradient to {name}"
+        else:
+            assert grad is None or grad.abs().sum() == 0, f"leaked a gradient into {name}"
+
+
 def test_target_parameters_get_no_gradient_and_follow_soft_update():
     loss = make_loss()
     updater = SoftUpdate(loss, tau=0.1)
@@ -478,7 +492,7 @@ def test_cost_gamma_discounts_the_safety_critic_only():
         make_loss(cost_gamma=1.5)
 
 
-@pytest.mark.parametrize("variance_loss", ["w2", "mse"])
+@pytest.mark.parametrize("variance_loss", ["w2", "mse", "glm"])
 def test_variance_loss_values_on_hand_made_tensors(variance_loss):
     loss = _readout_loss(variance_loss)
     batch = _readout_batch()

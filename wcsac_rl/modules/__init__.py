@@ -11,6 +11,7 @@ from wcsac_rl.modules.safety_critic import (
     VARIANCE_MIN,
     GaussianSafetyCritic,
     make_safety_critic,
+    softplus_variance,
 )
 
 __all__ = [
@@ -25,4 +26,5 @@ __all__ = [
     "make_qvalue",
     "make_safety_critic",
     "make_state_value",
+    "softplus_variance",
 ]

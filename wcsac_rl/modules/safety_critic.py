@@ -23,6 +23,7 @@ __all__ = [
     "VARIANCE_MIN",
     "GaussianSafetyCritic",
     "make_safety_critic",
+    "softplus_variance",
 ]
 
 SAFETY_CRITIC_KINDS = ("gaussian", "iqn")
@@ -31,6 +32,15 @@ SAFETY_CRITIC_KINDS = ("gaussian", "iqn")
 #: V^c is clamped to this range wherever it is produced or used (spec, authors' code).
 VARIANCE_MIN = 1e-8
 VARIANCE_MAX = 1e8
+
+
+def softplus_variance(raw: torch.Tensor) -> torch.Tensor:
+    """The variance head's output transform: ``clamp(softplus(raw), 1e-8, 1e8)``.
+
+    The one definition used by :class:`GaussianSafetyCritic` and by the fused critic
+    evaluation of :class:`~wcsac_rl.objectives.WCSACLoss` (the two must agree).
+    """
+    return F.softplus(raw).clamp(VARIANCE_MIN, VARIANCE_MAX)
 
 
 class GaussianSafetyCritic(nn.Module):
@@ -61,8 +71,7 @@ class GaussianSafetyCritic(nn.Module):
     ) -> tuple[torch.Tensor, torch.Tensor]:
         x = torch.cat([observation, action], dim=-1)
         mean = self.mean_net(x)
-        variance = F.softplus(self.variance_net(x)).clamp(VARIANCE_MIN, VARIANCE_MAX)
-        return mean, variance
+        return mean, softplus_variance(self.variance_net(x))
 
 
 def make_safety_critic(

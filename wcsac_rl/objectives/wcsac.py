@@ -30,14 +30,18 @@ from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule, dispatch
 from tensordict.utils import NestedKey
 from torch import Tensor
-from torch.nn import functional as F
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import SACLoss
 from torchrl.objectives.sac import compute_rsample_log_prob
 from torchrl.objectives.utils import ValueEstimators, _cache_values, distance_loss
 
 from wcsac_rl.modules.quantile_critic import IQNSafetyCritic
-from wcsac_rl.modules.safety_critic import VARIANCE_MAX, VARIANCE_MIN, GaussianSafetyCritic
+from wcsac_rl.modules.safety_critic import (
+    VARIANCE_MAX,
+    VARIANCE_MIN,
+    GaussianSafetyCritic,
+    softplus_variance,
+)
 from wcsac_rl.objectives.critic_ensemble import (
     EnsembleMember,
     evaluate_ensemble,
@@ -56,6 +60,7 @@ from wcsac_rl.objectives.risk import (
     validate_risk_level,
 )
 from wcsac_rl.objectives.tanh_normal import sample_tanh_normal, tanh_normal_actor_plan
+from wcsac_rl.objectives.variance import VARIANCE_LOSSES, variance_regression_loss
 
 __all__ = ["PAPER_OPTIONS", "CriticValues", "SACLagLoss", "WCSACLoss", "per_step_cost_threshold"]
 
@@ -63,7 +68,6 @@ KAPPA_PARAMETRISATIONS = ("softplus", "log")
 KAPPA_ACTIONS = ("replay", "policy")
 KAPPA_STATES = ("replay", "initial")
 KAPPA_STATISTICS = ("mean", "tail")
-VARIANCE_LOSSES = ("w2", "mse")
 VARIANCE_TARGETS = ("moment", "td")
 
 PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(
@@ -222,7 +226,10 @@ class WCSACLoss(SACLoss):
         variance_loss (str): ``"w2"`` — the paper's 2-Wasserstein variance loss
             ``V + y − 2√(V y)``; ``"mse"`` — ``½ (V − y)²``, a consistent estimator of
             the variance when the TD target ``y`` is noisy (W2 on sampled targets
-            converges to ``(E√y)²`` instead of ``E y``). Default ``"mse"`` (see README).
+            converges to ``(E√y)²`` instead of ``E y``); ``"glm"`` — the MSE's fixed
+            point with the gradient ``V − y`` on the head's pre-softplus output, so
+            small variances are not silenced by ``softplus' ≈ V``
+            (:mod:`wcsac_rl.objectives.variance`). Default ``"mse"`` (see README).
         variance_target (str): ``"moment"`` — Eq. 8,
             ``c² + γ_c(1−term)(2c Q̄' + γ_c(V̄' + Q̄'²)) − Q²``, the second moment minus the
             squared mean; ``"td"`` — ``(c + γ_c(1−term) Q̄' − Q)² + γ_c²(1−term) V̄'``,
@@ -834,7 +841,7 @@ class WCSACLoss(SACLoss):
             n = self.num_qvalue_nets
             variance = None
             if self.has_variance:
-                variance = F.softplus(out[n + 1]).clamp(VARIANCE_MIN, VARIANCE_MAX)
+                variance = softplus_variance(out[n + 1])
             return CriticValues(out[:n], out[n], variance)
         q_params, s_params = self._critic_params(which)
         td_q = tensordict.select(*self.qvalue_network.in_keys, strict=False)
@@ -1027,7 +1034,7 @@ class WCSACLoss(SACLoss):
         targets: dict[str, Tensor] | None = None,
         values: CriticValues | None = None,
     ) -> tuple[Tensor, Tensor | None, dict[str, Tensor]]:
-        """Mean TD loss (Eq. 7) and variance TD loss (Eq. 8, W2 or MSE) of the safety critic.
+        """Mean TD loss (Eq. 7) and variance TD loss (Eq. 8; W2, MSE or GLM) of the safety critic.
 
         Returns ``(loss_cost_value, loss_cost_variance or None, metadata)`` with
         ``metadata["cost_value"]`` / ``["cost_variance"]`` the detached predictions at
@@ -1049,11 +1056,7 @@ class WCSACLoss(SACLoss):
         if vc is None:
             return loss_mean, None, metadata
         variance_target = self.variance_target(targets, qc)
-        if self.variance_loss == "w2":
-            # 2-Wasserstein distance between N(·, V) and N(·, y), variance part: (√V − √y)².
-            loss_var = vc + variance_target - 2 * (vc * variance_target).sqrt()
-        else:
-            loss_var = 0.5 * (vc - variance_target).pow(2)
+        loss_var = variance_regression_loss(vc, variance_target, self.variance_loss)
         loss_var = self._reduce_loss(loss_var, tensordict=tensordict, weights=weights)
         metadata["cost_variance"] = vc.detach()
         return loss_mean, loss_var, metadata
