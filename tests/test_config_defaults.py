@@ -13,7 +13,14 @@ from wcsac_rl.objectives import PAPER_OPTIONS
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 # the safety critic's and κ's options: config keys with the loss keywords' names
-OPTIONS = (*PAPER_OPTIONS, "variance_loss", "kappa_actions", "kappa_init", "kappa_parametrization")
+OPTIONS = (
+    *PAPER_OPTIONS,
+    "cost_bootstrap_truncated",
+    "variance_loss",
+    "kappa_actions",
+    "kappa_init",
+    "kappa_parametrization",
+)
 
 
 def _algo(*overrides: str):

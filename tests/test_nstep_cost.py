@@ -37,6 +37,7 @@ def _brute_force(td: TensorDict, n: int, gamma: float):
     count = torch.zeros(envs, steps, dtype=torch.int64)
     obs = torch.zeros(envs, steps, 4)
     term = torch.zeros(envs, steps, dtype=torch.bool)
+    ended = torch.zeros(envs, steps, dtype=torch.bool)
     for e in range(envs):
         for t in range(steps):
             k = 0
@@ -49,20 +50,23 @@ def _brute_force(td: TensorDict, n: int, gamma: float):
             count[e, t] = k
             obs[e, t] = nxt["observation"][e, last]
             term[e, t] = nxt["terminated"][e, last, 0]
-    return cost, count, obs, term
+            ended[e, t] = nxt["done"][e, last, 0]
+    return cost, count, obs, term, ended
 
 
 @pytest.mark.parametrize("n", [1, 2, 5, 20])
 def test_nstep_entries_equal_a_step_by_step_walk_of_each_trajectory(n):
     td = _trajectories()
     out = NStepCost(n, gamma=0.9)(td.clone())["nstep"]
-    cost, count, obs, term = _brute_force(td, n, 0.9)
+    cost, count, obs, term, ended = _brute_force(td, n, 0.9)
     # the walk adds ≤ 20 float32 terms γ^k c ≤ 1 to partial sums ≤ Σ 0.9^k = 10 (one
     # rounding each); NStepCost sums in float64 and rounds once
     assert_close_f32(out["cost"].squeeze(-1), cost, ops=21, magnitude=10.0)
     assert torch.equal(out["steps"], count)
     assert torch.equal(out["observation"], obs)
     assert torch.equal(out["terminated"].squeeze(-1), term)
+    assert torch.equal(out["done"].squeeze(-1), ended)
+    assert (ended & ~term).any()  # the data have truncations to tell apart
 
 
 def test_one_step_entries_are_the_transition_itself():
@@ -111,6 +115,42 @@ def test_loss_bootstraps_the_safety_critic_from_the_nstep_state():
     torch.testing.assert_close(targets["cost_next_variance"], discount**2 * alive * vc)
     with pytest.raises(KeyError, match="NStepCost"):
         loss.compute_targets(batch.exclude("nstep"))
+
+
+@pytest.mark.parametrize("n_steps", [1, 3])
+@pytest.mark.parametrize("bootstrap", [None, True, False])
+def test_safety_targets_stop_at_time_limits_unless_told_to_bootstrap(n_steps, bootstrap):
+    """γ_c = 1: by default the cost sum ends where the episode ends, truncations included;
+    ``cost_bootstrap_truncated=True`` bootstraps across them (only terminations stop)."""
+    torch.manual_seed(0)
+    loss = make_loss(
+        cost_n_steps=n_steps,
+        variance_target="td",
+        cost_gamma=1.0,
+        cost_bootstrap_truncated=bootstrap,
+    )
+    assert loss.cost_bootstrap_truncated is bool(bootstrap)
+    batch = NStepCost(n_steps, gamma=1.0)(_trajectories(envs=1, steps=16, seed=3))
+    batch = batch.reshape(-1)
+    for key in ("observation", ("next", "observation"), ("nstep", "observation")):
+        batch[key] = torch.randn(16, 5)
+    batch["action"] = torch.rand(16, 2) * 2 - 1
+    batch["next", "reward"] = torch.zeros(16, 1)
+    torch.manual_seed(1)
+    targets = loss.compute_targets(batch)
+    torch.manual_seed(1)
+    # the reward target's a' ~ π(s'); the n-step target draws a_m ~ π(s_{t+m}) after it
+    action = loss._sample_policy(batch["next"])[0]
+    ahead = batch["nstep"] if n_steps > 1 else batch["next"]
+    if n_steps > 1:
+        action = loss._sample_policy(ahead)[0]
+    ahead = ahead.clone().set("action", action)
+    with torch.no_grad():
+        qc, _ = loss._safety_forward(ahead, loss.target_safety_network_params)
+    ends = batch["nstep", "terminated" if bootstrap else "done"].squeeze(-1)
+    assert (batch["nstep", "done"] & ~batch["nstep", "terminated"]).any()  # truncations
+    expected = batch["nstep", "cost"].squeeze(-1) + (~ends).float() * qc
+    torch.testing.assert_close(targets["cost_target"], expected)
 
 
 def test_nonnegative_cost_clamps_q_where_it_is_used_not_where_it_is_fitted():

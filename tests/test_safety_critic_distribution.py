@@ -15,7 +15,7 @@ from torchrl.objectives import SoftUpdate
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import PAPER_OPTIONS
+from wcsac_rl.objectives import PAPER_OPTIONS, NStepCost
 
 GAMMA = 0.9
 # per-state cost: `hit` with probability `prob`, independently at each step
@@ -187,3 +187,62 @@ def test_w2_variance_loss_lands_where_predicted_and_mse_on_the_true_variance():
     q_mse, v_mse = results["mse"]
     assert q_mse == pytest.approx(1.0, abs=0.08)
     assert v_mse == pytest.approx(9.0, rel=0.05)
+
+
+def _time_limit_sampler(batch: int, horizon: int, n_steps: int):
+    """Rows of whole episodes of one state (observation 1) with cost 1 per step, ended
+    only by the time limit ``horizon`` (done, never terminated), through ``NStepCost``
+    when ``n_steps > 1``; flattened to a batch of transitions."""
+
+    def sample() -> TensorDict:
+        shape = (batch, horizon)
+        truncated = torch.zeros(*shape, 1, dtype=torch.bool)
+        truncated[:, -1] = True
+        td = TensorDict(
+            {
+                "observation": torch.ones(*shape, 1),
+                "action": torch.rand(*shape, 1) * 2 - 1,
+                "next": {
+                    "observation": torch.ones(*shape, 1),
+                    "reward": torch.zeros(*shape, 1),
+                    "cost": torch.ones(*shape, 1),
+                    "done": truncated,
+                    "terminated": torch.zeros(*shape, 1, dtype=torch.bool),
+                },
+            },
+            list(shape),
+        )
+        if n_steps > 1:
+            td = NStepCost(n_steps, gamma=1.0)(td)
+        return td.reshape(-1)
+
+    return sample
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("n_steps", [1, 3])
+def test_undiscounted_safety_critic_stops_at_the_time_limit(n_steps):
+    """γ_c = 1 on a task whose episodes end only by the time limit T = 10.
+
+    The critic cannot see the time, so its value is the fixed point of the aliased
+    target ``E[m] + P(no episode end within m)·Q`` over the steps of an episode:
+    ``Q = E[m] / P(end within m)`` — ``T`` for one-step targets, 2.7 / 0.3 = 9 for
+    three-step ones. Bootstrapping across the time limit has no fixed point: the
+    value of an endless episode grows with every target update.
+    """
+    horizon = 10
+    m = torch.clamp(horizon - torch.arange(horizon), max=n_steps).double()
+    ends = (torch.arange(horizon) + n_steps >= horizon).double()
+    expected = float(m.mean() / ends.mean())
+    values = {}
+    for bootstrap in (False, True):
+        loss = _loss(
+            "glm", 1, cost_gamma=1.0, cost_n_steps=n_steps, cost_bootstrap_truncated=bootstrap
+        )
+        assert loss.cost_bootstrap_truncated is bootstrap
+        _train_safety_critic(loss, _time_limit_sampler(32, horizon, n_steps), steps=1500)
+        values[bootstrap] = float(_predict(loss, torch.ones(1, 1))[0])
+    # measured (seed 0): 9.59 (1-step, still rising) and 9.03 (3-step) when stopping;
+    # 30.1 and 80.0 after the same 1 500 updates when bootstrapping
+    assert values[False] == pytest.approx(expected, rel=0.1)
+    assert values[True] > 2 * expected

@@ -243,6 +243,7 @@ def test_keyboard_interrupt_writes_a_checkpoint_and_flushed_logs(tmp_path, monke
         ("algo.cost_gamma=1.2", "algo.cost_gamma must be null or in [0, 1]"),
         ("algo.cost_n_steps=0", "algo.cost_n_steps must be an integer >= 1"),
         ("algo.nonnegative_cost=yes", "algo.nonnegative_cost must be true or false"),
+        ("algo.cost_bootstrap_truncated=maybe", "algo.cost_bootstrap_truncated must be null"),
         ("retain_freed_memory=maybe", "retain_freed_memory must be true or false, got 'maybe'"),
         ("compile=2", "compile must be true or false, got 2"),
     ],

@@ -37,7 +37,8 @@ class NStepCost(nn.Module):
         cost_key, done_key, terminated_key: read under ``"next"``.
         out_key: where the sub-tensordict goes. It holds the state entries of
             ``s_{t+m}``, ``"cost"`` (the discounted sum, shaped like the cost),
-            ``"steps"`` (``m``, int64) and ``"terminated"`` (at step ``t+m−1``).
+            ``"steps"`` (``m``, int64), and ``"terminated"`` and ``"done"`` (at step
+            ``t+m−1``; ``done`` also marks a time-limit truncation there).
 
     The batch's last dimension must be time (TorchRL collectors' layout, e.g.
     ``[num_envs, frames_per_env]``).
@@ -110,5 +111,6 @@ class NStepCost(nn.Module):
         out["cost"] = total.to(cost.dtype).reshape(cost.shape)
         out["steps"] = steps
         out["terminated"] = at_last(nxt.get(self.terminated_key))
+        out["done"] = at_last(nxt.get(self.done_key))
         tensordict.set(self.out_key, TensorDict(out, batch_size=shape))
         return tensordict

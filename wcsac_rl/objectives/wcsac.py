@@ -175,8 +175,17 @@ class WCSACLoss(SACLoss):
             uses the value estimator's γ, as the paper does. Default ``1.0``: the
             critic's value at a start state is then the expected episode cost itself,
             which the limit ``d`` is about (with γ_c = γ = 0.99 a cost met 60 steps
-            into an episode counts 0.55 times). For a task without episode ends use
-            γ_c < 1 (the undiscounted value of an endless episode is unbounded).
+            into an episode counts 0.55 times). With γ_c = 1 the safety critic's sum
+            stops where the episode stops, time limits included
+            (``cost_bootstrap_truncated``).
+        cost_bootstrap_truncated (bool, optional): whether the safety critic's target
+            bootstraps across a time-limit truncation (``done`` but not
+            ``terminated``), as the reward critic's does. ``None`` (default): only when
+            γ_c < 1. Undiscounted, bootstrapping across the time limit makes Q^c the
+            cost of an endless episode, which grows without bound on a task whose
+            episodes end only by the time limit; stopping there makes it the cost
+            until the episode's end (for a critic that does not see the time, an
+            average over the times the state is met).
         cost_n_steps (int): ``1`` (the paper): one-step safety-critic
             targets. ``n > 1`` (default ``10``): the safety critic bootstraps from the n-step entries
             :class:`~wcsac_rl.objectives.NStepCost` adds to collected data
@@ -375,6 +384,7 @@ class WCSACLoss(SACLoss):
         max_episode_steps: int = 1000,
         cost_threshold: float | None = None,
         cost_gamma: float | None = 1.0,
+        cost_bootstrap_truncated: bool | None = None,
         cost_n_steps: int = 10,
         nonnegative_cost: bool = True,
         kappa_statistic: str = "tail",
@@ -459,6 +469,9 @@ class WCSACLoss(SACLoss):
         self.variance_loss = variance_loss
         self.variance_target_kind = variance_target
         self._explicit_cost_gamma = None if cost_gamma is None else float(cost_gamma)
+        self._cost_bootstrap_truncated = (
+            None if cost_bootstrap_truncated is None else bool(cost_bootstrap_truncated)
+        )
 
         super().__init__(
             actor_network,
@@ -594,6 +607,12 @@ class WCSACLoss(SACLoss):
         if "cost_threshold" in self._buffers:
             self.cost_threshold.fill_(threshold)
             self.cost_discount.fill_(gamma)
+        # a Python bool, fixed with γ_c, so compiled code does not branch on a tensor
+        self._bootstrap_truncated = (
+            gamma < 1.0
+            if self._cost_bootstrap_truncated is None
+            else self._cost_bootstrap_truncated
+        )
         return self
 
     @property
@@ -602,6 +621,12 @@ class WCSACLoss(SACLoss):
         if self._explicit_cost_gamma is not None:
             return self._explicit_cost_gamma
         return float(self.value_estimator.gamma)
+
+    @property
+    def cost_bootstrap_truncated(self) -> bool:
+        """Whether the safety critic's target bootstraps across a time-limit truncation
+        (``cost_bootstrap_truncated``, else ``γ_c < 1``)."""
+        return self._bootstrap_truncated
 
     def _set_in_keys(self):
         super()._set_in_keys()
@@ -614,7 +639,7 @@ class WCSACLoss(SACLoss):
             keys.update(inputs)
             keys.update(("next", k) for k in inputs if k != self.tensor_keys.action)
             if self.__dict__.get("cost_n_steps", 1) > 1:
-                for key in ("cost", "steps", "terminated", *self.initial_state_keys):
+                for key in ("cost", "steps", "terminated", "done", *self.initial_state_keys):
                     keys.add(_nested(self.tensor_keys.nstep, key))
             self._in_keys = list(keys)
 
@@ -938,9 +963,24 @@ class WCSACLoss(SACLoss):
                     qc_next, vc_next = self._safety_forward(nstep_sa, target_params)
                 cost = nstep.get("cost").reshape(cost.shape).to(cost.dtype)
                 gamma = gamma.pow(nstep.get("steps").reshape(cost.shape).to(cost.dtype))
-                terminated = nstep.get("terminated")
-            else:
+                if self._bootstrap_truncated:
+                    terminated = nstep.get("terminated")
+                else:
+                    terminated = self._required_entry(
+                        nstep,
+                        "done",
+                        "Stopping the safety critic's sum at time limits needs the n-step "
+                        "entries' done flag",
+                        "Recompute them with this version's wcsac_rl.objectives.NStepCost, "
+                        "or pass cost_bootstrap_truncated=True.",
+                    )
+            elif self._bootstrap_truncated:
                 terminated = tensordict.get(("next", self.tensor_keys.terminated))
+            else:
+                # a batch without done flags has no truncations to tell apart
+                terminated = tensordict.get(("next", self.tensor_keys.done), None)
+                if terminated is None:
+                    terminated = tensordict.get(("next", self.tensor_keys.terminated))
             not_terminated = (~terminated.reshape(cost.shape)).to(cost.dtype)
             if self.nonnegative_cost:
                 qc_next = qc_next.clamp(min=0.0)

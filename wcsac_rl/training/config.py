@@ -214,6 +214,11 @@ def _validate_safety_keys(algo: DictConfig) -> None:
     cost_gamma = algo.get("cost_gamma")
     if cost_gamma is not None and not 0.0 <= float(cost_gamma) <= 1.0:
         raise ConfigError(f"algo.cost_gamma must be null or in [0, 1], got {cost_gamma}")
+    if not isinstance(algo.get("cost_bootstrap_truncated"), (bool, type(None))):
+        raise ConfigError(
+            "algo.cost_bootstrap_truncated must be null, true or false, got "
+            f"{algo.get('cost_bootstrap_truncated')!r}"
+        )
     if not isinstance(algo.get("nonnegative_cost", False), bool):
         raise ConfigError(
             f"algo.nonnegative_cost must be true or false, got {algo.get('nonnegative_cost')!r}"
