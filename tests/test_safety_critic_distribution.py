@@ -125,7 +125,6 @@ def _predict(loss: WCSACLoss, obs: torch.Tensor, repeats: int = 64):
         ("mse", "td", 1),
         ("mse", "td", 3),
         ("mse", "moment", 3),
-        ("glm", "td", 1),
         ("glm", "td", 3),
     ],
 )
