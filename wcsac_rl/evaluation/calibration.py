@@ -17,12 +17,14 @@ deterministic test episodes of the current policy:
   dict of floats, :data:`CALIBRATION_KEYS` (logged per epoch as ``calib/*`` columns by
   the trainer, and written to ``calibration.json`` by ``python -m wcsac_rl.calibration``).
 
-**Truncation.** An episode cut by the time limit (or ``max_steps``) is not over: the
-critic bootstraps beyond the cut, the realised sum cannot. The realised cost-to-go
-is the sum of the costs actually seen, so near the end of a truncated episode it
-underestimates the true one (an episode that ends at the goal or by failure is
-complete). With γ_c = 0.99 and 1 000-step episodes this matters only in the last
-few hundred steps; the start-state numbers are the least affected.
+**Truncation.** The realised cost-to-go is the sum of the costs actually seen until
+the episode ends. An undiscounted critic (γ_c = 1, ``cost_bootstrap_truncated``
+unset) stops its sum at the time limit too, so the two agree on what they count.
+A critic that bootstraps across the time limit (γ_c < 1, the paper) counts costs
+beyond it, which the realised sum cannot: near the end of a truncated episode the
+realised value is then low. With γ_c = 0.99 and 1 000-step episodes this matters only
+in the last few hundred steps; the start-state numbers are the least affected. An
+``max_steps`` cut shorter than the env's own limit truncates both comparisons.
 
 **On-policy caveat.** The test episodes act with the policy's mean action; the
 critic is trained for the stochastic policy. The comparison is the one the
