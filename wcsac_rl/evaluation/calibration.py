@@ -23,8 +23,8 @@ unset) stops its sum at the time limit too, so the two agree on what they count.
 A critic that bootstraps across the time limit (γ_c < 1, the paper) counts costs
 beyond it, which the realised sum cannot: near the end of a truncated episode the
 realised value is then low. With γ_c = 0.99 and 1 000-step episodes this matters only
-in the last few hundred steps; the start-state numbers are the least affected. An
-``max_steps`` cut shorter than the env's own limit truncates both comparisons.
+in the last few hundred steps; the start-state numbers are the least affected. A
+``max_steps`` cut shorter than the env's own limit shortens the realised sums only.
 
 **On-policy caveat.** The test episodes act with the policy's mean action; the
 critic is trained for the stochastic policy. The comparison is the one the
