@@ -1,7 +1,10 @@
 """Train WCSAC or a baseline: ``python train.py algo=wcsac risk_level=0.5 env=dynamic``.
 
 Hydra composes ``conf/config.yaml``; with no overrides this is the paper's full run.
-Sweeps: ``python train.py -m algo=wcsac risk_level=0.1,0.5,0.9 seed=0,10,20``.
+Sweeps: ``python train.py -m algo=wcsac risk_level=0.1,0.5,0.9 seed=0,10,20``; on a
+cluster: ``python train.py -m experiment=table1_static hydra/launcher=slurm`` (README,
+"Run the paper's sweeps on a cluster"). A run stopped by ``SIGTERM`` / ``SIGUSR1`` /
+``SIGUSR2`` checkpoints first and exits with 128 + the signal's number.
 """
 
 from __future__ import annotations
@@ -16,6 +19,8 @@ from omegaconf import DictConfig
 from wcsac_rl.envs import NonFiniteStepError
 from wcsac_rl.training import ConfigError, TrainingError, make_trainer
 from wcsac_rl.training.checkpoint import resume_config
+from wcsac_rl.training.preemption import Preempted
+from wcsac_rl.training.run_dir import AUTO_RESUME
 
 # errors a user can cause or fix: printed as one line (exit code 1), never a traceback
 USER_ERRORS = (ConfigError, TrainingError, NonFiniteStepError)
@@ -24,7 +29,9 @@ USER_ERRORS = (ConfigError, TrainingError, NonFiniteStepError)
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> None:
     try:
-        if cfg.resume:  # the run's own config, with only the explicit overrides applied
+        # resume=RUN_DIR: the run's own config, with only the explicit overrides applied;
+        # resume=auto (sweeps): the composed config, checked against this run dir's checkpoint
+        if cfg.resume and cfg.resume != AUTO_RESUME:
             cfg = resume_config(cfg, list(HydraConfig.get().overrides.task))
         trainer = make_trainer(cfg, Path(HydraConfig.get().runtime.output_dir))
     except USER_ERRORS as err:
@@ -33,6 +40,9 @@ def main(cfg: DictConfig) -> None:
         run_dir = trainer.run()
     except KeyboardInterrupt:
         sys.exit(130)
+    except Preempted as stop:
+        print(f"{stop}", file=sys.stderr, flush=True)
+        sys.exit(stop.exit_code)
     except USER_ERRORS as err:
         sys.exit(f"error: {err}")
     finally:

@@ -8,6 +8,10 @@ records that never run ahead of the checkpoint they are resumed from.
   message the second run prints.
 * :func:`check_new_run_dir` — a new run refuses a directory that holds anything but
   Hydra's own files (``.hydra/``, the job's ``*.log``) and the lock file.
+* :func:`check_restartable_run_dir` — ``resume=auto`` in a directory without a
+  checkpoint: a session killed before its first checkpoint may have left the run's
+  own files (``config.yaml``, ``progress.csv``, ``logs/``); its records are cut and the
+  run starts over. Anything else is refused.
 * :func:`cut_records_to` — on resume, ``progress.csv`` and the CSV logger's scalar
   files are cut back to the checkpoint's epoch (rows logged after the checkpoint, by
   a session that was killed before its next checkpoint, are dropped), each file
@@ -23,9 +27,21 @@ from pathlib import Path
 
 from wcsac_rl.training.config import ConfigError
 
-__all__ = ["LOCK_FILE", "RunLock", "check_new_run_dir", "cut_records_to", "replace_text"]
+__all__ = [
+    "AUTO_RESUME",
+    "LOCK_FILE",
+    "RunLock",
+    "check_new_run_dir",
+    "check_restartable_run_dir",
+    "cut_records_to",
+    "replace_text",
+]
 
+AUTO_RESUME = "auto"
+"""``resume=auto``: continue the run directory's checkpoint if it has one, else start."""
 LOCK_FILE = ".lock"
+RUN_ENTRIES = ("config.yaml", "progress.csv", "logs", "checkpoints", "curves.png")
+"""What a run writes into its directory before (or without) a checkpoint."""
 HYDRA_ENTRIES = (".hydra",)
 """What Hydra writes into a run directory before the trainer starts (and ``*.log``)."""
 
@@ -92,6 +108,39 @@ def check_new_run_dir(run_dir: Path) -> None:
             else "a new run needs an empty directory: choose another one"
         )
         raise ConfigError(f"{run_dir} already holds a run ({shown}); {fix}")
+
+
+def check_restartable_run_dir(run_dir: Path) -> None:
+    """``resume=auto`` without a checkpoint: start the run over in ``run_dir``.
+
+    The directory may hold what a session killed before its first checkpoint wrote
+    (:data:`RUN_ENTRIES`, ``config.resume*.yaml``, Hydra's files); its ``progress.csv``
+    rows and CSV logger lines are dropped. Anything else is refused, as for a new run.
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.exists():
+        return
+    others = sorted(
+        p.name
+        for p in run_dir.iterdir()
+        if p.name != LOCK_FILE
+        and not _is_hydra_entry(p)
+        and p.name not in RUN_ENTRIES
+        and not (p.name.startswith("config.resume") and p.suffix == ".yaml")
+    )
+    if others:
+        shown = ", ".join(others[:4]) + (", ..." if len(others) > 4 else "")
+        raise ConfigError(
+            f"{run_dir} has no checkpoint to continue and holds files that are not a run's "
+            f"({shown}); resume=auto starts a run only in an empty directory or one a killed "
+            "run left before its first checkpoint: choose another directory"
+        )
+    dropped = cut_records_to(run_dir, epoch=0, frames=0)
+    if dropped:
+        print(
+            f"{run_dir}: no checkpoint to continue; starting the run over (dropped "
+            f"{dropped} progress.csv row(s) of a session that ended before its first checkpoint)"
+        )
 
 
 def replace_text(path: Path, text: str) -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import errno
 import math
 import random
+import signal
 import time
 from pathlib import Path
 from typing import Any
@@ -40,8 +41,16 @@ from wcsac_rl.training.checkpoint import (
     write_error_reason,
 )
 from wcsac_rl.training.config import ALGOS, ConfigError, TrainingError, validate_config
+from wcsac_rl.training.preemption import Preempted, StopSignals
 from wcsac_rl.training.progress import EpisodeTracker, LossMeans, ProgressWriter
-from wcsac_rl.training.run_dir import RunLock, check_new_run_dir, cut_records_to, replace_text
+from wcsac_rl.training.run_dir import (
+    AUTO_RESUME,
+    RunLock,
+    check_new_run_dir,
+    check_restartable_run_dir,
+    cut_records_to,
+    replace_text,
+)
 from wcsac_rl.training.runtime import retain_freed_memory
 
 __all__ = ["RandomPolicyTrainer", "Trainer", "make_trainer", "seed_everything", "trainer_class"]
@@ -187,6 +196,8 @@ class Trainer:
     def _resume_checkpoint(self) -> dict[str, Any] | None:
         """Take the run directory's lock; return the checkpoint to resume (``None``: new run)."""
         cfg = self.cfg
+        if cfg.resume == AUTO_RESUME:
+            return self._auto_resume_checkpoint()
         if cfg.resume:
             given = Path(str(cfg.resume)).expanduser()
             if given.is_dir():  # lock first: no other run may be writing it
@@ -202,6 +213,26 @@ class Trainer:
         self.lock = RunLock(self.run_dir)
         check_new_run_dir(self.run_dir)
         return None
+
+    def _auto_resume_checkpoint(self) -> dict[str, Any] | None:
+        """``resume=auto``: continue the run in this run directory from its checkpoint, or
+        start it if it has none (what re-running a sweep does for each of its jobs).
+
+        The config is the one composed now (the same command gives the same config): it
+        must match the checkpoint's as on any resume (:func:`check_compatible`,
+        :func:`check_resume_changes`). Records a session killed before its first
+        checkpoint left behind are cut (``progress.csv``, the CSV logger's files).
+        """
+        self.lock = RunLock(self.run_dir)
+        path = self.checkpoint_path
+        if not path.is_file():
+            check_restartable_run_dir(self.run_dir)
+            return None
+        checkpoint = load_checkpoint(path, required=RESUME_ENTRIES)
+        check_compatible(checkpoint["config"], self.cfg, path)
+        check_resume_changes(checkpoint["config"], self.cfg, path)
+        print(f"{self.run_dir}: resuming from {path} ({int(checkpoint['frames'])} frames)")
+        return checkpoint
 
     # ---------------------------------------------------------- algorithm
     def _build_learner(self) -> None:
@@ -230,15 +261,17 @@ class Trainer:
 
     # ----------------------------------------------------------------- loop
     def run(self) -> Path:
-        """Train to ``total_frames``. Ctrl-C writes a checkpoint, then re-raises."""
+        """Train to ``total_frames``. Ctrl-C writes a checkpoint, then re-raises; a stop
+        signal (``SIGTERM``, ``SIGUSR1``, ``SIGUSR2``: :mod:`~wcsac_rl.training.preemption`)
+        writes a checkpoint at the next batch boundary, then raises
+        :class:`~wcsac_rl.training.preemption.Preempted` (or exits through the
+        scheduler's own handler)."""
         cfg = self.cfg
         if self.collector is None:
             print(
                 f"{self.run_dir}: already trained for {self.tracker.frames} frames; nothing to do"
             )
             return self.run_dir
-        epoch_frames = int(cfg.epoch_frames)
-        next_epoch_end = (self.tracker.frames // epoch_frames + 1) * epoch_frames
         self._epoch_clock = time.time()
         timeit.erase()
         pbar = tqdm(
@@ -249,49 +282,10 @@ class Trainer:
             desc=f"{cfg.algo.name} {cfg.env.name} seed {cfg.seed}",
         )
         try:
-            collector_iter = iter(self.collector)
-            while True:
-                with timeit("collect"):
-                    batch = next(collector_iter, None)
-                if batch is None:
-                    break
-                self.tracker.add(batch)
-                pbar.update(batch.numel())
-                self.loss_means.add(self.learn(batch))
-                if self.tracker.frames >= next_epoch_end or self.tracker.frames >= cfg.total_frames:
-                    session = time.time() - self._epoch_clock
-                    self.elapsed += session
-                    self.epoch += 1
-                    row = self._epoch_row(
-                        self.loss_means,
-                        self.epoch_seconds + session,
-                        self.tracker.frames - self.epoch_start_frames,
-                        self.updates - self.epoch_start_updates,
-                    )
-                    self._log(row)
-                    # a new epoch begins (before the checkpoint, which must not carry
-                    # the finished epoch's sums over)
-                    self.loss_means.reset()
-                    self.epoch_seconds, self._epoch_clock = 0.0, time.time()
-                    self.epoch_start_frames, self.epoch_start_updates = (
-                        self.tracker.frames,
-                        self.updates,
-                    )
-                    if row["train/episodes"]:
-                        pbar.set_postfix(
-                            ret=f"{row['train/episode_return']:.2f}",
-                            cost=f"{row['train/episode_cost']:.1f}",
-                        )
-                    else:  # episodes longer than the epoch so far
-                        pbar.set_postfix_str("no finished episode")
-                    if self.epoch % int(cfg.checkpoint_every_epochs) == 0:
-                        self.save()
-                    next_epoch_end += epoch_frames
+            with StopSignals() as stop:  # SIGTERM / SIGUSR1 / SIGUSR2: checkpoint, then stop
+                self._train(pbar, stop)
         except KeyboardInterrupt:
-            session = time.time() - self._epoch_clock
-            self.elapsed += session
-            self.epoch_seconds, self._epoch_clock = self.epoch_seconds + session, time.time()
-            self.save()  # with the epoch in progress: the resumed session completes its row
+            self._save_interrupted()  # with the epoch in progress: the resumed session completes its row
             pbar.close()
             print(f"\ninterrupted: checkpoint written to {self.checkpoint_path}")
             raise
@@ -309,6 +303,69 @@ class Trainer:
         self.save()
         self.plot()
         return self.run_dir
+
+    def _save_interrupted(self) -> None:
+        """Checkpoint mid-epoch (Ctrl-C, a stop signal): the epoch in progress is saved
+        with it, so the resumed session logs that epoch once, in full."""
+        session = time.time() - self._epoch_clock
+        self.elapsed += session
+        self.epoch_seconds, self._epoch_clock = self.epoch_seconds + session, time.time()
+        self.save()
+
+    def _train(self, pbar: tqdm, stop: StopSignals) -> None:
+        """The loop of :meth:`run`: collect, learn, log and checkpoint each epoch; after a
+        stop signal, checkpoint at the next batch boundary and stop (:class:`Preempted`)."""
+        cfg = self.cfg
+        epoch_frames = int(cfg.epoch_frames)
+        next_epoch_end = (self.tracker.frames // epoch_frames + 1) * epoch_frames
+        collector_iter = iter(self.collector)
+        while True:
+            with timeit("collect"):
+                batch = next(collector_iter, None)
+            if batch is None:
+                break
+            self.tracker.add(batch)
+            pbar.update(batch.numel())
+            self.loss_means.add(self.learn(batch))
+            if self.tracker.frames >= next_epoch_end or self.tracker.frames >= cfg.total_frames:
+                session = time.time() - self._epoch_clock
+                self.elapsed += session
+                self.epoch += 1
+                row = self._epoch_row(
+                    self.loss_means,
+                    self.epoch_seconds + session,
+                    self.tracker.frames - self.epoch_start_frames,
+                    self.updates - self.epoch_start_updates,
+                )
+                self._log(row)
+                # a new epoch begins (before the checkpoint, which must not carry
+                # the finished epoch's sums over)
+                self.loss_means.reset()
+                self.epoch_seconds, self._epoch_clock = 0.0, time.time()
+                self.epoch_start_frames, self.epoch_start_updates = (
+                    self.tracker.frames,
+                    self.updates,
+                )
+                if row["train/episodes"]:
+                    pbar.set_postfix(
+                        ret=f"{row['train/episode_return']:.2f}",
+                        cost=f"{row['train/episode_cost']:.1f}",
+                    )
+                else:  # episodes longer than the epoch so far
+                    pbar.set_postfix_str("no finished episode")
+                if self.epoch % int(cfg.checkpoint_every_epochs) == 0:
+                    self.save()
+                next_epoch_end += epoch_frames
+            if stop.received is not None and self.tracker.frames < cfg.total_frames:
+                self._save_interrupted()
+                pbar.close()
+                print(
+                    f"\n{signal.Signals(stop.received).name}: checkpoint written to "
+                    f"{self.checkpoint_path}",
+                    flush=True,
+                )
+                stop.forward()  # a scheduler's handler (submitit: requeue) may exit here
+                raise Preempted(stop.received, self.checkpoint_path, self.tracker.frames)
 
     @property
     def plot_path(self) -> Path:
