@@ -10,7 +10,10 @@ without a training run (one directory per ``--random-seeds`` seed under ``--out`
 Existing evaluations are skipped (nothing is overwritten) unless ``--force``. A path
 that cannot be evaluated (missing, a run directory without a checkpoint, an
 unreadable checkpoint) prints one ``error:`` line; the other runs are still
-evaluated, and the exit code is 1 if any path failed (0 otherwise).
+evaluated, and the exit code is 1 if any path failed (0 otherwise). Below a sweep
+directory (``multirun.yaml``, any launcher) every job of the sweep is accounted for:
+a job that never started or has no checkpoint is an ``error:`` line naming it (exit
+code 1), one stopped before ``total_frames`` a ``warning:`` (it is evaluated as it is).
 
 Examples::
 
@@ -118,6 +121,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         evaluate_run,
     )
     from wcsac_rl.evaluation.runs import find_run_dirs
+    from wcsac_rl.evaluation.sweeps import incomplete_jobs
     from wcsac_rl.training.config import ConfigError
 
     torch.set_num_threads(max(1, args.threads))
@@ -191,7 +195,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"re-evaluates), {len(errors)} failed",
         flush=True,
     )
-    return 1 if errors else 0
+    # a sweep's jobs that did not finish (any launcher): named, never silently dropped
+    incomplete = incomplete_jobs(args.paths) if args.paths else []
+    for job in incomplete:
+        kind = "warning" if job.status == "unfinished" else "error"
+        print(f"{kind}: sweep job {job.describe()}", file=sys.stderr, flush=True)
+    if incomplete:
+        print(
+            f"{len(incomplete)} sweep job(s) not finished: "
+            + ", ".join(f"{job.name} ({job.status})" for job in incomplete),
+            flush=True,
+        )
+    failed_jobs = [job for job in incomplete if job.status in ("missing", "failed")]
+    return 1 if errors or failed_jobs else 0
 
 
 if __name__ == "__main__":

@@ -18,6 +18,9 @@ groups them by Table-1 row (``algo.label``; seeds pooled) and writes
 ``fig6_evaluation.png``          (a) cost box plots, whiskers 1st/99th pct.; (b) % over budget
 ===============================  ============================================================
 
+Below a sweep directory (``multirun.yaml``, from any launcher) every job of the sweep
+is accounted for: jobs that never started, failed or stopped before ``total_frames``
+are warnings and are listed by name under Table 1 (:mod:`~wcsac_rl.evaluation.sweeps`).
 Nothing is overwritten unless ``force``: the existing files are listed and nothing
 is done. A report covers one environment and one budget d (pass ``env`` /
 ``cost_limit`` when the runs mix them).
@@ -52,6 +55,7 @@ from wcsac_rl.evaluation.runs import (
     row_name,
     row_sort_key,
 )
+from wcsac_rl.evaluation.sweeps import SweepJob, incomplete_jobs
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
 
@@ -116,6 +120,7 @@ class Report:
     files: list[Path] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     rows: list[dict[str, Any]] = field(default_factory=list)
+    incomplete: list[SweepJob] = field(default_factory=list)
 
 
 def env_title(name: str) -> str:
@@ -178,8 +183,14 @@ def _constrained_column(label: str) -> str | None:
     return None
 
 
-def table1_markdown(rows: Sequence[dict[str, Any]], env: str, cost_limit: float) -> str:
-    """Table 1 as Markdown, with a legend of the columns below it."""
+def table1_markdown(
+    rows: Sequence[dict[str, Any]],
+    env: str,
+    cost_limit: float,
+    incomplete: Sequence[SweepJob] = (),
+) -> str:
+    """Table 1 as Markdown, with a legend of the columns below it and, when a sweep's
+    jobs did not all finish, the list of those jobs (:mod:`~wcsac_rl.evaluation.sweeps`)."""
     cvars = [cvar_key(a) for a in RISK_LEVELS]
     header = ["Algorithm", "EC", *cvars, "ER", "over budget", "episodes (seeds)"]
     lines = [
@@ -207,6 +218,20 @@ def table1_markdown(rows: Sequence[dict[str, Any]], env: str, cost_limit: float)
         "(EC_seed_std, ER_seed_std).",
         "",
     ]
+    if incomplete:
+        lines += [
+            f"## Sweep jobs not finished ({len(incomplete)})",
+            "",
+            "Missing and failed jobs are not in the table; an unfinished job is, with the "
+            "policy of its last checkpoint.",
+            "",
+            "| job | status | sweep | detail |",
+            "|---|---|---|---|",
+        ]
+        lines += [
+            f"| {job.name} | {job.status} | {job.sweep} | {job.detail} |" for job in incomplete
+        ]
+        lines.append("")
     return "\n".join(lines)
 
 
@@ -417,6 +442,11 @@ def build_report(
     if not math.isfinite(cost_limit) or cost_limit < 0:
         raise ReportError(f"cost limit must be a number >= 0, got {cost_limit!r}")
 
+    # every job of the sweeps below paths (any launcher): those not finished are named
+    report.incomplete = incomplete_jobs(paths)
+    for job in report.incomplete:
+        warn(f"sweep job {job.describe()}")
+
     evaluated_dirs = {Path(e.directory).resolve() for e in evaluations}
     unevaluated = [r for r in runs if r.directory not in evaluated_dirs]
     if unevaluated:
@@ -462,7 +492,11 @@ def build_report(
     if evaluations:
         rows = table1_rows(evaluations, cost_limit)
         report.rows = rows
-        report.files.append(_write_text(out_dir / TABLE_MD, table1_markdown(rows, env, cost_limit)))
+        report.files.append(
+            _write_text(
+                out_dir / TABLE_MD, table1_markdown(rows, env, cost_limit, report.incomplete)
+            )
+        )
         report.files.append(_write_text(out_dir / TABLE_CSV, _table_csv(rows)))
         costs: dict[str, list[float]] = defaultdict(list)
         for ev in sorted(evaluations, key=lambda e: row_sort_key(e.label)):
