@@ -16,7 +16,8 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m pip install --quiet --upgrade pip
 	# torch first and pinned: an unpinned torch would pull a multi-GB CUDA build.
 	$(PY) -m pip install --quiet -c constraints.txt torch
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev]"
+	# the extras the test suite exercises: the SLURM launcher (its local executor)
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,slurm]"
 	touch $(STAMP)
 
 test: $(STAMP)

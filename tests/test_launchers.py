@@ -1,0 +1,203 @@
+"""Sweeps through real Hydra launchers: submitit's local executor (the SLURM preset's
+jobs as local processes) end to end, a job killed mid-run and continued by the same
+command, submitit's preemption signal requeueing a job, and evaluate + report on the
+sweep root. Also the presets' settings."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from _training_helpers import CONF, ROOT
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from wcsac_rl.evaluation.sweeps import sweep_jobs
+from wcsac_rl.training.checkpoint import load_checkpoint
+
+pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason='needs ".[slurm]"')
+
+# a tiny sweep entry: 2 envs, 200 frames per batch, 16-unit networks
+TINY = [
+    "env=tiny",
+    "algo.collector.num_envs=2",
+    "algo.collector.frames_per_batch=200",
+    "algo.collector.init_random_frames=200",
+    "algo.batch_size=32",
+    "algo.network.width=16",
+    "eval_episodes=1",
+    "progress_bar=false",
+    "resume=auto",
+]
+
+
+def _sweep(sweep_dir: Path, *overrides: str, launcher: str = "slurm_local") -> list[str]:
+    return [
+        sys.executable,
+        str(ROOT / "train.py"),
+        "-m",
+        f"hydra/launcher={launcher}",
+        *TINY,
+        *overrides,
+        f"hydra.sweep.dir={sweep_dir}",
+    ]
+
+
+def _env() -> dict[str, str]:
+    return {**os.environ, "OMP_NUM_THREADS": "1"}
+
+
+def _run(command: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=600, env=_env())
+
+
+def _rows(run_dir: Path) -> list[dict[str, str]]:
+    with (run_dir / "progress.csv").open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _job_pid(run_dir: Path, *, rows: int, process: subprocess.Popen, timeout: float = 300) -> int:
+    """The pid of the job training in ``run_dir`` (from its lock file) once it has logged
+    ``rows`` epochs."""
+    progress, lock = run_dir / "progress.csv", run_dir / ".lock"
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        assert process.poll() is None, process.communicate()[1][-3000:]
+        if progress.is_file() and lock.is_file() and len(progress.read_text().splitlines()) > rows:
+            holder = lock.read_text()  # "host h, pid N"
+            if "pid" in holder:
+                return int(holder.rsplit("pid", 1)[1].strip())
+        time.sleep(0.05)
+    raise AssertionError(f"{run_dir} logged fewer than {rows} epochs in {timeout} s")
+
+
+def _assert_continuous(run_dir: Path, *, epochs: int, epoch_frames: int) -> None:
+    rows = _rows(run_dir)
+    assert [int(r["epoch"]) for r in rows] == list(range(1, epochs + 1))
+    assert [int(r["frames"]) for r in rows] == [epoch_frames * (k + 1) for k in range(epochs)]
+    checkpoint = load_checkpoint(run_dir / "checkpoints" / "last.pt")
+    assert checkpoint["frames"] == epochs * epoch_frames
+
+
+@pytest.mark.slow
+def test_submitit_local_sweep_then_evaluate_and_report_name_every_job(tmp_path):
+    from wcsac_rl.evaluate import main as evaluate
+    from wcsac_rl.report import main as report
+
+    sweep = tmp_path / "sweep"
+    result = _run(
+        _sweep(sweep, "+row=sac,sac_lag", "seed=0", "total_frames=800", "epoch_frames=400"),
+        tmp_path,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    jobs = sorted(p.name for p in sweep.iterdir() if not p.name.startswith("."))
+    assert jobs == ["0_sac_tiny_seed0", "1_sac_lag_tiny_seed0", "multirun.yaml"]
+    assert (sweep / ".submitit").is_dir()  # the jobs went through submitit
+    for name in jobs[:2]:
+        _assert_continuous(sweep / name, epochs=2, epoch_frames=400)
+    assert [job.status for job in sweep_jobs(sweep)] == ["finished", "finished"]
+
+    assert evaluate([str(sweep), "--episodes", "3", "--no-progress"]) == 0
+    assert report([str(sweep), "--no-trajectories"]) == 0
+    table = (sweep / "report" / "table1.md").read_text()
+    assert "| SAC |" in table and "| SAC-Lag |" in table
+    assert "not finished" not in table
+
+    # a job whose directory is gone (it never started) is named, not dropped
+    import shutil
+
+    shutil.rmtree(sweep / "1_sac_lag_tiny_seed0")
+    assert evaluate([str(sweep), "--episodes", "3", "--no-progress"]) == 1
+    assert report([str(sweep), "--no-trajectories", "--force"]) == 0
+    table = (sweep / "report" / "table1.md").read_text()
+    assert "| SAC-Lag |" not in table
+    assert "## Sweep jobs not finished (1)" in table
+    assert "| job 1 (+row=sac_lag) | missing |" in table
+
+
+@pytest.mark.slow
+def test_a_job_killed_with_sigterm_is_continued_by_the_same_sweep_command(tmp_path):
+    sweep = tmp_path / "sweep"
+    command = _sweep(sweep, "algo=sac", "seed=0", "total_frames=12000", "epoch_frames=400")
+    first = subprocess.Popen(
+        command,
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+    )
+    run_dir = sweep / "0_sac_tiny_seed0"
+    os.kill(_job_pid(run_dir, rows=2, process=first), signal.SIGTERM)
+    _, stderr = first.communicate(timeout=300)
+    assert first.returncode != 0  # the sweep reports the stopped job ...
+    assert "stopped by SIGTERM" in stderr
+    stopped = load_checkpoint(run_dir / "checkpoints" / "last.pt")["frames"]
+    assert 800 <= stopped < 12000  # ... which checkpointed mid-run
+    [job] = sweep_jobs(sweep)
+    assert job.status == "unfinished" and f"{stopped} of 12000 frames" in job.detail
+
+    again = _run(command, tmp_path)
+    assert again.returncode == 0, again.stderr[-3000:]
+    _assert_continuous(run_dir, epochs=30, epoch_frames=400)  # one continuous progress.csv
+    assert (run_dir / "config.resume1.yaml").is_file()
+    assert [job.status for job in sweep_jobs(sweep)] == ["finished"]
+
+
+@pytest.mark.slow
+def test_submitits_preemption_signal_requeues_the_job_which_resumes(tmp_path):
+    """SLURM's signal before the time limit (submitit asks for USR2): the job checkpoints,
+    submitit requeues it, and the requeued job continues from the checkpoint — all within
+    the one sweep command, as on a cluster."""
+    sweep = tmp_path / "sweep"
+    command = _sweep(sweep, "algo=sac", "seed=0", "total_frames=12000", "epoch_frames=400")
+    first = subprocess.Popen(
+        command,
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+    )
+    run_dir = sweep / "0_sac_tiny_seed0"
+    os.kill(_job_pid(run_dir, rows=2, process=first), signal.SIGUSR2)
+    _, stderr = first.communicate(timeout=300)
+    assert first.returncode == 0, stderr[-3000:]
+    _assert_continuous(run_dir, epochs=30, epoch_frames=400)
+    assert (run_dir / "config.resume1.yaml").is_file()
+    logs = "".join(p.read_text() for p in (sweep / ".submitit").rglob("*_log.out"))
+    assert "SIGUSR2: checkpoint written to" in logs and "Requeued job" in logs
+
+
+def _hydra_config(*overrides: str):
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose("config", overrides=list(overrides), return_hydra_config=True)
+
+
+def test_slurm_preset_asks_for_one_cpu_the_measured_memory_and_time(monkeypatch):
+    monkeypatch.setenv("WCSAC_SLURM_PARTITION", "cpu_long")
+    monkeypatch.delenv("WCSAC_SLURM_ACCOUNT", raising=False)
+    cfg = _hydra_config("experiment=table1_static", "hydra/launcher=slurm")
+    launcher = cfg.hydra.launcher
+    assert launcher._target_.endswith("SlurmLauncher")
+    assert (launcher.cpus_per_task, launcher.tasks_per_node, launcher.nodes) == (1, 1, 1)
+    assert launcher.mem_gb == 2 and launcher.timeout_min == 900
+    assert launcher.max_num_timeout >= 1 and launcher.signal_delay_s >= 120
+    assert launcher.partition == "cpu_long" and launcher.account is None
+    assert cfg.threads == 1 and cfg.resume == "auto"
+    # the experiment's sweep directory is named after it, not a timestamp
+    sweep = OmegaConf.to_container(cfg.hydra.sweep, resolve=False)
+    assert sweep["dir"] == "multirun/${hydra:runtime.choices.experiment}"
+    assert cfg.hydra.runtime.choices.experiment == "table1_static"
+    local = _hydra_config("experiment=table1_static", "hydra/launcher=slurm_local").hydra
+    assert local.launcher._target_.endswith("LocalLauncher")
+    assert local.launcher.cpus_per_task == 1
+    dynamic = _hydra_config("experiment=table1_dynamic")
+    assert dynamic.env.name == "dynamic" and dynamic.total_frames == 3_000_000
+    assert dynamic.hydra.launcher.n_jobs == 2  # the default here: joblib, two at a time
