@@ -16,8 +16,8 @@ $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m pip install --quiet --upgrade pip
 	# torch first and pinned: an unpinned torch would pull a multi-GB CUDA build.
 	$(PY) -m pip install --quiet -c constraints.txt torch
-	# the extras the test suite exercises: the SLURM launcher (its local executor)
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,slurm]"
+	# the extras the test suite exercises: the SLURM launcher (its local executor), Ray
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,slurm,ray]"
 	touch $(STAMP)
 
 test: $(STAMP)

@@ -1,11 +1,14 @@
 """Sweeps through real Hydra launchers: submitit's local executor (the SLURM preset's
-jobs as local processes) end to end, a job killed mid-run and continued by the same
-command, submitit's preemption signal requeueing a job, and evaluate + report on the
-sweep root. Also the presets' settings."""
+jobs as local processes) and a local Ray instance, end to end with evaluate + report
+on the sweep root; a job killed mid-run and continued by the same command; submitit's
+preemption signal requeueing a job; Ray retrying a run whose worker was killed. Also
+the presets' settings. Each launcher's tests are skipped only where its extra is not
+installed (`make install` installs both)."""
 
 from __future__ import annotations
 
 import csv
+import importlib.util
 import os
 import signal
 import subprocess
@@ -21,7 +24,17 @@ from omegaconf import OmegaConf
 from wcsac_rl.evaluation.sweeps import sweep_jobs
 from wcsac_rl.training.checkpoint import load_checkpoint
 
-pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason='needs ".[slurm]"')
+
+def _installed(plugin: str) -> bool:
+    return importlib.util.find_spec(f"hydra_plugins.{plugin}") is not None
+
+
+needs_submitit = pytest.mark.skipif(
+    not _installed("hydra_submitit_launcher"), reason='needs pip install -e ".[slurm]"'
+)
+needs_ray = pytest.mark.skipif(
+    not _installed("hydra_ray_launcher"), reason='needs pip install -e ".[ray]"'
+)
 
 # a tiny sweep entry: 2 envs, 200 frames per batch, 16-unit networks
 TINY = [
@@ -57,6 +70,12 @@ def _run(command: list[str], cwd: Path) -> subprocess.CompletedProcess:
     return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=600, env=_env())
 
 
+def _start(command: list[str], cwd: Path) -> subprocess.Popen:
+    return subprocess.Popen(
+        command, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env()
+    )
+
+
 def _rows(run_dir: Path) -> list[dict[str, str]]:
     with (run_dir / "progress.csv").open(newline="") as f:
         return list(csv.DictReader(f))
@@ -85,29 +104,37 @@ def _assert_continuous(run_dir: Path, *, epochs: int, epoch_frames: int) -> None
     assert checkpoint["frames"] == epochs * epoch_frames
 
 
-@pytest.mark.slow
-def test_submitit_local_sweep_then_evaluate_and_report_name_every_job(tmp_path):
+def _two_job_sweep_then_evaluate_and_report(tmp_path: Path, launcher: str) -> Path:
+    """A 2-job sweep (two Table-1 rows) through ``launcher``: two run dirs with
+    progress.csv and checkpoints, then evaluate + report on the sweep root: Table 1."""
     from wcsac_rl.evaluate import main as evaluate
     from wcsac_rl.report import main as report
 
     sweep = tmp_path / "sweep"
-    result = _run(
-        _sweep(sweep, "+row=sac,sac_lag", "seed=0", "total_frames=800", "epoch_frames=400"),
-        tmp_path,
-    )
+    overrides = ("+row=sac,sac_lag", "seed=0", "total_frames=800", "epoch_frames=400")
+    result = _run(_sweep(sweep, *overrides, launcher=launcher), tmp_path)
     assert result.returncode == 0, result.stderr[-3000:]
     jobs = sorted(p.name for p in sweep.iterdir() if not p.name.startswith("."))
     assert jobs == ["0_sac_tiny_seed0", "1_sac_lag_tiny_seed0", "multirun.yaml"]
-    assert (sweep / ".submitit").is_dir()  # the jobs went through submitit
     for name in jobs[:2]:
         _assert_continuous(sweep / name, epochs=2, epoch_frames=400)
     assert [job.status for job in sweep_jobs(sweep)] == ["finished", "finished"]
-
     assert evaluate([str(sweep), "--episodes", "3", "--no-progress"]) == 0
     assert report([str(sweep), "--no-trajectories"]) == 0
     table = (sweep / "report" / "table1.md").read_text()
     assert "| SAC |" in table and "| SAC-Lag |" in table
     assert "not finished" not in table
+    return sweep
+
+
+@needs_submitit
+@pytest.mark.slow
+def test_submitit_local_sweep_then_evaluate_and_report_name_every_job(tmp_path):
+    from wcsac_rl.evaluate import main as evaluate
+    from wcsac_rl.report import main as report
+
+    sweep = _two_job_sweep_then_evaluate_and_report(tmp_path, "slurm_local")
+    assert (sweep / ".submitit").is_dir()  # the jobs went through submitit
 
     # a job whose directory is gone (it never started) is named, not dropped
     import shutil
@@ -121,18 +148,12 @@ def test_submitit_local_sweep_then_evaluate_and_report_name_every_job(tmp_path):
     assert "| job 1 (+row=sac_lag) | missing |" in table
 
 
+@needs_submitit
 @pytest.mark.slow
 def test_a_job_killed_with_sigterm_is_continued_by_the_same_sweep_command(tmp_path):
     sweep = tmp_path / "sweep"
     command = _sweep(sweep, "algo=sac", "seed=0", "total_frames=12000", "epoch_frames=400")
-    first = subprocess.Popen(
-        command,
-        cwd=tmp_path,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=_env(),
-    )
+    first = _start(command, tmp_path)
     run_dir = sweep / "0_sac_tiny_seed0"
     os.kill(_job_pid(run_dir, rows=2, process=first), signal.SIGTERM)
     _, stderr = first.communicate(timeout=300)
@@ -150,6 +171,7 @@ def test_a_job_killed_with_sigterm_is_continued_by_the_same_sweep_command(tmp_pa
     assert [job.status for job in sweep_jobs(sweep)] == ["finished"]
 
 
+@needs_submitit
 @pytest.mark.slow
 def test_submitits_preemption_signal_requeues_the_job_which_resumes(tmp_path):
     """SLURM's signal before the time limit (submitit asks for USR2): the job checkpoints,
@@ -157,14 +179,7 @@ def test_submitits_preemption_signal_requeues_the_job_which_resumes(tmp_path):
     the one sweep command, as on a cluster."""
     sweep = tmp_path / "sweep"
     command = _sweep(sweep, "algo=sac", "seed=0", "total_frames=12000", "epoch_frames=400")
-    first = subprocess.Popen(
-        command,
-        cwd=tmp_path,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=_env(),
-    )
+    first = _start(command, tmp_path)
     run_dir = sweep / "0_sac_tiny_seed0"
     os.kill(_job_pid(run_dir, rows=2, process=first), signal.SIGUSR2)
     _, stderr = first.communicate(timeout=300)
@@ -180,6 +195,7 @@ def _hydra_config(*overrides: str):
         return compose("config", overrides=list(overrides), return_hydra_config=True)
 
 
+@needs_submitit
 def test_slurm_preset_asks_for_one_cpu_the_measured_memory_and_time(monkeypatch):
     monkeypatch.setenv("WCSAC_SLURM_PARTITION", "cpu_long")
     monkeypatch.delenv("WCSAC_SLURM_ACCOUNT", raising=False)
@@ -201,3 +217,47 @@ def test_slurm_preset_asks_for_one_cpu_the_measured_memory_and_time(monkeypatch)
     dynamic = _hydra_config("experiment=table1_dynamic")
     assert dynamic.env.name == "dynamic" and dynamic.total_frames == 3_000_000
     assert dynamic.hydra.launcher.n_jobs == 2  # the default here: joblib, two at a time
+
+
+@needs_ray
+@pytest.mark.slow
+def test_ray_local_instance_sweep_then_evaluate_and_report(tmp_path):
+    _two_job_sweep_then_evaluate_and_report(tmp_path, "ray_cluster")
+
+
+@needs_ray
+@pytest.mark.slow
+def test_ray_retries_a_run_whose_worker_was_killed_and_it_resumes(tmp_path):
+    """A node loss: the worker dies at once (SIGKILL, nothing saved then); Ray starts the
+    task again and the run continues from its last periodic checkpoint."""
+    sweep = tmp_path / "sweep"
+    command = _sweep(
+        sweep,
+        "algo=sac",
+        "seed=0",
+        "total_frames=12000",
+        "epoch_frames=400",
+        "checkpoint_every_epochs=1",
+        launcher="ray_cluster",
+    )
+    first = _start(command, tmp_path)
+    run_dir = sweep / "0_sac_tiny_seed0"
+    os.kill(_job_pid(run_dir, rows=2, process=first), signal.SIGKILL)
+    stdout, stderr = first.communicate(timeout=300)
+    assert first.returncode == 0, stderr[-3000:]
+    assert "will be retried" in stdout + stderr
+    _assert_continuous(run_dir, epochs=30, epoch_frames=400)
+    assert (run_dir / "config.resume1.yaml").is_file()
+
+
+@needs_ray
+def test_ray_preset_uses_a_given_cluster_or_a_local_instance_one_cpu_per_run(monkeypatch):
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    ray = _hydra_config("experiment=table1_static", "hydra/launcher=ray_cluster").hydra.launcher
+    assert ray._target_.endswith("RayLauncher")
+    assert ray.ray.init.address is None  # a local instance
+    assert ray.ray.init.object_store_memory is None  # refused with an address otherwise
+    assert ray.ray.remote.num_cpus == 1 and ray.ray.remote.max_retries >= 1
+    monkeypatch.setenv("RAY_ADDRESS", "ray://head:10001")
+    ray = _hydra_config("experiment=table1_static", "hydra/launcher=ray_cluster").hydra.launcher
+    assert ray.ray.init.address == "ray://head:10001"
