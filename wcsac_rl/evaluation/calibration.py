@@ -391,6 +391,7 @@ def load_safety_run(run_dir: str | os.PathLike, *, seed: int, num_envs: int = 1)
     checkpoint = load_checkpoint(path)
     try:
         cfg = OmegaConf.create(checkpoint["config"])
+        cfg.device = "cpu"  # calibrated on the CPU, whatever device it trained on
         algo = str(cfg.algo.name)
         learner = checkpoint["learner"]
         frames = int(checkpoint["frames"])

@@ -30,6 +30,7 @@ from wcsac_rl.objectives import (
     StartStateBuffer,
     WCSACLoss,
 )
+from wcsac_rl.training.devices import RunDevices, run_devices
 
 __all__ = [
     "Agent",
@@ -68,7 +69,7 @@ def make_train_env(cfg: DictConfig) -> EnvBase:
         seed=int(cfg.seed),
         num_workers=int(collector.num_envs),
         parallel=collector.get("env_backend", "serial") == "parallel",
-        device=cfg.device,
+        device=run_devices(cfg).env,  # the collector moves the batches to the learner
         **env_kwargs(cfg),
     )
 
@@ -76,22 +77,36 @@ def make_train_env(cfg: DictConfig) -> EnvBase:
 EVAL_SEED_OFFSET = 1_000_003
 
 
-def make_eval_env(cfg: DictConfig, *, seed: int | None = None, num_envs: int = 1) -> EnvBase:
+def make_eval_env(
+    cfg: DictConfig,
+    *,
+    seed: int | None = None,
+    num_envs: int = 1,
+    devices: RunDevices | None = None,
+) -> EnvBase:
     """The env for test episodes, seeded ``seed`` (default: apart from the training
     envs, ``cfg.seed + 1000003``): unbatched, or ``num_envs`` sub-envs stepped side
-    by side in this process (seeded ``seed``, ``seed + 1``, ...)."""
+    by side in this process (seeded ``seed``, ``seed + 1``, ...). It steps on the env
+    device and, where the learner is elsewhere, casts its output to the learner and the
+    actions back (``DeviceCastTransform``), so the policy reads it where it lives."""
+    from torchrl.envs import DeviceCastTransform
+
     from wcsac_rl.envs import make_env
 
+    devices = devices or run_devices(cfg)
     if seed is None:
         seed = int(cfg.seed) + EVAL_SEED_OFFSET
-    return make_env(
+    env = make_env(
         cfg.env.name,
         seed=int(seed),
-        device=cfg.device,
+        device=devices.env,
         num_workers=int(num_envs),
         parallel=False,
         **env_kwargs(cfg),
     )
+    if devices.casts:
+        env.append_transform(DeviceCastTransform(devices.learner, orig_device=devices.env))
+    return env
 
 
 @dataclass
@@ -103,9 +118,9 @@ class Agent:
     safety: TensorDictModule | None
 
 
-def make_agent(cfg: DictConfig, env: EnvBase) -> Agent:
+def make_agent(cfg: DictConfig, env: EnvBase, devices: RunDevices | None = None) -> Agent:
     """Actor, twin reward critic and (for WCSAC / SAC-Lag) the safety critic
-    (``algo.safety_critic``: Gaussian or IQN)."""
+    (``algo.safety_critic``: Gaussian or IQN), on the learner device."""
     net = cfg.algo.network
     shape = {"width": int(net.width), "depth": int(net.depth), "activation": str(net.activation)}
     action_spec = env.action_spec_unbatched
@@ -128,7 +143,7 @@ def make_agent(cfg: DictConfig, env: EnvBase) -> Agent:
             )
         else:
             safety = make_safety_critic(obs_dim, act_dim, variance=bool(cfg.algo.variance), **shape)
-    device = torch.device(cfg.device)
+    device = (devices or run_devices(cfg)).learner
     actor.to(device)
     for module in [*qvalues, safety]:
         if module is not None:
@@ -228,7 +243,10 @@ def make_collector(
     init_random_frames: int,
     seed: int,
 ) -> Collector:
-    """TorchRL ``Collector`` over the batched training envs (random actions first), seeded."""
+    """TorchRL ``Collector`` over the batched training envs (random actions first), seeded:
+    the envs step on the env device, the policy acts and the batches are stored on the
+    learner device."""
+    devices = run_devices(cfg)
     collector = Collector(
         env,
         policy,
@@ -236,7 +254,9 @@ def make_collector(
         total_frames=int(total_frames),
         init_random_frames=int(init_random_frames) if policy is not None else None,
         exploration_type=ExplorationType.RANDOM,
-        device=cfg.device,
+        env_device=devices.env,
+        policy_device=devices.learner,
+        storing_device=devices.learner,
         auto_register_policy_transforms=False,  # the MLP policy needs no env transforms
     )
     collector.set_seed(int(seed))
@@ -246,7 +266,7 @@ def make_collector(
 def make_replay_buffer(cfg: DictConfig) -> TensorDictReplayBuffer:
     """Uniform replay on a ``LazyTensorStorage`` (the paper: 10⁶ transitions, batch 256)."""
     return TensorDictReplayBuffer(
-        storage=LazyTensorStorage(int(cfg.algo.buffer_size), device=cfg.device),
+        storage=LazyTensorStorage(int(cfg.algo.buffer_size), device=run_devices(cfg).learner),
         batch_size=int(cfg.algo.batch_size),
     )
 
@@ -271,7 +291,9 @@ INITIAL_STATE_CAPACITY = 10_000
 
 def make_initial_state_buffer(cfg: DictConfig, loss: LossModule) -> StartStateBuffer:
     """The start states the κ loss reads (the last 10⁴), for ``kappa_states=initial``."""
-    return StartStateBuffer.for_loss(loss, capacity=INITIAL_STATE_CAPACITY, device=cfg.device)
+    return StartStateBuffer.for_loss(
+        loss, capacity=INITIAL_STATE_CAPACITY, device=run_devices(cfg).learner
+    )
 
 
 def make_logger(

@@ -153,11 +153,11 @@ def _check_logger_package(backend: str) -> None:
 def _check_device(device: str) -> None:
     import torch
 
-    if device == "cpu":
-        return
     kind, _, index = device.partition(":")
-    if kind not in ("cuda", "mps") or (index and not index.isdigit()):
+    if kind not in ("cpu", "cuda", "mps") or (index and not index.isdigit()):
         raise ConfigError(f"device must be cpu, cuda[:N] or mps, got {device!r}")
+    if kind == "cpu":
+        return
     if kind == "cuda":
         count = torch.cuda.device_count() if torch.cuda.is_available() else 0
         if count == 0:

@@ -32,6 +32,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from wcsac_rl.modules.gaussian_actor import make_gaussian_actor, make_state_value
 from wcsac_rl.objectives.cpo import CPOLoss
 from wcsac_rl.training.checkpoint import load_optimizer_state
+from wcsac_rl.training.devices import run_devices
 from wcsac_rl.training.trainer import Trainer, env_max_episode_steps
 
 __all__ = ["CPOLearner", "OnPolicyTrainer", "make_cpo_loss", "make_cpo_networks"]
@@ -49,7 +50,7 @@ def make_cpo_networks(
     )
     value = make_state_value(obs_dim, out_key="state_value", **shape)
     cost_value = make_state_value(obs_dim, out_key="state_cost_value", **shape)
-    device = torch.device(cfg.device)
+    device = run_devices(cfg).learner
     return actor.to(device), value.to(device), cost_value.to(device)
 
 

@@ -58,6 +58,7 @@ def load_run(path: str | os.PathLike, *, seed: int | None = None, num_envs: int 
     checkpoint_path = find_checkpoint(path)
     checkpoint, digest = read_checkpoint(checkpoint_path)
     cfg = OmegaConf.create(checkpoint["config"])
+    cfg.device = "cpu"  # evaluated on the CPU, whatever device it trained on
     env = builders.make_eval_env(cfg, seed=seed, num_envs=num_envs)
     policy = trainer_class(cfg.algo.name).restore_policy(cfg, checkpoint.get("learner", {}), env)
     if policy is not None:

@@ -1,0 +1,44 @@
+"""Where a run's pieces live: the one place that reads ``cfg.device``.
+
+* **env** — the training and test envs step on the CPU (MuJoCo and NumPy) and make
+  their tensordicts there;
+* **learner** — ``cfg.device``: the networks and their targets, β and κ, the optimizers'
+  state, the replay buffer's storage (so every sampled batch), the start-state buffer,
+  and the policy. The collector moves each collected batch from the env device to the
+  learner (``env_device`` / ``policy_device`` / ``storing_device``); the test episodes'
+  env casts its output to the learner and the policy's actions back
+  (TorchRL's ``DeviceCastTransform``).
+
+A checkpoint is always loaded on the CPU and copied into the learner's tensors;
+evaluation rebuilds a run on the CPU (:data:`CPU`), whatever device it trained on.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from omegaconf import DictConfig
+
+__all__ = ["CPU", "RunDevices", "run_devices"]
+
+
+@dataclass(frozen=True)
+class RunDevices:
+    """The devices of a run (see the module's docstring)."""
+
+    env: torch.device
+    learner: torch.device
+
+    @property
+    def casts(self) -> bool:
+        """Whether data crosses devices between the envs and the learner."""
+        return self.env != self.learner
+
+
+CPU = RunDevices(env=torch.device("cpu"), learner=torch.device("cpu"))
+
+
+def run_devices(cfg: DictConfig) -> RunDevices:
+    """The devices of the run configured by ``cfg`` (``cfg.device`` is the learner's)."""
+    return RunDevices(env=torch.device("cpu"), learner=torch.device(str(cfg.device)))
