@@ -1,9 +1,11 @@
-"""Device handling in one place (wcsac_rl.training.devices), tested with a non-default
-CPU device spec: ``device=cpu:0`` is not ``torch.device("cpu")``, so a piece built on a
-hard-coded or wrong device (an env on the learner, a buffer on the env's device, a
-tensordict made with ``device="cpu"``) shows here, where no GPU exists. (Tensors and
-parameters report ``cpu`` for either spec; tensordicts, storages and the collector
-keep the spec they were given.)"""
+"""Device handling in one place (wcsac_rl.training.devices), tested without a GPU.
+
+* A whole run with ``device=cpu:0``, a spec unequal to ``torch.device("cpu")`` although
+  tensors report ``cpu`` for both: the envs stay on the env device, tensordicts,
+  storages and the collector keep the spec they were given, and the collector acts
+  with the trainer's own policy (a spec that differs from its parameters' device
+  would make TorchRL act with a copy whose weights nothing updates).
+"""
 
 from __future__ import annotations
 
@@ -18,6 +20,25 @@ from wcsac_rl.training.restore import load_run
 LEARNER = torch.device("cpu:0")
 ENV = torch.device("cpu")
 
+CPO_SMALL = [
+    "algo=cpo",
+    "env=tiny",
+    "algo.collector.num_envs=2",
+    "algo.collector.frames_per_batch=200",
+    "algo.network.width=16",
+    "algo.value_iters=5",
+    "epoch_frames=400",
+    "total_frames=400",
+    "eval_episodes=1",
+    "progress_bar=false",
+]
+
+
+def _config(algo: str, *overrides: str):
+    if algo == "cpo":
+        return compose_config(*CPO_SMALL, *overrides, small=False)
+    return compose_config("env=tiny", f"algo={algo}", *overrides)
+
 
 def test_run_devices_put_the_envs_on_the_cpu_and_the_rest_on_the_configured_device():
     devices = run_devices(compose_config("device=cpu:0"))
@@ -26,26 +47,29 @@ def test_run_devices_put_the_envs_on_the_cpu_and_the_rest_on_the_configured_devi
     assert not run_devices(compose_config()).casts and not CPU.casts
 
 
+def _assert_collector_acts_with_the_trainers_policy(trainer) -> None:
+    collector = trainer.collector
+    assert collector.policy is trainer.policy  # not a copy: it follows every update
+    first = next(trainer.policy.parameters())
+    assert collector.policy_device == first.device
+    trained = {p.data_ptr() for p in trainer.loss.parameters()}
+    assert {p.data_ptr() for p in collector.policy.parameters()} <= trained
+
+
 @pytest.mark.parametrize("algo", ["wcsac", "sac_lag"])
 def test_off_policy_run_on_a_non_default_device_spec_places_every_piece(tmp_path, algo):
-    trainer = make_trainer(compose_config("env=tiny", f"algo={algo}", "device=cpu:0"), tmp_path)
+    trainer = make_trainer(_config(algo, "device=cpu:0"), tmp_path)
     try:
+        _assert_collector_acts_with_the_trainers_policy(trainer)
         trainer.run()
         assert trainer.env.device == ENV  # MuJoCo / NumPy step on the CPU
         assert trainer.eval_env.device == LEARNER  # test episodes cast to the learner
-        collector_devices = (
-            trainer.collector.env_device,
-            trainer.collector.policy_device,
-            trainer.collector.storing_device,
-        )
-        assert collector_devices == (ENV, LEARNER, LEARNER)
+        assert (trainer.collector.env_device, trainer.collector.storing_device) == (ENV, LEARNER)
         assert trainer.replay_buffer.storage.device == LEARNER
         assert trainer.initial_state_buffer.storage.device == LEARNER
         batch = trainer.sample()  # a replay sample with its start states attached
         assert batch.device == LEARNER and batch["initial"].device == LEARNER
-        out = trainer.loss(batch)  # the loss runs on it: every tensor on the learner's type
-        assert {v.device.type for v in out.values()} == {"cpu"}
-        assert trainer.updates > 0 and torch.isfinite(out["kappa"])
+        assert trainer.updates > 0 and torch.isfinite(trainer.loss(batch)["kappa"])
     finally:
         trainer.close()
     restored = load_run(tmp_path)  # evaluation rebuilds it on the CPU
@@ -53,21 +77,9 @@ def test_off_policy_run_on_a_non_default_device_spec_places_every_piece(tmp_path
 
 
 def test_cpo_run_on_a_non_default_device_spec(tmp_path):
-    overrides = [
-        "algo=cpo",
-        "env=tiny",
-        "algo.collector.num_envs=2",
-        "algo.collector.frames_per_batch=200",
-        "algo.network.width=16",
-        "algo.value_iters=5",
-        "epoch_frames=400",
-        "total_frames=400",
-        "eval_episodes=1",
-        "progress_bar=false",
-        "device=cpu:0",
-    ]
-    trainer = make_trainer(compose_config(*overrides, small=False), tmp_path)
+    trainer = make_trainer(_config("cpo", "device=cpu:0"), tmp_path)
     try:
+        _assert_collector_acts_with_the_trainers_policy(trainer)
         trainer.run()
         assert trainer.env.device == ENV
         assert trainer.collector.storing_device == LEARNER

@@ -245,8 +245,19 @@ def make_collector(
 ) -> Collector:
     """TorchRL ``Collector`` over the batched training envs (random actions first), seeded:
     the envs step on the env device, the policy acts and the batches are stored on the
-    learner device."""
+    learner device.
+
+    The collector acts with ``policy`` itself, so every update of its parameters is
+    the collector's: its ``policy_device`` is the device the parameters are on (a
+    spec that only names the same device, ``cuda`` for ``cuda:0`` or ``cpu:0`` for
+    ``cpu``, would make TorchRL act with a copy whose weights nothing updates).
+    """
     devices = run_devices(cfg)
+    policy_device = devices.learner
+    if policy is not None:
+        params = next(iter(policy.parameters()), None)
+        if params is not None:
+            policy_device = params.device
     collector = Collector(
         env,
         policy,
@@ -255,10 +266,12 @@ def make_collector(
         init_random_frames=int(init_random_frames) if policy is not None else None,
         exploration_type=ExplorationType.RANDOM,
         env_device=devices.env,
-        policy_device=devices.learner,
+        policy_device=policy_device,
         storing_device=devices.learner,
         auto_register_policy_transforms=False,  # the MLP policy needs no env transforms
     )
+    if policy is not None and collector.policy is not policy:
+        raise RuntimeError("the collector copied the policy: it would act with stale weights")
     collector.set_seed(int(seed))
     return collector
 
