@@ -1,5 +1,10 @@
 """Device handling in one place (wcsac_rl.training.devices), tested without a GPU.
 
+* The learner built on ``torch.device("meta")`` (no GPU needed, and unlike ``cpu:N`` a
+  different device for real): every parameter, buffer, target, β, κ, optimizer entry,
+  replay and start-state storage and replay sample must be there, so a piece built
+  without its ``.to(learner)`` (or with a tensor made on the default device) fails
+  here. Meta tensors hold no values: nothing is trained on them.
 * A whole run with ``device=cpu:0``, a spec unequal to ``torch.device("cpu")`` although
   tensors report ``cpu`` for both: the envs stay on the env device, tensordicts,
   storages and the collector keep the spec they were given, and the collector acts
@@ -13,12 +18,14 @@ import pytest
 import torch
 from _training_helpers import compose_config
 
-from wcsac_rl.training import make_trainer
+from wcsac_rl.training import builders, make_trainer
 from wcsac_rl.training.devices import CPU, run_devices
 from wcsac_rl.training.restore import load_run
+from wcsac_rl.training.trainer import env_max_episode_steps, trainer_class
 
 LEARNER = torch.device("cpu:0")
 ENV = torch.device("cpu")
+META = torch.device("meta")
 
 CPO_SMALL = [
     "algo=cpo",
@@ -45,6 +52,68 @@ def test_run_devices_put_the_envs_on_the_cpu_and_the_rest_on_the_configured_devi
     assert devices.env == ENV and devices.learner == LEARNER and devices.casts
     assert LEARNER != ENV  # what makes the spec useful on a CPU-only machine
     assert not run_devices(compose_config()).casts and not CPU.casts
+
+
+def _tensors(*modules: torch.nn.Module) -> dict[str, torch.Tensor]:
+    return {
+        f"{k}.{name}": t
+        for k, module in enumerate(modules)
+        for name, t in [*module.named_parameters(), *module.named_buffers()]
+    }
+
+
+@pytest.mark.parametrize("algo", ["wcsac", "sac_lag", "sac", "cpo"])
+def test_the_learner_built_on_the_meta_device_has_every_piece_there(monkeypatch, algo):
+    """The trainer's own ``_build_learner`` with ``device=meta`` (set after composing:
+    ``validate_config`` accepts only real devices). TorchRL's target updater cannot be
+    built on meta (``SoftUpdate`` compares storages with ``is_set_to``, which has no meta
+    kernel): it is left out; the targets it updates are buffers of the loss, checked
+    here. The WCSAC and SAC losses cannot run on meta (their forward reads a value on
+    the host: the CVaR bracket, TorchRL's ``TanhNormal`` bounds check); SAC-Lag's does."""
+    cfg = _config(algo)
+    cfg.device = "meta"
+    monkeypatch.setattr(builders, "make_target_updater", lambda cfg, loss: None)
+    cls = trainer_class(algo)
+    trainer = cls.__new__(cls)  # only what _build_learner reads: no collector, no run dir
+    trainer.cfg = cfg
+    trainer.env = builders.make_train_env(cfg)
+    trainer.max_episode_steps = env_max_episode_steps(cfg)
+    try:
+        assert trainer.env.device == ENV
+        trainer._build_learner()
+        tensors = _tensors(trainer.loss, trainer.policy)
+        assert tensors and {n for n, t in tensors.items() if t.device != META} == set()
+        if algo == "cpo":
+            optimizers = {"value": trainer.learner.value_optimizer}
+        else:
+            optimizers = trainer.optimizers
+            if algo == "wcsac":
+                assert trainer.loss.kappa_raw.device == META
+        params = [p for o in optimizers.values() for g in o.param_groups for p in g["params"]]
+        assert params and {p.device for p in params} == {META}
+        if algo == "cpo":
+            return  # no replay: the collector's batch is the update's
+        # real transitions from the CPU envs, stored as the trainer stores them
+        batch = trainer.env.rollout(60, break_when_any_done=False)
+        assert batch.device == ENV
+        trainer.tracker = None  # (learn() is not called: no update)
+        if trainer.postproc is not None:
+            batch = trainer.postproc(batch)
+        trainer.replay_buffer.extend(batch.reshape(-1).select(*trainer.replay_keys))
+        storage = trainer.replay_buffer.storage
+        assert storage.device == META
+        assert {t.device for t in storage._storage.values(True, True)} == {META}
+        if algo in ("wcsac", "sac_lag"):  # kappa_states=initial: start states
+            starts = trainer.initial_state_buffer
+            assert starts.add_starts(batch) == 2  # one episode start per env
+            assert {t.device for t in starts.storage._storage.values(True, True)} == {META}
+        sample = trainer.sample()
+        assert {t.device for t in sample.values(True, True)} == {META}
+        if algo == "sac_lag":
+            out = trainer.loss(sample)
+            assert {t.device for t in out.values(True, True)} == {META}
+    finally:
+        trainer.env.close()
 
 
 def _assert_collector_acts_with_the_trainers_policy(trainer) -> None:

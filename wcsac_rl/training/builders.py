@@ -195,7 +195,8 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
         if algo.name == "wcsac":
             safety_kwargs["risk_level"] = float(algo.risk_level)
         loss = cls(agent.actor, agent.qvalues, agent.safety, **safety_kwargs, **common)
-    loss.make_value_estimator(gamma=float(algo.gamma))
+    # (its γ buffer is made on the default device unless told)
+    loss.make_value_estimator(gamma=float(algo.gamma), device=run_devices(cfg).learner)
     return loss
 
 
