@@ -160,7 +160,7 @@ def _single_episode(
     env: EnvBase, policy, max_steps: int, record: list[NestedKey] | None
 ) -> RecordedEpisode:
     rollout = env.rollout(max_steps, policy, break_when_any_done=True)
-    nxt = rollout.get("next")
+    nxt = _on_cpu(rollout.get("next"))
     goal = nxt.get("goal_reached", None)
     failure = nxt.get("numerical_failure", None)
     result = EpisodeResult(
@@ -180,9 +180,10 @@ def _side_by_side_episodes(
 ) -> list[RecordedEpisode]:
     """The first episode of sub-envs ``0 .. wanted-1`` of a batched env, stepped together.
 
-    With ``record``, those entries of each batched step are kept; a sub-env's
-    episode is the first ``length`` of them (it runs from the first step on and
-    only waits once it has finished).
+    With ``record``, those entries of each batched step are kept (on the device the
+    env returns them on: the learner's, where the policy and safety critic read them);
+    a sub-env's episode is the first ``length`` of them (it runs from the first step on
+    and only waits once it has finished). The episodes' totals are kept on the CPU.
     """
     n = env.batch_size[0]
     ret = torch.zeros(n, dtype=torch.float64)
@@ -198,11 +199,11 @@ def _side_by_side_episodes(
     for _ in range(max_steps):
         td = env.rand_action(td) if policy is None else policy(td)
         if partial and not running.all():  # finished sub-envs wait for the others
-            td.set("_step", running.unsqueeze(-1).clone())
+            td.set("_step", running.unsqueeze(-1).to(td.device or "cpu", copy=True))
         td, next_td = env.step_and_maybe_reset(td)
         if record is not None:
             recorded.append(td.select(*record, strict=True).clone())
-        nxt = td.get("next")
+        nxt = _on_cpu(td.get("next"))
         active = running.clone()
         ret += torch.where(active, nxt.get("reward").reshape(n).double(), 0.0)
         cost += torch.where(active, nxt.get("cost").reshape(n).double(), 0.0)
@@ -232,6 +233,18 @@ def _side_by_side_episodes(
         )
         for i in range(wanted)
     ]
+
+
+STEP_ENTRIES = ("reward", "cost", "done", "goal_reached", "numerical_failure")
+"""The entries of a step's ``"next"`` the episodes' totals read."""
+
+
+def _on_cpu(nxt: TensorDictBase) -> TensorDictBase:
+    """A step's :data:`STEP_ENTRIES`, on the CPU (an env that casts its output to the
+    learner, e.g. a GPU, returns them there; the totals are kept on the CPU)."""
+    if nxt.device is not None and nxt.device.type == "cpu":
+        return nxt  # (the envs' own output: nothing to move)
+    return nxt.select(*STEP_ENTRIES, strict=False).to("cpu")
 
 
 def _steps_partially(env: EnvBase) -> bool:
