@@ -207,9 +207,11 @@ def test_slurm_preset_asks_for_one_cpu_the_measured_memory_and_time(monkeypatch)
     assert launcher.max_num_timeout >= 1 and launcher.signal_delay_s >= 120
     assert launcher.partition == "cpu_long" and launcher.account is None
     assert cfg.threads == 1 and cfg.resume == "auto"
-    # the experiment's sweep directory is named after it, not a timestamp
+    # the experiment's sweep directory is named after it, not a timestamp, and each
+    # job's after its run (row, env, seed), not its position among the command's jobs
     sweep = OmegaConf.to_container(cfg.hydra.sweep, resolve=False)
     assert sweep["dir"] == "multirun/${hydra:runtime.choices.experiment}"
+    assert sweep["subdir"] == "${run_name}"
     assert cfg.hydra.runtime.choices.experiment == "table1_static"
     local = _hydra_config("experiment=table1_static", "hydra/launcher=slurm_local").hydra
     assert local.launcher._target_.endswith("LocalLauncher")
