@@ -134,7 +134,9 @@ def test_a_new_run_refuses_a_non_empty_directory(tmp_path, leftover):
         target.mkdir()
     else:
         target.write_text("epoch,frames\n1,400\n")
-    with pytest.raises(ConfigError, match=rf"already holds a run \({leftover}\)"):
+    # (a requeued sweep job lands here too: the message names resume=auto)
+    match = rf"already holds a run \({leftover}\).*run the sweep with resume=auto"
+    with pytest.raises(ConfigError, match=match):
         make_trainer(compose_config("env=tiny", "algo=random"), run_dir)
     assert target.exists() and not (run_dir / "config.yaml").exists()
 

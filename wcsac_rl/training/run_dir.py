@@ -107,7 +107,12 @@ def check_new_run_dir(run_dir: Path) -> None:
             if has_checkpoint
             else "a new run needs an empty directory: choose another one"
         )
-        raise ConfigError(f"{run_dir} already holds a run ({shown}); {fix}")
+        # a sweep job that was requeued (SLURM) or retried (Ray), or a sweep run again
+        sweep = (
+            "; a sweep job run again (a requeued or retried job, the same sweep command) "
+            "continues its own directory only with resume=auto: run the sweep with resume=auto"
+        )
+        raise ConfigError(f"{run_dir} already holds a run ({shown}); {fix}{sweep}")
 
 
 def check_restartable_run_dir(run_dir: Path) -> None:
