@@ -18,7 +18,12 @@ JOBS = [  # in the basic sweeper's order: params first, then the command line's 
 ]
 
 
-def _sweep(root: Path, sweeper: str = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"):
+def _sweep(
+    root: Path,
+    sweeper: str = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper",
+    rows: str = "sac,wcsac_0.1",
+    seeds: str = "0,10",
+):
     root.mkdir(parents=True)
     OmegaConf.save(
         {
@@ -26,9 +31,9 @@ def _sweep(root: Path, sweeper: str = "hydra._internal.core_plugins.basic_sweepe
                 "sweeper": {
                     "_target_": sweeper,
                     "max_batch_size": None,
-                    "params": {"+row": "sac,wcsac_0.1"},
+                    "params": {"+row": rows},
                 },
-                "overrides": {"task": ["env=tiny", "seed=0,10"]},
+                "overrides": {"task": ["env=tiny", f"seed={seeds}"]},
             }
         },
         root / "multirun.yaml",
@@ -90,3 +95,61 @@ def test_another_sweepers_jobs_are_classified_and_none_is_called_missing(tmp_pat
         ("0_a", "finished"),
         ("1_b", "failed"),
     ]
+
+
+def _started(directory: Path) -> Path:
+    """What a run writes before its first checkpoint."""
+    (directory / "config.yaml").write_text("seed: 0\n")
+    (directory / "progress.csv").write_text("epoch,frames\n")
+    return directory
+
+
+def test_a_job_whose_run_directory_is_locked_is_running(tmp_path):
+    """A job training (before its first checkpoint or after one) holds its run
+    directory's lock, as the trainer does: ``running``, not ``failed`` or ``unfinished``;
+    once the lock is free (the process ended) the files decide."""
+    from wcsac_rl.training.run_dir import RunLock
+
+    root = tmp_path / "sweep"
+    _sweep(root)
+    before = _started(_job(root, "job0", JOBS[0], frames=None))
+    after = _job(root, "job1", JOBS[1], frames=400)
+    locks = [RunLock(before), RunLock(after)]
+    try:
+        jobs = sweep_jobs(root)
+        assert [job.status for job in jobs[:2]] == ["running", "running"]
+        assert "pid" in jobs[0].detail and "pid" in jobs[1].detail
+    finally:
+        for lock in locks:
+            lock.release()
+    assert [job.status for job in sweep_jobs(root)][:2] == ["failed", "unfinished"]
+
+
+def test_evaluate_warns_of_a_running_job_and_fails_on_a_failed_one_in_one_line(tmp_path, capsys):
+    """During a sweep a job before its first checkpoint is one warning (exit 0); after
+    it died there, one error line (exit 1), not also a 'without a checkpoint' one."""
+    from wcsac_rl.evaluate import main as evaluate
+    from wcsac_rl.training.run_dir import RunLock
+
+    root = tmp_path / "sweep"
+    _sweep(root, rows="sac", seeds="0")  # one job
+    directory = _started(_job(root, "job0", JOBS[0], frames=None))
+    lock = RunLock(directory)
+    try:
+        assert evaluate([str(root), "--no-progress"]) == 0
+    finally:
+        lock.release()
+    err = capsys.readouterr().err
+    assert err.count("job0") == 1 and "warning: sweep job" in err and "running" in err
+    assert evaluate([str(root), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("job0") == 1 and "error: sweep job" in err and "failed" in err
+
+
+def test_a_job_without_checkpoint_but_evaluated_is_finished(tmp_path):
+    root = tmp_path / "sweep"
+    _sweep(root)
+    directory = _job(root, "job0", JOBS[0], frames=None)
+    (directory / "evaluation.json").write_text('{"trained_frames": 800}')
+    [job, *_] = sweep_jobs(root)
+    assert job.status == "finished" and "evaluated" in job.detail

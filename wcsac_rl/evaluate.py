@@ -11,9 +11,11 @@ Existing evaluations are skipped (nothing is overwritten) unless ``--force``. A 
 that cannot be evaluated (missing, a run directory without a checkpoint, an
 unreadable checkpoint) prints one ``error:`` line; the other runs are still
 evaluated, and the exit code is 1 if any path failed (0 otherwise). Below a sweep
-directory (``multirun.yaml``, any launcher) every job of the sweep is accounted for:
-a job that never started or has no checkpoint is an ``error:`` line naming it (exit
-code 1), one stopped before ``total_frames`` a ``warning:`` (it is evaluated as it is).
+directory (``multirun.yaml``, any launcher) every job of the sweep is accounted for
+(:mod:`~wcsac_rl.evaluation.sweeps`): a job that never started or has no checkpoint is
+one ``error:`` line naming it (exit code 1), one still training (its run directory
+locked) or stopped before ``total_frames`` a ``warning:`` (a checkpoint it has is
+evaluated as it is).
 
 Examples::
 
@@ -121,7 +123,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         evaluate_run,
     )
     from wcsac_rl.evaluation.runs import find_run_dirs
-    from wcsac_rl.evaluation.sweeps import incomplete_jobs
+    from wcsac_rl.evaluation.sweeps import all_sweep_jobs
     from wcsac_rl.training.config import ConfigError
 
     torch.set_num_threads(max(1, args.threads))
@@ -139,8 +141,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
 
     jobs: list[tuple[Path, object]] = []
+    # the jobs of the sweeps below the paths (any launcher): their status is reported
+    # below, once (a job directory without a checkpoint is not also an error here)
+    sweep_jobs = all_sweep_jobs(args.paths) if args.paths else []
+    without_checkpoint = [
+        job.directory for job in sweep_jobs if job.directory and not job.has_checkpoint
+    ]
     if args.paths:
-        run_dirs, find_errors = find_run_dirs(args.paths)
+        run_dirs, find_errors = find_run_dirs(args.paths, accounted=without_checkpoint)
         errors += find_errors
         for message in find_errors:
             print(f"error: {message}", file=sys.stderr, flush=True)
@@ -178,6 +186,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                     ),
                 )
             )
+    for job in sweep_jobs:
+        if job.complete and not job.has_checkpoint:  # evaluated, its checkpoint removed
+            skipped.append(str(job.directory))
+            print(f"skipped: {job.directory}: {job.detail}", file=sys.stderr, flush=True)
     for directory, job in jobs:
         try:
             report(directory, job())
@@ -196,9 +208,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         flush=True,
     )
     # a sweep's jobs that did not finish (any launcher): named, never silently dropped
-    incomplete = incomplete_jobs(args.paths) if args.paths else []
+    incomplete = [job for job in sweep_jobs if not job.complete]
     for job in incomplete:
-        kind = "warning" if job.status == "unfinished" else "error"
+        kind = "warning" if job.status in ("running", "unfinished") else "error"
         print(f"{kind}: sweep job {job.describe()}", file=sys.stderr, flush=True)
     if incomplete:
         print(

@@ -19,8 +19,8 @@ groups them by Table-1 row (``algo.label``; seeds pooled) and writes
 ===============================  ============================================================
 
 Below a sweep directory (``multirun.yaml``, from any launcher) every job of the sweep
-is accounted for: jobs that never started, failed or stopped before ``total_frames``
-are warnings and are listed by name under Table 1 (:mod:`~wcsac_rl.evaluation.sweeps`).
+is accounted for: jobs that never started, failed, still run or stopped before
+``total_frames`` are warnings and are listed by name under Table 1 (:mod:`~wcsac_rl.evaluation.sweeps`).
 Nothing is overwritten unless ``force``: the existing files are listed and nothing
 is done. A report covers one environment and one budget d (pass ``env`` /
 ``cost_limit`` when the runs mix them).
@@ -222,8 +222,8 @@ def table1_markdown(
         lines += [
             f"## Sweep jobs not finished ({len(incomplete)})",
             "",
-            "Missing and failed jobs are not in the table; an unfinished job is, with the "
-            "policy of its last checkpoint.",
+            "Missing and failed jobs are not in the table; an unfinished or running job is "
+            "if it was evaluated, with the policy of the checkpoint it had then.",
             "",
             "| job | status | sweep | detail |",
             "|---|---|---|---|",

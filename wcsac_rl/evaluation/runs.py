@@ -127,12 +127,18 @@ def _no_checkpoint(path: Path) -> str:
     )
 
 
-def find_run_dirs(paths: Iterable[str | os.PathLike]) -> tuple[list[Path], list[str]]:
+def find_run_dirs(
+    paths: Iterable[str | os.PathLike], *, accounted: Iterable[str | os.PathLike] = ()
+) -> tuple[list[Path], list[str]]:
     """Run directories to evaluate under ``paths`` (run dirs and/or sweep dirs).
 
     A path that is itself a run directory is taken as one (with or without its
     checkpoint); any other directory is searched recursively for run directories
     (directories below a run directory are not searched further).
+
+    Args:
+        accounted: directories whose lack of a checkpoint is reported elsewhere (a
+            sweep's jobs, :mod:`~wcsac_rl.evaluation.sweeps`): no error line for them.
 
     Returns:
         ``(run_dirs, errors)``: the run directories with a checkpoint, in the order
@@ -141,6 +147,12 @@ def find_run_dirs(paths: Iterable[str | os.PathLike]) -> tuple[list[Path], list[
     """
     found: list[Path] = []
     errors: list[str] = []
+    known = {Path(d).expanduser().resolve() for d in accounted}
+
+    def no_checkpoint(path: Path) -> None:
+        if path.resolve() not in known:
+            errors.append(_no_checkpoint(path))
+
     for raw in paths:
         path = Path(raw).expanduser()
         if not path.exists():
@@ -155,8 +167,8 @@ def find_run_dirs(paths: Iterable[str | os.PathLike]) -> tuple[list[Path], list[
         if has_checkpoint(path):
             found.append(path)
             continue
-        if looks_like_run_dir(path):
-            errors.append(_no_checkpoint(path))
+        if looks_like_run_dir(path) or path.resolve() in known:
+            no_checkpoint(path)
             continue
         below = []
         run_roots: list[Path] = []
@@ -166,8 +178,8 @@ def find_run_dirs(paths: Iterable[str | os.PathLike]) -> tuple[list[Path], list[
             if has_checkpoint(candidate):
                 below.append(candidate)
                 run_roots.append(candidate)
-            elif looks_like_run_dir(candidate):
-                errors.append(_no_checkpoint(candidate))
+            elif looks_like_run_dir(candidate) or candidate.resolve() in known:
+                no_checkpoint(candidate)
                 run_roots.append(candidate)
         if not run_roots:
             errors.append(f"{path}: no run directories with {CHECKPOINT_DIR}/{LAST_CHECKPOINT}")

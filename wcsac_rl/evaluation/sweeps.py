@@ -9,14 +9,19 @@ product of the swept values, in its order) and matches each job to its directory
 overrides, so a job that never started (its node died, its array task was cancelled)
 is named too, not silently missing:
 
-============  ===============================================================
-``finished``  ``checkpoints/last.pt`` at ``total_frames`` or more
-``unfinished``  a checkpoint before ``total_frames`` (preempted, killed, time limit):
-                running the sweep command again continues it (``resume=auto``)
-``failed``    a directory without a checkpoint (the job died before its first one,
-              or on an error: see its ``train.log`` and the launcher's logs)
-``missing``   no directory: the job never started
-============  ===============================================================
+==============  =============================================================
+``running``     a live process holds the run directory's lock (``.lock``, held by
+                the trainer: :func:`~wcsac_rl.training.run_dir.lock_holder`)
+``finished``    ``checkpoints/last.pt`` at ``total_frames`` or more, or no
+                checkpoint but an ``evaluation.json`` (it was evaluated: its
+                checkpoint was removed since)
+``unfinished``  a checkpoint before ``total_frames`` (preempted, killed, time
+                limit, an error): running the sweep command again continues it
+                (``resume=auto``)
+``failed``      a directory without a checkpoint (the job died before its first
+                one, or on an error: see its ``train.log`` and the launcher's logs)
+``missing``     no directory: the job never started
+==============  =============================================================
 
 Sweeps with another sweeper (Optuna, ...) cannot be expanded: their job directories
 are still classified, and no job is reported missing.
@@ -33,7 +38,14 @@ from omegaconf import OmegaConf
 
 from wcsac_rl.training.checkpoint import CHECKPOINT_DIR, LAST_CHECKPOINT
 
-__all__ = ["MULTIRUN_YAML", "SweepJob", "find_sweep_roots", "incomplete_jobs", "sweep_jobs"]
+__all__ = [
+    "MULTIRUN_YAML",
+    "SweepJob",
+    "all_sweep_jobs",
+    "find_sweep_roots",
+    "incomplete_jobs",
+    "sweep_jobs",
+]
 
 MULTIRUN_YAML = "multirun.yaml"
 BASIC_SWEEPER = "hydra._internal.core_plugins.basic_sweeper.BasicSweeper"
@@ -47,7 +59,7 @@ class SweepJob:
     num: int | None
     overrides: list[str]
     directory: Path | None
-    status: str  # finished | unfinished | failed | missing
+    status: str  # running | finished | unfinished | failed | missing
     detail: str = ""
     swept: list[str] | None = None  # its values of the swept keys (``+row=sac seed=10``)
 
@@ -61,6 +73,13 @@ class SweepJob:
     @property
     def complete(self) -> bool:
         return self.status == "finished"
+
+    @property
+    def has_checkpoint(self) -> bool:
+        return (
+            self.directory is not None
+            and (self.directory / CHECKPOINT_DIR / LAST_CHECKPOINT).is_file()
+        )
 
     def describe(self) -> str:
         """One line: ``<sweep>: <name> <status>: <detail>``."""
@@ -122,11 +141,19 @@ def _job_dirs(root: Path) -> dict[tuple[str, ...], Path]:
 
 def _classify(directory: Path) -> tuple[str, str]:
     """``(status, detail)`` of a job directory (see the module's table)."""
+    from wcsac_rl.evaluation.runs import EVALUATION_JSON
     from wcsac_rl.training.checkpoint import load_checkpoint
     from wcsac_rl.training.config import ConfigError
+    from wcsac_rl.training.run_dir import lock_holder
 
     checkpoint = directory / CHECKPOINT_DIR / LAST_CHECKPOINT
+    holder = lock_holder(directory)
+    if holder is not None:
+        return "running", f"training ({holder})"
     if not checkpoint.is_file():
+        evaluation = directory / EVALUATION_JSON
+        if evaluation.is_file():
+            return "finished", f"no checkpoint, but evaluated ({EVALUATION_JSON})"
         return "failed", (
             f"no checkpoint ({CHECKPOINT_DIR}/{LAST_CHECKPOINT}): it ended before its first "
             "one or on an error; see its train.log and the launcher's logs"
@@ -140,7 +167,8 @@ def _classify(directory: Path) -> tuple[str, str]:
     if frames < total:
         return "unfinished", (
             f"checkpoint at {frames} of {total} frames; run the sweep command again to "
-            "continue it (resume=auto)"
+            "continue it (resume=auto); if it stopped on an error (its train.log, the "
+            "launcher's logs), fix that first"
         )
     return "finished", f"{frames} frames"
 
@@ -170,6 +198,11 @@ def sweep_jobs(root: str | os.PathLike) -> list[SweepJob]:
     return jobs
 
 
+def all_sweep_jobs(paths: Iterable[str | os.PathLike]) -> list[SweepJob]:
+    """The jobs of every sweep at or below ``paths``."""
+    return [job for root in find_sweep_roots(paths) for job in sweep_jobs(root)]
+
+
 def incomplete_jobs(paths: Iterable[str | os.PathLike]) -> list[SweepJob]:
     """The jobs of every sweep at or below ``paths`` that are not ``finished``."""
-    return [job for root in find_sweep_roots(paths) for job in sweep_jobs(root) if not job.complete]
+    return [job for job in all_sweep_jobs(paths) if not job.complete]

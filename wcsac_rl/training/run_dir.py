@@ -6,6 +6,8 @@ records that never run ahead of the checkpoint they are resumed from.
   (``kill -9`` included), so a lock file left by a dead process is recognised as stale
   by simply being lockable again; the file holds the owner's host and pid for the
   message the second run prints.
+* :func:`lock_holder` — who holds a run directory's lock, without waiting (a live run:
+  what a sweep's status calls ``running``).
 * :func:`check_new_run_dir` — a new run refuses a directory that holds anything but
   Hydra's own files (``.hydra/``, the job's ``*.log``) and the lock file.
 * :func:`check_restartable_run_dir` — ``resume=auto`` in a directory without a
@@ -23,6 +25,7 @@ from __future__ import annotations
 import csv
 import os
 import socket
+import time
 from pathlib import Path
 
 from wcsac_rl.training.config import ConfigError
@@ -34,6 +37,7 @@ __all__ = [
     "check_new_run_dir",
     "check_restartable_run_dir",
     "cut_records_to",
+    "lock_holder",
     "replace_text",
 ]
 
@@ -50,11 +54,43 @@ def _is_hydra_entry(path: Path) -> bool:
     return path.name in HYDRA_ENTRIES or (path.is_file() and path.suffix == ".log")
 
 
+LOCK_ATTEMPTS = 3
+LOCK_RETRY_S = 0.1
+
+
+def lock_holder(run_dir: Path) -> str | None:
+    """Who holds ``run_dir``'s lock (``"host h, pid N"``), or ``None`` when no live
+    process does (no lock file, a stale one, or no ``fcntl``: Windows). Never waits.
+
+    The probe takes a shared lock for an instant; a run starting at that very instant
+    retries (:class:`RunLock`). Across nodes this sees a run on another node where the
+    shared filesystem forwards ``flock`` locks (NFS does; Lustre with ``-o flock``).
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not POSIX
+        return None
+    try:
+        fd = os.open(Path(run_dir) / LOCK_FILE, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError:
+            return os.pread(fd, 200, 0).decode(errors="replace").strip() or "unknown"
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
 class RunLock:
     """Hold ``<run dir>/.lock`` exclusively until :meth:`release` (or the process ends).
 
     Raises :class:`~wcsac_rl.training.ConfigError` (one line, naming the holder) when
-    another live process holds it. Where ``fcntl`` does not exist (Windows) the lock
+    another live process holds it (tried :data:`LOCK_ATTEMPTS` times,
+    :data:`LOCK_RETRY_S` apart). Where ``fcntl`` does not exist (Windows) the lock
     is a no-op.
     """
 
@@ -67,9 +103,14 @@ class RunLock:
             return
         self.path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
+        for attempt in range(LOCK_ATTEMPTS):
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except OSError:
+                if attempt + 1 < LOCK_ATTEMPTS:  # (lock_holder's probe holds it briefly)
+                    time.sleep(LOCK_RETRY_S)
+        else:
             holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "unknown"
             os.close(fd)
             raise ConfigError(
