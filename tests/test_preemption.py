@@ -80,6 +80,33 @@ def test_a_stop_signal_checkpoints_mid_epoch_then_the_same_config_continues(tmp_
     assert load_checkpoint(run_dir / "checkpoints" / "last.pt")["frames"] == 1200
 
 
+class SignalsDuringItsFirstSave(OffPolicyTrainer):
+    """A real trainer that gets a stop signal while it writes its first periodic checkpoint."""
+
+    def save(self):
+        self.saves = [*getattr(self, "saves", []), self.tracker.frames]
+        if len(self.saves) == 1:
+            os.kill(os.getpid(), signal.SIGUSR1)
+        return super().save()
+
+
+def test_a_stop_signal_during_a_periodic_checkpoint_does_not_save_it_again(tmp_path):
+    run_dir = tmp_path / "run"
+    cfg = compose_config("env=tiny", "algo=sac", "total_frames=1200", "checkpoint_every_epochs=1")
+    before = signal.signal(signal.SIGUSR1, signal.SIG_DFL)
+    try:
+        trainer = SignalsDuringItsFirstSave(cfg, run_dir)
+        try:
+            with pytest.raises(Preempted) as stopped:
+                trainer.run()
+        finally:
+            trainer.close()
+    finally:
+        signal.signal(signal.SIGUSR1, before)
+    assert stopped.value.frames == 400 and trainer.saves == [400]  # one save, not two
+    assert load_checkpoint(run_dir / "checkpoints" / "last.pt")["frames"] == 400
+
+
 def test_stop_signals_restore_the_previous_handlers_and_leave_ignored_signals_alone():
     recorder = []
     before = {s: signal.getsignal(s) for s in (signal.SIGUSR1, signal.SIGUSR2)}

@@ -140,6 +140,7 @@ class Trainer:
         self.epoch_start_frames = self.epoch_start_updates = 0
         self.epoch_seconds = 0.0  # of the epoch in progress, in earlier sessions
         self._epoch_clock: float | None = None  # when this session's part of it began
+        self._checkpoint_frames: int | None = None  # frames of this session's last save
         if checkpoint is not None:
             self._load_state(checkpoint)
             self.load_learner_state(checkpoint.get("learner", {}))
@@ -357,7 +358,8 @@ class Trainer:
                     self.save()
                 next_epoch_end += epoch_frames
             if stop.received is not None and self.tracker.frames < cfg.total_frames:
-                self._save_interrupted()
+                if self._checkpoint_frames != self.tracker.frames:  # (the signal may have
+                    self._save_interrupted()  # come during this epoch's checkpoint)
                 pbar.close()
                 print(
                     f"\n{signal.Signals(stop.received).name}: checkpoint written to "
@@ -531,6 +533,7 @@ class Trainer:
         """Write ``checkpoints/last.pt`` atomically (then :meth:`after_save`)."""
         state = self.state_dict()
         save_checkpoint(self.checkpoint_path, state)
+        self._checkpoint_frames = self.tracker.frames
         self.after_save(state)
         return self.checkpoint_path
 
