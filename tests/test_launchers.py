@@ -1,12 +1,16 @@
 """Sweeps through real Hydra launchers: submitit's local executor (the SLURM preset's
-jobs as local processes) and a local Ray instance, end to end with evaluate + report
-on the sweep root; a job killed mid-run and continued by the same command; submitit's
+jobs as local processes, end to end with evaluate + report on the sweep root) and a
+local Ray instance; a job killed mid-run and continued by the same command; submitit's
 preemption signal requeueing a job; Ray retrying a run whose worker was killed. Also
 the presets' settings. Each launcher's tests are skipped only where its extra is not
-installed (`make install` installs both)."""
+installed (`make install` installs both).
+
+Every sweep runs in its own session (process group) and is killed with everything it
+started (submitit's job processes, a local Ray instance) when a test ends early."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import importlib.util
 import os
@@ -36,6 +40,9 @@ needs_ray = pytest.mark.skipif(
     not _installed("hydra_ray_launcher"), reason='needs pip install -e ".[ray]"'
 )
 
+# the kill / requeue tests: 10 epochs of 400 frames, stopped after the second
+FRAMES, EPOCHS = 4000, 10
+
 # a tiny sweep entry: 2 envs, 200 frames per batch, 16-unit networks
 TINY = [
     "env=tiny",
@@ -63,17 +70,45 @@ def _sweep(sweep_dir: Path, *overrides: str, launcher: str = "slurm_local") -> l
 
 
 def _env() -> dict[str, str]:
-    return {**os.environ, "OMP_NUM_THREADS": "1"}
+    # the jobs (submitit's job processes too) import this checkout's package, whichever
+    # copy of it is installed
+    path = os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)
+    return {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": path}
+
+
+@contextlib.contextmanager
+def _started(command: list[str], cwd: Path):
+    """The sweep ``command`` running in a new session; on leaving, it and every process
+    of its group (the jobs, Ray's processes) are stopped if still there."""
+    process = subprocess.Popen(
+        command,
+        cwd=cwd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+        start_new_session=True,
+    )
+    try:
+        yield process
+    finally:
+        _stop_group(process)
+
+
+def _stop_group(process: subprocess.Popen) -> None:
+    for signum, wait in ((signal.SIGTERM, 20), (signal.SIGKILL, 10)):
+        try:
+            os.killpg(process.pid, signum)  # the group outlives its leader
+        except ProcessLookupError:
+            break
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            process.communicate(timeout=wait)
 
 
 def _run(command: list[str], cwd: Path) -> subprocess.CompletedProcess:
-    return subprocess.run(command, cwd=cwd, capture_output=True, text=True, timeout=600, env=_env())
-
-
-def _start(command: list[str], cwd: Path) -> subprocess.Popen:
-    return subprocess.Popen(
-        command, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env()
-    )
+    with _started(command, cwd) as process:
+        stdout, stderr = process.communicate(timeout=600)
+    return subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
 
 
 def _rows(run_dir: Path) -> list[dict[str, str]]:
@@ -104,12 +139,9 @@ def _assert_continuous(run_dir: Path, *, epochs: int, epoch_frames: int) -> None
     assert checkpoint["frames"] == epochs * epoch_frames
 
 
-def _two_job_sweep_then_evaluate_and_report(tmp_path: Path, launcher: str) -> Path:
+def _two_job_sweep(tmp_path: Path, launcher: str) -> Path:
     """A 2-job sweep (two Table-1 rows) through ``launcher``: two run dirs with
-    progress.csv and checkpoints, then evaluate + report on the sweep root: Table 1."""
-    from wcsac_rl.evaluate import main as evaluate
-    from wcsac_rl.report import main as report
-
+    progress.csv and checkpoints, both finished."""
     sweep = tmp_path / "sweep"
     overrides = ("+row=sac,sac_lag", "seed=0", "total_frames=800", "epoch_frames=400")
     result = _run(_sweep(sweep, *overrides, launcher=launcher), tmp_path)
@@ -119,22 +151,24 @@ def _two_job_sweep_then_evaluate_and_report(tmp_path: Path, launcher: str) -> Pa
     for name in jobs[:2]:
         _assert_continuous(sweep / name, epochs=2, epoch_frames=400)
     assert [job.status for job in sweep_jobs(sweep)] == ["finished", "finished"]
-    assert evaluate([str(sweep), "--episodes", "3", "--no-progress"]) == 0
-    assert report([str(sweep), "--no-trajectories"]) == 0
-    table = (sweep / "report" / "table1.md").read_text()
-    assert "| SAC |" in table and "| SAC-Lag |" in table
-    assert "not finished" not in table
     return sweep
 
 
 @needs_submitit
 @pytest.mark.slow
 def test_submitit_local_sweep_then_evaluate_and_report_name_every_job(tmp_path):
+    """The sweep, then evaluate + report on its root: Table 1; a job whose directory is
+    gone is named."""
     from wcsac_rl.evaluate import main as evaluate
     from wcsac_rl.report import main as report
 
-    sweep = _two_job_sweep_then_evaluate_and_report(tmp_path, "slurm_local")
+    sweep = _two_job_sweep(tmp_path, "slurm_local")
     assert (sweep / ".submitit").is_dir()  # the jobs went through submitit
+    assert evaluate([str(sweep), "--episodes", "3", "--no-progress"]) == 0
+    assert report([str(sweep), "--no-trajectories"]) == 0
+    table = (sweep / "report" / "table1.md").read_text()
+    assert "| SAC |" in table and "| SAC-Lag |" in table
+    assert "not finished" not in table
 
     # a job whose directory is gone (it never started) is named, not dropped
     import shutil
@@ -152,21 +186,21 @@ def test_submitit_local_sweep_then_evaluate_and_report_name_every_job(tmp_path):
 @pytest.mark.slow
 def test_a_job_killed_with_sigterm_is_continued_by_the_same_sweep_command(tmp_path):
     sweep = tmp_path / "sweep"
-    command = _sweep(sweep, "algo=sac", "seed=0", "total_frames=12000", "epoch_frames=400")
-    first = _start(command, tmp_path)
+    command = _sweep(sweep, "algo=sac", "seed=0", f"total_frames={FRAMES}", "epoch_frames=400")
     run_dir = sweep / "0_sac_tiny_seed0"
-    os.kill(_job_pid(run_dir, rows=2, process=first), signal.SIGTERM)
-    _, stderr = first.communicate(timeout=300)
+    with _started(command, tmp_path) as first:
+        os.kill(_job_pid(run_dir, rows=2, process=first), signal.SIGTERM)
+        _, stderr = first.communicate(timeout=300)
     assert first.returncode != 0  # the sweep reports the stopped job ...
     assert "stopped by SIGTERM" in stderr
     stopped = load_checkpoint(run_dir / "checkpoints" / "last.pt")["frames"]
-    assert 800 <= stopped < 12000  # ... which checkpointed mid-run
+    assert 800 <= stopped < FRAMES  # ... which checkpointed mid-run
     [job] = sweep_jobs(sweep)
-    assert job.status == "unfinished" and f"{stopped} of 12000 frames" in job.detail
+    assert job.status == "unfinished" and f"{stopped} of {FRAMES} frames" in job.detail
 
     again = _run(command, tmp_path)
     assert again.returncode == 0, again.stderr[-3000:]
-    _assert_continuous(run_dir, epochs=30, epoch_frames=400)  # one continuous progress.csv
+    _assert_continuous(run_dir, epochs=EPOCHS, epoch_frames=400)  # one continuous progress.csv
     assert (run_dir / "config.resume1.yaml").is_file()
     assert [job.status for job in sweep_jobs(sweep)] == ["finished"]
 
@@ -178,13 +212,13 @@ def test_submitits_preemption_signal_requeues_the_job_which_resumes(tmp_path):
     submitit requeues it, and the requeued job continues from the checkpoint — all within
     the one sweep command, as on a cluster."""
     sweep = tmp_path / "sweep"
-    command = _sweep(sweep, "algo=sac", "seed=0", "total_frames=12000", "epoch_frames=400")
-    first = _start(command, tmp_path)
+    command = _sweep(sweep, "algo=sac", "seed=0", f"total_frames={FRAMES}", "epoch_frames=400")
     run_dir = sweep / "0_sac_tiny_seed0"
-    os.kill(_job_pid(run_dir, rows=2, process=first), signal.SIGUSR2)
-    _, stderr = first.communicate(timeout=300)
+    with _started(command, tmp_path) as first:
+        os.kill(_job_pid(run_dir, rows=2, process=first), signal.SIGUSR2)
+        _, stderr = first.communicate(timeout=300)
     assert first.returncode == 0, stderr[-3000:]
-    _assert_continuous(run_dir, epochs=30, epoch_frames=400)
+    _assert_continuous(run_dir, epochs=EPOCHS, epoch_frames=400)
     assert (run_dir / "config.resume1.yaml").is_file()
     logs = "".join(p.read_text() for p in (sweep / ".submitit").rglob("*_log.out"))
     assert "SIGUSR2: checkpoint written to" in logs and "Requeued job" in logs
@@ -223,32 +257,32 @@ def test_slurm_preset_asks_for_one_cpu_the_measured_memory_and_time(monkeypatch)
 
 @needs_ray
 @pytest.mark.slow
-def test_ray_local_instance_sweep_then_evaluate_and_report(tmp_path):
-    _two_job_sweep_then_evaluate_and_report(tmp_path, "ray_cluster")
+def test_ray_local_instance_sweep(tmp_path):
+    _two_job_sweep(tmp_path, "ray_cluster")  # (evaluate + report: the submitit test)
 
 
 @needs_ray
 @pytest.mark.slow
 def test_ray_retries_a_run_whose_worker_was_killed_and_it_resumes(tmp_path):
     """A node loss: the worker dies at once (SIGKILL, nothing saved then); Ray starts the
-    task again and the run continues from its last periodic checkpoint."""
+    task again and the run continues from its last periodic checkpoint, all within the
+    one sweep command (a second session of the run: config.resume1.yaml)."""
     sweep = tmp_path / "sweep"
     command = _sweep(
         sweep,
         "algo=sac",
         "seed=0",
-        "total_frames=12000",
+        f"total_frames={FRAMES}",
         "epoch_frames=400",
         "checkpoint_every_epochs=1",
         launcher="ray_cluster",
     )
-    first = _start(command, tmp_path)
     run_dir = sweep / "0_sac_tiny_seed0"
-    os.kill(_job_pid(run_dir, rows=2, process=first), signal.SIGKILL)
-    stdout, stderr = first.communicate(timeout=300)
+    with _started(command, tmp_path) as first:
+        os.kill(_job_pid(run_dir, rows=2, process=first), signal.SIGKILL)
+        _, stderr = first.communicate(timeout=300)
     assert first.returncode == 0, stderr[-3000:]
-    assert "will be retried" in stdout + stderr
-    _assert_continuous(run_dir, epochs=30, epoch_frames=400)
+    _assert_continuous(run_dir, epochs=EPOCHS, epoch_frames=400)
     assert (run_dir / "config.resume1.yaml").is_file()
 
 
