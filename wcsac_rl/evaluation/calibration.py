@@ -385,13 +385,13 @@ def load_safety_run(run_dir: str | os.PathLike, *, seed: int, num_envs: int = 1)
     from wcsac_rl.objectives.tanh_normal import TanhNormalPolicy
     from wcsac_rl.training import builders
     from wcsac_rl.training.checkpoint import find_checkpoint, load_checkpoint
+    from wcsac_rl.training.devices import on_cpu
     from wcsac_rl.training.trainer import env_max_episode_steps
 
     path = find_checkpoint(run_dir)
     checkpoint = load_checkpoint(path)
     try:
-        cfg = OmegaConf.create(checkpoint["config"])
-        cfg.device = "cpu"  # calibrated on the CPU, whatever device it trained on
+        cfg = on_cpu(OmegaConf.create(checkpoint["config"]))  # whatever it trained on
         algo = str(cfg.algo.name)
         learner = checkpoint["learner"]
         frames = int(checkpoint["frames"])

@@ -10,7 +10,8 @@
   (TorchRL's ``DeviceCastTransform``).
 
 A checkpoint is always loaded on the CPU and copied into the learner's tensors;
-evaluation rebuilds a run on the CPU (:data:`CPU`), whatever device it trained on.
+evaluation and calibration rebuild a run on the CPU (:data:`CPU`, :func:`on_cpu`),
+whatever device it trained on.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from dataclasses import dataclass
 import torch
 from omegaconf import DictConfig
 
-__all__ = ["CPU", "RunDevices", "run_devices"]
+__all__ = ["CPU", "RunDevices", "on_cpu", "run_devices"]
 
 
 @dataclass(frozen=True)
@@ -42,3 +43,10 @@ CPU = RunDevices(env=torch.device("cpu"), learner=torch.device("cpu"))
 def run_devices(cfg: DictConfig) -> RunDevices:
     """The devices of the run configured by ``cfg`` (``cfg.device`` is the learner's)."""
     return RunDevices(env=torch.device("cpu"), learner=torch.device(str(cfg.device)))
+
+
+def on_cpu(cfg: DictConfig) -> DictConfig:
+    """``cfg`` (a saved run's config) set to rebuild the run on :data:`CPU`: evaluation
+    and calibration run there whatever device the run trained on. Changes ``cfg``."""
+    cfg.device = str(CPU.learner)
+    return cfg

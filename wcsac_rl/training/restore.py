@@ -13,6 +13,7 @@ from torchrl.envs import EnvBase
 
 from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import find_checkpoint, read_checkpoint
+from wcsac_rl.training.devices import on_cpu
 from wcsac_rl.training.trainer import trainer_class
 
 __all__ = ["RestoredRun", "load_run"]
@@ -57,8 +58,7 @@ def load_run(path: str | os.PathLike, *, seed: int | None = None, num_envs: int 
     """
     checkpoint_path = find_checkpoint(path)
     checkpoint, digest = read_checkpoint(checkpoint_path)
-    cfg = OmegaConf.create(checkpoint["config"])
-    cfg.device = "cpu"  # evaluated on the CPU, whatever device it trained on
+    cfg = on_cpu(OmegaConf.create(checkpoint["config"]))  # whatever it trained on
     env = builders.make_eval_env(cfg, seed=seed, num_envs=num_envs)
     policy = trainer_class(cfg.algo.name).restore_policy(cfg, checkpoint.get("learner", {}), env)
     if policy is not None:
