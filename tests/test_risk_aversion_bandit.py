@@ -42,10 +42,10 @@ def test_sac_lag_takes_the_high_reward_end(seed):
 def test_wcsac_settles_at_the_cvar_feasible_action(seed):
     a_star = RiskyBanditEnv().cvar_feasible_action(0.1, COST_LIMIT)  # -0.621
     run = train_on_risky_bandit(risk_level=0.1, seed=seed)  # the loss's defaults
-    # measured: E_π[a] = -0.58, -0.66, -0.46 (seed 3: -0.58) and E_π[CVaR_0.1] 2.96 on
-    # average over seeds 0-3
+    # measured (variance_loss="glm"): E_π[a] = -0.69, -0.75, -0.65 (seed 3: -0.67) and
+    # E_π[CVaR_0.1] 2.69, 2.54, 2.78 (2.80): at or just under the limit
     assert run.mean_action == pytest.approx(a_star, abs=0.2)
-    assert run.true_cvar == pytest.approx(COST_LIMIT, abs=0.5)
+    assert COST_LIMIT - 0.7 <= run.true_cvar <= COST_LIMIT + 0.3
 
 
 def test_bandit_exact_cvar_facts():

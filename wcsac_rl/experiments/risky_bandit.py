@@ -22,6 +22,7 @@ from torchrl.objectives import SoftUpdate
 from wcsac_rl.envs.risky_bandit import RiskyBanditEnv
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives import WCSACLoss
+from wcsac_rl.objectives.variance import VARIANCE_LOSSES
 
 __all__ = ["BanditRun", "train_on_risky_bandit"]
 
@@ -171,7 +172,7 @@ def main(argv: list[str] | None = None) -> None:
         f"CVaR's {env.cvar_feasible_action(args.risk_level, COST_LIMIT, exact=True):.3f}"
     )
     configs = [("SAC-Lag", {"risk_level": 1.0, "variance": False})]
-    for kappa_actions, variance_loss in itertools.product(("replay", "policy"), ("w2", "mse")):
+    for kappa_actions, variance_loss in itertools.product(("replay", "policy"), VARIANCE_LOSSES):
         configs.append(
             (
                 f"WCSAC-{args.risk_level:g} κ@{kappa_actions} var={variance_loss}",

@@ -238,7 +238,7 @@ class WCSACLoss(SACLoss):
             converges to ``(E√y)²`` instead of ``E y``); ``"glm"`` — the MSE's fixed
             point with the gradient ``V − y`` on the head's pre-softplus output, so
             small variances are not silenced by ``softplus' ≈ V``
-            (:mod:`wcsac_rl.objectives.variance`). Default ``"mse"`` (see README).
+            (:mod:`wcsac_rl.objectives.variance`). Default ``"glm"`` (see README).
         variance_target (str): ``"moment"`` — Eq. 8,
             ``c² + γ_c(1−term)(2c Q̄' + γ_c(V̄' + Q̄'²)) − Q²``, the second moment minus the
             squared mean; ``"td"`` — ``(c + γ_c(1−term) Q̄' − Q)² + γ_c²(1−term) V̄'``,
@@ -396,7 +396,7 @@ class WCSACLoss(SACLoss):
         num_quantiles: int = 20,
         num_target_quantiles: int = 20,
         huber_kappa: float = 1.0,
-        variance_loss: str = "mse",
+        variance_loss: str = "glm",
         variance_target: str = "td",
         fuse_critics: bool | None = None,
         direct_sampling: bool | None = None,
@@ -484,12 +484,12 @@ class WCSACLoss(SACLoss):
         self.convert_to_functional(safety_network, "safety_network", create_target_params=True)
         self._quantile_critic = self._reads_quantile_fractions(safety_network)
         self._adopt_safety_keys(safety_network)
-        if self._quantile_critic and (variance_loss, variance_target) != ("mse", "td"):
+        if self._quantile_critic and (variance_loss, variance_target) != ("glm", "td"):
             raise ValueError(
                 f"variance_loss={variance_loss!r} and variance_target={variance_target!r} "
                 "configure the Gaussian critic's variance head; an IQN safety critic has "
                 "none (it learns quantiles with the quantile Huber loss): leave them at "
-                "their defaults ('mse', 'td')"
+                "their defaults ('glm', 'td')"
             )
         if self.cvar_multiplier != 0.0 and not self.has_variance and not self._quantile_critic:
             raise ValueError(
