@@ -65,3 +65,26 @@ def test_paper_preset_builds_the_papers_loss():
     expected = cfg.cost_limit * (1 - cfg.algo.gamma**100) / ((1 - cfg.algo.gamma) * 100)
     assert float(loss.cost_threshold) == pytest.approx(expected, rel=1e-6)
     assert builders.make_postproc(loss) is None
+
+
+def test_saved_configs_without_the_truncation_option_keep_bootstrapping():
+    """A run saved before ``cost_bootstrap_truncated`` existed bootstrapped its safety
+    critic across time limits: resuming it keeps that; a current config (the key at
+    null, γ_c = 1) stops there."""
+    from omegaconf import open_dict
+
+    from wcsac_rl.envs import make_env
+    from wcsac_rl.training import builders
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("config", overrides=["algo=wcsac", "env=tiny", "risk_level=0.1"])
+    env = make_env("tiny", seed=0)
+    try:
+        current = builders.make_loss(cfg, builders.make_agent(cfg, env), 100)
+        with open_dict(cfg):
+            del cfg.algo["cost_bootstrap_truncated"]
+        saved = builders.make_loss(cfg, builders.make_agent(cfg, env), 100)
+    finally:
+        env.close()
+    assert current.cost_gamma == 1.0 and current.cost_bootstrap_truncated is False
+    assert saved.cost_bootstrap_truncated is True

@@ -177,10 +177,11 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
             "variance_loss": str(algo.variance_loss),
             "variance_target": str(algo.get("variance_target", "moment")),
             "cost_gamma": None if algo.get("cost_gamma") is None else float(algo.cost_gamma),
+            # (a run saved before this option existed bootstrapped across time limits)
             "cost_bootstrap_truncated": (
                 None
-                if algo.get("cost_bootstrap_truncated") is None
-                else bool(algo.cost_bootstrap_truncated)
+                if algo.get("cost_bootstrap_truncated", True) is None
+                else bool(algo.get("cost_bootstrap_truncated", True))
             ),
             "cost_n_steps": int(algo.get("cost_n_steps", 1)),
             "nonnegative_cost": bool(algo.get("nonnegative_cost", False)),
