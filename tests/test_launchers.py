@@ -156,6 +156,15 @@ def _two_job_sweep(tmp_path: Path, launcher: str) -> Path:
 
 @needs_submitit
 @pytest.mark.slow
+def _signal_job(command, tmp_path, run_dir, signum):
+    """Start the sweep, send ``signum`` to its job once it has logged two epochs, and
+    wait for the sweep command: ``(its process, its stderr)``."""
+    with _started(command, tmp_path) as process:
+        os.kill(_job_pid(run_dir, rows=2, process=process), signum)
+        _, stderr = process.communicate(timeout=300)
+    return process, stderr
+
+
 def test_submitit_local_sweep_then_evaluate_and_report_name_every_job(tmp_path):
     """The sweep, then evaluate + report on its root: Table 1; a job whose directory is
     gone is named."""
@@ -188,9 +197,7 @@ def test_a_job_killed_with_sigterm_is_continued_by_the_same_sweep_command(tmp_pa
     sweep = tmp_path / "sweep"
     command = _sweep(sweep, "algo=sac", "seed=0", f"total_frames={FRAMES}", "epoch_frames=400")
     run_dir = sweep / "0_sac_tiny_seed0"
-    with _started(command, tmp_path) as first:
-        os.kill(_job_pid(run_dir, rows=2, process=first), signal.SIGTERM)
-        _, stderr = first.communicate(timeout=300)
+    first, stderr = _signal_job(command, tmp_path, run_dir, signal.SIGTERM)
     assert first.returncode != 0  # the sweep reports the stopped job ...
     assert "stopped by SIGTERM" in stderr
     stopped = load_checkpoint(run_dir / "checkpoints" / "last.pt")["frames"]
@@ -214,9 +221,7 @@ def test_submitits_preemption_signal_requeues_the_job_which_resumes(tmp_path):
     sweep = tmp_path / "sweep"
     command = _sweep(sweep, "algo=sac", "seed=0", f"total_frames={FRAMES}", "epoch_frames=400")
     run_dir = sweep / "0_sac_tiny_seed0"
-    with _started(command, tmp_path) as first:
-        os.kill(_job_pid(run_dir, rows=2, process=first), signal.SIGUSR2)
-        _, stderr = first.communicate(timeout=300)
+    first, stderr = _signal_job(command, tmp_path, run_dir, signal.SIGUSR2)
     assert first.returncode == 0, stderr[-3000:]
     _assert_continuous(run_dir, epochs=EPOCHS, epoch_frames=400)
     assert (run_dir / "config.resume1.yaml").is_file()
@@ -278,9 +283,7 @@ def test_ray_retries_a_run_whose_worker_was_killed_and_it_resumes(tmp_path):
         launcher="ray_cluster",
     )
     run_dir = sweep / "0_sac_tiny_seed0"
-    with _started(command, tmp_path) as first:
-        os.kill(_job_pid(run_dir, rows=2, process=first), signal.SIGKILL)
-        _, stderr = first.communicate(timeout=300)
+    first, stderr = _signal_job(command, tmp_path, run_dir, signal.SIGKILL)
     assert first.returncode == 0, stderr[-3000:]
     _assert_continuous(run_dir, epochs=EPOCHS, epoch_frames=400)
     assert (run_dir / "config.resume1.yaml").is_file()
