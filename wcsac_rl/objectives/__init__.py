@@ -1,8 +1,9 @@
 """Loss modules (WCSAC, SAC-Lagrangian, CPO), risk measures, and the fast-path helpers
 (``PolyakUpdate`` for target networks, ``TanhNormalPolicy`` for acting), and the data the
-safety critic's options read (``NStepCost``, ``StartStateBuffer``)."""
+safety critic's options read (``NStepCost``, ``StartStateBuffer``, ``EpisodeCostWindow``)."""
 
 from wcsac_rl.objectives.cpo import CPOLoss
+from wcsac_rl.objectives.episode_costs import EpisodeCostWindow
 from wcsac_rl.objectives.nstep import NStepCost
 from wcsac_rl.objectives.risk import (
     empirical_cvar,
@@ -25,6 +26,7 @@ from wcsac_rl.objectives.wcsac import (
 __all__ = [
     "PAPER_OPTIONS",
     "CPOLoss",
+    "EpisodeCostWindow",
     "NStepCost",
     "PolyakUpdate",
     "SACLagLoss",

@@ -68,6 +68,7 @@ KAPPA_PARAMETRISATIONS = ("softplus", "log")
 KAPPA_ACTIONS = ("replay", "policy")
 KAPPA_STATES = ("replay", "initial")
 KAPPA_STATISTICS = ("mean", "tail")
+KAPPA_SIGNALS = ("critic", "max", "episodes")
 VARIANCE_TARGETS = ("moment", "td")
 
 PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(
@@ -219,6 +220,18 @@ class WCSACLoss(SACLoss):
             episodes measures; the mean of per-state CVaRs is never larger and
             misses a tail made of a few risky start states. Equal at α = 1.
             Default ``"tail"``.
+        kappa_signal (str): what the κ loss (and the damping term) holds under the
+            threshold. ``"critic"`` (the paper): the critic's Γ as set by
+            ``kappa_states`` / ``kappa_statistic`` / ``kappa_actions``. ``"max"``: the
+            larger of that and the empirical CVaR_α of the costs of recent finished
+            episodes, read from the batch at the ``episode_cvar`` key
+            (:class:`~wcsac_rl.objectives.EpisodeCostWindow` provides it), so κ rises
+            as soon as the collected episodes exceed the limit even while the critic's
+            start-state value still lags the policy. ``"episodes"``: that empirical
+            CVaR alone (OmniSafe's SAC-Lag at α = 1). Where no episode has finished yet
+            (NaN) both fall back to the critic. Needs ``kappa_states="initial"``
+            (the threshold is then the episodic ``d`` the costs are measured against).
+            Default ``"critic"``. The actor's cost term is always the critic's Γ.
         kappa_actions (str): the actions at which the κ loss evaluates Γ: ``"replay"``
             (the stored actions, the authors' code) or ``"policy"`` (``a ~ π``, as the
             paper writes). Default ``"policy"`` (see README for the evidence).
@@ -351,6 +364,9 @@ class WCSACLoss(SACLoss):
                 sub-tensordict shaped like the batch holding episode start states (the
                 actor's and critics' observation entries), where the κ loss evaluates
                 Γ. Defaults to ``"initial"``.
+            episode_cvar (NestedKey): with ``kappa_signal`` ``"max"`` or ``"episodes"``,
+                the empirical CVaR_α of recent episode costs, ``[*B, 1]`` (NaN: none
+                yet). Defaults to ``"episode_cvar"``.
             nstep (NestedKey): with ``cost_n_steps > 1``, the sub-tensordict written
                 by :class:`~wcsac_rl.objectives.NStepCost` (discounted cost of the
                 next ``m`` steps, ``m``, termination and the state after them).
@@ -363,6 +379,7 @@ class WCSACLoss(SACLoss):
         quantile_fractions: NestedKey = "quantile_fractions"
         cost_quantiles: NestedKey = "cost_quantiles"
         initial_states: NestedKey = "initial"
+        episode_cvar: NestedKey = "episode_cvar"
         nstep: NestedKey = "nstep"
 
     default_keys = _AcceptedKeys
@@ -392,6 +409,7 @@ class WCSACLoss(SACLoss):
         kappa_parametrization: str = "softplus",
         kappa_actions: str = "policy",
         kappa_states: str = "initial",
+        kappa_signal: str = "critic",
         damp_scale: float = 0.0,
         num_quantiles: int = 20,
         num_target_quantiles: int = 20,
@@ -427,6 +445,14 @@ class WCSACLoss(SACLoss):
             raise ValueError(f"kappa_actions must be one of {KAPPA_ACTIONS}, got {kappa_actions!r}")
         if kappa_states not in KAPPA_STATES:
             raise ValueError(f"kappa_states must be one of {KAPPA_STATES}, got {kappa_states!r}")
+        if kappa_signal not in KAPPA_SIGNALS:
+            raise ValueError(f"kappa_signal must be one of {KAPPA_SIGNALS}, got {kappa_signal!r}")
+        if kappa_signal != "critic" and kappa_states != "initial":
+            raise ValueError(
+                f"kappa_signal={kappa_signal!r} compares episode costs with the episodic limit "
+                "d, which is the threshold only with kappa_states='initial' (with 'replay' "
+                "it is a per-step threshold)"
+            )
         if variance_target not in VARIANCE_TARGETS:
             raise ValueError(
                 f"variance_target must be one of {VARIANCE_TARGETS}, got {variance_target!r}"
@@ -465,6 +491,7 @@ class WCSACLoss(SACLoss):
         self.kappa_parametrization = kappa_parametrization
         self.kappa_actions = kappa_actions
         self.kappa_states = kappa_states
+        self.kappa_signal = kappa_signal
         self.damp_scale = float(damp_scale)
         self.variance_loss = variance_loss
         self.variance_target_kind = variance_target
@@ -658,6 +685,8 @@ class WCSACLoss(SACLoss):
             if self.has_variance or quantile:
                 keys.append("cost_variance")
             keys += ["cvar", "cost_threshold"]
+            if self.__dict__.get("kappa_signal", "critic") != "critic":
+                keys.append("episode_cvar")
             self._out_keys = keys
         return self._out_keys
 
@@ -1197,7 +1226,30 @@ class WCSACLoss(SACLoss):
         if self.kappa_actions == "replay" and self.kappa_states == "replay":
             with torch.no_grad():
                 replay_values = self._online_values(tensordict).detach()
-        return self._actor_loss(tensordict, self._constraint_cvar(tensordict, replay_values))
+        cvar = self._constraint_cvar(tensordict, replay_values)
+        return self._actor_loss(tensordict, self._kappa_signal(tensordict, cvar))
+
+    def _episode_cvar(self, tensordict: TensorDictBase) -> Tensor:
+        key = self.tensor_keys.episode_cvar
+        return self._required_entry(
+            tensordict,
+            key,
+            f"kappa_signal={self.kappa_signal!r} needs the empirical CVaR_α of recent "
+            "episode costs ([*B, 1], NaN while no episode has ended)",
+            f"The wcsac_rl trainer attaches it; in your own loop keep an "
+            f"EpisodeCostWindow.for_loss(loss) and set batch[{key!r}] with its attach().",
+        )
+
+    def _kappa_signal(self, tensordict: TensorDictBase, cvar: Tensor | None) -> Tensor | None:
+        """What the κ loss holds under the threshold (``kappa_signal``): the critic's
+        statistic ``cvar``, or the episodes' empirical CVaR, or the larger of them;
+        the critic's where the episodes give NaN (none finished yet)."""
+        if self.kappa_signal == "critic" or cvar is None:
+            return cvar
+        episodes = self._episode_cvar(tensordict).to(cvar.dtype).reshape(cvar.shape)
+        if self.kappa_signal == "max":
+            return torch.fmax(cvar, episodes)  # fmax: NaN loses
+        return torch.where(episodes.isnan(), cvar, episodes)
 
     def _constraint_cvar(
         self,
@@ -1319,14 +1371,16 @@ class WCSACLoss(SACLoss):
         replay_values = values.detach()
         detached = None if layers is None else [(w.detach(), b.detach()) for w, b in layers]
         cvar_constraint = self._constraint_cvar(tensordict, replay_values, detached)
-        loss_actor, actor_metadata = self._actor_loss(tensordict, cvar_constraint, detached)
+        kappa_signal = self._kappa_signal(tensordict, cvar_constraint)
+        loss_actor, actor_metadata = self._actor_loss(tensordict, kappa_signal, detached)
         log_prob = actor_metadata["log_prob"]
         weights = self._maybe_get_priority_weight(tensordict)
         loss_alpha = self._reduce_loss(
             self._alpha_loss(log_prob=log_prob), tensordict=tensordict, weights=weights
         )
-        cvar_constraint = actor_metadata["cvar_constraint"]
-        loss_kappa = self.kappa_loss(cvar_constraint, tensordict)
+        if cvar_constraint is None:  # Γ at the actor's own actions
+            cvar_constraint = actor_metadata["cvar_constraint"]
+        loss_kappa = self.kappa_loss(actor_metadata["cvar_constraint"], tensordict)
         tensordict.set(self.tensor_keys.priority, q_metadata["td_error"])
 
         out = {
@@ -1346,6 +1400,8 @@ class WCSACLoss(SACLoss):
             "cvar": cvar_constraint.mean(),
             "cost_threshold": self.cost_threshold.clone(),
         }
+        if self.kappa_signal != "critic":
+            scalars["episode_cvar"] = self._episode_cvar(tensordict).mean()
         if safety_metadata["cost_variance"] is not None:
             scalars["cost_variance"] = safety_metadata["cost_variance"].mean()
         if self.reduction == "none":

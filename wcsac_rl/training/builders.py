@@ -24,6 +24,7 @@ from torchrl.record.loggers import Logger
 
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives import (
+    EpisodeCostWindow,
     NStepCost,
     PolyakUpdate,
     SACLagLoss,
@@ -39,6 +40,7 @@ __all__ = [
     "make_agent",
     "make_collector",
     "make_eval_env",
+    "make_episode_window",
     "make_initial_state_buffer",
     "make_logger",
     "make_loss",
@@ -186,6 +188,7 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
             "cost_n_steps": int(algo.get("cost_n_steps", 1)),
             "nonnegative_cost": bool(algo.get("nonnegative_cost", False)),
             "kappa_statistic": str(algo.get("kappa_statistic", "mean")),
+            "kappa_signal": str(algo.get("kappa_signal", "critic")),
         }
         if algo.get("safety_critic", "gaussian") == "iqn":
             # the variance options configure the Gaussian critic's variance head
@@ -309,6 +312,12 @@ def make_initial_state_buffer(cfg: DictConfig, loss: LossModule) -> StartStateBu
     return StartStateBuffer.for_loss(
         loss, capacity=INITIAL_STATE_CAPACITY, device=run_devices(cfg).learner
     )
+
+
+def make_episode_window(cfg: DictConfig, loss: LossModule) -> EpisodeCostWindow:
+    """The recent training episodes whose CVaR κ sees, for ``kappa_signal`` ``max`` /
+    ``episodes`` (the last ``algo.kappa_episode_window``)."""
+    return EpisodeCostWindow.for_loss(loss, window=int(cfg.algo.kappa_episode_window))
 
 
 def make_logger(

@@ -186,6 +186,7 @@ def _validate_safety_keys(algo: DictConfig) -> None:
     from wcsac_rl.objectives.wcsac import (
         KAPPA_ACTIONS,
         KAPPA_PARAMETRISATIONS,
+        KAPPA_SIGNALS,
         KAPPA_STATES,
         KAPPA_STATISTICS,
         VARIANCE_LOSSES,
@@ -199,11 +200,23 @@ def _validate_safety_keys(algo: DictConfig) -> None:
         "kappa_states": KAPPA_STATES,
         "kappa_statistic": KAPPA_STATISTICS,
         "kappa_parametrization": KAPPA_PARAMETRISATIONS,
+        "kappa_signal": KAPPA_SIGNALS,
     }
     for key, allowed in choices.items():
         if algo.get(key) not in allowed:
             raise ConfigError(
                 f"algo.{key} must be one of {', '.join(allowed)}, got {algo.get(key)!r}"
+            )
+    if algo.get("kappa_signal", "critic") != "critic":
+        if algo.kappa_states != "initial":
+            raise ConfigError(
+                f"algo.kappa_signal={algo.kappa_signal} needs algo.kappa_states=initial (episode "
+                f"costs are compared with the episodic limit d), got {algo.kappa_states}"
+            )
+        window = algo.get("kappa_episode_window")
+        if not isinstance(window, int) or isinstance(window, bool) or window < 1:
+            raise ConfigError(
+                f"algo.kappa_episode_window must be an integer >= 1 (episodes), got {window!r}"
             )
     if not float(algo.kappa_init) > 0:
         raise ConfigError(

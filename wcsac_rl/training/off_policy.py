@@ -13,7 +13,10 @@ With ``algo.cost_n_steps > 1`` each collected batch gets the n-step cost entries
 it collects (``step_count == 0``) in a :class:`~wcsac_rl.objectives.StartStateBuffer`
 and attaches one, drawn uniformly, to every row of each sampled batch
 (``batch["initial"]``), where the loss evaluates the CVaR its κ term holds under the
-limit.
+limit. With ``algo.kappa_signal`` ``max`` or ``episodes`` it keeps the costs of the last
+``algo.kappa_episode_window`` finished training episodes in an
+:class:`~wcsac_rl.objectives.EpisodeCostWindow` (saved with the checkpoint) and attaches
+their empirical CVaR_α to every sampled batch (``batch["episode_cvar"]``).
 """
 
 from __future__ import annotations
@@ -58,6 +61,9 @@ class OffPolicyTrainer(Trainer):
         self.initial_state_buffer = None
         if getattr(self.loss, "kappa_states", "replay") == "initial":
             self.initial_state_buffer = builders.make_initial_state_buffer(cfg, self.loss)
+        self.episode_window = None
+        if getattr(self.loss, "kappa_signal", "critic") != "critic":
+            self.episode_window = builders.make_episode_window(cfg, self.loss)
         self.updates_per_batch = max(
             1, round(int(collector_cfg.frames_per_batch) * float(collector_cfg.utd_ratio))
         )
@@ -84,6 +90,8 @@ class OffPolicyTrainer(Trainer):
         batch = self.replay_buffer.sample()
         if self.initial_state_buffer is not None:
             batch = self.initial_state_buffer.attach(batch)
+        if self.episode_window is not None:
+            batch = self.episode_window.attach(batch)
         return batch
 
     def update(self, batch: TensorDictBase) -> TensorDictBase | None:
@@ -134,6 +142,8 @@ class OffPolicyTrainer(Trainer):
             self.replay_buffer.extend(batch.reshape(-1).select(*self.replay_keys))
             if self.initial_state_buffer is not None:
                 self.initial_state_buffer.add_starts(batch)
+            if self.episode_window is not None:
+                self.episode_window.add_episodes(batch)
         if self.tracker.frames < self.update_start_frames:
             return []
         with timeit("update"):
@@ -159,6 +169,8 @@ class OffPolicyTrainer(Trainer):
             "loss": self.loss.state_dict(),
             "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
         }
+        if self.episode_window is not None:
+            state["episode_window"] = self.episode_window.state_dict()
         if self.cfg.save_replay_buffer and len(self.replay_buffer):
             state["buffers"] = self._save_buffers()
         return state
@@ -202,6 +214,8 @@ class OffPolicyTrainer(Trainer):
         self.loss.load_state_dict(state["loss"])
         for key, optimizer in self.optimizers.items():
             load_optimizer_state(optimizer, state["optimizers"][key])
+        if self.episode_window is not None and "episode_window" in state:
+            self.episode_window.load_state_dict(state["episode_window"])
         directory = self._buffers_to_load(state)
         if directory is not None:
             self.replay_buffer.loads(directory / REPLAY_BUFFER_DIR)

@@ -1,0 +1,215 @@
+"""kappa_signal: κ held under d by the critic's Γ, the recent episodes' CVaR, or the larger."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from _loss_helpers import make_batch, make_loss
+from _training_helpers import compose_config
+from tensordict import TensorDict
+
+from wcsac_rl.objectives import EpisodeCostWindow, empirical_cvar
+from wcsac_rl.training import ConfigError, make_trainer, validate_config
+from wcsac_rl.training.checkpoint import load_checkpoint
+from wcsac_rl.training.progress import read_progress
+
+LIMIT = 15.0
+
+
+def _ends(costs: list[list[float]], done: list[list[bool]]) -> TensorDict:
+    """A collector-shaped batch [envs, time] with running episode costs and done flags."""
+    cost = torch.tensor(costs).unsqueeze(-1)
+    return TensorDict(
+        {"next": {"episode_cost": cost, "done": torch.tensor(done).unsqueeze(-1)}},
+        list(cost.shape[:2]),
+    )
+
+
+# ------------------------------------------------------------------ the window
+def test_window_keeps_the_last_episodes_in_time_order_and_their_cvar():
+    window = EpisodeCostWindow(0.5, window=3)
+    assert math.isnan(window.value) and len(window) == 0
+    # env 0 ends at t = 1 (cost 4) and t = 3 (cost 8); env 1 at t = 0 (cost 1) and t = 2 (2)
+    batch = _ends(
+        [[3.0, 4.0, 1.0, 8.0], [1.0, 0.0, 2.0, 0.0]],
+        [[False, True, False, True], [True, False, True, False]],
+    )
+    assert window.add_episodes(batch) == 4
+    # in time order the ends are 1, 4, 2, 8; a window of 3 keeps the last three
+    assert window.costs == [4.0, 2.0, 8.0]
+    assert window.value == empirical_cvar([4.0, 2.0, 8.0], 0.5) == 6.0
+    assert window.add_episodes(_ends([[5.0]], [[False]])) == 0  # nothing ended
+    assert window.costs == [4.0, 2.0, 8.0]
+
+
+def test_attach_gives_every_row_the_value_and_nan_before_any_episode():
+    window = EpisodeCostWindow(0.1, out_key="observed")
+    rows = window.attach(make_batch(6))["observed"]
+    assert rows.shape == (6, 1) and rows.isnan().all()
+    window.add_episodes(_ends([[10.0, 30.0, 0.0]], [[True, True, True]]))
+    rows = window.attach(make_batch(6))["observed"]
+    assert torch.equal(rows, torch.full((6, 1), 30.0))
+
+
+def test_window_state_round_trips_and_errors_change_nothing():
+    window = EpisodeCostWindow(1.0, window=4)
+    window.add_episodes(_ends([[2.0, 6.0]], [[True, True]]))
+    restored = EpisodeCostWindow(1.0, window=4)
+    restored.load_state_dict(window.state_dict())
+    assert restored.costs == [2.0, 6.0] and restored.value == 4.0
+    with pytest.raises(KeyError, match="RewardSum"):
+        window.add_episodes(TensorDict({"next": {"done": torch.ones(2, 1, dtype=torch.bool)}}, [2]))
+    with pytest.raises(ValueError, match="non-finite"):
+        window.add_episodes(_ends([[math.nan]], [[True]]))
+    assert window.costs == [2.0, 6.0] and window.value == 4.0
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="window"):
+            EpisodeCostWindow(0.5, window=bad)
+    with pytest.raises(ValueError, match="risk_level"):
+        EpisodeCostWindow(0.0)
+
+
+# -------------------------------------------------------------------- the loss
+def _kappa_grad(signal: str, episode_cvar: float | None, seed: int = 0):
+    """∂loss_kappa/∂κ_raw and the loss outputs on a batch with start states."""
+    loss = make_loss(
+        risk_level=0.1,
+        kappa_states="initial",
+        kappa_statistic="tail",
+        cost_limit=LIMIT,
+        kappa_signal=signal,
+        seed=seed,
+    )
+    batch = make_batch(32, initial=True, seed=seed)
+    if episode_cvar is not None:
+        batch["episode_cvar"] = torch.full((32, 1), episode_cvar)
+    out = loss(batch)
+    out["loss_kappa"].backward()
+    return loss.kappa_raw.grad.item(), out, torch.sigmoid(loss.kappa_raw.detach()).item()
+
+
+@pytest.mark.parametrize("episodes", [0.0, 3.0, 40.0])
+def test_the_kappa_gradient_holds_the_chosen_signal_under_the_limit(episodes):
+    grad_critic, out, dkappa = _kappa_grad("critic", None)
+    critic = out["cvar"].item()  # the critic's tail CVaR at the start states
+    grad_max, out_max, _ = _kappa_grad("max", episodes)
+    grad_episodes, out_ep, _ = _kappa_grad("episodes", episodes)
+    # ∂/∂raw of softplus(raw)·(d − signal) = sigmoid(raw)·(d − signal); the magnitudes
+    # are ≤ 40, so float32 rounding stays far below 1e-4 relative
+    assert grad_critic == pytest.approx(dkappa * (LIMIT - critic), rel=1e-4, abs=1e-5)
+    assert grad_max == pytest.approx(dkappa * (LIMIT - max(critic, episodes)), rel=1e-4, abs=1e-5)
+    assert grad_episodes == pytest.approx(dkappa * (LIMIT - episodes), rel=1e-4, abs=1e-5)
+    # the logged cvar stays the critic's; the episodes' value is logged beside it
+    assert out_max["cvar"].item() == out_ep["cvar"].item() == critic
+    assert out_max["episode_cvar"].item() == out_ep["episode_cvar"].item() == episodes
+    assert "episode_cvar" not in out.keys()
+
+
+def test_before_any_episode_ends_both_signals_fall_back_to_the_critic():
+    grad_critic, _, _ = _kappa_grad("critic", None)
+    for signal in ("max", "episodes"):
+        grad, out, _ = _kappa_grad(signal, math.nan)
+        assert grad == grad_critic and math.isnan(out["episode_cvar"].item())
+
+
+def test_the_actor_and_critics_do_not_see_the_episode_signal():
+    """Only κ's gradient (and the damping term, off here) depends on kappa_signal."""
+    losses = {}
+    for signal in ("critic", "max"):
+        loss = make_loss(
+            risk_level=0.1, kappa_states="initial", cost_limit=LIMIT, kappa_signal=signal
+        )
+        batch = make_batch(16, initial=True)
+        batch["episode_cvar"] = torch.full((16, 1), 99.0)
+        out = loss(batch)
+        sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+        losses[signal] = loss
+    for (name, p), (_, q) in zip(
+        losses["critic"].named_parameters(), losses["max"].named_parameters(), strict=True
+    ):
+        if name == "kappa_raw":
+            assert not torch.equal(p.grad, q.grad)
+        elif p.grad is not None:
+            assert torch.equal(p.grad, q.grad), name
+
+
+def test_damping_uses_the_signal_kappa_sees():
+    grads = {}
+    for value in (0.0, 99.0):
+        loss = make_loss(
+            risk_level=0.1,
+            kappa_states="initial",
+            cost_limit=LIMIT,
+            kappa_signal="episodes",
+            damp_scale=1.0,
+        )
+        batch = make_batch(16, initial=True)
+        batch["episode_cvar"] = torch.full((16, 1), value)
+        loss(batch)["loss_actor"].backward()
+        grads[value] = [p.grad.clone() for p in loss.actor_network_params.values(True, True)]
+    assert any(not torch.equal(a, b) for a, b in zip(grads[0.0], grads[99.0]))
+
+
+def test_loss_refuses_bad_signals_and_a_missing_entry_with_a_clear_error():
+    with pytest.raises(ValueError, match="kappa_signal must be one of"):
+        make_loss(kappa_states="initial", kappa_signal="observed")
+    with pytest.raises(ValueError, match="kappa_states='initial'"):
+        make_loss(kappa_states="replay", kappa_signal="max")
+    loss = make_loss(kappa_states="initial", kappa_signal="max")
+    with pytest.raises(KeyError, match="EpisodeCostWindow"):
+        loss(make_batch(8, initial=True))
+    window = EpisodeCostWindow.for_loss(loss)
+    assert window.risk_level == loss.risk_level and window.out_key == "episode_cvar"
+
+
+# ----------------------------------------------------------------- the trainer
+def test_config_validation_names_the_option():
+    for overrides, message in (
+        (("algo.kappa_signal=observed",), "algo.kappa_signal must be one of critic, max"),
+        (("algo.kappa_signal=max", "algo.kappa_states=replay"), "needs algo.kappa_states=initial"),
+        (("algo.kappa_signal=max", "algo.kappa_episode_window=0"), "kappa_episode_window"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            validate_config(compose_config("env=tiny", *overrides))
+
+
+def test_trainer_feeds_recent_episode_costs_to_kappa_and_resumes_the_window(tmp_path):
+    options = ("env=tiny", "algo.kappa_signal=max", "algo.kappa_episode_window=3")
+    run_dir = tmp_path / "run"
+    first = make_trainer(compose_config(*options), run_dir)
+    try:
+        first.run()
+        window = first.episode_window
+        costs = window.costs
+    finally:
+        first.close()
+    assert len(costs) == 3  # 800 frames of 100-step episodes: 8 ended, the last 3 kept
+    assert window.value == empirical_cvar(costs, 0.5)
+    progress = read_progress(run_dir / "progress.csv")
+    logged = progress["loss/episode_cvar"]
+    assert all(0.0 <= v <= max(progress["train/episode_cost"]) + 1e-6 for v in logged)
+    assert load_checkpoint(first.checkpoint_path)["learner"]["episode_window"]["costs"] == costs
+    resumed = make_trainer(
+        compose_config(*options, "total_frames=1200", f"resume={run_dir}"), run_dir
+    )
+    try:
+        assert resumed.episode_window.costs == costs
+        assert resumed.episode_window.value == window.value
+    finally:
+        resumed.close()
+
+
+def test_an_iqn_critic_takes_the_same_signal():
+    loss = make_loss(
+        kind="iqn", risk_level=0.1, kappa_states="initial", cost_limit=LIMIT, kappa_signal="max"
+    )
+    batch = make_batch(16, initial=True)
+    batch["episode_cvar"] = torch.full((16, 1), 50.0)
+    out = loss(batch)
+    out["loss_kappa"].backward()
+    dkappa = torch.sigmoid(loss.kappa_raw.detach()).item()
+    critic = out["cvar"].item()
+    assert critic < 50.0  # a freshly initialised critic: the episodes are the larger
+    assert loss.kappa_raw.grad.item() == pytest.approx(dkappa * (LIMIT - 50.0), rel=1e-4)

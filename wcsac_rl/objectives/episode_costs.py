@@ -1,0 +1,142 @@
+"""The realised cost of recent episodes, for a κ that does not wait for the critic.
+
+The safety critic's value at a start state has to integrate costs met hundreds of
+steps later, so after the policy changes it lags: on StaticEnv, training episodes
+cost 40 while the critic's start-state CVaR still read 10–14, below d = 15, and κ
+fell by two orders of magnitude in that time. The costs of the episodes just
+collected carry no such lag (they are noisy instead). With
+``kappa_signal="max"`` (or ``"episodes"``) :class:`~wcsac_rl.objectives.WCSACLoss`
+lets κ see them too; :class:`EpisodeCostWindow` is what provides them in a TorchRL
+loop: it keeps the costs of the last ``window`` finished episodes of collected data
+and attaches their empirical CVaR_α (the mean of the worst ``⌈α·n⌉``) to each sampled
+batch. The wcsac_rl trainer uses it the same way.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+
+from wcsac_rl.objectives.risk import empirical_cvar, validate_risk_level
+
+__all__ = ["EpisodeCostWindow"]
+
+
+class EpisodeCostWindow:
+    """The costs of the last ``window`` finished episodes and their empirical CVaR_α.
+
+    Args:
+        risk_level: the α of the CVaR (1: the mean episode cost).
+
+    Keyword Args:
+        window: how many of the most recent finished episodes count. Default 30
+            (at α = 0.1 the CVaR is then the mean of the worst 3).
+        episode_cost_key: the running episode cost in collected data, read at the
+            steps where ``done_key`` is set (the wcsac_rl envs write it; elsewhere
+            ``torchrl.envs.RewardSum(in_keys=["cost"], out_keys=["episode_cost"])``).
+            Default ``("next", "episode_cost")``.
+        done_key: Default ``("next", "done")``.
+        out_key: where :meth:`attach` puts the CVaR
+            (``loss.tensor_keys.episode_cvar``). Default ``"episode_cvar"``.
+
+    Example:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> window = EpisodeCostWindow(0.5, window=4)
+        >>> data = TensorDict({"next": {
+        ...     "episode_cost": torch.tensor([[1.0], [5.0], [2.0], [9.0], [7.0]]),
+        ...     "done": torch.tensor([[True], [False], [True], [True], [True]])}}, [5])
+        >>> window.add_episodes(data)  # four episodes end here: costs 1, 2, 9, 7
+        4
+        >>> window.value  # the worst half of them
+        8.0
+        >>> window.attach(TensorDict({}, [3]))["episode_cvar"].squeeze(-1)
+        tensor([8., 8., 8.])
+    """
+
+    def __init__(
+        self,
+        risk_level: float,
+        *,
+        window: int = 30,
+        episode_cost_key: NestedKey = ("next", "episode_cost"),
+        done_key: NestedKey = ("next", "done"),
+        out_key: NestedKey = "episode_cvar",
+    ) -> None:
+        if isinstance(window, bool) or int(window) != window or window < 1:
+            raise ValueError(f"window must be an integer >= 1 (episodes), got {window!r}")
+        self.risk_level = validate_risk_level(risk_level)
+        self.window = int(window)
+        self.episode_cost_key = episode_cost_key
+        self.done_key = done_key
+        self.out_key = out_key
+        self._costs: deque[float] = deque(maxlen=self.window)
+        self._value = math.nan
+
+    @classmethod
+    def for_loss(cls, loss, **kwargs) -> EpisodeCostWindow:
+        """The window a loss with ``kappa_signal != "critic"`` reads (its α and key)."""
+        return cls(loss.risk_level, out_key=loss.tensor_keys.episode_cvar, **kwargs)
+
+    def __len__(self) -> int:
+        return len(self._costs)
+
+    @property
+    def costs(self) -> list[float]:
+        """The costs in the window, oldest first."""
+        return list(self._costs)
+
+    @property
+    def value(self) -> float:
+        """The empirical CVaR_α of the window (NaN before the first episode ends)."""
+        return self._value
+
+    def add_episodes(self, batch: TensorDictBase) -> int:
+        """Add the episodes that end in collected ``batch``; returns how many there were.
+
+        ``batch`` may be ``[num_envs, time]`` (a collector's layout): episodes are
+        taken in time order, which matters only for which ones leave a full window.
+        """
+        if batch.ndim > 1:  # time last: order the ends by time, then by env
+            batch = batch.transpose(0, batch.ndim - 1)
+        flat = batch.reshape(-1)
+        missing = [key for key in (self.episode_cost_key, self.done_key) if key not in flat.keys(True)]
+        if missing:
+            raise KeyError(
+                f"the batch has no {missing}: EpisodeCostWindow reads the running episode cost "
+                "where episodes end (add torchrl.envs.RewardSum(in_keys=['cost'], "
+                "out_keys=['episode_cost']) to the env)"
+            )
+        done = flat.get(self.done_key).reshape(-1).bool()
+        ended = flat.get(self.episode_cost_key).reshape(-1)[done]
+        if ended.numel():
+            costs = ended.double().tolist()
+            if any(not math.isfinite(c) for c in costs):
+                raise ValueError(f"non-finite episode costs in the batch: {costs}")
+            self._costs.extend(costs)
+            self._value = empirical_cvar(list(self._costs), self.risk_level)
+        return int(ended.numel())
+
+    def attach(self, batch: TensorDictBase) -> TensorDictBase:
+        """``batch`` with the window's CVaR (``[*B, 1]``, NaN if no episode has ended yet)
+        under ``out_key``."""
+        value = torch.full((*batch.shape, 1), self._value, device=batch.device)
+        batch.set(self.out_key, value)
+        return batch
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"costs": list(self._costs), "window": self.window, "risk_level": self.risk_level}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore the window's episodes (a checkpoint's ``state_dict()``)."""
+        costs = [float(c) for c in state["costs"]]
+        self._costs.clear()
+        self._costs.extend(costs)  # a smaller window keeps the most recent
+        self._value = (
+            empirical_cvar(list(self._costs), self.risk_level) if self._costs else math.nan
+        )
