@@ -104,7 +104,9 @@ def test_the_kappa_gradient_holds_the_chosen_signal_under_the_limit(episodes):
     # the logged cvar stays the critic's; the episodes' value is logged beside it
     assert out_max["cvar"].item() == out_ep["cvar"].item() == critic
     assert out_max["episode_cvar"].item() == out_ep["episode_cvar"].item() == episodes
-    assert "episode_cvar" not in out.keys()
+    assert out_max["constraint_cvar"].item() == pytest.approx(max(critic, episodes), rel=1e-6)
+    assert out_ep["constraint_cvar"].item() == episodes
+    assert "episode_cvar" not in out.keys() and "constraint_cvar" not in out.keys()
 
 
 def test_before_any_episode_ends_both_signals_fall_back_to_the_critic():
@@ -190,6 +192,15 @@ def test_trainer_feeds_recent_episode_costs_to_kappa_and_resumes_the_window(tmp_
     progress = read_progress(run_dir / "progress.csv")
     logged = progress["loss/episode_cvar"]
     assert all(0.0 <= v <= max(progress["train/episode_cost"]) + 1e-6 for v in logged)
+    # the slack is the gap κ saw: to the larger of the critic's and the episodes' CVaR
+    for held, critic, slack, limit in zip(
+        progress["loss/constraint_cvar"],
+        progress["loss/cvar"],
+        progress["loss/constraint_slack"],
+        progress["loss/cost_threshold"],
+    ):
+        assert held >= critic - 1e-4 * max(1.0, abs(critic))
+        assert slack == pytest.approx(limit - held)
     assert load_checkpoint(first.checkpoint_path)["learner"]["episode_window"]["costs"] == costs
     resumed = make_trainer(
         compose_config(*options, "total_frames=1200", f"resume={run_dir}"), run_dir

@@ -105,7 +105,9 @@ class EpisodeCostWindow:
         if batch.ndim > 1:  # time last: order the ends by time, then by env
             batch = batch.transpose(0, batch.ndim - 1)
         flat = batch.reshape(-1)
-        missing = [key for key in (self.episode_cost_key, self.done_key) if key not in flat.keys(True)]
+        missing = [
+            key for key in (self.episode_cost_key, self.done_key) if key not in flat.keys(True)
+        ]
         if missing:
             raise KeyError(
                 f"the batch has no {missing}: EpisodeCostWindow reads the running episode cost "

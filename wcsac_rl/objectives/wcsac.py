@@ -686,7 +686,7 @@ class WCSACLoss(SACLoss):
                 keys.append("cost_variance")
             keys += ["cvar", "cost_threshold"]
             if self.__dict__.get("kappa_signal", "critic") != "critic":
-                keys.append("episode_cvar")
+                keys += ["episode_cvar", "constraint_cvar"]
             self._out_keys = keys
         return self._out_keys
 
@@ -1402,6 +1402,7 @@ class WCSACLoss(SACLoss):
         }
         if self.kappa_signal != "critic":
             scalars["episode_cvar"] = self._episode_cvar(tensordict).mean()
+            scalars["constraint_cvar"] = actor_metadata["cvar_constraint"].mean()
         if safety_metadata["cost_variance"] is not None:
             scalars["cost_variance"] = safety_metadata["cost_variance"].mean()
         if self.reduction == "none":

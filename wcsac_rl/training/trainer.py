@@ -397,7 +397,8 @@ class Trainer:
         row.update(loss_means.means())
         if "loss/cost_threshold" in row and "loss/cvar" in row:
             # what the κ loss pushes on: > 0 lets κ shrink, < 0 makes it grow
-            row["loss/constraint_slack"] = row["loss/cost_threshold"] - row["loss/cvar"]
+            held = row.get("loss/constraint_cvar", row["loss/cvar"])  # (kappa_signal)
+            row["loss/constraint_slack"] = row["loss/cost_threshold"] - held
         with timeit("eval"):
             row.update(self._evaluate())
         row["time/fps"] = frames / seconds if seconds > 0 else math.nan
