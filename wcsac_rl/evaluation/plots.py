@@ -290,9 +290,9 @@ def plot_cost_distribution(
     return _save(fig, out)
 
 
-def trajectory_figure_size(panels: int) -> tuple[float, float]:
-    """Size in inches of a trajectory figure with ``panels`` panels."""
-    cols = min(panels, TRAJECTORY_COLUMNS)
+def trajectory_figure_size(panels: int, columns: int = TRAJECTORY_COLUMNS) -> tuple[float, float]:
+    """Size in inches of a trajectory figure with ``panels`` panels, ``columns`` per row."""
+    cols = min(panels, columns)
     rows = math.ceil(panels / cols)
     return (TRAJECTORY_PANEL * cols, TRAJECTORY_PANEL * rows)
 
@@ -411,26 +411,33 @@ def _draw_trajectories(
 
 
 def plot_trajectories(
-    panels: list[tuple[str, dict[str, Any], list[Any]]],
+    panels: list[tuple[str, dict[str, Any], list[Any]] | None],
     out: Path,
     *,
     title: str = "Trajectories of deterministic test episodes",
+    columns: int = TRAJECTORY_COLUMNS,
 ) -> Path:
     """Figure 5: top-down robot paths, one panel per ``(title, layout, trajectories)``.
 
     Each panel draws the layout (placement area, hazards with their radius, goal,
     vases) and every trajectory (start ``o``, end ``X``, legend with its cost and
     return), from :func:`~wcsac_rl.evaluation.trajectories.collect_trajectories`.
-    Size: :func:`trajectory_figure_size` × ``DPI``.
+    Panels fill rows of ``columns``; a ``None`` panel is left blank. Size: :func:`trajectory_figure_size` × ``DPI``.
     """
-    if not panels:
+    if not any(panel is not None for panel in panels):
         raise ValueError("plot_trajectories needs at least one panel")
-    fig = Figure(figsize=trajectory_figure_size(len(panels)), layout="constrained")
-    cols = min(len(panels), TRAJECTORY_COLUMNS)
+    if columns < 1:
+        raise ValueError(f"columns must be >= 1, got {columns}")
+    fig = Figure(figsize=trajectory_figure_size(len(panels), columns), layout="constrained")
+    cols = min(len(panels), columns)
     rows = math.ceil(len(panels) / cols)
     axes = np.asarray(fig.subplots(rows, cols, squeeze=False)).reshape(-1)
-    for ax, (panel_title, layout, trajectories) in zip(axes, panels):
-        _draw_trajectories(ax, layout, trajectories, panel_title)
+    for ax, panel in zip(axes, panels):
+        if panel is None:
+            ax.set_axis_off()
+        else:
+            panel_title, layout, trajectories = panel
+            _draw_trajectories(ax, layout, trajectories, panel_title)
     for ax in axes[len(panels) :]:
         ax.set_axis_off()
     fig.suptitle(title)

@@ -14,6 +14,8 @@ groups them by Table-1 row (``algo.label``; seeds pooled) and writes
 ``fig4_training_curves.png``     return, cost, cost rate vs env steps (mean ± std over seeds)
 ``fig5_trajectories.png``        one panel per chosen run: layout + several test episodes
 ``fig5_<label>_seed<N>.png``     the same, one file per chosen run
+``fig5_stages.png``              chosen runs with kept checkpoints (``keep_checkpoints_at``):
+                                 one row per run, one panel per kept checkpoint and the end
 ``fig5_<label>_seed<N>.mp4``     (``video=True``) the first of those episodes, rendered
 ``fig6_evaluation.png``          (a) cost box plots, whiskers 1st/99th pct.; (b) % over budget
 ===============================  ============================================================
@@ -56,6 +58,7 @@ from wcsac_rl.evaluation.runs import (
     row_sort_key,
 )
 from wcsac_rl.evaluation.sweeps import SweepJob, incomplete_jobs
+from wcsac_rl.training.checkpoint import find_checkpoint, kept_checkpoints, load_checkpoint
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
 
@@ -76,6 +79,7 @@ TABLE_MD = "table1.md"
 TABLE_CSV = "table1.csv"
 FIG4 = "fig4_training_curves.png"
 FIG5 = "fig5_trajectories.png"
+FIG5_STAGES = "fig5_stages.png"
 FIG6 = "fig6_evaluation.png"
 TRAJECTORIES = FIG5
 
@@ -474,6 +478,8 @@ def build_report(
         sources = _trajectory_sources(trajectory_runs, runs, evaluations)
         if sources:
             planned.append(out_dir / FIG5)
+            if any(kept_checkpoints(s.directory) for s in sources):
+                planned.append(out_dir / FIG5_STAGES)
             planned += [out_dir / f"{s.stem}.png" for s in sources]
             if video:
                 planned += [out_dir / f"{s.stem}.{video_format}" for s in sources]
@@ -592,6 +598,7 @@ def _figure5(
 
     written: list[Path] = []
     panels = []
+    stages: list[list[tuple[str, dict, list]]] = []  # per run with kept checkpoints
     for source in sources:
         log(f"trajectories: {source.label} seed {source.seed} ({episodes} episodes)")
         policy, env, env_steps, env_name, kwargs = _restore(source, env_seed)
@@ -603,6 +610,16 @@ def _figure5(
             env.close()
         title = f"{row_name(source.label)}, seed {source.seed}"
         panels.append((title, layout, trajs))
+        kept = kept_checkpoints(source.directory)
+        if kept:
+            row = []
+            for frames, path in kept:
+                log(f"trajectories: {source.label} seed {source.seed} at {frames} frames")
+                kept_layout, kept_trajs = _kept_trajectories(path, env_seed, episodes, steps)
+                row.append((f"{title}: {_frames_text(frames)} frames", kept_layout, kept_trajs))
+            final = _restore_frames(source.directory)
+            row.append((f"{title}: {_frames_text(final)} frames (end)", layout, trajs))
+            stages.append(row)
         written.append(
             plots.plot_trajectories(
                 [(title, layout, trajs)],
@@ -624,7 +641,51 @@ def _figure5(
             title=f"Trajectories on {title_env}: {episodes} deterministic test episodes per run",
         ),
     )
+    if stages:
+        columns = max(len(row) for row in stages)
+        grid = [panel for row in stages for panel in row + [None] * (columns - len(row))]
+        written.insert(
+            1,
+            plots.plot_trajectories(
+                grid,
+                out_dir / FIG5_STAGES,
+                title=f"Trajectories on {title_env} during training: {episodes} "
+                "deterministic test episodes per panel",
+                columns=columns,
+            ),
+        )
     return written
+
+
+def _frames_text(frames: int) -> str:
+    """``250000`` → ``"250 k"``, ``3000000`` → ``"3 M"``."""
+    if frames >= 1_000_000:
+        return f"{frames / 1e6:g} M"
+    if frames >= 1000:
+        return f"{frames / 1e3:g} k"
+    return str(frames)
+
+
+def _restore_frames(run_dir: Path) -> int:
+    """Frames of a run's final checkpoint."""
+    return int(load_checkpoint(find_checkpoint(run_dir))["frames"])
+
+
+def _kept_trajectories(
+    checkpoint: Path, env_seed: int, episodes: int, max_steps: int
+) -> tuple[dict, list]:
+    """``(layout, trajectories)`` of a kept checkpoint's policy (the same env seed)."""
+    import torch
+
+    from wcsac_rl.evaluation.evaluator import load_policy
+    from wcsac_rl.evaluation.trajectories import collect_trajectories
+
+    restored = load_policy(checkpoint, env_seed)
+    try:
+        torch.manual_seed(env_seed)
+        return collect_trajectories(restored.env, restored.policy, episodes, max_steps=max_steps)
+    finally:
+        restored.env.close()
 
 
 def _without_steps(kwargs: dict, steps: int) -> dict:

@@ -24,6 +24,8 @@ __all__ = [
     "check_resume_changes",
     "checkpoint_digest",
     "find_checkpoint",
+    "keep_checkpoint",
+    "kept_checkpoints",
     "load_checkpoint",
     "load_optimizer_state",
     "read_checkpoint",
@@ -33,6 +35,7 @@ __all__ = [
 
 CHECKPOINT_DIR = "checkpoints"
 LAST_CHECKPOINT = "last.pt"
+KEPT_PREFIX = "frames-"  # checkpoints/frames-<N>.pt: copies kept at keep_checkpoints_at
 REPLAY_BUFFER_DIR = "replay_buffer"
 INITIAL_STATE_BUFFER_DIR = "initial_state_buffer"
 
@@ -230,6 +233,43 @@ def remove_unreferenced_buffers(checkpoint_dir: Path, keep: str | None) -> None:
             shutil.rmtree(path, ignore_errors=True)
 
 
+def keep_checkpoint(checkpoint: Path, frames: int) -> Path:
+    """Copy ``checkpoint`` to ``frames-<frames>.pt`` beside it (atomically), for
+    figures of the policy during training; returns the copy's path. The copy names
+    the same saved buffers, which later checkpoints replace: it restores a policy, and
+    resumed from, refills the replay buffer."""
+    kept = checkpoint.with_name(f"{KEPT_PREFIX}{int(frames)}.pt")
+    tmp = kept.with_name(f".tmp-{kept.name}")
+    try:
+        shutil.copyfile(checkpoint, tmp)
+        with open(tmp, "rb+") as handle:
+            os.fsync(handle.fileno())
+        os.replace(tmp, kept)
+    except BaseException as err:  # never leave the temporary file
+        tmp.unlink(missing_ok=True)
+        if not isinstance(err, Exception):
+            raise
+        raise TrainingError(
+            f"cannot keep checkpoint {kept}: {write_error_reason(err, kept.parent)} "
+            "(keep_checkpoints_at); checkpoints/last.pt is unaffected"
+        ) from None
+    fsync_directory(kept.parent)
+    return kept
+
+
+def kept_checkpoints(run_dir: str | os.PathLike) -> list[tuple[int, Path]]:
+    """``(frames, path)`` of a run's kept checkpoints (``keep_checkpoints_at``), by frames."""
+    directory = Path(run_dir) / CHECKPOINT_DIR
+    if not directory.is_dir():
+        return []
+    kept = []
+    for path in directory.glob(f"{KEPT_PREFIX}*.pt"):
+        digits = path.stem[len(KEPT_PREFIX) :]
+        if digits.isdigit():
+            kept.append((int(digits), path))
+    return sorted(kept)
+
+
 def find_checkpoint(path: str | os.PathLike) -> Path:
     """The checkpoint file for ``path``: a run dir holding ``checkpoints/last.pt``, or a
     ``.pt`` file in a run's ``checkpoints/`` directory (the run dir is its grandparent)."""
@@ -321,6 +361,7 @@ RESUME_CHANGEABLE = (
     "retain_freed_memory",
     "compile",
     "checkpoint_every_epochs",
+    "keep_checkpoints_at",
     "save_replay_buffer",
     "eval_episodes",
     "max_nonfinite_updates",

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from wcsac_rl.objectives.risk import validate_risk_level
 
@@ -93,6 +93,13 @@ def validate_config(cfg: DictConfig) -> None:
     if cfg.get("max_nonfinite_updates") is not None:
         _positive_int(cfg, "max_nonfinite_updates")
     _positive_int(cfg, "eval_episodes", allow_zero=True)
+    keep = cfg.get("keep_checkpoints_at") or []
+    if not isinstance(keep, (list, tuple, ListConfig)) or not all(
+        isinstance(e, int) and not isinstance(e, bool) and e >= 1 for e in keep
+    ):
+        raise ConfigError(
+            f"keep_checkpoints_at must be a list of epochs >= 1 (e.g. [1,5]), got {keep!r}"
+        )
     for key in ("compile", "retain_freed_memory", "save_replay_buffer", "progress_bar"):
         value = cfg.get(key, False)
         if not isinstance(value, bool):

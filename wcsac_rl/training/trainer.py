@@ -36,6 +36,7 @@ from wcsac_rl.training.checkpoint import (
     check_compatible,
     check_resume_changes,
     find_checkpoint,
+    keep_checkpoint,
     load_checkpoint,
     save_checkpoint,
     write_error_reason,
@@ -116,6 +117,8 @@ class Trainer:
         seed_everything(int(cfg.seed))
 
         self.max_episode_steps = env_max_episode_steps(cfg)
+        # epochs after which checkpoints/frames-<N>.pt is kept (Figure 5's stages)
+        self.keep_epochs = frozenset(int(e) for e in (cfg.get("keep_checkpoints_at") or ()))
         self.logger = None
         self.env = builders.make_train_env(cfg)
         # the test episodes of an epoch run side by side (up to EVAL_ENVS at a time)
@@ -354,8 +357,11 @@ class Trainer:
                     )
                 else:  # episodes longer than the epoch so far
                     pbar.set_postfix_str("no finished episode")
-                if self.epoch % int(cfg.checkpoint_every_epochs) == 0:
+                keep = self.epoch in self.keep_epochs
+                if keep or self.epoch % int(cfg.checkpoint_every_epochs) == 0:
                     self.save()
+                if keep:
+                    keep_checkpoint(self.checkpoint_path, self.tracker.frames)
                 next_epoch_end += epoch_frames
             if stop.received is not None and self.tracker.frames < cfg.total_frames:
                 if self._checkpoint_frames != self.tracker.frames:  # (the signal may have
