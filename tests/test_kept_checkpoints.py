@@ -22,7 +22,12 @@ def run(tmp_path_factory):
     """A tiny WCSAC run of 3 epochs (400 frames each) keeping epochs 1 and 2."""
     run_dir = tmp_path_factory.mktemp("kept") / "run"
     return train_run(
-        run_dir, "wcsac", 0, "total_frames=1200", "keep_checkpoints_at=[1,2]", "checkpoint_every_epochs=5"
+        run_dir,
+        "wcsac",
+        0,
+        "total_frames=1200",
+        "keep_checkpoints_at=[1,2]",
+        "checkpoint_every_epochs=5",
     )
 
 
@@ -40,9 +45,7 @@ def test_a_kept_checkpoint_restores_the_policy_of_its_time(run):
     policies = [load_policy(path, 0) for _, path in kept_checkpoints(run)]
     policies.append(load_policy(run, 0))
     try:
-        weights = [
-            torch.cat([p.flatten() for p in r.policy.actor.parameters()]) for r in policies
-        ]
+        weights = [torch.cat([p.flatten() for p in r.policy.actor.parameters()]) for r in policies]
         assert [r.frames for r in policies] == [400, 800, 1200]
         # three different policies (training moved the actor between them)
         assert not torch.equal(weights[0], weights[1]) and not torch.equal(weights[1], weights[2])

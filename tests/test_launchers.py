@@ -260,6 +260,24 @@ def test_slurm_preset_asks_for_one_cpu_the_measured_memory_and_time(monkeypatch)
     assert dynamic.hydra.launcher.n_jobs == 2  # the default here: joblib, two at a time
 
 
+def test_laptop_table_sweeps_hold_every_paper_row_on_two_seeds_with_kept_stages():
+    paper_rows = {"sac", "sac_lag", "wcsac_0.9", "wcsac_0.5", "wcsac_0.1", "cpo", "random"}
+    for experiment, env in (
+        ("table1_static_laptop", "static"),
+        ("table1_dynamic_laptop", "dynamic"),
+    ):
+        cfg = _hydra_config(f"experiment={experiment}")
+        params = cfg.hydra.sweeper.params
+        rows = set(params["+row"].split(","))
+        assert paper_rows <= rows and rows - paper_rows == {"wcsac_iqn_0.1"}
+        assert all((CONF / "row" / f"{row}.yaml").is_file() for row in rows)
+        assert params.seed == "0,10"
+        assert cfg.env.name == env and cfg.total_frames == 100_000
+        assert list(cfg.keep_checkpoints_at) == [1, 5] and cfg.epoch_frames == 10_000
+        assert cfg.threads == 1 and cfg.hydra.launcher.n_jobs == 2 and cfg.resume == "auto"
+        assert cfg.hydra.runtime.choices.experiment == experiment
+
+
 @needs_ray
 @pytest.mark.slow
 def test_ray_local_instance_sweep(tmp_path):
