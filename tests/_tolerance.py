@@ -20,8 +20,8 @@ wrong sign, a swapped key) is a fraction of ``magnitude`` itself, 10⁴–10⁶ 
 these tolerances, so the assertions stay meaningful.
 
 Checked on this machine with ``ATEN_CPU_CAPABILITY=default|avx2|avx512`` and
-``MKL_ENABLE_INSTRUCTIONS=SSE4_2|AVX2`` (the scalar kernels reproduce the AVX-512
-Xeon failure of issue 12): the largest observed error is ≤ 1/4 of every tolerance
+``MKL_ENABLE_INSTRUCTIONS=SSE4_2|AVX2`` (the scalar kernels reproduce a failure once
+seen on an AVX-512 Xeon): the largest observed error is ≤ 1/4 of every tolerance
 derived here.
 """
 

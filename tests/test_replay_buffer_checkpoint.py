@@ -1,5 +1,5 @@
 """The replay buffer (and the start-state buffer) saved with a checkpoint: atomic, next
-to the checkpoint it belongs to, checked on load (issue 12, item 4)."""
+to the checkpoint it belongs to, checked on load."""
 
 from __future__ import annotations
 

@@ -113,7 +113,7 @@ def test_rows_compose_with_the_risky_hazard_and_the_limit():
 
 @pytest.mark.slow
 def test_wcsac_takes_the_safe_detour_and_sac_lag_the_risky_shortcut():
-    """The paper's claim on a sequential task, through the project's Trainer (issue 11).
+    """The paper's claim on a sequential task, through the project's Trainer.
 
     Seed 1 of each row in the measurement of ``wcsac_rl.experiments.risky_detour``
     (module docstring, seeds 0-5): every SAC-Lag seed ends on the shortcut (14 steps

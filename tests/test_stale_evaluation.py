@@ -1,5 +1,5 @@
 """An evaluation records its checkpoint; a run trained further is evaluated again and
-its stale numbers never enter Table 1 (issue 12, item 5)."""
+its stale numbers never enter Table 1."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Nothing per gradient step outlives its collected batch (issue 12, item 9).
+"""Nothing per gradient step outlives its collected batch.
 
 Keeping every update's loss outputs until the end of the epoch (7 500 small
 TensorDicts per epoch at the paper's settings) fragmented the heap between the
