@@ -1,5 +1,5 @@
 """A run directory holds one run: records tied to the checkpoint, a lock, the run's own
-config on resume (issue 12, items 1-3)."""
+config on resume."""
 
 from __future__ import annotations
 
