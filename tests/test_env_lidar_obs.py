@@ -21,7 +21,7 @@ BIN = 2 * math.pi / 16
 
 
 def reference_lidar(points, robot_xy, heading, num_bins=16, max_dist=3.0):
-    """Line-by-line transcription of the spec's pseudo-code (a scalar loop)."""
+    """Step-by-step transcription of docs/point_goal.md, "Lidar" (a scalar loop)."""
     obs = [0.0] * num_bins
     binsize = 2 * math.pi / num_bins
     c, s = math.cos(heading), math.sin(heading)

@@ -1,4 +1,4 @@
-"""Physics facts of the point robot (specs/point_goal.md, "World and robot").
+"""Physics facts of the point robot (docs/point_goal.md, "World and robot").
 
 Tolerances: MuJoCo integrates in float64 (ε = 2⁻⁵²), so rounding is 10⁸ times below
 every tolerance here; ``rel=1e-9`` and the ``1e-6`` on sensors at rest are float64 sums

@@ -1,6 +1,7 @@
-"""CVaR helpers: the Gaussian multiplier against the spec and Monte-Carlo; empirical CVaR.
+"""CVaR helpers: the Gaussian multiplier against a table and Monte-Carlo; empirical CVaR.
 
-Tolerances: everything here is float64. ``abs=1e-5`` is the spec table's 5 decimals;
+The table is docs/paper.md, "CVaR multipliers". Tolerances: everything here is
+float64. ``abs=1e-5`` is the table's 5 decimals;
 ``rel=1e-12`` a closed form evaluated in float64 (a few × 2⁻⁵²); ``abs=0.02`` against
 Monte Carlo is ≈ 4 standard errors of a 2·10⁶-sample tail mean (seeded); the
 empirical CVaRs of integers are exact sums, approx's default only covers the division.
@@ -20,7 +21,7 @@ from wcsac_rl import empirical_cvar, gaussian_cvar, gaussian_cvar_multiplier
     ("alpha", "expected"),
     [(0.1, 1.75498), (0.5, 0.79788), (0.9, 0.19500), (1.0, 0.0)],
 )
-def test_multiplier_matches_the_spec_table(alpha, expected):
+def test_multiplier_matches_the_table(alpha, expected):
     assert gaussian_cvar_multiplier(alpha) == pytest.approx(expected, abs=1e-5)
 
 

@@ -1,11 +1,11 @@
 """MJCF (MuJoCo XML) of the point-goal world, generated in code.
 
-Physics facts (see ``specs/point_goal.md``), several of which look like bugs but are
-the original behaviour and are kept on purpose:
+Physics facts (``docs/point_goal.md``, "World and robot"), several of which look like
+bugs but are the original behaviour and are kept on purpose:
 
 * ``timestep 0.002``, Euler integrator, gravity ``(0, 0, -9.81)``, magnetic field
   ``(0, -0.5, 0)``; everything else MuJoCo's defaults.
-* Floor: a plane (infinite for collisions, drawn 3.5 x 3.5), friction
+* Floor: a plane (infinite for collisions, half-size 3.5: drawn 7 x 7), friction
   ``(1, 0.005, 0.0001)``, condim 6. No walls.
 * Robot body at ``z = 0.1`` *exactly*, joints slide-x, slide-y (damping 0.01) and
   hinge-z (damping 0.005), no z translation. A sphere (radius 0.1, friction

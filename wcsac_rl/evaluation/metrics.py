@@ -1,6 +1,6 @@
 """The paper's evaluation metrics (Table 1) and their aggregation over seeds. Pure functions.
 
-Definitions (Yang et al., AAAI 2021, "Experiments"; ``../specs/wcsac.md``, Metrics):
+Definitions (Yang et al., AAAI 2021, "Results"; ``docs/paper.md``, "Metrics"):
 
 * **EC** — mean episodic cost of the test episodes.
 * **C_α** — empirical CVaR: the mean cost of the worst ``⌈n·α⌉`` of the ``n`` test
