@@ -26,6 +26,30 @@ SMALL = [
 ]
 SMALL_RANDOM = [o for o in SMALL if o.startswith(("epoch", "total", "eval", "progress", "logger"))]
 
+# train.py command lines on the tiny env: 2 envs × 100 steps per batch (one tiny-env
+# episode each), 16-unit networks; add the frame budget (and epoch size) per test.
+TINY_CLI = [
+    "env=tiny",
+    "algo.collector.num_envs=2",
+    "algo.collector.frames_per_batch=200",
+    "algo.collector.init_random_frames=200",
+    "algo.batch_size=32",
+    "algo.network.width=16",
+    "eval_episodes=1",
+    "progress_bar=false",
+]
+TINY_CPO = [
+    "algo=cpo",
+    "env=tiny",
+    "algo.collector.num_envs=2",
+    "algo.collector.frames_per_batch=200",
+    "algo.network.width=16",
+    "algo.value_iters=5",
+    "epoch_frames=400",
+    "eval_episodes=1",
+    "progress_bar=false",
+]
+
 
 def compose_config(*overrides: str, small: bool = True) -> DictConfig:
     """``conf/config.yaml`` with the test schedule and then ``overrides`` applied."""

@@ -12,7 +12,7 @@ import pytest
 import torch
 from _tolerance import assert_close_f32, f32_tolerance
 from _training_helpers import COMMON_COLUMNS as BASE_COLUMNS
-from _training_helpers import CONF, ROOT, compose_config
+from _training_helpers import CONF, ROOT, TINY_CPO, compose_config
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 from torchrl.collectors import Collector
@@ -29,19 +29,7 @@ from wcsac_rl.training.on_policy import CPOLearner, OnPolicyTrainer
 from wcsac_rl.training.restore import load_run
 
 # 2 envs × 100 steps per batch (one tiny-env episode each), 2 epochs of 2 batches
-SMALL_CPO = [
-    "algo=cpo",
-    "env=tiny",
-    "algo.collector.num_envs=2",
-    "algo.collector.frames_per_batch=200",
-    "algo.network.width=16",
-    "algo.value_iters=5",
-    "epoch_frames=400",
-    "total_frames=800",
-    "eval_episodes=1",
-    "progress_bar=false",
-    "logger=csv",
-]
+SMALL_CPO = [*TINY_CPO, "total_frames=800", "logger=csv"]
 CPO_COLUMNS = {f"loss/{k}" for k in (*CPOLoss.STEP_KEYS, "loss_value", "loss_cost_value")}
 COMMON_COLUMNS = {*BASE_COLUMNS, "time/update_s"}
 

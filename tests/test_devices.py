@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from _training_helpers import compose_config
+from _training_helpers import TINY_CPO, compose_config
 
 from wcsac_rl.training import builders, make_trainer
 from wcsac_rl.training.devices import CPU, run_devices
@@ -27,18 +27,7 @@ LEARNER = torch.device("cpu:0")
 ENV = torch.device("cpu")
 META = torch.device("meta")
 
-CPO_SMALL = [
-    "algo=cpo",
-    "env=tiny",
-    "algo.collector.num_envs=2",
-    "algo.collector.frames_per_batch=200",
-    "algo.network.width=16",
-    "algo.value_iters=5",
-    "epoch_frames=400",
-    "total_frames=400",
-    "eval_episodes=1",
-    "progress_bar=false",
-]
+CPO_SMALL = [*TINY_CPO, "total_frames=400"]
 
 
 def _config(algo: str, *overrides: str):

@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 import pytest
-from _training_helpers import CONF, ROOT
+from _training_helpers import CONF, ROOT, TINY_CLI
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
@@ -44,17 +44,7 @@ needs_ray = pytest.mark.skipif(
 FRAMES, EPOCHS = 4000, 10
 
 # a tiny sweep entry: 2 envs, 200 frames per batch, 16-unit networks
-TINY = [
-    "env=tiny",
-    "algo.collector.num_envs=2",
-    "algo.collector.frames_per_batch=200",
-    "algo.collector.init_random_frames=200",
-    "algo.batch_size=32",
-    "algo.network.width=16",
-    "eval_episodes=1",
-    "progress_bar=false",
-    "resume=auto",
-]
+TINY = [*TINY_CLI, "resume=auto"]
 
 
 def _sweep(sweep_dir: Path, *overrides: str, launcher: str = "slurm_local") -> list[str]:

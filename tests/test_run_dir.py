@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from _training_helpers import ROOT, compose_config
+from _training_helpers import ROOT, TINY_CLI, compose_config
 
 from wcsac_rl.training import ConfigError, make_trainer
 from wcsac_rl.training.checkpoint import load_checkpoint, resume_config
@@ -39,17 +39,7 @@ def _train(cfg, run_dir):
 
 
 # Tiny epochs of 200 frames (one batch each) with updates: about a second each here.
-CLI = [
-    "env=tiny",
-    "algo.collector.num_envs=2",
-    "algo.collector.frames_per_batch=200",
-    "algo.collector.init_random_frames=200",
-    "algo.batch_size=32",
-    "algo.network.width=16",
-    "epoch_frames=200",
-    "eval_episodes=1",
-    "progress_bar=false",
-]
+CLI = [*TINY_CLI, "epoch_frames=200"]
 
 
 def _train_py(*args: str, cwd: Path, **kwargs) -> subprocess.Popen | subprocess.CompletedProcess:

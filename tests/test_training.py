@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 from _tolerance import assert_close_f32
-from _training_helpers import COMMON_COLUMNS, ROOT, compose_config
+from _training_helpers import COMMON_COLUMNS, ROOT, TINY_CLI, compose_config
 
 from wcsac_rl.training import ConfigError, make_trainer
 from wcsac_rl.training.checkpoint import load_checkpoint
@@ -264,18 +264,7 @@ def _train_py(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     )
 
 
-SMALL_CLI = [
-    "env=tiny",
-    "algo.collector.num_envs=2",
-    "algo.collector.frames_per_batch=200",
-    "algo.collector.init_random_frames=200",
-    "algo.batch_size=32",
-    "algo.network.width=16",
-    "total_frames=400",
-    "epoch_frames=200",
-    "eval_episodes=1",
-    "progress_bar=false",
-]
+SMALL_CLI = [*TINY_CLI, "total_frames=400", "epoch_frames=200"]
 
 
 def test_train_py_runs_with_overrides_and_says_where_its_outputs_are(tmp_path):
