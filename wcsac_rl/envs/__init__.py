@@ -29,6 +29,7 @@ unless ``MUJOCO_GL`` is already set, so rendering works on servers.
 
 from wcsac_rl.envs import _headless  # noqa: F401  (before mujoco: headless GL default)
 from wcsac_rl.envs.batched_gym import BatchedGymEnv
+from wcsac_rl.envs.info import COST_KEY, InfoReader, step_info_spec
 from wcsac_rl.envs.layout import LayoutError
 from wcsac_rl.envs.point_goal import PointGoalConfig, PointGoalEnv
 from wcsac_rl.envs.presets import (
@@ -42,10 +43,8 @@ from wcsac_rl.envs.presets import (
 from wcsac_rl.envs.safety_gymnasium import make_safety_gymnasium_env, wrap_safety_gymnasium
 from wcsac_rl.envs.tiny import TinyHazardEnv
 from wcsac_rl.envs.torchrl_env import (
-    COST_KEY,
     CostKeyError,
     CostSum,
-    InfoReader,
     NonFiniteStepError,
     RejectNonFinite,
     check_cost_key,
@@ -53,7 +52,6 @@ from wcsac_rl.envs.torchrl_env import (
     make_base_env,
     make_env,
     make_env_creator,
-    step_info_spec,
 )
 
 register_envs()

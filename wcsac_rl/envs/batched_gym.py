@@ -5,7 +5,8 @@ tensordict per sub-env and step; for the point-goal tasks (~0.15 ms of MuJoCo pe
 step) that bookkeeping costs several times the physics. :class:`BatchedGymEnv`
 steps the gymnasium envs directly and builds one tensordict per batched step,
 with the same entries, specs and reset semantics as
-``SerialEnv(n, make_base_env)`` (``GymWrapper`` + :class:`InfoReader`).
+``SerialEnv(n, make_base_env)`` (``GymWrapper`` + :class:`~wcsac_rl.envs.InfoReader`;
+both read ``info`` by :func:`~wcsac_rl.envs.info.info_array`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Composite
 from torchrl.envs import EnvBase
 from torchrl.envs.libs.gym import GymWrapper
+
+from wcsac_rl.envs.info import InfoReader, info_array, numpy_dtype
 
 __all__ = ["BatchedGymEnv"]
 
@@ -42,7 +45,7 @@ class BatchedGymEnv(EnvBase):
 
     Example:
         >>> from wcsac_rl.envs.presets import make_gym_env
-        >>> from wcsac_rl.envs.torchrl_env import step_info_spec
+        >>> from wcsac_rl.envs.info import step_info_spec
         >>> env = BatchedGymEnv([lambda: make_gym_env("tiny")] * 3, info_spec=step_info_spec())
         >>> td = env.rollout(4)
         >>> td.batch_size, td["next", "cost"].shape
@@ -70,9 +73,9 @@ class BatchedGymEnv(EnvBase):
                 env.close()
             raise
         obs_spec = self.full_observation_spec
-        self._obs_dtype = _numpy_dtype(obs_spec["observation"].dtype)
+        self._obs_dtype = _required_numpy_dtype(obs_spec["observation"].dtype, "observation")
         self._info = [
-            (key, _numpy_dtype(spec.dtype), tuple(spec.shape))
+            (key, _required_numpy_dtype(spec.dtype, key), tuple(spec.shape))
             for key, spec in (info_spec.items() if info_spec is not None else ())
         ]
         obs_shape = tuple(obs_spec["observation"].shape[1:])
@@ -88,8 +91,6 @@ class BatchedGymEnv(EnvBase):
                     f"{list(probe.full_observation_spec.keys())}"
                 )
             if info_spec is not None:
-                from wcsac_rl.envs.torchrl_env import InfoReader
-
                 probe.set_info_dict_reader(InfoReader(info_spec))
             n = self.batch_size[0]
 
@@ -106,12 +107,8 @@ class BatchedGymEnv(EnvBase):
     # ------------------------------------------------------------------ stepping
     def _read_info(self, i: int, info: dict | None) -> None:
         for key, dtype, shape in self._info:
-            value = None if info is None else info.get(key)
-            target = self._info_values[key]
-            if value is None:
-                target[i] = 0
-            else:
-                target[i] = np.asarray(value, dtype=dtype).reshape(shape)
+            value = info_array(info, key, dtype, shape)
+            self._info_values[key][i] = 0 if value is None else value
 
     def _entries(self) -> dict[str, torch.Tensor]:
         out = {"observation": torch.from_numpy(self._observation.copy())}
@@ -186,5 +183,8 @@ class BatchedGymEnv(EnvBase):
         super().close(raise_if_closed=raise_if_closed)
 
 
-def _numpy_dtype(dtype: torch.dtype) -> np.dtype:
-    return torch.empty((), dtype=dtype).numpy().dtype
+def _required_numpy_dtype(dtype: torch.dtype, what: str) -> np.dtype:
+    result = numpy_dtype(dtype)
+    if result is None:
+        raise ValueError(f"BatchedGymEnv keeps {what!r} in NumPy, which has no {dtype}")
+    return result

@@ -26,7 +26,8 @@ from torchrl.envs import (
     UnsqueezeTransform,
 )
 
-from wcsac_rl.envs.torchrl_env import COST_KEY, check_cost_key, episode_transforms
+from wcsac_rl.envs.info import COST_KEY
+from wcsac_rl.envs.torchrl_env import check_cost_key, episode_transforms
 
 __all__ = [
     "SAFETY_GYMNASIUM_MISSING",

@@ -27,20 +27,26 @@ NaN or infinite reward, cost or observation stops the step with a
 With ``num_workers > 1`` the base envs run in a :class:`~torchrl.envs.ParallelEnv`
 (one process each) and the transforms are applied on top. For TorchRL's
 multi-process collectors, pass :func:`make_env_creator` (picklable) instead.
+
+``make_env(name, num_workers=n, parallel=False)`` steps ``n`` envs in this process as
+one :class:`~wcsac_rl.envs.BatchedGymEnv` (what training and evaluation use: the same
+entries, specs and reset semantics as a ``SerialEnv`` of ``GymWrapper`` envs, without
+its per-env tensordict bookkeeping). The ``info`` entries come from
+:mod:`wcsac_rl.envs.info`, the one reading rule both paths share.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
 from tensordict import TensorDictBase
-from torchrl.data import Composite, Unbounded
+from torchrl.data import Composite
 from torchrl.envs import (
     Compose,
     EnvBase,
@@ -51,10 +57,10 @@ from torchrl.envs import (
     Transform,
     TransformedEnv,
 )
-from torchrl.envs.gym_like import BaseInfoDictReader
 from torchrl.envs.libs.gym import GymWrapper
 
 from wcsac_rl.envs.batched_gym import BatchedGymEnv
+from wcsac_rl.envs.info import COST_KEY, InfoReader, step_info_spec
 from wcsac_rl.envs.presets import get_preset, make_gym_env
 
 __all__ = [
@@ -73,17 +79,6 @@ __all__ = [
     "make_env_creator",
     "step_info_spec",
 ]
-
-_NUMPY_DTYPES = {
-    torch.float32: np.float32,
-    torch.float64: np.float64,
-    torch.bool: np.bool_,
-    torch.int64: np.int64,
-    torch.int32: np.int32,
-}
-
-COST_KEY = "cost"
-"""Name of the per-step cost entry (``("next", "cost")`` after a step)."""
 
 
 class CostKeyError(ValueError):
@@ -152,60 +147,6 @@ class RejectNonFinite(gym.Wrapper):
             self._reject("cost", cost)
         self._check_observation(observation)
         return observation, reward, terminated, truncated, info
-
-
-def step_info_spec(device: torch.device | str | None = None) -> Composite:
-    """Spec of the ``info`` entries copied into the tensordicts by :class:`InfoReader`."""
-    return Composite(
-        {
-            COST_KEY: Unbounded(shape=(1,), dtype=torch.float32, device=device),
-            "goal_reached": Unbounded(shape=(1,), dtype=torch.bool, device=device),
-            "numerical_failure": Unbounded(shape=(1,), dtype=torch.bool, device=device),
-            "robot_xy": Unbounded(shape=(2,), dtype=torch.float32, device=device),
-            "goal_xy": Unbounded(shape=(2,), dtype=torch.float32, device=device),
-        },
-        shape=(),
-        device=device,
-    )
-
-
-class InfoReader(BaseInfoDictReader):
-    """Copy selected ``info`` entries into the tensordict, cast and shaped to their spec.
-
-    A missing entry is filled with the spec's zero, so env wrappers that drop ``info``
-    on some steps do not break the tensordict layout. Use it with
-    ``GymWrapper.set_info_dict_reader(InfoReader(spec))``.
-
-    Args:
-        spec: a :class:`~torchrl.data.Composite` of the entries to read.
-    """
-
-    def __init__(self, spec: Composite) -> None:
-        self._spec = spec
-        self._items = [
-            (key, _NUMPY_DTYPES.get(s.dtype), s.dtype, tuple(s.shape), s.device)
-            for key, s in spec.items()
-        ]
-
-    def __call__(self, info_dict: Mapping[str, Any], tensordict: TensorDictBase) -> TensorDictBase:
-        for key, np_dtype, dtype, shape, device in self._items:
-            value = info_dict.get(key) if info_dict is not None else None
-            if value is None:
-                tensordict.set(key, self._spec[key].zero())
-                continue
-            if np_dtype is not None:  # fast path: one numpy copy, shared with torch
-                tensor = torch.from_numpy(np.array(value, dtype=np_dtype).reshape(shape))
-                if device is not None and device.type != "cpu":
-                    tensor = tensor.to(device)
-            else:
-                tensor = torch.as_tensor(np.asarray(value), dtype=dtype, device=device)
-                tensor = tensor.reshape(shape)
-            tensordict.set(key, tensor)
-        return tensordict
-
-    @property
-    def info_spec(self) -> Composite:
-        return self._spec
 
 
 class CostSum(RewardSum):
