@@ -17,6 +17,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from wcsac_rl.envs import NonFiniteStepError
+from wcsac_rl.evaluation.plots import plot_run_curves
 from wcsac_rl.training import ConfigError, TrainingError, make_trainer
 from wcsac_rl.training.checkpoint import resume_config
 from wcsac_rl.training.preemption import Preempted
@@ -47,11 +48,14 @@ def main(cfg: DictConfig) -> None:
         sys.exit(f"error: {err}")
     finally:
         trainer.close()
+    curves = plot_run_curves(
+        run_dir / "progress.csv", run_dir / "curves.png", cost_limit=float(trainer.cfg.cost_limit)
+    )
     print(f"run directory: {run_dir}")
     print(f"  metrics (one row per epoch): {run_dir / 'progress.csv'}")
     print(f"  logger output:               {run_dir / 'logs'}")
     print(f"  checkpoint:                  {trainer.checkpoint_path}")
-    print(f"  training curves:             {trainer.plot_path}")
+    print(f"  training curves:             {curves}")
 
 
 if __name__ == "__main__":

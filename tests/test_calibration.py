@@ -21,7 +21,6 @@ from tensordict import TensorDict
 
 from wcsac_rl.calibration import main as calibration_main
 from wcsac_rl.envs import make_env
-from wcsac_rl.evaluation import calibration
 from wcsac_rl.evaluation.calibration import (
     CALIBRATION_KEYS,
     calibration_keys,
@@ -30,13 +29,19 @@ from wcsac_rl.evaluation.calibration import (
     discounted_cost_to_go,
     supports_calibration,
 )
-from wcsac_rl.evaluation.episodes import (
+from wcsac_rl.evaluation.plots import (
+    CALIBRATION_PANEL,
+    SLACK_PANEL,
+    plot_run_curves,
+    run_curves_figure,
+)
+from wcsac_rl.rollouts import calibration as rollout_calibration
+from wcsac_rl.rollouts.episodes import (
     EpisodeResult,
     RecordedEpisode,
     record_episodes,
     run_episodes,
 )
-from wcsac_rl.evaluation.plots import CALIBRATION_PANEL, SLACK_PANEL, run_curves_figure
 from wcsac_rl.training import make_trainer
 
 # Hand-made inputs below are exact in float32 and the metrics are computed in float64:
@@ -324,12 +329,13 @@ def test_each_epoch_logs_calibration_of_its_test_episodes(runs):
     for row in rows:
         slack = float(row["loss/cost_threshold"]) - float(row["loss/cvar"])
         assert float(row["loss/constraint_slack"]) == pytest.approx(slack, rel=F64, abs=F64)
-    # curves.png: the three usual panels and the two new ones, 4 inches × 100 dpi each
-    assert png_size(runs["wcsac"] / "curves.png")[0] == 5 * 400
+    # its curves: the three usual panels and the two new ones, 4 inches × 100 dpi each
+    curves = plot_run_curves(runs["wcsac"] / "progress.csv", runs["wcsac"] / "curves.png")
+    assert png_size(curves)[0] == 5 * 400
 
 
 def test_calibration_changes_neither_the_episodes_nor_the_training(runs, tmp_path, monkeypatch):
-    monkeypatch.setattr(calibration, "supports_calibration", lambda loss: False)
+    monkeypatch.setattr(rollout_calibration, "supports_calibration", lambda loss: False)
     plain = _rows(_train(tmp_path / "plain", "algo=wcsac"))
     calibrated = _rows(runs["wcsac"])
     for got, want in zip(plain, calibrated):
@@ -343,7 +349,8 @@ def test_runs_without_a_safety_critic_have_no_calibration_columns(runs):
     columns = set(_rows(runs["sac"])[0])
     assert not any(c.startswith("calib/") for c in columns)
     assert "loss/constraint_slack" not in columns
-    assert png_size(runs["sac"] / "curves.png")[0] == 3 * 400
+    curves = plot_run_curves(runs["sac"] / "progress.csv", runs["sac"] / "curves.png")
+    assert png_size(curves)[0] == 3 * 400
 
 
 def test_curves_figure_gets_calibration_and_slack_panels_only_when_logged():

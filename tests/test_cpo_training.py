@@ -21,6 +21,7 @@ from torchrl.envs import Compose, EnvBase, RewardSum, StepCounter, TransformedEn
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from wcsac_rl.envs import CostSum
+from wcsac_rl.evaluation.plots import plot_run_curves
 from wcsac_rl.modules.gaussian_actor import make_gaussian_actor, make_state_value
 from wcsac_rl.objectives.cpo import CPOLoss
 from wcsac_rl.training import ConfigError, make_trainer
@@ -76,7 +77,8 @@ def test_cpo_trains_through_the_trainer_and_logs_its_diagnostics(tmp_path):
     assert checkpoint["frames"] == 800 and checkpoint["updates"] == 4
     assert set(checkpoint["learner"]) == {"loss", "value_optimizer"}
     assert list((run_dir / "logs").rglob("*.csv"))
-    assert (run_dir / "curves.png").read_bytes().startswith(b"\x89PNG")
+    curves = plot_run_curves(run_dir / "progress.csv", tmp_path / "curves.png")
+    assert curves.read_bytes().startswith(b"\x89PNG")
 
 
 def test_cpo_on_static_env_estimates_the_episode_cost_from_the_cost_rate(tmp_path):

@@ -20,8 +20,9 @@ from _training_helpers import TINY_CPO, compose_config
 
 from wcsac_rl.training import builders, make_trainer
 from wcsac_rl.training.devices import CPU, run_devices
+from wcsac_rl.training.registry import trainer_class
 from wcsac_rl.training.restore import load_run
-from wcsac_rl.training.trainer import env_max_episode_steps, trainer_class
+from wcsac_rl.training.trainer import env_max_episode_steps
 
 LEARNER = torch.device("cpu:0")
 ENV = torch.device("cpu")

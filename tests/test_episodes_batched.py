@@ -11,8 +11,8 @@ from tensordict.nn import TensorDictModule
 from torchrl.data import Bounded
 
 from wcsac_rl.envs import make_env
-from wcsac_rl.evaluation.episodes import run_episodes
 from wcsac_rl.modules import make_actor
+from wcsac_rl.rollouts.episodes import run_episodes
 
 
 def _policy(name: str):

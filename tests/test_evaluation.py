@@ -17,7 +17,6 @@ import pytest
 from _evaluation_helpers import EPISODE_STEPS, copy_sweep, run_dirs
 from _training_helpers import ROOT
 
-from wcsac_rl.evaluation.episodes import EpisodeResult
 from wcsac_rl.evaluation.evaluator import (
     CSV_COLUMNS,
     DEFAULT_SEED_OFFSET,
@@ -31,6 +30,7 @@ from wcsac_rl.evaluation.evaluator import (
 )
 from wcsac_rl.evaluation.metrics import METRIC_KEYS
 from wcsac_rl.evaluation.runs import find_evaluated_dirs, find_run_dirs
+from wcsac_rl.rollouts.episodes import EpisodeResult
 from wcsac_rl.training import ConfigError
 
 EPISODES = 4

@@ -14,6 +14,7 @@ import torch
 from _tolerance import assert_close_f32
 from _training_helpers import COMMON_COLUMNS, ROOT, TINY_CLI, compose_config
 
+from wcsac_rl.evaluation.plots import plot_run_curves
 from wcsac_rl.training import ConfigError, make_trainer
 from wcsac_rl.training.checkpoint import load_checkpoint
 
@@ -81,8 +82,9 @@ def test_each_algorithm_trains_on_the_tiny_env_and_logs_the_documented_columns(
     assert checkpoint["config"]["algo"]["name"] == algo
     # the logger backend (csv) wrote its scalars too
     assert list((run_dir / "logs").rglob("*.csv"))
-    # and the run's curves were drawn
-    png = (run_dir / "curves.png").read_bytes()
+    # and its progress.csv draws as train.py draws it
+    curves = plot_run_curves(run_dir / "progress.csv", tmp_path / "curves.png", cost_limit=15.0)
+    png = curves.read_bytes()
     assert png.startswith(b"\x89PNG") and len(png) > 10_000
 
 
@@ -276,6 +278,7 @@ def test_train_py_runs_with_overrides_and_says_where_its_outputs_are(tmp_path):
     assert f"run directory: {run_dir}" in result.stdout
     assert f"training curves:             {run_dir / 'curves.png'}" in result.stdout
     assert (run_dir / "checkpoints" / "last.pt").is_file()
+    assert (run_dir / "curves.png").read_bytes().startswith(b"\x89PNG")  # drawn by train.py
     assert (run_dir / ".hydra" / "config.yaml").is_file()
     rows = _rows(run_dir)
     assert len(rows) == 2

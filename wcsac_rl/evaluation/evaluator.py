@@ -42,9 +42,9 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
-from wcsac_rl.evaluation.episodes import EpisodeResult, run_episodes
 from wcsac_rl.evaluation.metrics import table1_metrics
 from wcsac_rl.evaluation.runs import EVALUATION_CSV, EVALUATION_JSON
+from wcsac_rl.rollouts.episodes import EpisodeResult, run_episodes
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.restore import RestoredRun
 

@@ -92,7 +92,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 from wcsac_rl.envs import make_env
-from wcsac_rl.evaluation.episodes import run_episodes
+from wcsac_rl.rollouts.episodes import run_episodes
 
 __all__ = [
     "LEARNER",

@@ -1,15 +1,18 @@
 """Training: config validation, builders of every piece, the trainers, checkpoints."""
 
 from wcsac_rl.training.config import ALGOS, ConfigError, TrainingError, validate_config
-from wcsac_rl.training.trainer import RandomPolicyTrainer, Trainer, make_trainer, seed_everything
+from wcsac_rl.training.registry import TRAINERS, make_trainer, trainer_class
+from wcsac_rl.training.trainer import RandomPolicyTrainer, Trainer, seed_everything
 
 __all__ = [
     "ALGOS",
+    "TRAINERS",
     "ConfigError",
     "RandomPolicyTrainer",
     "Trainer",
     "TrainingError",
     "make_trainer",
     "seed_everything",
+    "trainer_class",
     "validate_config",
 ]

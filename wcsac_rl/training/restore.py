@@ -14,7 +14,7 @@ from torchrl.envs import EnvBase
 from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import find_checkpoint, read_checkpoint
 from wcsac_rl.training.devices import on_cpu
-from wcsac_rl.training.trainer import trainer_class
+from wcsac_rl.training.registry import trainer_class
 
 __all__ = ["RestoredRun", "load_run"]
 
@@ -50,7 +50,7 @@ def load_run(path: str | os.PathLike, *, seed: int | None = None, num_envs: int 
 
     ``seed`` seeds the returned env (default: the eval seed of the run's trainer);
     with ``num_envs > 1`` it is a batch of that many sub-envs (seeded ``seed``,
-    ``seed + 1``, ...) for :func:`~wcsac_rl.evaluation.episodes.run_episodes` to
+    ``seed + 1``, ...) for :func:`~wcsac_rl.rollouts.episodes.run_episodes` to
     run episodes side by side.
 
     Raises :class:`~wcsac_rl.training.ConfigError` with one clear line when the

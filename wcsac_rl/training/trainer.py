@@ -28,7 +28,8 @@ from torchrl import timeit
 from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
-from wcsac_rl.evaluation.episodes import run_episodes, summarize_episodes
+from wcsac_rl.rollouts import calibration
+from wcsac_rl.rollouts.episodes import run_episodes, summarize_episodes
 from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import (
     CHECKPOINT_DIR,
@@ -41,7 +42,7 @@ from wcsac_rl.training.checkpoint import (
     save_checkpoint,
     write_error_reason,
 )
-from wcsac_rl.training.config import ALGOS, ConfigError, TrainingError, validate_config
+from wcsac_rl.training.config import TrainingError, validate_config
 from wcsac_rl.training.preemption import Preempted, StopSignals
 from wcsac_rl.training.progress import EpisodeTracker, LossMeans, ProgressWriter
 from wcsac_rl.training.run_dir import (
@@ -54,7 +55,7 @@ from wcsac_rl.training.run_dir import (
 )
 from wcsac_rl.training.runtime import retain_freed_memory
 
-__all__ = ["RandomPolicyTrainer", "Trainer", "make_trainer", "seed_everything", "trainer_class"]
+__all__ = ["RandomPolicyTrainer", "Trainer", "seed_everything"]
 
 # a run's own files cannot be written: disk full, quota, read-only, permissions
 WRITE_ERRNOS = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EROFS, errno.EACCES}
@@ -305,7 +306,6 @@ class Trainer:
             pbar.close()
             self.collector.shutdown()
         self.save()
-        self.plot()
         return self.run_dir
 
     def _save_interrupted(self) -> None:
@@ -375,18 +375,6 @@ class Trainer:
                 stop.forward()  # a scheduler's handler (submitit: requeue) may exit here
                 raise Preempted(stop.received, self.checkpoint_path, self.tracker.frames)
 
-    @property
-    def plot_path(self) -> Path:
-        return self.run_dir / "curves.png"
-
-    def plot(self) -> Path:
-        """Draw the run's return, cost and cost-rate curves to ``curves.png``."""
-        from wcsac_rl.evaluation.plots import plot_run_curves
-
-        return plot_run_curves(
-            self.run_dir / "progress.csv", self.plot_path, cost_limit=float(self.cfg.cost_limit)
-        )
-
     def _epoch_row(
         self, loss_means: LossMeans, seconds: float, frames: int, updates: int
     ) -> dict[str, float]:
@@ -422,11 +410,9 @@ class Trainer:
     def _evaluate(self) -> dict[str, float]:
         """The epoch's deterministic test episodes: ``eval/*`` means and, when the
         learner's loss has a safety critic, its calibration on those very episodes
-        (``calib/*``, :mod:`wcsac_rl.evaluation.calibration`)."""
+        (``calib/*``, :mod:`wcsac_rl.rollouts.calibration`)."""
         if self.eval_env is None:
             return {}
-        from wcsac_rl.evaluation import calibration
-
         loss = getattr(self, "loss", None)
         episodes, calib = int(self.cfg.eval_episodes), {}
         if calibration.supports_calibration(loss):
@@ -586,23 +572,3 @@ class RandomPolicyTrainer(Trainer):
     Training and test episodes are logged like any other run, so the same tooling
     evaluates it.
     """
-
-
-def trainer_class(algo: str) -> type[Trainer]:
-    """The :class:`Trainer` subclass that trains ``algo`` (a ``conf/algo`` name)."""
-    if algo == "random":
-        return RandomPolicyTrainer
-    if algo in ("wcsac", "sac_lag", "sac"):
-        from wcsac_rl.training.off_policy import OffPolicyTrainer
-
-        return OffPolicyTrainer
-    if algo == "cpo":
-        from wcsac_rl.training.on_policy import OnPolicyTrainer
-
-        return OnPolicyTrainer
-    raise ConfigError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}")
-
-
-def make_trainer(cfg: DictConfig, run_dir: str | Path) -> Trainer:
-    """The trainer for ``cfg.algo.name`` (its constructor validates ``cfg`` first)."""
-    return trainer_class(cfg.algo.name)(cfg, run_dir)

@@ -1,0 +1,25 @@
+"""Whole episodes of a policy, below both training and evaluation.
+
+* :mod:`~wcsac_rl.rollouts.episodes` — run test episodes (return, cost, length) and,
+  optionally, record chosen entries of every step.
+* :mod:`~wcsac_rl.rollouts.calibration` — the safety critic's predictions at the
+  states of recorded episodes against the realised cost-to-go.
+
+The trainer logs both every epoch; :mod:`wcsac_rl.evaluation` uses them on finished runs.
+"""
+
+from wcsac_rl.rollouts.episodes import (
+    EpisodeResult,
+    RecordedEpisode,
+    record_episodes,
+    run_episodes,
+    summarize_episodes,
+)
+
+__all__ = [
+    "EpisodeResult",
+    "RecordedEpisode",
+    "record_episodes",
+    "run_episodes",
+    "summarize_episodes",
+]
