@@ -58,3 +58,24 @@ def test_make_env_from_pixels(render_env):
     assert td["next", "observation"].shape == (3, 44)
     assert td["next", "cost"].shape == (3, 1)
     env.close()
+
+
+@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="Linux rule")
+@pytest.mark.parametrize(
+    ("display", "preset", "expected"),
+    [(None, None, "egl"), (None, "glfw", "glfw"), (":0", None, "unset")],
+)
+def test_importing_the_package_picks_egl_only_on_a_headless_machine(display, preset, expected):
+    """``import wcsac_rl`` (before anything imports mujoco) sets ``MUJOCO_GL=egl`` when
+    there is no display and the user chose nothing."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "MUJOCO_GL")}
+    env.update({k: v for k, v in (("DISPLAY", display), ("MUJOCO_GL", preset)) if v})
+    code = "import os, wcsac_rl; print(os.environ.get('MUJOCO_GL', 'unset'))"
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True
+    )
+    assert out.stdout.strip().splitlines()[-1] == expected

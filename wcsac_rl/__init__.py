@@ -3,13 +3,9 @@
 >>> from wcsac_rl import WCSACLoss, SACLagLoss, make_safety_critic
 """
 
-import os as _os
-import sys as _sys
-
 # Headless MuJoCo rendering by default on Linux servers; must run before anything
 # (torchrl included) imports mujoco.
-if _sys.platform.startswith("linux") and not _os.environ.get("DISPLAY"):
-    _os.environ.setdefault("MUJOCO_GL", "egl")
+from wcsac_rl import _headless  # noqa: F401  (isort: skip)
 
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives import (

@@ -27,7 +27,7 @@ On headless Linux (no ``DISPLAY``) importing this package sets ``MUJOCO_GL=egl``
 unless ``MUJOCO_GL`` is already set, so rendering works on servers.
 """
 
-from wcsac_rl.envs import _headless  # noqa: F401  (before mujoco: headless GL default)
+from wcsac_rl import _headless  # noqa: F401  (before mujoco: headless GL default)
 from wcsac_rl.envs.batched_gym import BatchedGymEnv
 from wcsac_rl.envs.info import COST_KEY, InfoReader, step_info_spec
 from wcsac_rl.envs.layout import LayoutError
