@@ -2,6 +2,7 @@
 (``PolyakUpdate`` for target networks, ``TanhNormalPolicy`` for acting), and the data the
 safety critic's options read (``NStepCost``, ``StartStateBuffer``, ``EpisodeCostWindow``)."""
 
+from wcsac_rl.objectives.budget import per_step_cost_threshold
 from wcsac_rl.objectives.cpo import CPOLoss
 from wcsac_rl.objectives.episode_costs import EpisodeCostWindow
 from wcsac_rl.objectives.nstep import NStepCost
@@ -20,7 +21,6 @@ from wcsac_rl.objectives.wcsac import (
     PAPER_OPTIONS,
     SACLagLoss,
     WCSACLoss,
-    per_step_cost_threshold,
 )
 
 __all__ = [

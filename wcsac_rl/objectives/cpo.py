@@ -64,6 +64,8 @@ from torchrl.objectives import LossModule
 from torchrl.objectives.utils import ValueEstimators, _reduce, distance_loss
 from torchrl.objectives.value import GAE
 
+from wcsac_rl.objectives.budget import validate_cost_limit, validate_max_episode_steps
+
 __all__ = ["CPODirection", "CPOLoss", "conjugate_gradient", "cpo_direction"]
 
 # Numbering of the step's geometry, as in safety-starter-agents (logged as `optim_case`).
@@ -397,8 +399,7 @@ class CPOLoss(LossModule):
         reduction: str = "mean",
     ) -> None:
         super().__init__()
-        if cost_limit < 0:
-            raise ValueError(f"cost_limit must be >= 0 (an episodic cost budget), got {cost_limit}")
+        validate_cost_limit(cost_limit)
         if not max_kl > 0:
             raise ValueError(f"max_kl (the trust region δ) must be > 0, got {max_kl}")
         if damping < 0:
@@ -409,8 +410,8 @@ class CPOLoss(LossModule):
             )
         if not 0 < backtrack_coeff < 1:
             raise ValueError(f"backtrack_coeff must be in (0, 1), got {backtrack_coeff}")
-        if max_episode_steps is not None and int(max_episode_steps) < 1:
-            raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
+        if max_episode_steps is not None:
+            validate_max_episode_steps(max_episode_steps)
         if reduction not in ("mean", "sum", "none"):
             raise ValueError(f"reduction must be 'mean', 'sum' or 'none', got {reduction!r}")
         # No target networks: the networks are plain submodules, and the actor's

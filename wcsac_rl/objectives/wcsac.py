@@ -42,6 +42,11 @@ from wcsac_rl.modules.safety_critic import (
     GaussianSafetyCritic,
     softplus_variance,
 )
+from wcsac_rl.objectives.budget import (
+    per_step_cost_threshold,
+    validate_cost_limit,
+    validate_max_episode_steps,
+)
 from wcsac_rl.objectives.critic_ensemble import (
     EnsembleMember,
     evaluate_ensemble,
@@ -85,26 +90,6 @@ PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(
 reward's γ, κ on the mean Γ over replay states against the per-step threshold):
 ``WCSACLoss(..., **PAPER_OPTIONS)``. The defaults differ, on StaticEnv evidence (README,
 "Defaults chosen on evidence"); ``algo=wcsac_paper`` is the same in the config."""
-
-
-def per_step_cost_threshold(cost_limit: float, gamma: float, max_episode_steps: int) -> float:
-    """Turn an episodic cost limit ``d`` into the threshold for a *discounted* cost critic.
-
-    ``d_step = (d / T) · Σ_{t<T} γ^t = d (1 − γ^T) / ((1 − γ) T)``: the discounted
-    sum of a cost spread evenly (``d / T`` per step) over an episode of ``T`` steps.
-
-    >>> round(per_step_cost_threshold(15.0, 0.99, 1000), 5)
-    1.49994
-    """
-    if cost_limit < 0:
-        raise ValueError(f"cost_limit must be >= 0 (an episodic cost budget), got {cost_limit}")
-    if int(max_episode_steps) != max_episode_steps or max_episode_steps <= 0:
-        raise ValueError(f"max_episode_steps must be a positive integer, got {max_episode_steps}")
-    if not 0.0 <= gamma <= 1.0:
-        raise ValueError(f"gamma must be in [0, 1], got {gamma}")
-    horizon = int(max_episode_steps)
-    discounted_steps = horizon if gamma == 1.0 else (1.0 - gamma**horizon) / (1.0 - gamma)
-    return cost_limit * discounted_steps / horizon
 
 
 def _nested(*keys: NestedKey) -> tuple[str, ...]:
@@ -430,9 +415,9 @@ class WCSACLoss(SACLoss):
         if cost_threshold is not None:
             if cost_threshold < 0:
                 raise ValueError(f"cost_threshold must be >= 0, got {cost_threshold}")
-        else:
-            # Validates cost_limit and max_episode_steps now, whatever γ is later.
-            per_step_cost_threshold(cost_limit, 0.99, max_episode_steps)
+        else:  # (what the threshold is made from, checked now whatever γ is later)
+            validate_cost_limit(cost_limit)
+            validate_max_episode_steps(max_episode_steps)
         if not kappa_init > 0:
             raise ValueError(
                 f"kappa_init must be > 0 (κ is a Lagrange multiplier), got {kappa_init}"

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -49,6 +50,7 @@ __all__ = [
     "make_replay_buffer",
     "make_target_updater",
     "make_train_env",
+    "network_shape",
 ]
 
 
@@ -120,11 +122,17 @@ class Agent:
     safety: TensorDictModule | None
 
 
+def network_shape(cfg: DictConfig) -> dict[str, Any]:
+    """``width``, ``depth`` and ``activation`` of ``cfg.algo.network`` (every MLP's shape)."""
+    net = cfg.algo.network
+    return {"width": int(net.width), "depth": int(net.depth), "activation": str(net.activation)}
+
+
 def make_agent(cfg: DictConfig, env: EnvBase, devices: RunDevices | None = None) -> Agent:
     """Actor, twin reward critic and (for WCSAC / SAC-Lag) the safety critic
     (``algo.safety_critic``: Gaussian or IQN), on the learner device."""
     net = cfg.algo.network
-    shape = {"width": int(net.width), "depth": int(net.depth), "activation": str(net.activation)}
+    shape = network_shape(cfg)
     action_spec = env.action_spec_unbatched
     obs_dim = env.observation_spec["observation"].shape[-1]
     act_dim = action_spec.shape[-1]

@@ -7,6 +7,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
 
 __all__ = [
@@ -83,10 +84,10 @@ def validate_config(cfg: DictConfig) -> None:
         raise ConfigError(
             "algo=sac_lag is risk-neutral (algo.risk_level=1); use algo=wcsac for α < 1"
         )
-    if not isinstance(cfg.cost_limit, (int, float)) or cfg.cost_limit < 0:
-        raise ConfigError(
-            f"cost_limit must be a number >= 0 (episodic budget d), got {cfg.cost_limit!r}"
-        )
+    try:
+        validate_cost_limit(cfg.cost_limit)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     _positive_int(cfg, "seed", allow_zero=True)  # gymnasium and NumPy need seeds >= 0
     for key in ("total_frames", "epoch_frames", "threads", "checkpoint_every_epochs"):
         _positive_int(cfg, key)

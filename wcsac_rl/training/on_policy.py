@@ -31,6 +31,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 
 from wcsac_rl.modules.gaussian_actor import make_gaussian_actor, make_state_value
 from wcsac_rl.objectives.cpo import CPOLoss
+from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import load_optimizer_state
 from wcsac_rl.training.devices import run_devices
 from wcsac_rl.training.trainer import Trainer, env_max_episode_steps
@@ -42,11 +43,13 @@ def make_cpo_networks(
     cfg: DictConfig, env: EnvBase
 ) -> tuple[ProbabilisticActor, ValueOperator, ValueOperator]:
     """The Gaussian actor, ``V^r`` and ``V^c`` of ``cfg.algo.network`` for ``env``'s specs."""
-    net = cfg.algo.network
-    shape = {"width": int(net.width), "depth": int(net.depth), "activation": str(net.activation)}
+    shape = builders.network_shape(cfg)
     obs_dim = env.observation_spec["observation"].shape[-1]
     actor = make_gaussian_actor(
-        obs_dim, env.action_spec_unbatched, log_std_init=float(net.log_std_init), **shape
+        obs_dim,
+        env.action_spec_unbatched,
+        log_std_init=float(cfg.algo.network.log_std_init),
+        **shape,
     )
     value = make_state_value(obs_dim, out_key="state_value", **shape)
     cost_value = make_state_value(obs_dim, out_key="state_cost_value", **shape)
