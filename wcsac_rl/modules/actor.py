@@ -12,7 +12,16 @@ from torchrl.modules import ProbabilisticActor, TanhNormal
 
 from wcsac_rl.modules._mlp import make_mlp
 
-__all__ = ["ClampedLogStdNormalParams", "make_actor"]
+__all__ = ["ClampedLogStdNormalParams", "clamped_normal_params", "make_actor"]
+
+
+def clamped_normal_params(
+    x: torch.Tensor, log_std_min: float, log_std_max: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(loc, scale)`` from the last dimension's halves, ``scale = exp(clamp(log_std))``
+    (the one definition: the module below and the actor's fast path use it)."""
+    loc, log_std = x.chunk(2, dim=-1)
+    return loc, log_std.clamp(log_std_min, log_std_max).exp()
 
 
 class ClampedLogStdNormalParams(nn.Module):
@@ -32,8 +41,7 @@ class ClampedLogStdNormalParams(nn.Module):
         self.log_std_max = float(log_std_max)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        loc, log_std = x.chunk(2, dim=-1)
-        return loc, log_std.clamp(self.log_std_min, self.log_std_max).exp()
+        return clamped_normal_params(x, self.log_std_min, self.log_std_max)
 
 
 def make_actor(

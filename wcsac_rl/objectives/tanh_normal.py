@@ -30,7 +30,7 @@ from torchrl.envs.utils import exploration_type
 from torchrl.modules import TanhNormal
 from torchrl.modules.distributions.utils import safetanh_noeps
 
-from wcsac_rl.modules.actor import ClampedLogStdNormalParams
+from wcsac_rl.modules.actor import ClampedLogStdNormalParams, clamped_normal_params
 from wcsac_rl.objectives.critic_ensemble import MLPLayout, evaluate_mlp, mlp_layout
 
 __all__ = [
@@ -132,8 +132,7 @@ def sample_tanh_normal(
     tanh is TorchRL's saturation-safe one.
     """
     out = evaluate_mlp(observation, params, plan.layout)
-    loc, log_std = out.chunk(2, dim=-1)
-    scale = log_std.clamp(plan.log_std_min, plan.log_std_max).exp()
+    loc, scale = clamped_normal_params(out, plan.log_std_min, plan.log_std_max)
     eps = torch.randn_like(loc)
     pre_tanh = loc + eps * scale
     # the Normal's log-density and the tanh's log-Jacobian, summed over the action

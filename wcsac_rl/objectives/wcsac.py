@@ -4,11 +4,16 @@
 network) plus
 
 * a Gaussian safety critic ``C(s, a) ~ N(Q^c, V^c)`` (mean and variance networks),
-  trained with a TD loss on the mean (Eq. 7) and a 2-Wasserstein TD loss on the
-  variance (Eq. 8), each with its own target network updated by ``SoftUpdate``;
+  trained with a TD loss on the mean (Eq. 7) and a TD loss on the variance (Eq. 8:
+  the paper's 2-Wasserstein loss, ``variance_loss="w2"``, or the regression losses
+  ``"glm"``, the default, and ``"mse"``), each with its own target network updated
+  by ``SoftUpdate``;
 * the CVaR of the cost, ``Γ(s, a, α) = Q^c + α⁻¹ φ(Φ⁻¹(α)) √V^c`` (Eq. 9);
 * a CVaR-penalised actor loss ``β log π − min Q^r + κ Γ``;
-* a Lagrange multiplier ``κ`` trained to keep ``Γ`` under the per-step threshold.
+* a Lagrange multiplier ``κ`` trained to keep ``Γ`` under the threshold (the paper:
+  Γ over replay states under a per-step threshold; by default the CVaR of the
+  critic at episode start states under the episodic limit ``d``, see
+  ``kappa_states``).
 
 ``SACLagLoss`` is the same loss at ``α = 1`` with a mean-only safety critic.
 
@@ -69,7 +74,7 @@ from wcsac_rl.objectives.variance import VARIANCE_LOSSES, variance_regression_lo
 
 __all__ = ["PAPER_OPTIONS", "CriticValues", "SACLagLoss", "WCSACLoss", "per_step_cost_threshold"]
 
-KAPPA_PARAMETRISATIONS = ("softplus", "log")
+KAPPA_PARAMETRIZATIONS = ("softplus", "log")
 KAPPA_ACTIONS = ("replay", "policy")
 KAPPA_STATES = ("replay", "initial")
 KAPPA_STATISTICS = ("mean", "tail")
@@ -422,9 +427,9 @@ class WCSACLoss(SACLoss):
             raise ValueError(
                 f"kappa_init must be > 0 (κ is a Lagrange multiplier), got {kappa_init}"
             )
-        if kappa_parametrization not in KAPPA_PARAMETRISATIONS:
+        if kappa_parametrization not in KAPPA_PARAMETRIZATIONS:
             raise ValueError(
-                f"kappa_parametrization must be one of {KAPPA_PARAMETRISATIONS}, got {kappa_parametrization!r}"
+                f"kappa_parametrization must be one of {KAPPA_PARAMETRIZATIONS}, got {kappa_parametrization!r}"
             )
         if kappa_actions not in KAPPA_ACTIONS:
             raise ValueError(f"kappa_actions must be one of {KAPPA_ACTIONS}, got {kappa_actions!r}")
@@ -1171,8 +1176,8 @@ class WCSACLoss(SACLoss):
             return target.clamp(VARIANCE_MIN, VARIANCE_MAX)
         return target.clamp(-VARIANCE_MAX, VARIANCE_MAX)
 
-    def _constraint_gap_penalty(self, cvar_constraint: Tensor) -> Tensor:
-        """The actor's penalty weight: κ, minus the MDMM damping term if enabled."""
+    def _penalty_weight(self, cvar_constraint: Tensor) -> Tensor:
+        """The weight of Γ in the actor loss: κ, minus the MDMM damping term if enabled."""
         kappa = self.kappa
         if self.damp_scale == 0.0:
             return kappa
@@ -1193,7 +1198,7 @@ class WCSACLoss(SACLoss):
         cvar_pi = self._cvar_of(values)
         if cvar_constraint is None:
             cvar_constraint = self._constraint_statistic(values.detach())
-        penalty = self._constraint_gap_penalty(cvar_constraint)
+        penalty = self._penalty_weight(cvar_constraint)
         loss = self._alpha * log_prob - min_q + penalty * cvar_pi
         loss = self._reduce_loss(loss, tensordict=tensordict, weights=weights)
         return loss, {

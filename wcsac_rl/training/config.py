@@ -193,7 +193,7 @@ def _validate_safety_keys(algo: DictConfig) -> None:
     from wcsac_rl.modules.safety_critic import SAFETY_CRITIC_KINDS
     from wcsac_rl.objectives.wcsac import (
         KAPPA_ACTIONS,
-        KAPPA_PARAMETRISATIONS,
+        KAPPA_PARAMETRIZATIONS,
         KAPPA_SIGNALS,
         KAPPA_STATES,
         KAPPA_STATISTICS,
@@ -207,7 +207,7 @@ def _validate_safety_keys(algo: DictConfig) -> None:
         "kappa_actions": KAPPA_ACTIONS,
         "kappa_states": KAPPA_STATES,
         "kappa_statistic": KAPPA_STATISTICS,
-        "kappa_parametrization": KAPPA_PARAMETRISATIONS,
+        "kappa_parametrization": KAPPA_PARAMETRIZATIONS,
         "kappa_signal": KAPPA_SIGNALS,
     }
     for key, allowed in choices.items():

@@ -72,14 +72,8 @@ class OffPolicyTrainer(Trainer):
         self.update_start_frames = self.init_random_frames
         # collection and test episodes act through the fast path of make_actor actors
         self.policy = TanhNormalPolicy(self.agent.actor)
-        self._loss_forward = self._compiled_loss() if cfg.compile else self.loss
-
-    def _compiled_loss(self):
-        try:
-            return torch.compile(self.loss)
-        except Exception as err:  # pragma: no cover - depends on the platform's compiler
-            print(f"torch.compile unavailable ({err}); training eagerly")
-            return self.loss
+        # (compiled lazily, at the first update)
+        self._loss_forward = torch.compile(self.loss) if cfg.compile else self.loss
 
     @property
     def loss_keys(self) -> list[str]:
