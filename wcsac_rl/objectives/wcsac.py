@@ -132,6 +132,10 @@ class CriticValues(NamedTuple):
 class WCSACLoss(SACLoss):
     r"""The WCSAC loss: SAC with a Gaussian safety critic and a CVaR constraint.
 
+    ``benchmarks/plain_wcsac.py`` is the plain-PyTorch reference of the paper's update
+    (this loss with ``**PAPER_OPTIONS, variance_loss="mse"``), tested equal to it in
+    ``tests/test_plain_reference.py``.
+
     Args:
         actor_network (ProbabilisticTensorDictSequential): the stochastic (tanh-Normal) actor.
         qvalue_network (TensorDictModule or list of them): the reward critic ``Q^r(s, a)``
