@@ -41,9 +41,8 @@ its own parameters); (5) Polyak averaging of the target critics.
 weights, same noise) at α = 0.5 and α = 1, to float32 rounding. Left out here, as
 they never bind there: TorchRL's tanh is clamped to ±(1 − 10⁻⁶) (equal to ``tanh``
 unless the pre-tanh action exceeds 7), and ``WCSACLoss`` clamps the variance target
-to ±1e8. ``WCSACLoss`` computes the threshold from its γ stored in float32, which
-makes it 1.4·10⁻⁶ larger than the 1.4999352 computed here (the test gives both the
-same one).
+to ±1e8. Both compute the threshold from γ = 0.99 (1.4999352; ``WCSACLoss`` keeps it
+in a float32 buffer).
 
 ``benchmarks/bench_update.py`` times :meth:`PlainWCSAC.update` (2 × 256 networks,
 fused Adam) to show what the update costs without any framework overhead. The

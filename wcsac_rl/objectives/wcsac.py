@@ -38,7 +38,12 @@ from torch import Tensor
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import SACLoss
 from torchrl.objectives.sac import compute_rsample_log_prob
-from torchrl.objectives.utils import ValueEstimators, _cache_values, distance_loss
+from torchrl.objectives.utils import (
+    ValueEstimators,
+    _cache_values,
+    default_value_kwargs,
+    distance_loss,
+)
 
 from wcsac_rl.modules.quantile_critic import IQNSafetyCritic
 from wcsac_rl.modules.safety_critic import (
@@ -618,6 +623,11 @@ class WCSACLoss(SACLoss):
                 f"is a one-step recursion), got {value_type}"
             )
         super().make_value_estimator(value_type, **hyperparams)
+        # γ as given (the estimator stores it in float32: 0.99 → 0.99000001, which
+        # would move the per-step threshold by 1.4e-6)
+        self._gamma = float(
+            hyperparams.get("gamma", default_value_kwargs(ValueEstimators.TD0)["gamma"])
+        )
         gamma = self.cost_gamma
         if self._explicit_cost_threshold is not None:
             threshold = self._explicit_cost_threshold
@@ -641,7 +651,7 @@ class WCSACLoss(SACLoss):
         """The safety critic's discount γ_c (``cost_gamma``, else the value estimator's γ)."""
         if self._explicit_cost_gamma is not None:
             return self._explicit_cost_gamma
-        return float(self.value_estimator.gamma)
+        return self._gamma
 
     @property
     def cost_bootstrap_truncated(self) -> bool:
