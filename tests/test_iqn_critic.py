@@ -292,8 +292,8 @@ def test_sac_lag_with_an_iqn_critic_holds_the_mean_quantile_under_the_threshold(
 
 
 def test_fusing_falls_back_for_an_iqn_critic_or_is_refused():
-    assert make_loss()._ensemble is None  # fuse_critics=None: module calls
-    assert make_loss(fuse_critics=False)._ensemble is None
+    assert make_loss()._fused is None  # fuse_critics=None: module calls
+    assert make_loss(fuse_critics=False)._fused is None
     with pytest.raises(ValueError, match="IQN safety critic is not fused"):
         make_loss(fuse_critics=True)
 

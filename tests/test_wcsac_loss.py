@@ -602,7 +602,7 @@ def test_fused_critic_ensemble_gives_the_same_losses_and_gradients(variance):
     separate = make_loss(
         variance=variance, fuse_critics=False, kappa_actions="replay", damp_scale=1.0
     )
-    assert fused._ensemble is not None and separate._ensemble is None
+    assert fused._fused is not None and separate._fused is None
     separate.load_state_dict(fused.state_dict())
     assert_same_losses_and_gradients(fused, separate, make_batch())
 
@@ -613,9 +613,9 @@ def test_critics_that_cannot_be_fused_fall_back_or_are_refused():
     actor = make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=8)
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)]
     safety = make_safety_critic(OBS_DIM, ACT_DIM, width=16)
-    assert WCSACLoss(actor, qvalues, safety)._ensemble is None
+    assert WCSACLoss(actor, qvalues, safety)._fused is None
     with pytest.raises(ValueError, match="fuse_critics=True needs"):
         WCSACLoss(actor, qvalues, safety, fuse_critics=True)
     # a critic that is not a plain MLP
     readout = _readout_loss("mse")
-    assert readout._ensemble is None
+    assert readout._fused is None

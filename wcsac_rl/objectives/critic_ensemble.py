@@ -16,10 +16,15 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
 from torch import Tensor, nn
+
+from wcsac_rl.modules.safety_critic import GaussianSafetyCritic, softplus_variance
 
 __all__ = [
     "EnsembleMember",
+    "FusedCritics",
     "MLPLayout",
     "evaluate_ensemble",
     "evaluate_mlp",
@@ -145,3 +150,93 @@ def evaluate_mlp(x: Tensor, params: TensorDictBase, layout: MLPLayout) -> Tensor
         if depth < last:
             x = act(x)
     return x
+
+
+Layers = list[tuple[Tensor, Tensor]]
+"""Stacked ``(W [K, out, in], b [K, out])`` per layer of a fused evaluation."""
+
+
+class FusedCritics:
+    """A loss's twin reward critic and Gaussian safety critic evaluated as one ensemble.
+
+    The members, in order: the ``num_qvalue_nets`` reward critics (TorchRL's stacked
+    parameters), the safety critic's mean network and, with a variance head, its
+    variance network. Build with :meth:`plan` (``None`` when the critics cannot be
+    fused); gather parameters with :meth:`layers`; evaluate with :meth:`values`.
+
+    Args:
+        members: the ensemble's blocks, reward critics first.
+        num_qvalue_nets: how many reward critics the first block holds.
+        has_variance: whether the last block is the variance network.
+    """
+
+    def __init__(
+        self, members: Sequence[EnsembleMember], num_qvalue_nets: int, has_variance: bool
+    ) -> None:
+        self.members = list(members)
+        self.num_qvalue_nets = int(num_qvalue_nets)
+        self.has_variance = bool(has_variance)
+        self.activation = self.members[0].layout.activation
+
+    @classmethod
+    def plan(
+        cls,
+        qvalue_network: TensorDictModule,
+        safety_network: TensorDictModule,
+        *,
+        action_key: NestedKey,
+        num_qvalue_nets: int,
+        has_variance: bool,
+    ) -> FusedCritics | None:
+        """The fused evaluation if every critic is a same-shaped MLP reading
+        ``[observation, action]`` with one output, else ``None`` (call the modules)."""
+        in_keys = list(qvalue_network.in_keys)
+        if (
+            len(in_keys) != 2
+            or in_keys[1] != action_key
+            or list(safety_network.in_keys) != in_keys
+            or len(qvalue_network.out_keys) != 1
+        ):
+            return None
+        members = [EnsembleMember("qvalue", mlp_layout(qvalue_network.module, ("module",)), True)]
+        net = safety_network.module
+        if isinstance(net, GaussianSafetyCritic) and has_variance:
+            members.append(
+                EnsembleMember("safety", mlp_layout(net.mean_net, ("module", "mean_net")), False)
+            )
+            members.append(
+                EnsembleMember(
+                    "safety", mlp_layout(net.variance_net, ("module", "variance_net")), False
+                )
+            )
+        elif not has_variance and len(safety_network.out_keys) == 1:
+            members.append(EnsembleMember("safety", mlp_layout(net, ("module",)), False))
+        else:
+            return None
+        layouts = [m.layout for m in members]
+        if any(layout is None for layout in layouts):
+            return None
+        first = layouts[0]
+        if (
+            any(
+                layout.shapes != first.shapes or layout.activation is not first.activation
+                for layout in layouts
+            )
+            or first.shapes[-1][0] != 1
+        ):
+            return None
+        return cls(members, num_qvalue_nets, has_variance)
+
+    def layers(self, qvalue_params: TensorDictBase, safety_params: TensorDictBase) -> Layers:
+        """The stacked parameters of every member (gather once, evaluate several times)."""
+        return stack_layers(self.members, {"qvalue": qvalue_params, "safety": safety_params})
+
+    def values(
+        self, observation: Tensor, action: Tensor, layers: Layers
+    ) -> tuple[Tensor, Tensor, Tensor | None]:
+        """``(Q^r [num_qvalue_nets, *B], Q^c [*B], V^c [*B] or None)`` at ``(s, a)``."""
+        x = torch.cat([observation, action], dim=-1)
+        out = evaluate_ensemble(x, layers, self.activation).squeeze(-1)
+        n = self.num_qvalue_nets
+        variance = softplus_variance(out[n + 1]) if self.has_variance else None
+        return out[:n], out[n], variance

@@ -49,20 +49,13 @@ from wcsac_rl.modules.quantile_critic import IQNSafetyCritic
 from wcsac_rl.modules.safety_critic import (
     VARIANCE_MAX,
     VARIANCE_MIN,
-    GaussianSafetyCritic,
-    softplus_variance,
 )
 from wcsac_rl.objectives.budget import (
     per_step_cost_threshold,
     validate_cost_limit,
     validate_max_episode_steps,
 )
-from wcsac_rl.objectives.critic_ensemble import (
-    EnsembleMember,
-    evaluate_ensemble,
-    mlp_layout,
-    stack_layers,
-)
+from wcsac_rl.objectives.critic_ensemble import FusedCritics, Layers
 from wcsac_rl.objectives.quantile import (
     midpoint_fractions,
     quantile_huber_loss,
@@ -109,6 +102,15 @@ def _nested(*keys: NestedKey) -> tuple[str, ...]:
 
 def _inverse_softplus(x: float) -> float:
     return x + math.log(-math.expm1(-x))
+
+
+class CriticParams(NamedTuple):
+    """The reward critics' and the safety critic's parameters for one evaluation;
+    ``target`` marks the target networks (an IQN critic then draws N' fractions)."""
+
+    qvalue: TensorDictBase
+    safety: TensorDictBase
+    target: bool = False
 
 
 class CriticValues(NamedTuple):
@@ -537,14 +539,24 @@ class WCSACLoss(SACLoss):
         self.register_buffer("cost_discount", torch.zeros((), device=device), persistent=False)
         self.make_value_estimator(ValueEstimators.TD0)
         self._set_in_keys()
-        self._ensemble = self._critic_ensemble() if fuse_critics is not False else None
+        self._fused = (
+            FusedCritics.plan(
+                self.qvalue_network,
+                safety_network,
+                action_key=self.tensor_keys.action,
+                num_qvalue_nets=self.num_qvalue_nets,
+                has_variance=self.has_variance,
+            )
+            if fuse_critics is not False
+            else None
+        )
         if fuse_critics and self._quantile_critic:
             raise ValueError(
                 "fuse_critics=True: an IQN safety critic is not fused with the reward "
                 "critics (it also reads quantile fractions); use fuse_critics=None, which "
                 "evaluates it as a module and still fuses nothing else"
             )
-        if fuse_critics and self._ensemble is None:
+        if fuse_critics and self._fused is None:
             raise ValueError(
                 "fuse_critics=True needs the reward and safety critics to be MLPs of one "
                 "shape (Linear/activation stacks) reading [observation, action], e.g. "
@@ -816,101 +828,52 @@ class WCSACLoss(SACLoss):
         variance = (quantiles - mean.unsqueeze(-1)).pow(2).mean(-1)
         return mean, variance, quantiles, fractions, tail
 
-    def _critic_ensemble(self) -> list[EnsembleMember] | None:
-        """The fused-evaluation plan if every critic is a same-shaped MLP, else ``None``."""
-        q_module, safety = self.qvalue_network, self.safety_network
-        in_keys = list(q_module.in_keys)
-        if (
-            len(in_keys) != 2
-            or in_keys[1] != self.tensor_keys.action
-            or list(safety.in_keys) != in_keys
-            or len(q_module.out_keys) != 1
-        ):
-            return None
-        members = [EnsembleMember("qvalue", mlp_layout(q_module.module, ("module",)), True)]
-        net = safety.module
-        if isinstance(net, GaussianSafetyCritic) and self.has_variance:
-            members.append(
-                EnsembleMember("safety", mlp_layout(net.mean_net, ("module", "mean_net")), False)
-            )
-            members.append(
-                EnsembleMember(
-                    "safety", mlp_layout(net.variance_net, ("module", "variance_net")), False
-                )
-            )
-        elif not self.has_variance and len(safety.out_keys) == 1:
-            members.append(EnsembleMember("safety", mlp_layout(net, ("module",)), False))
-        else:
-            return None
-        layouts = [m.layout for m in members]
-        if any(layout is None for layout in layouts):
-            return None
-        first = layouts[0]
-        if (
-            any(
-                layout.shapes != first.shapes or layout.activation is not first.activation
-                for layout in layouts
-            )
-            or first.shapes[-1][0] != 1
-        ):
-            return None
-        return members
+    # The critics' parameters, by role: trainable (the critic losses), target (the TD
+    # targets) and detached (the actor's and κ's view: gradients reach only the action).
+    def _online_critics(self) -> CriticParams:
+        return CriticParams(self.qvalue_network_params, self.safety_network_params)
 
-    def _critic_params(self, which: str) -> tuple[TensorDictBase, TensorDictBase]:
-        if which == "target":
-            q_params, s_params = (
-                self.target_qvalue_network_params,
-                self.target_safety_network_params,
-            )
-        elif which == "online":
-            q_params, s_params = self.qvalue_network_params, self.safety_network_params
-        else:
-            q_params, s_params = (
-                self._cached_detached_qvalue_params,
-                self._cached_detached_safety_params,
-            )
-        return q_params, s_params
+    def _target_critics(self) -> CriticParams:
+        return CriticParams(
+            self.target_qvalue_network_params, self.target_safety_network_params, target=True
+        )
 
-    def _ensemble_layers(self, which: str) -> list[tuple[Tensor, Tensor]] | None:
-        """The fused critics' stacked ``(weight, bias)`` per layer (``None`` if not fused)."""
-        if self._ensemble is None:
+    def _detached_critics(self) -> CriticParams:
+        return CriticParams(
+            self._cached_detached_qvalue_params, self._cached_detached_safety_params
+        )
+
+    def _fused_layers(self, critics: CriticParams) -> Layers | None:
+        """The fused critics' stacked parameters (``None`` when not fused)."""
+        if self._fused is None:
             return None
-        q_params, s_params = self._critic_params(which)
-        return stack_layers(self._ensemble, {"qvalue": q_params, "safety": s_params})
+        return self._fused.layers(critics.qvalue, critics.safety)
 
     def _critic_values(
         self,
         tensordict: TensorDictBase,
         action: Tensor,
-        which: str,
-        layers: list[tuple[Tensor, Tensor]] | None = None,
+        critics: CriticParams,
+        layers: Layers | None = None,
     ) -> CriticValues:
-        """The reward and safety critics at ``(observation, action)``.
-
-        ``which``: ``"target"`` (target parameters), ``"online"`` (trainable) or
-        ``"detached"`` (online values, gradients only to ``action``). ``layers``:
-        the stacked parameters of fused critics if already gathered for ``which``.
-        """
-        if self._ensemble is not None:
-            x = torch.cat([tensordict.get(self.qvalue_network.in_keys[0]), action], dim=-1)
-            if layers is None:
-                layers = self._ensemble_layers(which)
-            out = evaluate_ensemble(x, layers, self._ensemble[0].layout.activation).squeeze(-1)
-            n = self.num_qvalue_nets
-            variance = None
-            if self.has_variance:
-                variance = softplus_variance(out[n + 1])
-            return CriticValues(out[:n], out[n], variance)
-        q_params, s_params = self._critic_params(which)
+        """The reward and safety critics with parameters ``critics`` at
+        ``(observation, action)``: one fused evaluation when possible (``layers``, if
+        already gathered from ``critics``), else the modules one by one."""
+        if self._fused is not None:
+            observation = tensordict.get(self.qvalue_network.in_keys[0])
+            layers = self._fused_layers(critics) if layers is None else layers
+            return CriticValues(*self._fused.values(observation, action, layers))
         td_q = tensordict.select(*self.qvalue_network.in_keys, strict=False)
         td_q.set(self.tensor_keys.action, action)
-        qvalue = self._vmap_qnetworkN0(td_q, q_params).get(self.tensor_keys.state_action_value)
+        qvalue = self._vmap_qnetworkN0(td_q, critics.qvalue).get(
+            self.tensor_keys.state_action_value
+        )
         td_s = tensordict.select(*self.safety_network.in_keys, strict=False)
         td_s.set(self.tensor_keys.action, action)
         if self._quantile_critic:
-            values = self._quantile_values(td_s, s_params, target=which == "target")
+            values = self._quantile_values(td_s, critics.safety, target=critics.target)
             return CriticValues(qvalue.squeeze(-1), *values)
-        return CriticValues(qvalue.squeeze(-1), *self._safety_forward(td_s, s_params))
+        return CriticValues(qvalue.squeeze(-1), *self._safety_forward(td_s, critics.safety))
 
     def cvar(self, cost_value: Tensor, cost_variance: Tensor | None) -> Tensor:
         """Γ(s, a, α) = Q^c + α⁻¹ φ(Φ⁻¹(α)) √V^c (Eq. 9) of the Gaussian critic; Q^c at
@@ -971,7 +934,7 @@ class WCSACLoss(SACLoss):
         with torch.no_grad():
             next_td = tensordict.get("next")
             next_action, next_log_prob = self._sample_policy(next_td)
-            next_values = self._critic_values(next_td, next_action, "target")
+            next_values = self._critic_values(next_td, next_action, self._target_critics())
             q_next, vc_next = next_values.qvalue, next_values.cost_variance
             # an IQN critic's next "value" is its quantiles [*B, N']
             qc_next = (
@@ -1072,10 +1035,10 @@ class WCSACLoss(SACLoss):
 
     # ----------------------------------------------------------------- losses
     def _online_values(
-        self, tensordict: TensorDictBase, layers: list[tuple[Tensor, Tensor]] | None = None
+        self, tensordict: TensorDictBase, layers: Layers | None = None
     ) -> CriticValues:
         action = tensordict.get(self.tensor_keys.action)
-        return self._critic_values(tensordict, action, "online", layers)
+        return self._critic_values(tensordict, action, self._online_critics(), layers)
 
     def qvalue_loss(
         self,
@@ -1201,13 +1164,13 @@ class WCSACLoss(SACLoss):
         self,
         tensordict: TensorDictBase,
         cvar_constraint: Tensor | None,
-        layers: list[tuple[Tensor, Tensor]] | None = None,
+        layers: Layers | None = None,
     ) -> tuple[Tensor, dict[str, Tensor]]:
         """The actor loss; ``cvar_constraint`` is the Γ the κ loss sees (``None``: Γ at
         the actor's own actions on the batch)."""
         weights = self._maybe_get_priority_weight(tensordict)
         action, log_prob = self._sample_policy(tensordict)
-        values = self._critic_values(tensordict, action, "detached", layers)
+        values = self._critic_values(tensordict, action, self._detached_critics(), layers)
         min_q = values.qvalue.min(0)[0]
         cvar_pi = self._cvar_of(values)
         if cvar_constraint is None:
@@ -1259,7 +1222,7 @@ class WCSACLoss(SACLoss):
         self,
         tensordict: TensorDictBase,
         replay_values: CriticValues | None,
-        layers: list[tuple[Tensor, Tensor]] | None = None,
+        layers: Layers | None = None,
     ) -> Tensor | None:
         """What the κ loss holds under the threshold, per batch row: the statistic
         (``kappa_statistic``) of the safety critic at the initial states (``a ~ π``)
@@ -1292,14 +1255,14 @@ class WCSACLoss(SACLoss):
         return tail.detach().expand(cost_value.shape)
 
     def initial_state_cvar(
-        self, tensordict: TensorDictBase, layers: list[tuple[Tensor, Tensor]] | None = None
+        self, tensordict: TensorDictBase, layers: Layers | None = None
     ) -> Tensor:
         """Γ(s₀, a₀, α) with ``a₀ ~ π(·|s₀)`` at the start states the batch carries
         under the ``initial_states`` key (no gradient)."""
         return self._cvar_of(self._initial_state_values(tensordict, layers))
 
     def _initial_state_values(
-        self, tensordict: TensorDictBase, layers: list[tuple[Tensor, Tensor]] | None = None
+        self, tensordict: TensorDictBase, layers: Layers | None = None
     ) -> CriticValues:
         key = self.tensor_keys.initial_states
         initial = self._required_entry(
@@ -1312,7 +1275,7 @@ class WCSACLoss(SACLoss):
         )
         with torch.no_grad():
             action, _ = self._sample_policy(initial)
-            return self._critic_values(initial, action, "detached", layers).detach()
+            return self._critic_values(initial, action, self._detached_critics(), layers).detach()
 
     @property
     def initial_state_keys(self) -> list[NestedKey]:
@@ -1366,7 +1329,7 @@ class WCSACLoss(SACLoss):
         targets = self.compute_targets(tensordict)
         # the fused critics' parameters are gathered once: trainable for the critic
         # losses, detached for the actor's
-        layers = self._ensemble_layers("online")
+        layers = self._fused_layers(self._online_critics())
         values = self._online_values(tensordict, layers)  # shared by both critic losses
         loss_qvalue, q_metadata = self.qvalue_loss(tensordict, targets, values)
         loss_cost_value, loss_cost_variance, safety_metadata = self.safety_loss(
