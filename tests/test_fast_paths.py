@@ -27,12 +27,12 @@ from torchrl.objectives import SoftUpdate
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import PAPER_OPTIONS, PolyakUpdate
-from wcsac_rl.objectives.tanh_normal import (
+from wcsac_rl.modules.tanh_normal import (
     TanhNormalPolicy,
     sample_tanh_normal,
     tanh_normal_actor_plan,
 )
+from wcsac_rl.objectives import PAPER_OPTIONS, PolyakUpdate
 
 
 def _torchrl_draw(actor, observation):

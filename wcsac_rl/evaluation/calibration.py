@@ -78,7 +78,7 @@ def load_safety_run(run_dir: str | os.PathLike, *, seed: int, num_envs: int = 1)
     """
     from omegaconf import OmegaConf
 
-    from wcsac_rl.objectives.tanh_normal import TanhNormalPolicy
+    from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
     from wcsac_rl.training import builders
     from wcsac_rl.training.checkpoint import find_checkpoint, load_checkpoint
     from wcsac_rl.training.devices import on_cpu

@@ -1,5 +1,8 @@
 """Network builders: the tanh-Normal actor, the reward critic, the safety critics
-(Gaussian, and implicit-quantile), and CPO's Gaussian actor and state-value networks."""
+(Gaussian, and implicit-quantile), and CPO's Gaussian actor and state-value networks;
+and acting with them: ``TanhNormalPolicy`` (the actor's fast path for collection and
+test episodes, :mod:`~wcsac_rl.modules.tanh_normal`) and the MLP evaluation it uses
+(:mod:`~wcsac_rl.modules.mlp`)."""
 
 from wcsac_rl.modules.actor import ClampedLogStdNormalParams, make_actor
 from wcsac_rl.modules.gaussian_actor import make_gaussian_actor, make_state_value
@@ -13,6 +16,7 @@ from wcsac_rl.modules.safety_critic import (
     make_safety_critic,
     softplus_variance,
 )
+from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
 
 __all__ = [
     "SAFETY_CRITIC_KINDS",
@@ -21,6 +25,7 @@ __all__ = [
     "ClampedLogStdNormalParams",
     "GaussianSafetyCritic",
     "IQNSafetyCritic",
+    "TanhNormalPolicy",
     "make_actor",
     "make_gaussian_actor",
     "make_qvalue",

@@ -1,6 +1,5 @@
-"""Loss modules (WCSAC, SAC-Lagrangian, CPO), risk measures, and the fast-path helpers
-(``PolyakUpdate`` for target networks, ``TanhNormalPolicy`` for acting), and the data the
-safety critic's options read (``NStepCost``, ``StartStateBuffer``, ``EpisodeCostWindow``)."""
+"""Loss modules (WCSAC, SAC-Lagrangian, CPO), risk measures, ``PolyakUpdate`` (the
+target networks' fast path), and the data the safety critic's options read (``NStepCost``, ``StartStateBuffer``, ``EpisodeCostWindow``)."""
 
 from wcsac_rl.objectives.budget import per_step_cost_threshold
 from wcsac_rl.objectives.cpo import CPOLoss
@@ -15,7 +14,6 @@ from wcsac_rl.objectives.risk import (
     validate_risk_level,
 )
 from wcsac_rl.objectives.start_states import StartStateBuffer
-from wcsac_rl.objectives.tanh_normal import TanhNormalPolicy
 from wcsac_rl.objectives.target_update import PolyakUpdate
 from wcsac_rl.objectives.wcsac import (
     PAPER_OPTIONS,
@@ -31,7 +29,6 @@ __all__ = [
     "PolyakUpdate",
     "SACLagLoss",
     "StartStateBuffer",
-    "TanhNormalPolicy",
     "WCSACLoss",
     "empirical_cvar",
     "gaussian_cvar",

@@ -20,64 +20,15 @@ from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torch import Tensor, nn
 
+from wcsac_rl.modules.mlp import ACTIVATIONS, MLPLayout, mlp_layout
 from wcsac_rl.modules.safety_critic import GaussianSafetyCritic, softplus_variance
 
 __all__ = [
     "EnsembleMember",
     "FusedCritics",
-    "MLPLayout",
     "evaluate_ensemble",
-    "evaluate_mlp",
-    "mlp_layout",
     "stack_layers",
 ]
-
-
-@dataclass(frozen=True)
-class MLPLayout:
-    """Where an MLP's layers are in a parameter tensordict, and their shapes.
-
-    Attributes:
-        prefixes: key prefix of each ``nn.Linear`` in order (``("module", "0")``...).
-        shapes: ``(out_features, in_features)`` of each layer.
-        activation: the activation class between layers.
-    """
-
-    prefixes: tuple[tuple[str, ...], ...]
-    shapes: tuple[tuple[int, int], ...]
-    activation: type[nn.Module]
-
-
-def mlp_layout(module: nn.Module, prefix: tuple[str, ...] = ()) -> MLPLayout | None:
-    """The :class:`MLPLayout` of ``module`` if it is ``Linear, act, Linear, act, ..., Linear``.
-
-    Returns ``None`` for anything else (other layers, no bias, mixed activations),
-    which makes the caller fall back to calling the modules one by one.
-    """
-    if not isinstance(module, nn.Sequential):
-        return None
-    children = list(module.named_children())
-    linears = children[0::2]
-    activations = children[1::2]
-    if len(children) % 2 != 1 or not linears:
-        return None
-    if not all(type(m) is nn.Linear and m.bias is not None for _, m in linears):
-        return None
-    kinds = {type(m) for _, m in activations}
-    if len(kinds) > 1 or not all(
-        isinstance(m, (nn.ReLU, nn.Tanh, nn.ELU, nn.GELU)) for _, m in activations
-    ):
-        return None
-    activation = kinds.pop() if kinds else nn.ReLU
-    if activation is nn.ELU and any(m.alpha != 1.0 for _, m in activations):
-        return None
-    if activation is nn.GELU and any(m.approximate != "none" for _, m in activations):
-        return None
-    return MLPLayout(
-        prefixes=tuple((*prefix, name) for name, _ in linears),
-        shapes=tuple((m.out_features, m.in_features) for _, m in linears),
-        activation=activation,
-    )
 
 
 @dataclass(frozen=True)
@@ -116,19 +67,11 @@ def stack_layers(
     return layers
 
 
-_ACTIVATIONS = {
-    nn.ReLU: torch.relu,
-    nn.Tanh: torch.tanh,
-    nn.ELU: nn.functional.elu,
-    nn.GELU: nn.functional.gelu,
-}
-
-
 def evaluate_ensemble(
     x: Tensor, layers: list[tuple[Tensor, Tensor]], activation: type[nn.Module]
 ) -> Tensor:
     """Outputs ``[K, *B, out]`` of the K MLPs given by ``layers`` at the shared input ``x [*B, in]``."""
-    act = _ACTIVATIONS[activation]
+    act = ACTIVATIONS[activation]
     batch_shape = x.shape[:-1]
     x = x.reshape(-1, x.shape[-1])
     # the shared input is broadcast (not copied) to the K members, so every layer,
@@ -139,17 +82,6 @@ def evaluate_ensemble(
     for depth, (weight, bias) in enumerate(layers):
         h = torch.baddbmm(bias.unsqueeze(1), h if depth == 0 else act(h), weight.transpose(1, 2))
     return h.reshape(h.shape[0], *batch_shape, h.shape[-1])
-
-
-def evaluate_mlp(x: Tensor, params: TensorDictBase, layout: MLPLayout) -> Tensor:
-    """One MLP given by ``layout`` at ``x``, with its weights read from ``params``."""
-    act = _ACTIVATIONS[layout.activation]
-    last = len(layout.prefixes) - 1
-    for depth, prefix in enumerate(layout.prefixes):
-        x = nn.functional.linear(x, params.get((*prefix, "weight")), params.get((*prefix, "bias")))
-        if depth < last:
-            x = act(x)
-    return x
 
 
 Layers = list[tuple[Tensor, Tensor]]

@@ -50,6 +50,7 @@ from wcsac_rl.modules.safety_critic import (
     VARIANCE_MAX,
     VARIANCE_MIN,
 )
+from wcsac_rl.modules.tanh_normal import sample_tanh_normal, tanh_normal_actor_plan
 from wcsac_rl.objectives.budget import (
     per_step_cost_threshold,
     validate_cost_limit,
@@ -67,7 +68,6 @@ from wcsac_rl.objectives.risk import (
     quantile_mixture_cvar,
     validate_risk_level,
 )
-from wcsac_rl.objectives.tanh_normal import sample_tanh_normal, tanh_normal_actor_plan
 from wcsac_rl.objectives.variance import VARIANCE_LOSSES, variance_regression_loss
 
 __all__ = ["PAPER_OPTIONS", "CriticValues", "SACLagLoss", "WCSACLoss", "per_step_cost_threshold"]

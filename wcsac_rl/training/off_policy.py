@@ -5,7 +5,7 @@ of the batch the loss reads (``loss.in_keys``) go into the replay buffer and
 ``frames_per_batch × utd_ratio`` gradient steps follow (the authors' schedule: 100
 steps per 400 frames), once ``init_random_frames`` uniform-random frames have been
 collected. The actor collects and plays the test episodes as a
-:class:`~wcsac_rl.objectives.tanh_normal.TanhNormalPolicy`.
+:class:`~wcsac_rl.modules.tanh_normal.TanhNormalPolicy`.
 
 With ``algo.cost_n_steps > 1`` each collected batch gets the n-step cost entries
 (:class:`~wcsac_rl.objectives.NStepCost`) before it enters the buffer. With
@@ -27,7 +27,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl import timeit
 
-from wcsac_rl.objectives.tanh_normal import TanhNormalPolicy
+from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
 from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import (
     CHECKPOINT_DIR,

@@ -31,7 +31,7 @@ from torchrl.modules import TanhNormal
 from torchrl.modules.distributions.utils import safetanh_noeps
 
 from wcsac_rl.modules.actor import ClampedLogStdNormalParams, clamped_normal_params
-from wcsac_rl.objectives.critic_ensemble import MLPLayout, evaluate_mlp, mlp_layout
+from wcsac_rl.modules.mlp import MLPLayout, evaluate_mlp, mlp_layout
 
 __all__ = [
     "TanhNormalActorPlan",

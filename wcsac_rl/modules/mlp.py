@@ -1,0 +1,81 @@
+"""Plain MLPs read from a parameter tensordict: the layout of an ``nn.Sequential`` MLP
+and its evaluation with ``F.linear``, for the fast paths that skip module calls
+(the actor's direct sampling, the fused critics).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor, nn
+
+__all__ = ["ACTIVATIONS", "MLPLayout", "evaluate_mlp", "mlp_layout"]
+
+
+@dataclass(frozen=True)
+class MLPLayout:
+    """Where an MLP's layers are in a parameter tensordict, and their shapes.
+
+    Attributes:
+        prefixes: key prefix of each ``nn.Linear`` in order (``("module", "0")``...).
+        shapes: ``(out_features, in_features)`` of each layer.
+        activation: the activation class between layers.
+    """
+
+    prefixes: tuple[tuple[str, ...], ...]
+    shapes: tuple[tuple[int, int], ...]
+    activation: type[nn.Module]
+
+
+def mlp_layout(module: nn.Module, prefix: tuple[str, ...] = ()) -> MLPLayout | None:
+    """The :class:`MLPLayout` of ``module`` if it is ``Linear, act, Linear, act, ..., Linear``.
+
+    Returns ``None`` for anything else (other layers, no bias, mixed activations),
+    which makes the caller fall back to calling the modules one by one.
+    """
+    if not isinstance(module, nn.Sequential):
+        return None
+    children = list(module.named_children())
+    linears = children[0::2]
+    activations = children[1::2]
+    if len(children) % 2 != 1 or not linears:
+        return None
+    if not all(type(m) is nn.Linear and m.bias is not None for _, m in linears):
+        return None
+    kinds = {type(m) for _, m in activations}
+    if len(kinds) > 1 or not all(
+        isinstance(m, (nn.ReLU, nn.Tanh, nn.ELU, nn.GELU)) for _, m in activations
+    ):
+        return None
+    activation = kinds.pop() if kinds else nn.ReLU
+    if activation is nn.ELU and any(m.alpha != 1.0 for _, m in activations):
+        return None
+    if activation is nn.GELU and any(m.approximate != "none" for _, m in activations):
+        return None
+    return MLPLayout(
+        prefixes=tuple((*prefix, name) for name, _ in linears),
+        shapes=tuple((m.out_features, m.in_features) for _, m in linears),
+        activation=activation,
+    )
+
+
+ACTIVATIONS = {
+    nn.ReLU: torch.relu,
+    nn.Tanh: torch.tanh,
+    nn.ELU: nn.functional.elu,
+    nn.GELU: nn.functional.gelu,
+}
+"""The activations a fused or direct evaluation supports, as functions."""
+
+
+def evaluate_mlp(x: Tensor, params: TensorDictBase, layout: MLPLayout) -> Tensor:
+    """One MLP given by ``layout`` at ``x``, with its weights read from ``params``."""
+    act = ACTIVATIONS[layout.activation]
+    last = len(layout.prefixes) - 1
+    for depth, prefix in enumerate(layout.prefixes):
+        x = nn.functional.linear(x, params.get((*prefix, "weight")), params.get((*prefix, "bias")))
+        if depth < last:
+            x = act(x)
+    return x
