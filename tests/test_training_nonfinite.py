@@ -37,6 +37,8 @@ def _poisoned_batch(trainer, key=("next", "cost"), value=math.nan):
     if trainer.initial_state_buffer is not None:  # start states (rollout starts at a reset)
         trainer.initial_state_buffer.add_starts(rollout)
         batch = trainer.initial_state_buffer.attach(batch)
+    if getattr(trainer, "episode_window", None) is not None:  # recent episodes' cost (κ)
+        batch = trainer.episode_window.attach(batch)
     return batch
 
 

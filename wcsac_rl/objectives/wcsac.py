@@ -87,6 +87,7 @@ PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(
         "nonnegative_cost": False,
         "kappa_states": "replay",
         "kappa_statistic": "mean",
+        "kappa_signal": "critic",
     }
 )
 """The safety critic and κ as the paper writes them (Eq. 7–8, one-step targets with the
