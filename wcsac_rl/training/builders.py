@@ -32,6 +32,7 @@ from wcsac_rl.objectives import (
     StartStateBuffer,
     WCSACLoss,
 )
+from wcsac_rl.training.config import algo_option
 from wcsac_rl.training.devices import RunDevices, run_devices
 
 __all__ = [
@@ -146,7 +147,7 @@ def make_agent(cfg: DictConfig, env: EnvBase, devices: RunDevices | None = None)
     qvalues = [make_qvalue(obs_dim, act_dim, **shape) for _ in range(2)]
     safety = None
     if cfg.algo.name in ("wcsac", "sac_lag"):
-        if cfg.algo.get("safety_critic", "gaussian") == "iqn":
+        if algo_option(cfg.algo, "safety_critic") == "iqn":
             num_cosines = int(cfg.algo.iqn.num_cosines)
             safety = make_safety_critic(
                 obs_dim, act_dim, kind="iqn", num_cosines=num_cosines, **shape
@@ -159,6 +160,10 @@ def make_agent(cfg: DictConfig, env: EnvBase, devices: RunDevices | None = None)
         if module is not None:
             module.to(device)
     return Agent(actor, qvalues, safety)
+
+
+def _optional(cast, value):
+    return None if value is None else cast(value)
 
 
 def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModule:
@@ -181,24 +186,21 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
             "kappa_init": float(algo.kappa_init),
             "kappa_parametrization": str(algo.kappa_parametrization),
             "kappa_actions": str(algo.kappa_actions),
-            # (runs saved before these options existed had the paper's choices)
-            "kappa_states": str(algo.get("kappa_states", "replay")),
+            # (algo_option: what runs saved before an option existed did)
+            "kappa_states": str(algo_option(algo, "kappa_states")),
             "damp_scale": float(algo.damp_scale),
             "variance_loss": str(algo.variance_loss),
-            "variance_target": str(algo.get("variance_target", "moment")),
-            "cost_gamma": None if algo.get("cost_gamma") is None else float(algo.cost_gamma),
-            # (a run saved before this option existed bootstrapped across time limits)
-            "cost_bootstrap_truncated": (
-                None
-                if algo.get("cost_bootstrap_truncated", True) is None
-                else bool(algo.get("cost_bootstrap_truncated", True))
+            "variance_target": str(algo_option(algo, "variance_target")),
+            "cost_gamma": _optional(float, algo_option(algo, "cost_gamma")),
+            "cost_bootstrap_truncated": _optional(
+                bool, algo_option(algo, "cost_bootstrap_truncated")
             ),
-            "cost_n_steps": int(algo.get("cost_n_steps", 1)),
-            "nonnegative_cost": bool(algo.get("nonnegative_cost", False)),
-            "kappa_statistic": str(algo.get("kappa_statistic", "mean")),
-            "kappa_signal": str(algo.get("kappa_signal", "critic")),
+            "cost_n_steps": int(algo_option(algo, "cost_n_steps")),
+            "nonnegative_cost": bool(algo_option(algo, "nonnegative_cost")),
+            "kappa_statistic": str(algo_option(algo, "kappa_statistic")),
+            "kappa_signal": str(algo_option(algo, "kappa_signal")),
         }
-        if algo.get("safety_critic", "gaussian") == "iqn":
+        if algo_option(algo, "safety_critic") == "iqn":
             # the variance options configure the Gaussian critic's variance head
             del safety_kwargs["variance_loss"], safety_kwargs["variance_target"]
             safety_kwargs["num_quantiles"] = int(algo.iqn.num_quantiles)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from types import MappingProxyType
 from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
@@ -14,8 +15,10 @@ __all__ = [
     "ALGOS",
     "OFF_POLICY_ALGOS",
     "ON_POLICY_ALGOS",
+    "SAVED_RUN_OPTIONS",
     "ConfigError",
     "TrainingError",
+    "algo_option",
     "validate_config",
 ]
 
@@ -185,6 +188,29 @@ def _check_device(device: str) -> None:
         raise ConfigError("device=mps but MPS is not available on this machine; use device=cpu")
 
 
+SAVED_RUN_OPTIONS = MappingProxyType(
+    {
+        "variance_target": "moment",
+        "kappa_states": "replay",
+        "kappa_statistic": "mean",
+        "kappa_signal": "critic",
+        "cost_gamma": None,
+        "cost_bootstrap_truncated": True,  # (it bootstrapped across time limits)
+        "cost_n_steps": 1,
+        "nonnegative_cost": False,
+        "safety_critic": "gaussian",
+    }
+)
+"""What a run saved before one of these ``algo`` options existed did: its value for it
+(a resumed or evaluated run keeps training as it did)."""
+
+
+def algo_option(algo: DictConfig, key: str) -> Any:
+    """``algo[key]``, or what a run saved before the option existed did
+    (:data:`SAVED_RUN_OPTIONS`)."""
+    return algo.get(key, SAVED_RUN_OPTIONS.get(key))
+
+
 def _validate_safety_keys(algo: DictConfig) -> None:
     """The WCSAC / SAC-Lag options of ``conf/algo`` (the loss would refuse them later).
 
@@ -211,12 +237,12 @@ def _validate_safety_keys(algo: DictConfig) -> None:
         "kappa_signal": KAPPA_SIGNALS,
     }
     for key, allowed in choices.items():
-        if algo.get(key) not in allowed:
+        if algo_option(algo, key) not in allowed:
             raise ConfigError(
                 f"algo.{key} must be one of {', '.join(allowed)}, got {algo.get(key)!r}"
             )
-    if algo.get("kappa_signal", "critic") != "critic":
-        if algo.kappa_states != "initial":
+    if algo_option(algo, "kappa_signal") != "critic":
+        if algo_option(algo, "kappa_states") != "initial":
             raise ConfigError(
                 f"algo.kappa_signal={algo.kappa_signal} needs algo.kappa_states=initial (episode "
                 f"costs are compared with the episodic limit d), got {algo.kappa_states}"
@@ -235,16 +261,16 @@ def _validate_safety_keys(algo: DictConfig) -> None:
     cost_gamma = algo.get("cost_gamma")
     if cost_gamma is not None and not 0.0 <= float(cost_gamma) <= 1.0:
         raise ConfigError(f"algo.cost_gamma must be null or in [0, 1], got {cost_gamma}")
-    if not isinstance(algo.get("cost_bootstrap_truncated"), (bool, type(None))):
+    if not isinstance(algo_option(algo, "cost_bootstrap_truncated"), (bool, type(None))):
         raise ConfigError(
             "algo.cost_bootstrap_truncated must be null, true or false, got "
             f"{algo.get('cost_bootstrap_truncated')!r}"
         )
-    if not isinstance(algo.get("nonnegative_cost", False), bool):
+    if not isinstance(algo_option(algo, "nonnegative_cost"), bool):
         raise ConfigError(
             f"algo.nonnegative_cost must be true or false, got {algo.get('nonnegative_cost')!r}"
         )
-    kind = algo.get("safety_critic", "gaussian")
+    kind = algo_option(algo, "safety_critic")
     if kind not in SAFETY_CRITIC_KINDS:
         raise ConfigError(
             f"algo.safety_critic must be one of {', '.join(SAFETY_CRITIC_KINDS)}, got {kind!r}"
@@ -257,7 +283,7 @@ def _validate_safety_keys(algo: DictConfig) -> None:
                 raise ConfigError(f"algo.iqn.{key} must be an integer >= 1, got {value!r}")
         if not isinstance(iqn.get("huber_kappa"), (int, float)) or not iqn.huber_kappa > 0:
             raise ConfigError(f"algo.iqn.huber_kappa must be > 0, got {iqn.get('huber_kappa')!r}")
-    n_steps = algo.get("cost_n_steps", 1)
+    n_steps = algo_option(algo, "cost_n_steps")
     if not isinstance(n_steps, int) or isinstance(n_steps, bool) or n_steps < 1:
         raise ConfigError(f"algo.cost_n_steps must be an integer >= 1, got {n_steps!r}")
     if not float(algo.kappa_lr_scale) > 0:
