@@ -46,7 +46,7 @@ from torchrl.objectives import SACLoss, SoftUpdate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from plain_wcsac import PlainWCSAC
+from plain_wcsac import PlainWCSAC, batch_inputs
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
@@ -148,15 +148,7 @@ IQN = "(d) WCSACLoss, IQN critic"
 
 def plain_update_fn(plain: PlainWCSAC):
     def update(batch):
-        nxt = batch["next"]
-        plain.update(
-            batch["observation"],
-            batch["action"],
-            nxt["reward"].squeeze(-1),
-            nxt["cost"].squeeze(-1),
-            nxt["observation"],
-            nxt["terminated"].squeeze(-1).float(),
-        )
+        plain.update(*batch_inputs(batch))
 
     return update
 

@@ -69,6 +69,21 @@ def mlp(in_features: int, out_features: int, width: int = 256) -> nn.Sequential:
     )
 
 
+def batch_inputs(batch) -> tuple[torch.Tensor, ...]:
+    """The arguments of :meth:`PlainWCSAC.losses` / :meth:`PlainWCSAC.update` from a batch
+    in TorchRL's layout (``observation``, ``action`` and ``next``'s ``reward``, ``cost``,
+    ``observation``, ``terminated``)."""
+    nxt = batch["next"]
+    return (
+        batch["observation"],
+        batch["action"],
+        nxt["reward"].squeeze(-1),
+        nxt["cost"].squeeze(-1),
+        nxt["observation"],
+        nxt["terminated"].squeeze(-1).float(),
+    )
+
+
 def variance(raw: torch.Tensor) -> torch.Tensor:
     """The variance head's output ``V^c > 0`` from its last layer."""
     return F.softplus(raw).clamp(1e-8, 1e8)

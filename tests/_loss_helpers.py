@@ -13,6 +13,15 @@ from wcsac_rl.objectives import PAPER_OPTIONS
 
 OBS_DIM = 5
 ACT_DIM = 2
+# the loss terms of a WCSACLoss with a Gaussian safety critic (variance head included)
+LOSS_KEYS = (
+    "loss_actor",
+    "loss_qvalue",
+    "loss_alpha",
+    "loss_cost_value",
+    "loss_cost_variance",
+    "loss_kappa",
+)
 
 # Tolerances of assert_same_losses_and_gradients (see _tolerance.py): a loss output is
 # a batch mean of terms made by width-32 MLPs, so its roundings are those of 32-term

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from _loss_helpers import ACT_DIM, OBS_DIM, make_batch, make_loss
+from _loss_helpers import ACT_DIM, LOSS_KEYS, OBS_DIM, make_batch, make_loss
 from _tolerance import assert_close_f32
 from torch import nn
 from torch.nn import functional as F
@@ -32,19 +32,11 @@ from wcsac_rl.objectives import per_step_cost_threshold
 from wcsac_rl.objectives.risk import gaussian_cvar_multiplier
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from plain_wcsac import PlainWCSAC
+from plain_wcsac import PlainWCSAC, batch_inputs
 
 WIDTH = 32
 BATCH = 16
 SEED = 7
-LOSS_KEYS = (
-    "loss_actor",
-    "loss_qvalue",
-    "loss_alpha",
-    "loss_cost_value",
-    "loss_cost_variance",
-    "loss_kappa",
-)
 
 # Tolerances (tests/_tolerance.py: ops × 2⁻²³ × magnitude). A loss is a batch mean of
 # 16 terms built from width-32 MLP outputs (each a sum of ≤ 32 products per layer), so
@@ -102,19 +94,6 @@ def _pairs(plain: PlainWCSAC, loss, *, target: bool = False) -> list[tuple]:
     return pairs
 
 
-def _plain_inputs(batch) -> tuple[torch.Tensor, ...]:
-    """``PlainWCSAC.losses``' arguments from a TorchRL batch."""
-    nxt = batch["next"]
-    return (
-        batch["observation"],
-        batch["action"],
-        nxt["reward"].squeeze(-1),
-        nxt["cost"].squeeze(-1),
-        nxt["observation"],
-        nxt["terminated"].squeeze(-1).float(),
-    )
-
-
 def _twins_at_min(plain: PlainWCSAC, inputs) -> list[tuple[nn.Module, nn.Module, torch.Tensor]]:
     """``(first twin, second twin, input)`` where the losses take the twins' minimum:
     the targets at ``(s', a')``, the online critics at ``(s, a ~ π)``, with the draws
@@ -170,7 +149,7 @@ def _grads(pairs, side: int) -> dict[str, torch.Tensor]:
 @pytest.mark.parametrize("risk_level", [0.5, 1.0])
 def test_plain_reference_equals_wcsac_loss(risk_level, fast):
     batch = make_batch(BATCH)
-    inputs = _plain_inputs(batch)
+    inputs = batch_inputs(batch)
     plain, loss = _plain_and_loss(risk_level, fast, inputs)
     # every branch is taken: terminal and other steps, costs 0 and 1, either twin the minimum
     assert 0 < inputs[-1].sum() < BATCH and 0 < inputs[3].sum() < BATCH
@@ -231,7 +210,7 @@ def test_plain_reference_starts_as_wcsac_loss(risk_level):
 
 def test_plain_update_steps_every_group_and_averages_the_targets():
     """``update`` = the six losses, one Adam step of every parameter, Polyak targets."""
-    inputs = _plain_inputs(make_batch(BATCH))
+    inputs = batch_inputs(make_batch(BATCH))
     plain, _ = _plain_and_loss(0.5, True, inputs)
     before = {name: p.detach().clone() for name, p in plain.named_parameters()}
     targets = [p.detach().clone() for p in plain.targets.parameters()]

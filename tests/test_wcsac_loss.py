@@ -8,6 +8,7 @@ import pytest
 import torch
 from _loss_helpers import (
     ACT_DIM,
+    LOSS_KEYS,
     OBS_DIM,
     assert_same_losses_and_gradients,
     make_batch,
@@ -24,15 +25,6 @@ from torchrl.objectives.utils import ValueEstimators
 from wcsac_rl import SACLagLoss, WCSACLoss, per_step_cost_threshold
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives import PAPER_OPTIONS
-
-LOSS_KEYS = [
-    "loss_actor",
-    "loss_qvalue",
-    "loss_alpha",
-    "loss_cost_value",
-    "loss_cost_variance",
-    "loss_kappa",
-]
 
 # Which parameter groups each loss term may (and must) send gradients to.
 OWNERS = {
