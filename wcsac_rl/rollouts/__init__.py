@@ -5,21 +5,6 @@
 * :mod:`~wcsac_rl.rollouts.calibration` — the safety critic's predictions at the
   states of recorded episodes against the realised cost-to-go.
 
-The trainer logs both every epoch; :mod:`wcsac_rl.evaluation` uses them on finished runs.
+The trainer logs both every epoch; :mod:`wcsac_rl.evaluation` uses them on finished runs
+(and re-exports ``run_episodes``, ``summarize_episodes``, ``EpisodeResult``).
 """
-
-from wcsac_rl.rollouts.episodes import (
-    EpisodeResult,
-    RecordedEpisode,
-    record_episodes,
-    run_episodes,
-    summarize_episodes,
-)
-
-__all__ = [
-    "EpisodeResult",
-    "RecordedEpisode",
-    "record_episodes",
-    "run_episodes",
-    "summarize_episodes",
-]
