@@ -58,7 +58,7 @@ from wcsac_rl.evaluation.runs import (
     row_sort_key,
 )
 from wcsac_rl.evaluation.sweeps import SweepJob, incomplete_jobs
-from wcsac_rl.training.checkpoint import find_checkpoint, kept_checkpoints, load_checkpoint
+from wcsac_rl.training.checkpoint import kept_checkpoints
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
 
@@ -319,8 +319,11 @@ def _trajectory_sources(
     ]
 
 
-def _restore(source: _TrajectorySource, env_seed: int) -> tuple[Any, Any, int, str, dict]:
-    """``(policy, env, max_steps, env_name, env_kwargs)`` for a trajectory source."""
+def _restore(
+    source: _TrajectorySource, env_seed: int
+) -> tuple[Any, Any, int, str, dict, int | None]:
+    """``(policy, env, max_steps, env_name, env_kwargs, frames)`` for a trajectory source
+    (``frames``: what its checkpoint was trained for; ``None`` for the random policy)."""
     if has_checkpoint(source.directory):
         from wcsac_rl.evaluation.evaluator import load_policy
         from wcsac_rl.training.builders import env_kwargs
@@ -334,13 +337,14 @@ def _restore(source: _TrajectorySource, env_seed: int) -> tuple[Any, Any, int, s
             env_max_episode_steps(cfg),
             str(cfg.env.name),
             env_kwargs(cfg),
+            restored.frames,
         )
     from wcsac_rl.envs import make_env
 
     ev = read_evaluation(source.directory)
     kwargs = {"max_episode_steps": int(ev.meta["max_episode_steps"])}
     env = make_env(str(ev.meta["env"]), seed=env_seed, **kwargs)
-    return None, env, kwargs["max_episode_steps"], str(ev.meta["env"]), kwargs
+    return None, env, kwargs["max_episode_steps"], str(ev.meta["env"]), kwargs, None
 
 
 def build_report(
@@ -601,7 +605,7 @@ def _figure5(
     stages: list[list[tuple[str, dict, list]]] = []  # per run with kept checkpoints
     for source in sources:
         log(f"trajectories: {source.label} seed {source.seed} ({episodes} episodes)")
-        policy, env, env_steps, env_name, kwargs = _restore(source, env_seed)
+        policy, env, env_steps, env_name, kwargs, frames = _restore(source, env_seed)
         steps = int(max_steps or env_steps)
         try:
             torch.manual_seed(env_seed)
@@ -613,12 +617,11 @@ def _figure5(
         kept = kept_checkpoints(source.directory)
         if kept:
             row = []
-            for frames, path in kept:
-                log(f"trajectories: {source.label} seed {source.seed} at {frames} frames")
+            for at, path in kept:
+                log(f"trajectories: {source.label} seed {source.seed} at {at} frames")
                 kept_layout, kept_trajs = _kept_trajectories(path, env_seed, episodes, steps)
-                row.append((f"{title}: {_frames_text(frames)} frames", kept_layout, kept_trajs))
-            final = _restore_frames(source.directory)
-            row.append((f"{title}: {_frames_text(final)} frames (end)", layout, trajs))
+                row.append((f"{title}: {_frames_text(at)} frames", kept_layout, kept_trajs))
+            row.append((f"{title}: {_frames_text(frames)} frames (end)", layout, trajs))
             stages.append(row)
         written.append(
             plots.plot_trajectories(
@@ -664,11 +667,6 @@ def _frames_text(frames: int) -> str:
     if frames >= 1000:
         return f"{frames / 1e3:g} k"
     return str(frames)
-
-
-def _restore_frames(run_dir: Path) -> int:
-    """Frames of a run's final checkpoint."""
-    return int(load_checkpoint(find_checkpoint(run_dir))["frames"])
 
 
 def _kept_trajectories(
