@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -60,7 +64,7 @@ def test_make_env_from_pixels(render_env):
     env.close()
 
 
-@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="Linux rule")
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the rule is Linux's")
 @pytest.mark.parametrize(
     ("display", "preset", "expected"),
     [(None, None, "egl"), (None, "glfw", "glfw"), (":0", None, "unset")],
@@ -68,10 +72,6 @@ def test_make_env_from_pixels(render_env):
 def test_importing_the_package_picks_egl_only_on_a_headless_machine(display, preset, expected):
     """``import wcsac_rl`` (before anything imports mujoco) sets ``MUJOCO_GL=egl`` when
     there is no display and the user chose nothing."""
-    import os
-    import subprocess
-    import sys
-
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "MUJOCO_GL")}
     env.update({k: v for k, v in (("DISPLAY", display), ("MUJOCO_GL", preset)) if v})
     code = "import os, wcsac_rl; print(os.environ.get('MUJOCO_GL', 'unset'))"
