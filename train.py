@@ -39,6 +39,12 @@ def main(cfg: DictConfig) -> None:
         sys.exit(f"error: {err}")
     try:
         run_dir = trainer.run()
+        # (drawn while the run still holds its directory's lock, as every file of the run)
+        curves = plot_run_curves(
+            run_dir / "progress.csv",
+            run_dir / "curves.png",
+            cost_limit=float(trainer.cfg.cost_limit),
+        )
     except KeyboardInterrupt:
         sys.exit(130)
     except Preempted as stop:
@@ -48,9 +54,6 @@ def main(cfg: DictConfig) -> None:
         sys.exit(f"error: {err}")
     finally:
         trainer.close()
-    curves = plot_run_curves(
-        run_dir / "progress.csv", run_dir / "curves.png", cost_limit=float(trainer.cfg.cost_limit)
-    )
     print(f"run directory: {run_dir}")
     print(f"  metrics (one row per epoch): {run_dir / 'progress.csv'}")
     print(f"  logger output:               {run_dir / 'logs'}")

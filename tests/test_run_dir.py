@@ -171,7 +171,7 @@ def test_two_train_py_processes_on_one_directory(tmp_path):
         "algo.collector.frames_per_batch=200",
         "epoch_frames=200",
         "progress_bar=false",
-        "total_frames=6000",
+        "total_frames=30000",  # long enough to outlive the second process's start
         f"hydra.run.dir={run_dir}",
     ]
     first = _train_py(*args, cwd=tmp_path, background=True)
@@ -185,7 +185,7 @@ def test_two_train_py_processes_on_one_directory(tmp_path):
     assert first.returncode == 0, err[-2000:]
     assert second.returncode == 1
     assert "is in use by another run (host " in second.stderr and "Traceback" not in second.stderr
-    assert _epochs(run_dir) == list(range(1, 31))  # only the first run's rows
+    assert _epochs(run_dir) == list(range(1, 151))  # only the first run's rows
 
 
 def test_a_lock_from_a_dead_process_is_stale(tmp_path):
