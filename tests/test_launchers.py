@@ -47,6 +47,15 @@ FRAMES, EPOCHS = 4000, 10
 TINY = [*TINY_CLI, "resume=auto"]
 
 
+SWEEP_EXPERIMENTS = (
+    "table1_static",
+    "table1_static_reduced",
+    "table1_static_laptop",
+    "table1_dynamic",
+    "table1_dynamic_laptop",
+)
+
+
 def _sweep(sweep_dir: Path, *overrides: str, launcher: str = "slurm_local") -> list[str]:
     return [
         sys.executable,
@@ -239,9 +248,10 @@ def test_slurm_preset_asks_for_one_cpu_the_measured_memory_and_time(monkeypatch)
     # the experiment's sweep directory is named after it, not a timestamp, and each
     # job's after its run (row, env, seed), not its position among the command's jobs
     sweep = OmegaConf.to_container(cfg.hydra.sweep, resolve=False)
-    assert sweep["dir"] == "multirun/${hydra:runtime.choices.experiment}"
     assert sweep["subdir"] == "${run_name}"
     assert cfg.hydra.runtime.choices.experiment == "table1_static"
+    for experiment in SWEEP_EXPERIMENTS:  # resolvable before Hydra's runtime exists
+        assert _hydra_config(f"experiment={experiment}").hydra.sweep.dir == f"multirun/{experiment}"
     local = _hydra_config("experiment=table1_static", "hydra/launcher=slurm_local").hydra
     assert local.launcher._target_.endswith("LocalLauncher")
     assert local.launcher.cpus_per_task == 1
