@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 import subprocess
 import sys
 
@@ -289,3 +290,31 @@ def test_report_cli(sweep, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and "pass --force" in err[0]
     assert json.loads((run_dirs(sweep)[0] / "evaluation.json").read_text())["episodes"] == EPISODES
+
+
+def test_an_archived_report_is_made_again_from_its_archive_alone(sweep, tmp_path):
+    """``archive=True`` copies what the table and Figures 4 and 6 need (no checkpoint);
+    a report of the copies alone writes the same table, byte for byte, and a report of
+    the original sweep does not count the copies a second time."""
+    root = tmp_path / "root"
+    shutil.copytree(sweep, root / "sweep")
+    out = root / "report"  # inside the reported tree, as the default --out is
+    first = build_report([root], out, trajectories=False, archive=True, log=lambda _: None)
+    archive = out / "runs"
+    archived = sorted(p.relative_to(archive).as_posix() for p in archive.rglob("*") if p.is_file())
+    names = [d.name for d in run_dirs(sweep)]
+    files = ("config.yaml", "evaluation.csv", "evaluation.json", "progress.csv")
+    assert archived == [f"{name}/{f}" for name in names for f in files]
+    again = build_report([archive], tmp_path / "again", trajectories=False, log=lambda _: None)
+    assert again.warnings == []
+    for name in ("table1.md", "table1.csv"):
+        assert (tmp_path / "again" / name).read_bytes() == (out / name).read_bytes()
+    lines: list[str] = []
+    rerun = build_report([root], out, trajectories=False, force=True, log=lines.append)
+    assert rerun.warnings == [] and rerun.rows == first.rows  # 2 seeds per row, not 4
+    # two runs of one name cannot share the archive: refused before anything is written
+    twin = tmp_path / "twin"
+    shutil.copytree(run_dirs(sweep)[0], twin / run_dirs(sweep)[0].name)
+    with pytest.raises(ReportError, match="both would be"):
+        build_report([sweep, twin], tmp_path / "clash", archive=True, log=lambda _: None)
+    assert not (tmp_path / "clash").exists()

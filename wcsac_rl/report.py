@@ -11,7 +11,12 @@ Table-1 row (``algo.label``, seeds pooled) and writes into ``--out`` (default
   test episodes of one run per row (the lowest seed; ``--trajectory-runs`` to choose);
   ``--video`` adds an mp4 (or ``--video-format gif``) rendered with MuJoCo;
 * ``fig6_evaluation.png`` — cost box plots (whiskers 1st/99th percentiles, d dashed)
-  and the budget-exceedance bar chart.
+  and the budget-exceedance bar chart;
+* ``table1_vs_paper.md`` — on StaticEnv at d = 15, each row beside the paper's Table 1,
+  and the orderings of C0.1 and EC in both;
+* with ``--archive``, ``runs/<run>/`` — each run's ``evaluation.json``/``.csv``,
+  ``config.yaml`` and ``progress.csv``: results to commit without checkpoints, from
+  which ``python -m wcsac_rl.report <out>/runs`` makes the same table again.
 
 Existing files are not overwritten without ``--force``. Errors print one ``error:``
 line and exit with code 1.
@@ -52,6 +57,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         "--cost-limit", type=float, default=None, help="budget d (default: the runs' own)"
     )
     parser.add_argument("--force", action="store_true", help="overwrite existing report files")
+    parser.add_argument(
+        "--archive",
+        action="store_true",
+        help="also copy each run's evaluation, config and progress.csv into <out>/runs "
+        "(a report of that folder alone gives the same table and Figures 4 and 6)",
+    )
     traj = parser.add_argument_group("Figure 5: trajectories")
     traj.add_argument(
         "--trajectory-runs",
@@ -133,6 +144,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             video_format=args.video_format,
             fig6_rows=args.fig6_rows,
             fig6_ymax=args.fig6_ymax,
+            archive=args.archive,
         )
     except (ConfigError, TrajectoryError, VideoError) as err:
         print(f"error: {err}", file=sys.stderr)

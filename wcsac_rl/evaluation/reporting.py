@@ -34,6 +34,7 @@ import csv
 import io
 import math
 import os
+import shutil
 from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -50,7 +51,10 @@ from wcsac_rl.evaluation.evaluator import (
     stale_evaluation,
 )
 from wcsac_rl.evaluation.metrics import RISK_LEVELS, aggregate_seeds, cvar_key
+from wcsac_rl.evaluation.paper import paper_comparison_markdown
 from wcsac_rl.evaluation.runs import (
+    EVALUATION_CSV,
+    EVALUATION_JSON,
     find_evaluated_dirs,
     find_progress_dirs,
     has_checkpoint,
@@ -63,10 +67,13 @@ from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
 
 __all__ = [
+    "ARCHIVED_FILES",
+    "ARCHIVE_DIR",
     "FIG4",
     "FIG6",
     "TABLE_CSV",
     "TABLE_MD",
+    "TABLE_VS_PAPER",
     "TRAJECTORIES",
     "Report",
     "ReportError",
@@ -77,6 +84,12 @@ __all__ = [
 
 TABLE_MD = "table1.md"
 TABLE_CSV = "table1.csv"
+TABLE_VS_PAPER = "table1_vs_paper.md"
+ARCHIVE_DIR = "runs"
+"""Where ``archive=True`` copies the reported runs' records, below the report's directory."""
+ARCHIVED_FILES = (EVALUATION_JSON, EVALUATION_CSV, "config.yaml", "progress.csv")
+"""What an archived run keeps: enough to make the table and Figures 4 and 6 again
+(no checkpoint, so no Figure 5, and no replay buffer)."""
 FIG4 = "fig4_training_curves.png"
 FIG5 = "fig5_trajectories.png"
 FIG5_STAGES = "fig5_stages.png"
@@ -363,6 +376,7 @@ def build_report(
     video_format: str = "mp4",
     fig6_rows: Sequence[str] | None = None,
     fig6_ymax: float | None = None,
+    archive: bool = False,
     log: Callable[[str], None] = print,
 ) -> Report:
     """Write Table 1 and Figures 4, 5, 6 for the runs below ``paths`` into ``out_dir``.
@@ -384,6 +398,11 @@ def build_report(
         fig6_rows: the rows Figure 6 compares (default: every evaluated row except
             the random policy, as the paper compares the SAC-based methods).
         fig6_ymax: upper view limit of Figure 6(a).
+        archive: also copy each reported run's records (:data:`ARCHIVED_FILES`) into
+            ``out_dir/runs/<run directory name>``: a report of that folder alone makes
+            the same Table 1 and Figures 4 and 6, e.g. in a repository that keeps
+            results without checkpoints. A later report of the original paths does
+            not count these copies again.
         log: where progress lines go.
 
     Raises:
@@ -400,9 +419,14 @@ def build_report(
     for raw in paths:
         if not Path(raw).expanduser().is_dir():
             raise ReportError(f"{raw}: no such directory")
+    archive_dir = (out_dir / ARCHIVE_DIR).resolve()
+    if any(_within(Path(raw).expanduser().resolve(), archive_dir) for raw in paths):
+        previous_archive = None  # reporting on an archive itself
+    else:
+        previous_archive = archive_dir
     evaluations: list[Evaluation] = []
     stale: list[str] = []
-    for directory in find_evaluated_dirs(paths):
+    for directory in _outside(find_evaluated_dirs(paths), previous_archive):
         try:
             evaluations.append(read_evaluation(directory))
         except ConfigError as err:
@@ -418,7 +442,7 @@ def build_report(
             f"{' '.join(map(str, paths))}) and re-run the report"
         )
     runs = []
-    for directory in find_progress_dirs(paths):
+    for directory in _outside(find_progress_dirs(paths), previous_archive):
         try:
             runs.append(_read_run(directory))
         except Exception as err:  # a half-written config: report it and go on
@@ -472,8 +496,20 @@ def build_report(
 
     # ---- plan every output file, refuse to overwrite, check the video encoder
     planned: list[Path] = []
+    rows: list[dict[str, Any]] = []
+    comparison = None
     if evaluations:
+        rows = table1_rows(evaluations, cost_limit)
+        comparison = paper_comparison_markdown(rows, env, cost_limit) if env else None
         planned += [out_dir / TABLE_MD, out_dir / TABLE_CSV, out_dir / FIG6]
+        if comparison is not None:
+            planned.append(out_dir / TABLE_VS_PAPER)
+    copies: list[tuple[Path, Path]] = []
+    if archive:
+        copies = _archive_plan(
+            [Path(e.directory) for e in evaluations] + [r.directory for r in runs], archive_dir
+        )
+        planned += [target for _, target in copies]
     runs_with_progress = [r for r in runs if r.progress]
     if runs_with_progress:
         planned.append(out_dir / FIG4)
@@ -500,7 +536,6 @@ def build_report(
 
     # ---- Table 1 and Figure 6
     if evaluations:
-        rows = table1_rows(evaluations, cost_limit)
         report.rows = rows
         report.files.append(
             _write_text(
@@ -508,6 +543,8 @@ def build_report(
             )
         )
         report.files.append(_write_text(out_dir / TABLE_CSV, _table_csv(rows)))
+        if comparison is not None:
+            report.files.append(_write_text(out_dir / TABLE_VS_PAPER, comparison))
         costs: dict[str, list[float]] = defaultdict(list)
         for ev in sorted(evaluations, key=lambda e: row_sort_key(e.label)):
             costs[ev.label].extend(ev.costs)
@@ -558,9 +595,43 @@ def build_report(
             title_env=title_env,
             log=log,
         )
+    for source, target in copies:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(source, target)
+        report.files.append(target)
     for path in report.files:
         log(f"wrote {path}")
     return report
+
+
+def _within(path: Path, directory: Path) -> bool:
+    return path == directory or directory in path.parents
+
+
+def _outside(directories: Sequence[Path], archive: Path | None) -> list[Path]:
+    """``directories`` without the copies a previous ``archive=True`` report made."""
+    if archive is None:
+        return list(directories)
+    return [d for d in directories if not _within(d.resolve(), archive)]
+
+
+def _archive_plan(directories: Sequence[Path], archive_dir: Path) -> list[tuple[Path, Path]]:
+    """``(source, target)`` pairs copying the records of each run directory into
+    ``archive_dir/<its name>``; two runs of one name cannot share the archive."""
+    by_name: dict[str, Path] = {}
+    for directory in dict.fromkeys(Path(d).resolve() for d in directories):
+        other = by_name.setdefault(directory.name, directory)
+        if other != directory:
+            raise ReportError(
+                f"cannot archive {other} and {directory}: both would be "
+                f"{archive_dir / directory.name}; report them separately"
+            )
+    return [
+        (directory / name, archive_dir / directory.name / name)
+        for directory in by_name.values()
+        for name in ARCHIVED_FILES
+        if (directory / name).is_file()
+    ]
 
 
 def _check_video(video_format: str, env: str | None) -> None:

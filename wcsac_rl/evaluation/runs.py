@@ -78,12 +78,15 @@ def row_name(label: str) -> str:
 
 
 def row_sort_key(label: str) -> tuple[int, float, str]:
-    """Sort key putting rows in the paper's order: SAC, SAC-Lag, WCSAC by decreasing α
-    (any α; the IQN critic's row after the Gaussian one of the same α), CPO, Random
-    Policy, then unknown labels alphabetically.
+    """Sort key putting rows in the paper's order: SAC, SAC-Lag (the paper's formulation,
+    ``sac_lag_paper``, next), WCSAC by decreasing α (any α; the IQN critic's row after
+    the Gaussian one of the same α), CPO, Random Policy, then unknown labels
+    alphabetically.
 
     >>> sorted(["random", "wcsac_iqn_0.1", "wcsac_0.1", "sac", "wcsac_0.9"], key=row_sort_key)
     ['sac', 'wcsac_0.9', 'wcsac_0.1', 'wcsac_iqn_0.1', 'random']
+    >>> sorted(["wcsac_0.5", "sac_lag_paper", "sac_lag"], key=row_sort_key)
+    ['sac_lag', 'sac_lag_paper', 'wcsac_0.5']
     """
     match = _WCSAC_LABEL.fullmatch(label)
     if match:
@@ -94,6 +97,8 @@ def row_sort_key(label: str) -> tuple[int, float, str]:
         return (ROW_ORDER.index("wcsac_0.9"), -alpha, label)
     if label in ROW_ORDER:
         return (ROW_ORDER.index(label), 0.0, label)
+    if label == "sac_lag_paper":
+        return (ROW_ORDER.index("sac_lag"), 1.0, label)
     return (len(ROW_ORDER), 0.0, label)
 
 
