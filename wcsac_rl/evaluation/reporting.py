@@ -18,6 +18,9 @@ groups them by Table-1 row (``algo.label``; seeds pooled) and writes
                                  one row per run, one panel per kept checkpoint and the end
 ``fig5_<label>_seed<N>.mp4``     (``video=True``) the first of those episodes, rendered
 ``fig6_evaluation.png``          (a) cost box plots, whiskers 1st/99th pct.; (b) % over budget
+``table1_vs_paper.md``           (StaticEnv, d = 15) each row beside the paper's Table 1, and
+                                 the orderings of C0.1 and EC (:mod:`~wcsac_rl.evaluation.paper`)
+``runs/<run>/``                  (``archive=True``) each run's evaluation, config and progress
 ===============================  ============================================================
 
 Below a sweep directory (``multirun.yaml``, from any launcher) every job of the sweep
