@@ -28,6 +28,7 @@ def test_rows_sit_beside_the_papers_and_kit_rows_beside_their_paper_row():
         _row("mine", 1.0, 1.0),  # no paper row: left out
     ]
     md = paper_comparison_markdown(rows, "static", 15.0)
+    assert md.startswith("# Table 1 here and in the paper — StaticEnv, budget d = 15\n")
     table = _table(md)
     assert list(table) == ["SAC", "SAC-Lag", "SAC-Lag-paper", "WCSAC-0.1", "WCSAC-IQN-0.1"]
     paper = PAPER_TABLE1["static"]

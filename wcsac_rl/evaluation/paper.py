@@ -11,7 +11,8 @@ from collections.abc import Mapping, Sequence
 from itertools import pairwise
 from typing import Any
 
-from wcsac_rl.evaluation.runs import row_name, row_sort_key
+from wcsac_rl.evaluation.metrics import RISK_LEVELS, cvar_key
+from wcsac_rl.evaluation.runs import env_title, row_name, row_sort_key
 
 __all__ = ["PAPER_COST_LIMIT", "PAPER_ROW_OF", "PAPER_TABLE1", "paper_comparison_markdown"]
 
@@ -45,7 +46,7 @@ PAPER_ROW_OF: dict[str, str] = {
 """Rows of this kit compared with a paper row of another label: the paper's own
 formulation of a row, and WCSAC with the IQN critic against the paper's WCSAC."""
 
-_COLUMNS = ("EC", "C0.9", "C0.5", "C0.1", "ER")
+_COLUMNS = ("EC", *(cvar_key(a) for a in RISK_LEVELS), "ER")  # table1.md's
 
 
 def _ranked(values: Mapping[str, float]) -> list[str]:
@@ -81,7 +82,7 @@ def paper_comparison_markdown(
     for key in _COLUMNS:
         header += [f"{key} here", f"{key} paper"]
     lines = [
-        f"# Table 1 here and in the paper — {env}, budget d = {cost_limit:g}",
+        f"# Table 1 here and in the paper — {env_title(env)}, budget d = {cost_limit:g}",
         "",
         "| " + " | ".join(header) + " |",
         "|---|---|" + "---:|" * (len(header) - 2),

@@ -58,6 +58,7 @@ from wcsac_rl.evaluation.paper import paper_comparison_markdown
 from wcsac_rl.evaluation.runs import (
     EVALUATION_CSV,
     EVALUATION_JSON,
+    env_title,
     find_evaluated_dirs,
     find_progress_dirs,
     has_checkpoint,
@@ -141,16 +142,6 @@ class Report:
     warnings: list[str] = field(default_factory=list)
     rows: list[dict[str, Any]] = field(default_factory=list)
     incomplete: list[SweepJob] = field(default_factory=list)
-
-
-def env_title(name: str) -> str:
-    """``"static"`` → ``"StaticEnv"`` (the gymnasium id's name), unknown names unchanged."""
-    try:
-        from wcsac_rl.envs import get_preset
-
-        return get_preset(name).gym_id.split("/")[-1].rsplit("-v", 1)[0]
-    except (ValueError, KeyError):
-        return name
 
 
 def _read_run(directory: Path) -> RunRecord:

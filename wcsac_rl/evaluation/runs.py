@@ -22,6 +22,7 @@ __all__ = [
     "EVALUATION_JSON",
     "ROW_NAMES",
     "ROW_ORDER",
+    "env_title",
     "find_evaluated_dirs",
     "find_progress_dirs",
     "find_run_dirs",
@@ -75,6 +76,16 @@ def row_name(label: str) -> str:
         variant = {"iqn_": "IQN-", "paper_": "paper-"}.get(match.group(1) or "", "")
         return f"WCSAC-{variant}{match.group(2)}"
     return label
+
+
+def env_title(name: str) -> str:
+    """``"static"`` → ``"StaticEnv"`` (the gymnasium id's name), unknown names unchanged."""
+    try:
+        from wcsac_rl.envs import get_preset
+
+        return get_preset(name).gym_id.split("/")[-1].rsplit("-v", 1)[0]
+    except (ValueError, KeyError):
+        return name
 
 
 def row_sort_key(label: str) -> tuple[int, float, str]:
