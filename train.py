@@ -32,9 +32,10 @@ def main(cfg: DictConfig) -> None:
     try:
         # resume=RUN_DIR: the run's own config, with only the explicit overrides applied;
         # resume=auto (sweeps): the composed config, checked against this run dir's checkpoint
+        overrides = list(HydraConfig.get().overrides.task)
         if cfg.resume and cfg.resume != AUTO_RESUME:
-            cfg = resume_config(cfg, list(HydraConfig.get().overrides.task))
-        trainer = make_trainer(cfg, Path(HydraConfig.get().runtime.output_dir))
+            cfg = resume_config(cfg, overrides)
+        trainer = make_trainer(cfg, Path(HydraConfig.get().runtime.output_dir), overrides=overrides)
     except USER_ERRORS as err:
         sys.exit(f"error: {err}")
     try:

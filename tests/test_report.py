@@ -72,6 +72,7 @@ def test_report_writes_every_file(report):
             "fig5_wcsac_0.5_seed0.png",
             "fig5_random_seed0.png",
             "fig6_evaluation.png",
+            "runs.md",
         ]
     )
     assert sorted(p.name for p in result.out_dir.iterdir()) == names
@@ -79,6 +80,63 @@ def test_report_writes_every_file(report):
     assert [line for line in lines if line.startswith("wrote ")] == [
         f"wrote {p}" for p in result.files
     ]
+
+
+def test_runs_md_lists_each_run_with_its_frames_wall_time_and_commit(report, sweep):
+    result, _ = report
+    lines = (result.out_dir / "runs.md").read_text().splitlines()
+    assert lines[0] == "# Training runs — TinyHazard"
+    assert lines[2] == "| run | row | seed | frames | training wall time | sessions | code |"
+    body = [line for line in lines[4:] if line.startswith("| ")]
+    assert [line.split(" | ")[0].lstrip("| ") for line in body] == [
+        d.name for d in run_dirs(sweep)
+    ]  # WCSAC-0.5 seeds 0, 1, then the random policy's: the table's order
+    total = 0.0
+    for line, run_dir in zip(body, run_dirs(sweep)):
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        progress = list(csv.DictReader((run_dir / "progress.csv").open()))
+        seconds = float(progress[-1]["time_s"])
+        total += seconds
+        minutes = round(seconds / 60)
+        assert cells[3] == progress[-1]["frames"] == "800"
+        assert cells[4] == f"{minutes // 60} h {minutes % 60:02d} min" and cells[5] == "1"
+        commit = json.loads((run_dir / "provenance.json").read_text())["code"]["commit"]
+        assert cells[6].startswith(commit[:7] if commit else "package ")
+    minutes = round(total / 60)
+    assert f"Total training wall time: {minutes // 60} h {minutes % 60:02d} min over 4 runs" in (
+        "\n".join(lines)
+    )
+
+
+def test_runs_md_says_which_sessions_have_no_record(tmp_path):
+    from wcsac_rl.evaluation.reporting import RunRecord, runs_markdown
+
+    def run(name, sessions, provenance):
+        return RunRecord(
+            tmp_path / name,
+            "sac",
+            "static",
+            0,
+            15.0,
+            {"frames": [1e5], "time_s": [3725.0]},
+            sessions=sessions,
+            provenance=provenance,
+        )
+
+    sha = "0123456789abcdef"
+    text = runs_markdown(
+        [
+            run("old", 2, []),
+            run("half", 2, [{"code": {"commit": sha, "dirty": True}}]),
+            run("wheel", 1, [{"code": {"commit": None, "version": "0.1.0"}}]),
+        ],
+        "static",
+    )
+    assert "| old | SAC | 0 | 100000 | 1 h 02 min | 2 | not recorded |" in text
+    assert "| half | SAC | 0 | 100000 | 1 h 02 min | 2 | 0123456 + local changes, " in text
+    assert "not recorded (1 of 2 sessions) |" in text
+    assert "| wheel | SAC | 0 | 100000 | 1 h 02 min | 1 | package 0.1.0 (no git checkout) |" in text
+    assert "Total training wall time: 3 h 06 min over 3 runs" in text
 
 
 def test_png_sizes(report):
@@ -134,6 +192,7 @@ def test_existing_report_is_not_overwritten_without_force(report, sweep):
         "table1.csv",
         "fig4_training_curves.png",
         "fig6_evaluation.png",
+        "runs.md",
     }
     assert (result.out_dir / "table1.csv").read_bytes() == before[result.out_dir / "table1.csv"]
 
@@ -155,7 +214,7 @@ def test_unevaluated_runs_give_curves_and_a_warning(tmp_path):
     sweep = copy_sweep(tmp_path)
     lines: list[str] = []
     result = build_report([sweep], tmp_path / "out", trajectories=False, log=lines.append)
-    assert [p.name for p in result.files] == ["fig4_training_curves.png"]
+    assert [p.name for p in result.files] == ["runs.md", "fig4_training_curves.png"]
     assert any("4 training run(s) have no evaluation" in w for w in result.warnings)
     assert any("Table 1 and Figure 6 skipped" in w for w in result.warnings)
     assert all(line.startswith(("warning: ", "wrote ")) for line in lines)
@@ -303,11 +362,11 @@ def test_an_archived_report_is_made_again_from_its_archive_alone(sweep, tmp_path
     archive = out / "runs"
     archived = sorted(p.relative_to(archive).as_posix() for p in archive.rglob("*") if p.is_file())
     names = [d.name for d in run_dirs(sweep)]
-    files = ("config.yaml", "evaluation.csv", "evaluation.json", "progress.csv")
+    files = ("config.yaml", "evaluation.csv", "evaluation.json", "progress.csv", "provenance.json")
     assert archived == [f"{name}/{f}" for name in names for f in files]
     again = build_report([archive], tmp_path / "again", trajectories=False, log=lambda _: None)
     assert again.warnings == []
-    for name in ("table1.md", "table1.csv"):
+    for name in ("table1.md", "table1.csv", "runs.md"):
         assert (tmp_path / "again" / name).read_bytes() == (out / name).read_bytes()
     lines: list[str] = []
     rerun = build_report([root], out, trajectories=False, force=True, log=lines.append)

@@ -17,6 +17,7 @@ from _training_helpers import ROOT, TINY_CLI, compose_config
 
 from wcsac_rl.training import ConfigError, make_trainer
 from wcsac_rl.training.checkpoint import load_checkpoint, resume_config
+from wcsac_rl.training.provenance import read_provenance
 from wcsac_rl.training.run_dir import RunLock, cut_records_to
 
 
@@ -243,6 +244,19 @@ def test_train_py_resume_continues_the_run_as_configured_and_keeps_its_config(tm
     assert "error: resume continues" in refused.stderr
     assert "epoch_frames: run=200, now=100 cannot change on resume" in refused.stderr
     assert not (run_dir / "config.resume2.yaml").exists()
+    # each session recorded the code it ran and the overrides that compose its config
+    first_session, second_session = read_provenance(run_dir)
+    assert first_session["overrides"] == [*CLI, "seed=7", "total_frames=400"]
+    assert first_session["resumed_from_frames"] is None
+    assert second_session["overrides"] == [f"resume={run_dir}", "total_frames=800"]
+    assert second_session["resumed_from_frames"] == 400
+    head = subprocess.run(
+        ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=False
+    )
+    if head.returncode == 0:  # a git checkout (CI's clean clone is one)
+        assert first_session["code"]["commit"] == head.stdout.strip()
+        assert isinstance(first_session["code"]["dirty"], bool)
+    assert not (run_dir / "provenance.resume2.json").exists()  # the refused session wrote none
 
 
 def test_resume_continues_the_same_wandb_run(tmp_path, monkeypatch):

@@ -14,9 +14,12 @@ Table-1 row (``algo.label``, seeds pooled) and writes into ``--out`` (default
   and the budget-exceedance bar chart;
 * ``table1_vs_paper.md`` — on StaticEnv at d = 15, each row beside the paper's Table 1,
   and the orderings of C0.1 and EC in both;
+* ``runs.md`` — the training runs: row, seed, frames, wall time, sessions, and the
+  commit each session ran (its ``provenance.json``);
 * with ``--archive``, ``runs/<run>/`` — each run's ``evaluation.json``/``.csv``,
-  ``config.yaml`` and ``progress.csv``: results to commit without checkpoints, from
-  which ``python -m wcsac_rl.report <out>/runs`` makes the same table again.
+  ``config*.yaml``, ``provenance*.json`` and ``progress.csv``: results to commit
+  without checkpoints, from which ``python -m wcsac_rl.report <out>/runs`` makes the
+  same tables again.
 
 Existing files are not overwritten without ``--force``. Errors print one ``error:``
 line and exit with code 1.

@@ -20,7 +20,11 @@ groups them by Table-1 row (``algo.label``; seeds pooled) and writes
 ``fig6_evaluation.png``          (a) cost box plots, whiskers 1st/99th pct.; (b) % over budget
 ``table1_vs_paper.md``           (StaticEnv, d = 15) each row beside the paper's Table 1, and
                                  the orderings of C0.1 and EC (:mod:`~wcsac_rl.evaluation.paper`)
-``runs/<run>/``                  (``archive=True``) each run's evaluation, config and progress
+``runs.md``                      the training runs: row, seed, frames, training wall time,
+                                 sessions, the code commit each session ran
+                                 (:mod:`~wcsac_rl.training.provenance`)
+``runs/<run>/``                  (``archive=True``) each run's evaluation, config, session
+                                 records and progress
 ===============================  ============================================================
 
 Below a sweep directory (``multirun.yaml``, from any launcher) every job of the sweep
@@ -69,12 +73,14 @@ from wcsac_rl.evaluation.sweeps import SweepJob, incomplete_jobs
 from wcsac_rl.training.checkpoint import kept_checkpoints
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
+from wcsac_rl.training.provenance import read_provenance
 
 __all__ = [
     "ARCHIVED_FILES",
     "ARCHIVE_DIR",
     "FIG4",
     "FIG6",
+    "RUNS_MD",
     "TABLE_CSV",
     "TABLE_MD",
     "TABLE_VS_PAPER",
@@ -82,6 +88,7 @@ __all__ = [
     "Report",
     "ReportError",
     "build_report",
+    "runs_markdown",
     "table1_markdown",
     "table1_rows",
 ]
@@ -89,11 +96,20 @@ __all__ = [
 TABLE_MD = "table1.md"
 TABLE_CSV = "table1.csv"
 TABLE_VS_PAPER = "table1_vs_paper.md"
+RUNS_MD = "runs.md"
 ARCHIVE_DIR = "runs"
 """Where ``archive=True`` copies the reported runs' records, below the report's directory."""
-ARCHIVED_FILES = (EVALUATION_JSON, EVALUATION_CSV, "config.yaml", "progress.csv")
-"""What an archived run keeps: enough to make the table and Figures 4 and 6 again
-(no checkpoint, so no Figure 5, and no replay buffer)."""
+ARCHIVED_FILES = (
+    EVALUATION_JSON,
+    EVALUATION_CSV,
+    "config.yaml",
+    "config.resume*.yaml",
+    "provenance*.json",
+    "progress.csv",
+)
+"""What an archived run keeps (names and glob patterns): enough to make the table,
+``runs.md`` and Figures 4 and 6 again (no checkpoint, so no Figure 5, and no replay
+buffer)."""
 FIG4 = "fig4_training_curves.png"
 FIG5 = "fig5_trajectories.png"
 FIG5_STAGES = "fig5_stages.png"
@@ -131,6 +147,8 @@ class RunRecord:
     seed: int
     cost_limit: float
     progress: dict[str, list[float]] | None
+    sessions: int = 1
+    provenance: list[dict[str, Any]] = field(default_factory=list)
 
 
 @dataclass
@@ -155,7 +173,72 @@ def _read_run(directory: Path) -> RunRecord:
         seed=int(OmegaConf.select(cfg, "seed")),
         cost_limit=float(OmegaConf.select(cfg, "cost_limit")),
         progress=progress or None,
+        sessions=1 + sum(1 for _ in directory.glob("config.resume*.yaml")),
+        provenance=read_provenance(directory),
     )
+
+
+# --------------------------------------------------------------------------- runs.md
+def _code_text(records: Sequence[dict[str, Any]], sessions: int) -> str:
+    """The commits the run's sessions ran (short), ``+ local changes`` when the work
+    tree differed from one; sessions without a record are counted as not recorded."""
+    shown = []
+    for record in records:
+        code = record.get("code") or {}
+        commit = code.get("commit")
+        if commit:
+            text = str(commit)[:7] + (" + local changes" if code.get("dirty") else "")
+        else:
+            text = f"package {code.get('version') or '?'} (no git checkout)"
+        if text not in shown:
+            shown.append(text)
+    missing = sessions - len(records)
+    if missing > 0:
+        shown.append(
+            f"not recorded ({missing} of {sessions} sessions)" if shown else "not recorded"
+        )
+    return ", ".join(shown)
+
+
+def _wall_text(seconds: float) -> str:
+    if not math.isfinite(seconds):
+        return "?"
+    minutes = round(seconds / 60)
+    return f"{minutes // 60} h {minutes % 60:02d} min"
+
+
+def runs_markdown(runs: Sequence[RunRecord], env: str | None) -> str:
+    """``runs.md``: one line per training run — row, seed, frames trained, training wall
+    time (``progress.csv``'s ``time_s``, all sessions), sessions and code commits —
+    and the total training time."""
+    lines = [
+        f"# Training runs — {env_title(env) if env else '?'}",
+        "",
+        "| run | row | seed | frames | training wall time | sessions | code |",
+        "|---|---|---:|---:|---:|---:|---|",
+    ]
+    total = 0.0
+    for run in sorted(runs, key=lambda r: (row_sort_key(r.label), r.seed, r.directory.name)):
+        progress = run.progress or {}
+        frames = progress.get("frames", [math.nan])[-1] if progress else math.nan
+        seconds = progress.get("time_s", [math.nan])[-1] if progress else math.nan
+        if math.isfinite(seconds):
+            total += seconds
+        frames_text = f"{int(frames)}" if math.isfinite(frames) else "?"
+        lines.append(
+            f"| {run.directory.name} | {row_name(run.label)} | {run.seed} | {frames_text} | "
+            f"{_wall_text(seconds)} | {run.sessions} | "
+            f"{_code_text(run.provenance, run.sessions)} |"
+        )
+    lines += [
+        "",
+        f"Total training wall time: {_wall_text(total)} over {len(runs)} runs (each run's "
+        "`time_s`, summed over its sessions; runs that shared the machine ran side by "
+        "side, so the sweep's own wall time is shorter). Code: the commit each session "
+        "ran, from its `provenance.json`.",
+        "",
+    ]
+    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------- Table 1
@@ -506,7 +589,7 @@ def build_report(
         planned += [target for _, target in copies]
     runs_with_progress = [r for r in runs if r.progress]
     if runs_with_progress:
-        planned.append(out_dir / FIG4)
+        planned += [out_dir / FIG4, out_dir / RUNS_MD]
     sources: list[_TrajectorySource] = []
     if trajectories:
         sources = _trajectory_sources(trajectory_runs, runs, evaluations)
@@ -561,8 +644,9 @@ def build_report(
     else:
         warn("no evaluated runs: Table 1 and Figure 6 skipped")
 
-    # ---- Figure 4
+    # ---- Figure 4 and the list of runs
     if runs_with_progress:
+        report.files.append(_write_text(out_dir / RUNS_MD, runs_markdown(runs_with_progress, env)))
         by_label: dict[str, list[dict[str, list[float]]]] = defaultdict(list)
         for run in sorted(runs_with_progress, key=lambda r: (row_sort_key(r.label), r.seed)):
             by_label[run.label].append(run.progress)
@@ -621,10 +705,11 @@ def _archive_plan(directories: Sequence[Path], archive_dir: Path) -> list[tuple[
                 f"{archive_dir / directory.name}; report them separately"
             )
     return [
-        (directory / name, archive_dir / directory.name / name)
+        (path, archive_dir / directory.name / path.name)
         for directory in by_name.values()
-        for name in ARCHIVED_FILES
-        if (directory / name).is_file()
+        for pattern in ARCHIVED_FILES
+        for path in sorted(directory.glob(pattern))
+        if path.is_file()
     ]
 
 

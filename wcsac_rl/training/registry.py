@@ -8,6 +8,7 @@ config's validation (:mod:`wcsac_rl.training.config`) names the same algorithms.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from types import MappingProxyType
 
@@ -41,6 +42,9 @@ def trainer_class(algo: str) -> type[Trainer]:
         raise ConfigError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}") from None
 
 
-def make_trainer(cfg: DictConfig, run_dir: str | Path) -> Trainer:
-    """The trainer for ``cfg.algo.name`` (its constructor validates ``cfg`` first)."""
-    return trainer_class(cfg.algo.name)(cfg, run_dir)
+def make_trainer(
+    cfg: DictConfig, run_dir: str | Path, *, overrides: Sequence[str] | None = None
+) -> Trainer:
+    """The trainer for ``cfg.algo.name`` (its constructor validates ``cfg`` first);
+    ``overrides`` (the command line's) go into the run's ``provenance.json``."""
+    return trainer_class(cfg.algo.name)(cfg, run_dir, overrides=overrides)

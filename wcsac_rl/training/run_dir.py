@@ -44,7 +44,14 @@ __all__ = [
 AUTO_RESUME = "auto"
 """``resume=auto``: continue the run directory's checkpoint if it has one, else start."""
 LOCK_FILE = ".lock"
-RUN_ENTRIES = ("config.yaml", "progress.csv", "logs", "checkpoints", "curves.png")
+RUN_ENTRIES = (
+    "config.yaml",
+    "provenance.json",
+    "progress.csv",
+    "logs",
+    "checkpoints",
+    "curves.png",
+)
 """What a run writes into its directory before (or without) a checkpoint."""
 HYDRA_ENTRIES = (".hydra",)
 """What Hydra writes into a run directory before the trainer starts (and ``*.log``)."""
@@ -52,6 +59,13 @@ HYDRA_ENTRIES = (".hydra",)
 
 def _is_hydra_entry(path: Path) -> bool:
     return path.name in HYDRA_ENTRIES or (path.is_file() and path.suffix == ".log")
+
+
+def _is_resumed_session_record(path: Path) -> bool:
+    """``config.resume<k>.yaml`` / ``provenance.resume<k>.json`` of a resumed session."""
+    return (path.name.startswith("config.resume") and path.suffix == ".yaml") or (
+        path.name.startswith("provenance.resume") and path.suffix == ".json"
+    )
 
 
 LOCK_ATTEMPTS = 3
@@ -160,7 +174,8 @@ def check_restartable_run_dir(run_dir: Path) -> None:
     """``resume=auto`` without a checkpoint: start the run over in ``run_dir``.
 
     The directory may hold what a session killed before its first checkpoint wrote
-    (:data:`RUN_ENTRIES`, ``config.resume*.yaml``, Hydra's files); its ``progress.csv``
+    (:data:`RUN_ENTRIES`, ``config.resume*.yaml``, ``provenance.resume*.json``,
+    Hydra's files); its ``progress.csv``
     rows and CSV logger lines are dropped. Anything else is refused, as for a new run.
     """
     run_dir = Path(run_dir)
@@ -172,7 +187,7 @@ def check_restartable_run_dir(run_dir: Path) -> None:
         if p.name != LOCK_FILE
         and not _is_hydra_entry(p)
         and p.name not in RUN_ENTRIES
-        and not (p.name.startswith("config.resume") and p.suffix == ".yaml")
+        and not _is_resumed_session_record(p)
     )
     if others:
         shown = ", ".join(others[:4]) + (", ..." if len(others) > 4 else "")

@@ -16,6 +16,7 @@ import math
 import random
 import signal
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +46,7 @@ from wcsac_rl.training.checkpoint import (
 from wcsac_rl.training.config import TrainingError, validate_config
 from wcsac_rl.training.preemption import Preempted, StopSignals
 from wcsac_rl.training.progress import EpisodeTracker, LossMeans, ProgressWriter
+from wcsac_rl.training.provenance import session_provenance, write_provenance
 from wcsac_rl.training.run_dir import (
     AUTO_RESUME,
     RunLock,
@@ -96,12 +98,18 @@ class Trainer:
         cfg: the composed config (``conf/config.yaml``).
         run_dir: where logs, ``progress.csv`` and checkpoints go. With
             ``cfg.resume`` set, the resumed run's directory is used instead.
+        overrides: the command line's overrides that composed ``cfg`` (``train.py``
+            passes Hydra's), recorded in the session's ``provenance.json`` beside the
+            code's commit (:mod:`~wcsac_rl.training.provenance`).
     """
 
-    def __init__(self, cfg: DictConfig, run_dir: str | Path) -> None:
+    def __init__(
+        self, cfg: DictConfig, run_dir: str | Path, *, overrides: Sequence[str] | None = None
+    ) -> None:
         validate_config(cfg)
         self.cfg = cfg
         self.run_dir = Path(run_dir)
+        self.overrides = None if overrides is None else list(overrides)
         self.lock: RunLock | None = None
         self.env = self.eval_env = self.logger = None
         try:
@@ -178,6 +186,15 @@ class Trainer:
         )
         self.progress = ProgressWriter(self.run_dir / "progress.csv")
         self.config_path = self._write_config(resumed=checkpoint is not None)
+        self.provenance_path = write_provenance(
+            self.run_dir,
+            session_provenance(
+                overrides=self.overrides,
+                threads=int(cfg.threads),
+                resumed_from_frames=None if checkpoint is None else self.tracker.frames,
+            ),
+            resumed=checkpoint is not None,
+        )
         if checkpoint is not None:
             # last: building the collector and the logger draws from the global RNGs
             self._restore_rng(checkpoint["rng"])

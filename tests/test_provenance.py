@@ -1,0 +1,92 @@
+"""provenance.json: the code's commit (and whether it was modified), each session's own file."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+
+import pytest
+
+from wcsac_rl.training.provenance import (
+    PROVENANCE_FILE,
+    code_version,
+    provenance_files,
+    read_provenance,
+    session_provenance,
+    write_provenance,
+)
+from wcsac_rl.training.run_dir import check_restartable_run_dir
+
+needs_git = pytest.mark.skipif(shutil.which("git") is None, reason="git is not installed")
+
+
+def _git(repo, *args):
+    subprocess.run(
+        ["git", "-c", "user.name=t", "-c", "user.email=t@t", *args],
+        cwd=repo,
+        check=True,
+        capture_output=True,
+    )
+
+
+@needs_git
+def test_code_version_names_the_commit_and_whether_tracked_files_changed(tmp_path):
+    repo = tmp_path / "repo"
+    (repo / "pkg").mkdir(parents=True)
+    (repo / "pkg" / "a.py").write_text("x = 1\n")
+    _git(repo, "init", "-q")
+    _git(repo, "add", ".")
+    _git(repo, "commit", "-q", "-m", "first")
+    head = subprocess.run(
+        ["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, check=True
+    ).stdout.strip()
+    clean = code_version(repo / "pkg")
+    assert clean["commit"] == head and clean["dirty"] is False
+    (repo / "pkg" / "new.py").write_text("untracked = True\n")  # untracked: still clean
+    assert code_version(repo / "pkg")["dirty"] is False
+    (repo / "pkg" / "a.py").write_text("x = 2\n")
+    assert code_version(repo / "pkg") == {**clean, "dirty": True}
+
+
+def test_code_version_outside_a_git_checkout_has_no_commit(tmp_path):
+    version = code_version(tmp_path)
+    assert version["commit"] is None and version["dirty"] is None
+
+
+def test_a_session_record_is_json_with_the_overrides_and_versions():
+    record = session_provenance(
+        overrides=["seed=3", "env=tiny"], threads=1, resumed_from_frames=None
+    )
+    again = json.loads(json.dumps(record))
+    assert again["overrides"] == ["seed=3", "env=tiny"] and again["threads"] == 1
+    assert again["versions"]["torch"] and again["versions"]["python"]
+    assert again["started"].endswith("+00:00")  # UTC
+
+
+def test_each_session_writes_its_own_file_and_they_read_back_in_order(tmp_path):
+    first = write_provenance(tmp_path, {"session": 0}, resumed=False)
+    second = write_provenance(tmp_path, {"session": 1}, resumed=True)
+    third = write_provenance(tmp_path, {"session": 2}, resumed=True)
+    assert [p.name for p in (first, second, third)] == [
+        PROVENANCE_FILE,
+        "provenance.resume1.json",
+        "provenance.resume2.json",
+    ]
+    assert provenance_files(tmp_path) == [first, second, third]
+    second.write_text("{ torn")  # a half-written file is skipped, not fatal
+    assert read_provenance(tmp_path) == [{"session": 0}, {"session": 2}]
+
+
+def test_a_resumed_run_begun_without_provenance_does_not_claim_its_first_session(tmp_path):
+    path = write_provenance(tmp_path, {"session": 1}, resumed=True)
+    assert path.name == "provenance.resume1.json"
+    assert not (tmp_path / PROVENANCE_FILE).exists()
+    assert read_provenance(tmp_path) == [{"session": 1}]
+
+
+def test_a_run_killed_before_its_first_checkpoint_may_be_started_over(tmp_path):
+    write_provenance(tmp_path, {"session": 0}, resumed=False)
+    write_provenance(tmp_path, {"session": 1}, resumed=True)
+    (tmp_path / "config.yaml").write_text("seed: 0\n")
+    check_restartable_run_dir(tmp_path)  # the run's own records: no error
