@@ -357,13 +357,18 @@ def test_an_archived_report_is_made_again_from_its_archive_alone(sweep, tmp_path
     the original sweep does not count the copies a second time."""
     root = tmp_path / "root"
     shutil.copytree(sweep, root / "sweep")
+    measured = root / "sweep" / run_dirs(sweep)[0].name / "calibration.json"
+    measured.write_text('{"episodes": 3}\n')  # kept when there (the calibration CLI's file)
     out = root / "report"  # inside the reported tree, as the default --out is
     first = build_report([root], out, trajectories=False, archive=True, log=lambda _: None)
     archive = out / "runs"
     archived = sorted(p.relative_to(archive).as_posix() for p in archive.rglob("*") if p.is_file())
     names = [d.name for d in run_dirs(sweep)]
     files = ("config.yaml", "evaluation.csv", "evaluation.json", "progress.csv", "provenance.json")
-    assert archived == [f"{name}/{f}" for name in names for f in files]
+    assert archived == sorted(
+        [f"{name}/{f}" for name in names for f in files] + [f"{names[0]}/calibration.json"]
+    )
+    assert (archive / names[0] / "calibration.json").read_text() == measured.read_text()
     again = build_report([archive], tmp_path / "again", trajectories=False, log=lambda _: None)
     assert again.warnings == []
     for name in ("table1.md", "table1.csv", "runs.md"):

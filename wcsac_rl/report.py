@@ -17,7 +17,8 @@ Table-1 row (``algo.label``, seeds pooled) and writes into ``--out`` (default
 * ``runs.md`` — the training runs: row, seed, frames, wall time, sessions, and the
   commit each session ran (its ``provenance.json``);
 * with ``--archive``, ``runs/<run>/`` — each run's ``evaluation.json``/``.csv``,
-  ``config*.yaml``, ``provenance*.json`` and ``progress.csv``: results to commit
+  ``config*.yaml``, ``provenance*.json``, ``progress.csv`` (and ``calibration.json``
+  when measured): results to commit
   without checkpoints, from which ``python -m wcsac_rl.report <out>/runs`` makes the
   same tables again.
 

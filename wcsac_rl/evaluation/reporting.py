@@ -106,10 +106,12 @@ ARCHIVED_FILES = (
     "config.resume*.yaml",
     "provenance*.json",
     "progress.csv",
+    "calibration.json",
 )
 """What an archived run keeps (names and glob patterns): enough to make the table,
 ``runs.md`` and Figures 4 and 6 again (no checkpoint, so no Figure 5, and no replay
-buffer)."""
+buffer), and the safety critic's calibration when ``python -m wcsac_rl.calibration``
+measured it."""
 FIG4 = "fig4_training_curves.png"
 FIG5 = "fig5_trajectories.png"
 FIG5_STAGES = "fig5_stages.png"
