@@ -90,3 +90,36 @@ def test_a_run_killed_before_its_first_checkpoint_may_be_started_over(tmp_path):
     write_provenance(tmp_path, {"session": 1}, resumed=True)
     (tmp_path / "config.yaml").write_text("seed: 0\n")
     check_restartable_run_dir(tmp_path)  # the run's own records: no error
+
+
+def _train(cfg, run_dir, overrides):
+    from wcsac_rl.training import make_trainer
+
+    trainer = make_trainer(cfg, run_dir, overrides=overrides)
+    try:
+        trainer.run()
+    finally:
+        trainer.close()
+    return trainer
+
+
+def test_a_session_that_trains_records_itself_and_one_with_nothing_to_do_does_not(tmp_path):
+    from _training_helpers import compose_config
+
+    run_dir = tmp_path / "run"
+    given = ["env=tiny", "total_frames=400", "epoch_frames=200", "resume=auto"]
+    first = _train(compose_config(*given), run_dir, given)
+    assert first.provenance_path == run_dir / PROVENANCE_FILE
+    assert read_provenance(run_dir)[0]["overrides"] == given
+    # the same command again (a sweep run again): the run is finished, nothing is trained
+    again = _train(compose_config(*given), run_dir, given)
+    assert again.provenance_path is None and again.config_path is None
+    assert [p.name for p in provenance_files(run_dir)] == [PROVENANCE_FILE]
+    assert not list(run_dir.glob("config.resume*.yaml"))
+    # a longer budget trains on: a second session, with its own records
+    longer = [*given[:1], "total_frames=600", *given[2:]]
+    _train(compose_config(*longer), run_dir, longer)
+    records = read_provenance(run_dir)
+    assert [r["resumed_from_frames"] for r in records] == [None, 400]
+    assert records[1]["overrides"] == longer
+    assert (run_dir / "config.resume1.yaml").is_file()

@@ -185,16 +185,19 @@ class Trainer:
             resume_frames=None if checkpoint is None else self.tracker.frames,
         )
         self.progress = ProgressWriter(self.run_dir / "progress.csv")
-        self.config_path = self._write_config(resumed=checkpoint is not None)
-        self.provenance_path = write_provenance(
-            self.run_dir,
-            session_provenance(
-                overrides=self.overrides,
-                threads=int(cfg.threads),
-                resumed_from_frames=None if checkpoint is None else self.tracker.frames,
-            ),
-            resumed=checkpoint is not None,
-        )
+        # a session's records (a resume of a finished run trains nothing: it writes none)
+        self.config_path = self.provenance_path = None
+        if checkpoint is None or self.collector is not None:
+            self.config_path = self._write_config(resumed=checkpoint is not None)
+            self.provenance_path = write_provenance(
+                self.run_dir,
+                session_provenance(
+                    overrides=self.overrides,
+                    threads=int(cfg.threads),
+                    resumed_from_frames=None if checkpoint is None else self.tracker.frames,
+                ),
+                resumed=checkpoint is not None,
+            )
         if checkpoint is not None:
             # last: building the collector and the logger draws from the global RNGs
             self._restore_rng(checkpoint["rng"])
