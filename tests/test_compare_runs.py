@@ -61,5 +61,13 @@ def test_cli_writes_the_table_and_refuses_unevaluated_runs(tmp_path, capsys):
     main([str(run), "--out", str(out)])
     assert out.read_text().strip() == capsys.readouterr().out.strip()
     (tmp_path / "bare").mkdir()
-    with pytest.raises(FileNotFoundError, match=r"no evaluation\.json"):
-        main([str(tmp_path / "bare")])
+    with pytest.raises(SystemExit) as stop:  # one line, not a traceback
+        main([str(run), str(tmp_path / "bare")])
+    assert (
+        stop.value.code
+        == f"error: {tmp_path / 'bare'}: no evaluation.json (run python -m wcsac_rl.evaluate)"
+    )
+    torn = _run(tmp_path, "torn", "wcsac_x", 0, ec=1.0, c01=1.0)
+    (torn / "evaluation.json").write_text('{"label": "wcsac_x"')
+    with pytest.raises(SystemExit, match=r"^error: "):
+        main([str(torn)])

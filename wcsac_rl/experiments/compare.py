@@ -20,6 +20,7 @@ import argparse
 import json
 import math
 import statistics
+import sys
 from collections import defaultdict
 from collections.abc import Sequence
 from pathlib import Path
@@ -123,7 +124,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("runs", nargs="+", type=Path)
     parser.add_argument("--out", type=Path, default=None, help="also write the table here")
     args = parser.parse_args(argv)
-    table = format_table(*compare_runs(args.runs))
+    try:
+        table = format_table(*compare_runs(args.runs))
+    except (OSError, ValueError, KeyError) as err:  # a run not evaluated, a torn file
+        detail = f"{err.args[0]!r} missing" if isinstance(err, KeyError) else str(err)
+        sys.exit(f"error: {detail}")
     print(table)
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
