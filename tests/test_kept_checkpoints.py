@@ -80,6 +80,23 @@ def test_report_draws_one_panel_per_kept_checkpoint_and_the_end(run, tmp_path):
     assert not np.allclose(early[0].xy, late[0].xy)  # different policies, different paths
 
 
+def test_stage_rows_choose_which_drawn_runs_get_stage_panels(run, tmp_path):
+    common = {"trajectory_runs": [run], "trajectory_episodes": 1, "trajectory_max_steps": 5}
+    lines: list[str] = []
+    other = build_report(
+        [run], tmp_path / "other", stage_rows=["sac_lag"], log=lines.append, **common
+    )
+    assert not (other.out_dir / "fig5_stages.png").exists()  # the drawn run is WCSAC-0.5
+    assert (other.out_dir / "fig5_trajectories.png").is_file()
+    assert not any("at 400 frames" in line for line in lines)  # kept policies not rolled out
+    assert "Figure 5 stages: no drawn run of row(s) sac_lag" in other.warnings
+    chosen = build_report(
+        [run], tmp_path / "chosen", stage_rows=["wcsac_0.5"], log=lambda _: None, **common
+    )
+    assert png_size(chosen.out_dir / "fig5_stages.png") == (3 * PANEL_PX, PANEL_PX)
+    assert not any("Figure 5 stages" in w for w in chosen.warnings)
+
+
 def test_bad_settings_and_write_failures_are_clear(tmp_path):
     for value in ("[0]", "3", "[a]"):
         with pytest.raises(ConfigError, match="keep_checkpoints_at must be a list of epochs"):

@@ -142,6 +142,11 @@ def test_runs_md_says_which_sessions_have_no_record(tmp_path):
 def test_png_sizes(report):
     result, _ = report
     out = result.out_dir
+    for name in ("fig4_training_curves.png", "fig6_evaluation.png", "fig5_trajectories.png"):
+        with Image.open(out / name) as image:
+            assert image.mode == "P"  # 256-colour palette: a third of the RGBA file
+            # white stays white (the background is not shifted by the palette)
+            assert image.convert("RGB").getpixel((0, 0)) == (255, 255, 255)
     assert _px(plots.FIG4_SIZE) == FIG4_PX and _px(plots.FIG6_SIZE) == FIG6_PX
     _assert_png(out / "fig4_training_curves.png", FIG4_PX)
     _assert_png(out / "fig6_evaluation.png", FIG6_PX)

@@ -77,6 +77,13 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     )
     traj.add_argument("--no-trajectories", action="store_true", help="skip Figure 5")
     traj.add_argument(
+        "--stage-rows",
+        nargs="+",
+        default=None,
+        help="rows whose runs get start/middle/end panels in fig5_stages.png, e.g. sac_lag "
+        "as in the paper's Figure 5(a)-(c) (default: every drawn run with kept checkpoints)",
+    )
+    traj.add_argument(
         "--trajectory-episodes", type=int, default=5, help="episodes per run (default 5)"
     )
     traj.add_argument(
@@ -148,6 +155,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             video_format=args.video_format,
             fig6_rows=args.fig6_rows,
             fig6_ymax=args.fig6_ymax,
+            stage_rows=args.stage_rows,
             archive=args.archive,
         )
     except (ConfigError, TrajectoryError, VideoError) as err:

@@ -14,8 +14,10 @@ groups them by Table-1 row (``algo.label``; seeds pooled) and writes
 ``fig4_training_curves.png``     return, cost, cost rate vs env steps (mean ± std over seeds)
 ``fig5_trajectories.png``        one panel per chosen run: layout + several test episodes
 ``fig5_<label>_seed<N>.png``     the same, one file per chosen run
-``fig5_stages.png``              chosen runs with kept checkpoints (``keep_checkpoints_at``):
-                                 one row per run, one panel per kept checkpoint and the end
+``fig5_stages.png``              chosen runs with kept checkpoints (``keep_checkpoints_at``),
+                                 of the ``stage_rows`` (default: all): one row per run, one
+                                 panel per kept checkpoint and the end (the paper's
+                                 Figure 5(a)-(c) shows SAC-Lag so)
 ``fig5_<label>_seed<N>.mp4``     (``video=True``) the first of those episodes, rendered
 ``fig6_evaluation.png``          (a) cost box plots, whiskers 1st/99th pct.; (b) % over budget
 ``table1_vs_paper.md``           (StaticEnv, d = 15) each row beside the paper's Table 1, and
@@ -455,6 +457,7 @@ def build_report(
     video_format: str = "mp4",
     fig6_rows: Sequence[str] | None = None,
     fig6_ymax: float | None = None,
+    stage_rows: Sequence[str] | None = None,
     archive: bool = False,
     log: Callable[[str], None] = print,
 ) -> Report:
@@ -477,6 +480,8 @@ def build_report(
         fig6_rows: the rows Figure 6 compares (default: every evaluated row except
             the random policy, as the paper compares the SAC-based methods).
         fig6_ymax: upper view limit of Figure 6(a).
+        stage_rows: the rows (labels, e.g. ``["sac_lag"]``) whose drawn runs get a row
+            of ``fig5_stages.png`` (default: every drawn run with kept checkpoints).
         archive: also copy each reported run's records (:data:`ARCHIVED_FILES`) into
             ``out_dir/runs/<run directory name>``: a report of that folder alone makes
             the same Table 1 and Figures 4 and 6, e.g. in a repository that keeps
@@ -597,7 +602,15 @@ def build_report(
         sources = _trajectory_sources(trajectory_runs, runs, evaluations)
         if sources:
             planned.append(out_dir / FIG5)
-            if any(kept_checkpoints(s.directory) for s in sources):
+            if stage_rows is not None:
+                unknown = sorted(set(stage_rows) - {s.label for s in sources})
+                if unknown:
+                    warn(f"Figure 5 stages: no drawn run of row(s) {', '.join(unknown)}")
+            if any(
+                kept_checkpoints(s.directory)
+                for s in sources
+                if stage_rows is None or s.label in stage_rows
+            ):
                 planned.append(out_dir / FIG5_STAGES)
             planned += [out_dir / f"{s.stem}.png" for s in sources]
             if video:
@@ -672,6 +685,7 @@ def build_report(
             max_steps=trajectory_max_steps,
             env_seed=trajectory_seed,
             video_format=video_format if video else None,
+            stage_rows=stage_rows,
             title_env=title_env,
             log=log,
         )
@@ -743,6 +757,7 @@ def _figure5(
     video_format: str | None,
     title_env: str,
     log: Callable[[str], None],
+    stage_rows: Sequence[str] | None = None,
 ) -> list[Path]:
     import torch
 
@@ -766,7 +781,8 @@ def _figure5(
             env.close()
         title = f"{row_name(source.label)}, seed {source.seed}"
         panels.append((title, layout, trajs))
-        kept = kept_checkpoints(source.directory)
+        staged = stage_rows is None or source.label in stage_rows
+        kept = kept_checkpoints(source.directory) if staged else []
         if kept:
             row = []
             for at, path in kept:
