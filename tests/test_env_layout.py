@@ -128,6 +128,18 @@ def test_explicit_layout_is_honoured():
     assert not np.allclose(env.layout()["robot_xy"], [0.0, 0.0])
 
 
+def test_a_drawn_robot_keeps_clear_of_explicit_objects_placed_after_it():
+    """The robot is drawn first; a replayed goal and hazards (Figure 5's episodes) are
+    explicit: the robot keeps clear of them as it does of drawn ones (keepout sums)."""
+    env = make_gym_env("static")
+    layout = {"goal_xy": (1.1, 1.1), "hazards_xy": [(0.0, 0.0)]}
+    for seed in range(200):
+        env.reset(seed=seed, options={"layout": layout})
+        robot = env.layout()["robot_xy"]
+        assert math.hypot(*robot) >= 0.4 + 0.705  # robot keepout + the hazard's
+        assert math.hypot(robot[0] - 1.1, robot[1] - 1.1) >= 0.4 + 0.305
+
+
 def test_layout_replays_from_layout_method():
     env = make_gym_env("dynamic")
     obs_a, _ = env.reset(seed=11)

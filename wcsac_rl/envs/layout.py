@@ -130,7 +130,8 @@ def sample_layout(
         extents: placement area ``(xmin, ymin, xmax, ymax)``.
         objects: placement rules, in placement order.
         explicit: positions given by the caller; these objects are put there without
-            any keepout check, and the others keep clear of them as usual.
+            any keepout check, and every drawn object keeps clear of them, whether it
+            comes before or after them in the order.
         tries_per_object: draws per object before the layout restarts.
         max_restarts: whole-layout attempts before giving up.
 
@@ -143,18 +144,24 @@ def sample_layout(
     explicit = dict(explicit or {})
     n = len(objects)
     keepouts = np.array([o.keepout for o in objects], dtype=np.float64)
+    given = np.array([o.name in explicit for o in objects], dtype=bool)
     for _ in range(max_restarts):
+        # the explicit objects are there before any draw: an object drawn earlier in the
+        # order keeps clear of them too (the robot of a replayed goal and hazards)
         xy = np.zeros((n, 2))
+        placed = given.copy()
+        for i in np.flatnonzero(given):
+            xy[i] = explicit[objects[i].name]
         failed = False
         for i, obj in enumerate(objects):
-            if obj.name in explicit:
-                xy[i] = explicit[obj.name]
+            if given[i]:
                 continue
-            pos = draw_position(rng, extents, obj, xy[:i], keepouts[:i], tries_per_object)
+            pos = draw_position(rng, extents, obj, xy[placed], keepouts[placed], tries_per_object)
             if pos is None:
                 failed = True
                 break
             xy[i] = pos
+            placed[i] = True
         if not failed:
             return {obj.name: xy[i].copy() for i, obj in enumerate(objects)}
     raise LayoutError(
