@@ -1,0 +1,68 @@
+"""The committed results are what this code makes of their committed records: a report
+of ``results/<folder>/runs`` (each run's evaluation.json/.csv, config, provenance and
+progress.csv, archived by ``report --archive``) writes the committed tables again, so
+results and code cannot drift apart silently."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+from _training_helpers import ROOT
+
+from wcsac_rl.evaluation.reporting import (
+    RUNS_MD,
+    TABLE_CSV,
+    TABLE_MD,
+    TABLE_VS_PAPER,
+    build_report,
+)
+from wcsac_rl.experiments.compare import compare_runs, format_table
+
+RESULTS = ROOT / "results"
+FOLDERS = sorted(p.parent.name for p in RESULTS.glob("*/runs") if p.is_dir())
+
+
+def test_the_laptop_table_1_is_committed():
+    assert "static_laptop" in FOLDERS
+
+
+@pytest.mark.parametrize("folder", FOLDERS)
+def test_report_makes_the_committed_tables_again(folder, tmp_path):
+    committed = RESULTS / folder
+    report = build_report([committed / "runs"], tmp_path, trajectories=False, log=lambda _: None)
+    assert report.warnings == []
+    for name in (TABLE_MD, TABLE_VS_PAPER, RUNS_MD):  # numbers rounded to 2 decimals
+        assert (tmp_path / name).is_file() == (committed / name).is_file(), name
+        if (committed / name).is_file():
+            assert (tmp_path / name).read_text() == (committed / name).read_text(), name
+    # the csv holds full float64 reprs: means and stds of <= 200 values of magnitude
+    # <= 600 summed in another order (another CPU's numpy kernels) may differ by
+    # ~200 * 600 * 2**-52 ≈ 3e-11; 1e-9 bounds that and nothing a code change would do
+    made, kept = (_csv_rows(d / TABLE_CSV) for d in (tmp_path, committed))
+    assert [row.keys() for row in made] == [row.keys() for row in kept]
+    for new, old in zip(made, kept):
+        for key, value in old.items():
+            try:
+                assert float(new[key]) == pytest.approx(float(value), rel=0, abs=1e-9), key
+            except ValueError:  # a text cell
+                assert new[key] == value, key
+
+
+def _csv_rows(path):
+    with path.open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.parametrize("folder", FOLDERS)
+def test_the_committed_per_run_table_is_what_compare_makes_of_the_runs(folder):
+    committed = RESULTS / folder / "per_run.md"
+    runs = sorted((RESULTS / folder / "runs").iterdir())
+    assert committed.read_text() == format_table(*compare_runs(runs)) + "\n"
+
+
+def test_the_readme_shows_the_committed_static_table():
+    readme = (ROOT / "README.md").read_text()
+    table = (RESULTS / "static_laptop" / TABLE_MD).read_text()
+    rows = [line for line in table.splitlines() if line.startswith("| ")]
+    assert len(rows) >= 9 and all(row in readme for row in rows)
