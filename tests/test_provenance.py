@@ -34,6 +34,7 @@ def _git(repo, *args):
 def test_code_version_names_the_commit_and_whether_tracked_files_changed(tmp_path):
     repo = tmp_path / "repo"
     (repo / "pkg").mkdir(parents=True)
+    (repo / "pkg" / "__init__.py").write_text("")
     (repo / "pkg" / "a.py").write_text("x = 1\n")
     _git(repo, "init", "-q")
     _git(repo, "add", ".")
@@ -47,6 +48,12 @@ def test_code_version_names_the_commit_and_whether_tracked_files_changed(tmp_pat
     assert code_version(repo / "pkg")["dirty"] is False
     (repo / "pkg" / "a.py").write_text("x = 2\n")
     assert code_version(repo / "pkg") == {**clean, "dirty": True}
+    # a package inside someone else's repository but not tracked there (an installed
+    # copy in a virtualenv of that project): that repository's commit is not its own
+    installed = repo / ".venv" / "site-packages" / "pkg"
+    installed.mkdir(parents=True)
+    (installed / "__init__.py").write_text("")
+    assert code_version(installed)["commit"] is None
 
 
 def test_code_version_outside_a_git_checkout_has_no_commit(tmp_path):

@@ -62,11 +62,13 @@ def _git(args: Sequence[str], cwd: Path) -> str | None:
 def code_version(package_dir: Path = _PACKAGE_DIR) -> dict[str, Any]:
     """``{"commit", "dirty", "version"}`` of the code in ``package_dir``.
 
-    ``commit`` is ``None`` when ``package_dir`` is not inside a git work tree (an
-    installed wheel) or git is missing; ``dirty`` is whether tracked files differ from
-    that commit (untracked files are not counted), ``None`` when unknown.
+    ``commit`` is ``None`` when ``package_dir`` is not a tracked part of a git work
+    tree (an installed wheel, also one in a virtualenv inside another project's
+    repository) or git is missing; ``dirty`` is whether tracked files differ from that
+    commit (untracked files are not counted), ``None`` when unknown.
     """
-    commit = _git(["rev-parse", "HEAD"], package_dir)
+    tracked = _git(["ls-files", "--error-unmatch", "__init__.py"], package_dir)
+    commit = None if tracked is None else _git(["rev-parse", "HEAD"], package_dir)
     dirty = None
     if commit is not None:
         status = _git(["status", "--porcelain", "--untracked-files=no"], package_dir)
