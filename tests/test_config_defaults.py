@@ -9,7 +9,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from wcsac_rl import WCSACLoss
-from wcsac_rl.objectives import PAPER_OPTIONS
+from wcsac_rl.objectives import PAPER_OPTIONS, per_step_cost_threshold
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 # the safety critic's and κ's options: config keys with the loss keywords' names
@@ -119,3 +119,23 @@ def test_a_config_saved_before_the_safety_options_validates_and_builds_what_it_r
     assert (loss.kappa_signal, loss.cost_n_steps, loss.nonnegative_cost) == ("critic", 1, False)
     assert loss.cost_gamma == 0.99 and loss.cost_bootstrap_truncated is True
     assert loss.safety_critic_kind == "gaussian"
+
+
+@pytest.mark.parametrize("env", ["static", "tiny", "dynamic", "point_goal1", "point_goal2"])
+def test_kappa_advice_is_the_authors_in_the_units_of_each_formulation(env):
+    """The authors' κ advice (lr × 50, damping 10 on harder layouts) was made for a Γ
+    held under d's per-step equivalent (1.5 at d = 15); the kit's formulation holds the
+    episode cost at d, ten times larger: its lr scale is theirs / 10 and its damping
+    theirs / 100 (the damping weighs a 10× gap against a 10× critic). The paper presets
+    keep the authors' numbers; StaticEnv's advice (lr × 1, no damping) is the same in both."""
+    harder = env not in ("static", "tiny")
+    for preset in ("wcsac_paper", "sac_lag_paper"):
+        paper = _algo(f"algo={preset}", f"env={env}")
+        assert (paper.kappa_lr_scale, paper.damp_scale) == ((50.0, 10.0) if harder else (1.0, 0.0))
+    # d's per-step equivalent over d: 0.09999568 for the paper's d, γ and T (1 − γ^1000)
+    ratio = per_step_cost_threshold(15.0, 0.99, 1000) / 15.0
+    assert ratio == pytest.approx(0.1, abs=1e-5)
+    for name in ("wcsac", "sac_lag"):
+        kit = _algo(f"algo={name}", f"env={env}")
+        expected = (50.0 * 0.1, 10.0 * 0.1**2) if harder else (1.0, 0.0)
+        assert (kit.kappa_lr_scale, kit.damp_scale) == pytest.approx(expected, rel=1e-12)
