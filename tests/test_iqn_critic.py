@@ -143,7 +143,7 @@ OWNERS = {
     "loss_actor": "actor_network_params.",
     "loss_qvalue": "qvalue_network_params.",
     "loss_cost_quantile": "safety_network_params.",
-    "loss_kappa": "kappa_raw",
+    "loss_kappa": "constraint.kappa_raw",
     "loss_alpha": "log_alpha",
 }
 

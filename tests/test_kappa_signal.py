@@ -131,7 +131,7 @@ def test_the_actor_and_critics_do_not_see_the_episode_signal():
     for (name, p), (_, q) in zip(
         losses["critic"].named_parameters(), losses["max"].named_parameters(), strict=True
     ):
-        if name == "kappa_raw":
+        if name == "constraint.kappa_raw":
             assert not torch.equal(p.grad, q.grad)
         elif p.grad is not None:
             assert torch.equal(p.grad, q.grad), name

@@ -32,7 +32,7 @@ OWNERS = {
     "loss_qvalue": "qvalue_network_params.",
     "loss_cost_value": "safety_network_params.module.mean_net.",
     "loss_cost_variance": "safety_network_params.module.variance_net.",
-    "loss_kappa": "kappa_raw",
+    "loss_kappa": "constraint.kappa_raw",
     "loss_alpha": "log_alpha",
 }
 

@@ -24,7 +24,11 @@ from tensordict.utils import NestedKey
 
 from wcsac_rl.objectives.risk import empirical_cvar, validate_risk_level
 
-__all__ = ["EpisodeCostWindow"]
+__all__ = ["EPISODE_STATISTICS", "EpisodeCostWindow"]
+
+EPISODE_STATISTICS = ("cvar", "mean")
+"""What :meth:`EpisodeCostWindow.for_loss` summarises the window by: the empirical
+CVaR at the loss's α, or the mean episode cost (α = 1: a lower bound of every CVaR)."""
 
 
 class EpisodeCostWindow:
@@ -79,9 +83,15 @@ class EpisodeCostWindow:
         self._value = math.nan
 
     @classmethod
-    def for_loss(cls, loss, **kwargs) -> EpisodeCostWindow:
-        """The window a loss with ``kappa_signal != "critic"`` reads (its α and key)."""
-        return cls(loss.risk_level, out_key=loss.tensor_keys.episode_cvar, **kwargs)
+    def for_loss(cls, loss, *, statistic: str = "cvar", **kwargs) -> EpisodeCostWindow:
+        """The window a loss with ``kappa_signal != "critic"`` reads (its key), at the
+        loss's α (``statistic="cvar"``) or at α = 1 (``"mean"``: the mean episode cost,
+        which no CVaR is below: with ``kappa_signal="max"`` it floors the critic's Γ
+        by what the episodes actually cost, without asking more of the tail)."""
+        if statistic not in EPISODE_STATISTICS:
+            raise ValueError(f"statistic must be one of {EPISODE_STATISTICS}, got {statistic!r}")
+        risk_level = loss.risk_level if statistic == "cvar" else 1.0
+        return cls(risk_level, out_key=loss.tensor_keys.episode_cvar, **kwargs)
 
     def __len__(self) -> int:
         return len(self._costs)

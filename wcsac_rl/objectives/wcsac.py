@@ -56,6 +56,10 @@ from wcsac_rl.objectives.budget import (
     validate_cost_limit,
     validate_max_episode_steps,
 )
+from wcsac_rl.objectives.constraint import (
+    PIDGains,
+    make_constraint,
+)
 from wcsac_rl.objectives.critic_ensemble import FusedCritics, Layers
 from wcsac_rl.objectives.quantile import (
     midpoint_fractions,
@@ -72,7 +76,6 @@ from wcsac_rl.objectives.variance import VARIANCE_LOSSES, variance_regression_lo
 
 __all__ = ["PAPER_OPTIONS", "CriticValues", "SACLagLoss", "WCSACLoss", "per_step_cost_threshold"]
 
-KAPPA_PARAMETRIZATIONS = ("softplus", "log")
 KAPPA_ACTIONS = ("replay", "policy")
 KAPPA_STATES = ("replay", "initial")
 KAPPA_STATISTICS = ("mean", "tail")
@@ -99,10 +102,6 @@ reward's γ, κ on the mean Γ over replay states against the per-step threshold
 def _nested(*keys: NestedKey) -> tuple[str, ...]:
     """One nested key from several (``_nested("nstep", ("a", "b")) == ("nstep", "a", "b")``)."""
     return tuple(part for key in keys for part in ((key,) if isinstance(key, str) else key))
-
-
-def _inverse_softplus(x: float) -> float:
-    return x + math.log(-math.expm1(-x))
 
 
 class CriticParams(NamedTuple):
@@ -239,6 +238,16 @@ class WCSACLoss(SACLoss):
             paper writes). Default ``"policy"`` (see README for the evidence).
         damp_scale (float): MDMM damping in the actor's penalty,
             ``(κ − damp_scale · mean(threshold − Γ)) · Γ_π``. Default ``0`` (none).
+            Gradient rule only.
+        kappa_rule (str): how κ moves (:mod:`wcsac_rl.objectives.constraint`, held by
+            the loss as :attr:`constraint`): ``"gradient"`` (the paper: κ is trained
+            on ``loss_kappa``) or ``"pid"`` (a PID Lagrangian, Stooke et al. 2020: κ
+            is set from the error ``signal − threshold`` by :meth:`step_constraint`,
+            which must be called once per update; no ``loss_kappa``). Default
+            ``"gradient"``.
+        pid (PIDGains or dict, optional): the PID rule's gains
+            (:class:`~wcsac_rl.objectives.constraint.PIDGains`: ``kp``, ``ki``, ``kd``,
+            ``d_delay``, ``p_ema``, ``d_ema``, ``max_kappa``); ``kappa_rule="pid"`` only.
         num_quantiles (int): IQN critic only: ``N``, the fractions τ drawn per
             evaluation of the online critic (quantile loss, Γ, diagnostics), one per
             equal stratum of [0, 1] (of [1 − α, 1] for Γ) and shared by the batch
@@ -413,6 +422,8 @@ class WCSACLoss(SACLoss):
         kappa_states: str = "initial",
         kappa_signal: str = "critic",
         damp_scale: float = 0.0,
+        kappa_rule: str = "gradient",
+        pid: PIDGains | Mapping[str, Any] | None = None,
         num_quantiles: int = 20,
         num_target_quantiles: int = 20,
         huber_kappa: float = 1.0,
@@ -435,14 +446,13 @@ class WCSACLoss(SACLoss):
         else:  # (what the threshold is made from, checked now whatever γ is later)
             validate_cost_limit(cost_limit)
             validate_max_episode_steps(max_episode_steps)
-        if not kappa_init > 0:
-            raise ValueError(
-                f"kappa_init must be > 0 (κ is a Lagrange multiplier), got {kappa_init}"
-            )
-        if kappa_parametrization not in KAPPA_PARAMETRIZATIONS:
-            raise ValueError(
-                f"kappa_parametrization must be one of {KAPPA_PARAMETRIZATIONS}, got {kappa_parametrization!r}"
-            )
+        constraint = make_constraint(
+            kappa_rule,
+            kappa_init=kappa_init,
+            parametrization=kappa_parametrization,
+            damp_scale=damp_scale,
+            pid=pid,
+        )
         if kappa_actions not in KAPPA_ACTIONS:
             raise ValueError(f"kappa_actions must be one of {KAPPA_ACTIONS}, got {kappa_actions!r}")
         if kappa_states not in KAPPA_STATES:
@@ -470,8 +480,6 @@ class WCSACLoss(SACLoss):
                 f"kappa_statistic must be one of {KAPPA_STATISTICS}, got {kappa_statistic!r}"
             )
         self.kappa_statistic = kappa_statistic
-        if damp_scale < 0:
-            raise ValueError(f"damp_scale must be >= 0, got {damp_scale}")
         if variance_loss not in VARIANCE_LOSSES:
             raise ValueError(
                 f"variance_loss must be one of {VARIANCE_LOSSES}, got {variance_loss!r}"
@@ -494,7 +502,6 @@ class WCSACLoss(SACLoss):
         self.kappa_actions = kappa_actions
         self.kappa_states = kappa_states
         self.kappa_signal = kappa_signal
-        self.damp_scale = float(damp_scale)
         self.variance_loss = variance_loss
         self.variance_target_kind = variance_target
         self._explicit_cost_gamma = None if cost_gamma is None else float(cost_gamma)
@@ -529,12 +536,8 @@ class WCSACLoss(SACLoss):
             )
 
         device = self.log_alpha.device
-        raw = (
-            _inverse_softplus(kappa_init)
-            if kappa_parametrization == "softplus"
-            else math.log(kappa_init)
-        )
-        self.register_parameter("kappa_raw", torch.nn.Parameter(torch.tensor(raw, device=device)))
+        self.constraint = constraint.to(device)
+        self._register_load_state_dict_pre_hook(_rename_kappa_raw)
         self.register_buffer("cost_threshold", torch.zeros((), device=device))
         # derived from cost_gamma / the value estimator: not part of the state dict
         self.register_buffer("cost_discount", torch.zeros((), device=device), persistent=False)
@@ -698,7 +701,10 @@ class WCSACLoss(SACLoss):
                 keys.append("loss_cost_value")
             if self.has_variance:
                 keys.append("loss_cost_variance")
-            keys += ["loss_kappa", "alpha", "kappa", "entropy", "cost_value"]
+            constraint = self.__dict__.get("_modules", {}).get("constraint")
+            if constraint is None or constraint.rule == "gradient":
+                keys.append("loss_kappa")
+            keys += ["alpha", "kappa", "entropy", "cost_value"]
             if self.has_variance or quantile:
                 keys.append("cost_variance")
             keys += ["cvar", "cost_threshold"]
@@ -713,17 +719,25 @@ class WCSACLoss(SACLoss):
 
     # --------------------------------------------------------------- parameters
     @property
-    def _kappa_param(self) -> Tensor:
-        """κ as a differentiable function of its raw parameter."""
-        if self.kappa_parametrization == "softplus":
-            return torch.nn.functional.softplus(self.kappa_raw)
-        return self.kappa_raw.exp()
-
-    @property
     def kappa(self) -> Tensor:
         """The current safety weight κ (detached)."""
-        with torch.no_grad():
-            return self._kappa_param
+        return self.constraint.kappa
+
+    @property
+    def kappa_rule(self) -> str:
+        """How κ is updated: ``"gradient"`` (the paper) or ``"pid"`` (:attr:`constraint`)."""
+        return self.constraint.rule
+
+    @property
+    def kappa_raw(self) -> torch.nn.Parameter:
+        """The gradient rule's raw parameter (``constraint.kappa_raw``)."""
+        if self.constraint.rule != "gradient":
+            raise AttributeError(f"kappa_rule={self.constraint.rule!r} has no kappa_raw parameter")
+        return self.constraint.kappa_raw
+
+    @property
+    def damp_scale(self) -> float:
+        return getattr(self.constraint, "damp_scale", 0.0)
 
     @property
     @_cache_values
@@ -1155,11 +1169,8 @@ class WCSACLoss(SACLoss):
         return target.clamp(-VARIANCE_MAX, VARIANCE_MAX)
 
     def _penalty_weight(self, cvar_constraint: Tensor) -> Tensor:
-        """The weight of Γ in the actor loss: κ, minus the MDMM damping term if enabled."""
-        kappa = self.kappa
-        if self.damp_scale == 0.0:
-            return kappa
-        return kappa - self.damp_scale * (self.cost_threshold - cvar_constraint).mean()
+        """The weight of Γ in the actor loss (the constraint's: κ, minus MDMM damping)."""
+        return self.constraint.penalty_weight(cvar_constraint, self.cost_threshold)
 
     def _actor_loss(
         self,
@@ -1318,11 +1329,31 @@ class WCSACLoss(SACLoss):
                 out["cost_variance"] = cost_variance
         return TensorDict(out, batch_size=tensordict.batch_size)
 
-    def kappa_loss(self, cvar: Tensor, tensordict: TensorDictBase | None = None) -> Tensor:
-        """``κ · (threshold − Γ)`` with Γ detached: κ grows while Γ exceeds the threshold."""
-        loss = self._kappa_param * (self.cost_threshold - cvar.detach())
+    def kappa_loss(self, cvar: Tensor, tensordict: TensorDictBase | None = None) -> Tensor | None:
+        """The constraint's loss term: ``κ · (threshold − Γ)`` with Γ detached (κ grows
+        while Γ exceeds the threshold) under the gradient rule; ``None`` under the PID
+        rule, whose κ is set by :meth:`step_constraint`."""
+        loss = self.constraint.loss(cvar, self.cost_threshold)
+        if loss is None:
+            return None
         weights = None if tensordict is None else self._maybe_get_priority_weight(tensordict)
         return self._reduce_loss(loss, tensordict=tensordict, weights=weights)
+
+    def step_constraint(self, out: TensorDictBase | Tensor) -> None:
+        """Update κ after a gradient step, from that step's outputs (or the signal itself).
+
+        Under ``kappa_rule="pid"`` this is the controller's update; call it once per
+        update with what :meth:`forward` returned (the wcsac_rl trainer does). Under the
+        gradient rule κ moves with its optimizer and this does nothing.
+        """
+        if self.constraint.rule == "gradient":
+            return
+        if isinstance(out, Tensor):
+            signal = out
+        else:
+            key = "constraint_cvar" if "constraint_cvar" in out.keys() else "cvar"
+            signal = out.get(key)
+        self.constraint.step(signal.detach(), self.cost_threshold)
 
     # ---------------------------------------------------------------- forward
     @dispatch
@@ -1359,7 +1390,8 @@ class WCSACLoss(SACLoss):
         }
         if loss_cost_variance is not None:
             out["loss_cost_variance"] = loss_cost_variance
-        out["loss_kappa"] = loss_kappa
+        if loss_kappa is not None:
+            out["loss_kappa"] = loss_kappa
         scalars = {
             "alpha": self._alpha,
             "kappa": self.kappa,
@@ -1392,6 +1424,13 @@ class WCSACLoss(SACLoss):
             "target_safety_network_params",
         )
         return td_out
+
+
+def _rename_kappa_raw(module, state_dict, prefix, *args) -> None:
+    """Load a state dict saved before κ moved into :attr:`WCSACLoss.constraint`."""
+    old, new = f"{prefix}kappa_raw", f"{prefix}constraint.kappa_raw"
+    if old in state_dict and new not in state_dict:
+        state_dict[new] = state_dict.pop(old)
 
 
 class SACLagLoss(WCSACLoss):

@@ -32,6 +32,7 @@ from wcsac_rl.objectives import (
     StartStateBuffer,
     WCSACLoss,
 )
+from wcsac_rl.objectives.constraint import PIDGains
 from wcsac_rl.training.config import algo_option
 from wcsac_rl.training.devices import RunDevices, run_devices
 
@@ -184,6 +185,7 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
             "cost_limit": float(cfg.cost_limit),
             "max_episode_steps": int(max_episode_steps),
             "kappa_init": float(algo.kappa_init),
+            "kappa_rule": str(algo_option(algo, "kappa_rule")),
             "kappa_parametrization": str(algo.kappa_parametrization),
             "kappa_actions": str(algo.kappa_actions),
             # (algo_option: what runs saved before an option existed did)
@@ -200,6 +202,10 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
             "kappa_statistic": str(algo_option(algo, "kappa_statistic")),
             "kappa_signal": str(algo_option(algo, "kappa_signal")),
         }
+        if safety_kwargs["kappa_rule"] == "pid":
+            # the gradient rule's knobs (kappa_advice sets them per env) do not apply
+            safety_kwargs["damp_scale"] = 0.0
+            safety_kwargs["pid"] = PIDGains(**OmegaConf.to_container(algo.pid, resolve=True))
         if algo_option(algo, "safety_critic") == "iqn":
             # the variance options configure the Gaussian critic's variance head
             del safety_kwargs["variance_loss"], safety_kwargs["variance_target"]
@@ -244,7 +250,7 @@ def make_optimizers(cfg: DictConfig, loss: LossModule) -> dict[str, torch.optim.
         "critic": adam(critics, lr),
         "alpha": adam([loss.log_alpha], lr),
     }
-    if isinstance(loss, WCSACLoss):
+    if isinstance(loss, WCSACLoss) and loss.kappa_rule == "gradient":
         optimizers["kappa"] = adam([loss.kappa_raw], lr * float(cfg.algo.kappa_lr_scale))
     return optimizers
 
@@ -327,7 +333,11 @@ def make_initial_state_buffer(cfg: DictConfig, loss: LossModule) -> StartStateBu
 def make_episode_window(cfg: DictConfig, loss: LossModule) -> EpisodeCostWindow:
     """The recent training episodes whose CVaR κ sees, for ``kappa_signal`` ``max`` /
     ``episodes`` (the last ``algo.kappa_episode_window``)."""
-    return EpisodeCostWindow.for_loss(loss, window=int(cfg.algo.kappa_episode_window))
+    return EpisodeCostWindow.for_loss(
+        loss,
+        window=int(cfg.algo.kappa_episode_window),
+        statistic=str(algo_option(cfg.algo, "kappa_episode_statistic")),
+    )
 
 
 def make_logger(

@@ -50,6 +50,7 @@ IDENTITY_KEYS = (
     "algo.network",
     "algo.gamma",
     "algo.kappa_parametrization",
+    "algo.kappa_rule",
     "env.name",
     "env.max_episode_steps",
     "env.kwargs",

@@ -135,7 +135,9 @@ def validate_config(cfg: DictConfig) -> None:
         if not float(cfg.algo.lr) > 0:
             raise ConfigError(f"algo.lr must be > 0, got {cfg.algo.lr}")
     if algo in ("wcsac", "sac_lag"):
-        _validate_safety_keys(cfg.algo)
+        collector = cfg.algo.collector
+        learning_frames = max(0, int(cfg.total_frames) - int(collector.init_random_frames))
+        _validate_safety_keys(cfg.algo, updates=int(learning_frames * float(collector.utd_ratio)))
     if algo in ON_POLICY_ALGOS:
         _validate_cpo(cfg)
     if cfg.logger.backend not in ("csv", "wandb", "tensorboard", "none"):
@@ -199,6 +201,8 @@ SAVED_RUN_OPTIONS = MappingProxyType(
         "cost_n_steps": 1,
         "nonnegative_cost": False,
         "safety_critic": "gaussian",
+        "kappa_rule": "gradient",
+        "kappa_episode_statistic": "cvar",
     }
 )
 """What a run saved before one of these ``algo`` options existed did: its value for it
@@ -211,15 +215,20 @@ def algo_option(algo: DictConfig, key: str) -> Any:
     return algo.get(key, SAVED_RUN_OPTIONS.get(key))
 
 
-def _validate_safety_keys(algo: DictConfig) -> None:
+def _validate_safety_keys(algo: DictConfig, *, updates: int) -> None:
     """The WCSAC / SAC-Lag options of ``conf/algo`` (the loss would refuse them later).
 
     With ``safety_critic=iqn`` the variance options (``variance``, ``variance_loss``,
     ``variance_target``) are not used: they configure the Gaussian critic."""
     from wcsac_rl.modules.safety_critic import SAFETY_CRITIC_KINDS
+    from wcsac_rl.objectives.constraint import (
+        CONSTRAINT_RULES,
+        KAPPA_PARAMETRIZATIONS,
+        PIDGains,
+    )
+    from wcsac_rl.objectives.episode_costs import EPISODE_STATISTICS
     from wcsac_rl.objectives.wcsac import (
         KAPPA_ACTIONS,
-        KAPPA_PARAMETRIZATIONS,
         KAPPA_SIGNALS,
         KAPPA_STATES,
         KAPPA_STATISTICS,
@@ -235,6 +244,8 @@ def _validate_safety_keys(algo: DictConfig) -> None:
         "kappa_statistic": KAPPA_STATISTICS,
         "kappa_parametrization": KAPPA_PARAMETRIZATIONS,
         "kappa_signal": KAPPA_SIGNALS,
+        "kappa_rule": CONSTRAINT_RULES,
+        "kappa_episode_statistic": EPISODE_STATISTICS,
     }
     for key, allowed in choices.items():
         if algo_option(algo, key) not in allowed:
@@ -251,6 +262,26 @@ def _validate_safety_keys(algo: DictConfig) -> None:
         if not isinstance(window, int) or isinstance(window, bool) or window < 1:
             raise ConfigError(
                 f"algo.kappa_episode_window must be an integer >= 1 (episodes), got {window!r}"
+            )
+    if algo_option(algo, "kappa_rule") == "pid":
+        pid = algo.get("pid")
+        if not isinstance(pid, Mapping):
+            raise ConfigError(f"algo.kappa_rule=pid needs the algo.pid gains, got {pid!r}")
+        known = set(PIDGains.__dataclass_fields__)
+        unknown = sorted(set(pid) - known)
+        if unknown:
+            raise ConfigError(
+                f"unknown PID option algo.pid.{unknown[0]}; the gains are "
+                f"{', '.join(sorted(known))}"
+            )
+        try:
+            gains = PIDGains(**OmegaConf.to_container(pid, resolve=True))
+        except (TypeError, ValueError) as err:
+            raise ConfigError(f"algo.{err}") from None
+        if gains.d_delay > updates:
+            raise ConfigError(
+                f"algo.pid.d_delay={gains.d_delay} updates is longer than the run's "
+                f"{updates} updates: the derivative term would never act"
             )
     if not float(algo.kappa_init) > 0:
         raise ConfigError(

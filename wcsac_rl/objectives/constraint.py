@@ -1,0 +1,286 @@
+"""The constraint: the Lagrange multiplier κ and the rule that updates it.
+
+WCSAC's actor minimises ``β log π − Q^r + κ Γ`` while κ keeps a cost signal (the
+critic's Γ, or the recent episodes' cost: ``kappa_signal``) under a threshold. How κ
+moves is this module's business, and the loss never asks which rule it holds:
+
+* :class:`GradientLagrangian` — the paper's rule: κ is a parameter (``softplus`` or
+  ``exp`` of ``kappa_raw``) trained by gradient descent on ``κ · (threshold − signal)``
+  (the loss's ``loss_kappa``), optionally with MDMM damping of the actor's penalty.
+  This is integral control: κ moves in proportion to the accumulated violation, so it
+  overshoots and oscillates, and while the signal sits under the threshold κ decays.
+* :class:`PIDLagrangian` — Stooke, Achiam & Abbeel (ICML 2020), "Responsive Safety
+  in RL by PID Lagrangian Methods": κ is set, not learned, from the error
+  ``e = signal − threshold`` as ``κ = [Kp·EMA(e) + I + Kd·max(0, Ĉ_t − Ĉ_{t−delay})]``
+  clipped to ``[0, max_kappa]``, with the integral ``I ← clip(I + Ki·e, 0, max_kappa)``
+  (anti-windup) and ``Ĉ`` an exponential moving average of the signal. The
+  proportional term answers a violation at once; the derivative term answers a rising
+  cost before it crosses the threshold. It has no loss term: call :meth:`step` once
+  per update with the signal (``WCSACLoss.step_constraint(out)`` does it from the
+  loss's outputs; the wcsac_rl trainer calls it after every gradient step).
+
+Both are ``nn.Module`` with the same small interface: :attr:`kappa` (the multiplier,
+detached), :meth:`penalty_weight` (κ's weight on Γ in the actor loss), :meth:`loss`
+(the multiplier's loss term, or ``None``) and :meth:`step` (the controller's update,
+or nothing). Their state (``kappa_raw``; the PID's integral, averages and history) is
+in the state dict, so a resumed run continues where it stopped.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+__all__ = [
+    "CONSTRAINT_RULES",
+    "KAPPA_PARAMETRIZATIONS",
+    "GradientLagrangian",
+    "PIDGains",
+    "PIDLagrangian",
+    "make_constraint",
+]
+
+CONSTRAINT_RULES = ("gradient", "pid")
+KAPPA_PARAMETRIZATIONS = ("softplus", "log")
+
+
+def _inverse_softplus(x: float) -> float:
+    return x + math.log(-math.expm1(-x))
+
+
+class GradientLagrangian(nn.Module):
+    """κ as a parameter learned by gradient descent (the paper's rule).
+
+    Args:
+        kappa_init (float): the initial κ > 0. The authors' ``softplus(0) ≈ 0.693``.
+        parametrization (str): ``"softplus"`` (κ = softplus(raw), the authors' code) or
+            ``"log"`` (κ = exp(raw)).
+        damp_scale (float): MDMM damping: the actor's penalty weight is
+            ``κ − damp_scale · mean(threshold − signal)``. ``0``: none.
+
+    Example:
+        >>> import torch
+        >>> constraint = GradientLagrangian(0.5, "log")
+        >>> signal = torch.tensor([20.0, 20.0])  # over a threshold of 15
+        >>> constraint.loss(signal, torch.tensor(15.0)).mean().backward()
+        >>> bool(constraint.kappa_raw.grad < 0)  # descending the loss raises κ
+        True
+    """
+
+    rule = "gradient"
+
+    def __init__(
+        self, kappa_init: float, parametrization: str = "softplus", damp_scale: float = 0.0
+    ) -> None:
+        super().__init__()
+        if not kappa_init > 0:
+            raise ValueError(
+                f"kappa_init must be > 0 (κ is a Lagrange multiplier), got {kappa_init}"
+            )
+        if parametrization not in KAPPA_PARAMETRIZATIONS:
+            raise ValueError(
+                f"kappa_parametrization must be one of {KAPPA_PARAMETRIZATIONS}, "
+                f"got {parametrization!r}"
+            )
+        if not damp_scale >= 0:
+            raise ValueError(f"damp_scale must be >= 0, got {damp_scale}")
+        self.parametrization = parametrization
+        self.damp_scale = float(damp_scale)
+        raw = (
+            _inverse_softplus(kappa_init) if parametrization == "softplus" else math.log(kappa_init)
+        )
+        self.kappa_raw = nn.Parameter(torch.tensor(raw))
+
+    def multiplier(self) -> Tensor:
+        """κ as a differentiable function of ``kappa_raw``."""
+        if self.parametrization == "softplus":
+            return nn.functional.softplus(self.kappa_raw)
+        return self.kappa_raw.exp()
+
+    @property
+    def kappa(self) -> Tensor:
+        """The current κ (detached)."""
+        with torch.no_grad():
+            return self.multiplier()
+
+    def penalty_weight(self, signal: Tensor, threshold: Tensor) -> Tensor:
+        """κ's weight on Γ in the actor loss (detached): κ, minus the damping term."""
+        kappa = self.kappa
+        if self.damp_scale == 0.0:
+            return kappa
+        return kappa - self.damp_scale * (threshold - signal).mean()
+
+    def loss(self, signal: Tensor, threshold: Tensor) -> Tensor:
+        """``κ · (threshold − signal)`` per row (signal detached): descending it raises κ
+        while the signal exceeds the threshold and lowers it otherwise."""
+        return self.multiplier() * (threshold - signal.detach())
+
+    def step(self, signal: Tensor, threshold: Tensor) -> None:
+        """Nothing: κ moves with its optimizer."""
+
+    def extra_repr(self) -> str:
+        return f"parametrization={self.parametrization!r}, damp_scale={self.damp_scale}"
+
+
+@dataclass(frozen=True)
+class PIDGains:
+    """The PID Lagrangian's knobs (Stooke et al. 2020; OmniSafe's ``PIDLagrangian``).
+
+    Units: the error is in cost units (the signal's: an episode's cost at the
+    default ``kappa_states="initial"``) and κ is dimensionless, so a gain is κ per
+    cost unit (``ki``: per cost unit and update).
+
+    Attributes:
+        kp: proportional gain, on an EMA of the error.
+        ki: integral gain: the integral moves by ``ki · e`` per update.
+        kd: derivative gain, on the rise of the signal's EMA over ``d_delay`` updates
+            (only rises count, as in the paper).
+        d_delay: how many updates back the derivative compares with (>= 1).
+        p_ema: EMA factor of the error for the proportional term, in [0, 1)
+            (0: the raw error).
+        d_ema: EMA factor of the signal for the derivative term, in [0, 1).
+        max_kappa: upper bound of κ and of the integral (anti-windup), > 0.
+    """
+
+    kp: float = 0.0
+    ki: float = 1.0e-4
+    kd: float = 0.0
+    d_delay: int = 1
+    p_ema: float = 0.0
+    d_ema: float = 0.0
+    max_kappa: float = 100.0
+
+    def __post_init__(self) -> None:
+        for name in ("kp", "ki", "kd"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"pid.{name} must be a finite number >= 0, got {value!r}")
+        if isinstance(self.d_delay, bool) or int(self.d_delay) != self.d_delay or self.d_delay < 1:
+            raise ValueError(f"pid.d_delay must be an integer >= 1 (updates), got {self.d_delay!r}")
+        for name in ("p_ema", "d_ema"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and 0.0 <= value < 1.0):
+                raise ValueError(f"pid.{name} must be in [0, 1) (an EMA factor), got {value!r}")
+        if not (
+            isinstance(self.max_kappa, (int, float))
+            and math.isfinite(self.max_kappa)
+            and self.max_kappa > 0
+        ):
+            raise ValueError(f"pid.max_kappa must be a finite number > 0, got {self.max_kappa!r}")
+
+
+class PIDLagrangian(nn.Module):
+    """κ set by a PID controller on the constraint's error (Stooke et al. 2020).
+
+    Each :meth:`step` with the signal ``x`` and threshold ``d`` (error ``e = x − d``)::
+
+        P ← p_ema · P + (1 − p_ema) · e
+        I ← clip(I + ki · e, 0, max_kappa)                  (anti-windup)
+        C ← d_ema · C + (1 − d_ema) · x                     (C starts at the first x)
+        D ← max(0, C − C_{t − d_delay})                     (0 until d_delay steps exist)
+        κ ← clip(kp · P + I + kd · D, 0, max_kappa)
+
+    The integral starts at ``kappa_init``, so κ starts where the gradient rule's does.
+    A NaN signal (no episode has finished yet, with ``kappa_signal="episodes"``) leaves
+    everything unchanged. All of it runs on tensors (no host synchronisation).
+
+    Example:
+        >>> import torch
+        >>> pid = PIDLagrangian(0.5, PIDGains(kp=0.1, ki=0.01))
+        >>> pid.step(torch.tensor(25.0), torch.tensor(15.0))  # 10 over the limit
+        >>> round(float(pid.kappa), 4)  # 0.1 * 10 + (0.5 + 0.01 * 10)
+        1.6
+    """
+
+    rule = "pid"
+
+    def __init__(self, kappa_init: float, gains: PIDGains | None = None) -> None:
+        super().__init__()
+        gains = PIDGains() if gains is None else gains
+        if not kappa_init >= 0:
+            raise ValueError(f"kappa_init must be >= 0 with the PID rule, got {kappa_init}")
+        if kappa_init > gains.max_kappa:
+            raise ValueError(f"kappa_init={kappa_init} is above pid.max_kappa={gains.max_kappa}")
+        self.gains = gains
+        self.register_buffer("kappa_value", torch.tensor(float(kappa_init)))
+        self.register_buffer("integral", torch.tensor(float(kappa_init)))
+        self.register_buffer("error_ema", torch.zeros(()))
+        self.register_buffer("signal_ema", torch.zeros(()))
+        # the signal's EMA over the last d_delay steps (a ring; slot steps % d_delay
+        # holds the value d_delay steps back)
+        self.register_buffer("history", torch.zeros(int(gains.d_delay)))
+        self.register_buffer("steps", torch.zeros((), dtype=torch.long))
+
+    @property
+    def kappa(self) -> Tensor:
+        """The current κ."""
+        return self.kappa_value.clone()
+
+    def multiplier(self) -> Tensor:
+        return self.kappa_value
+
+    def penalty_weight(self, signal: Tensor, threshold: Tensor) -> Tensor:
+        """κ's weight on Γ in the actor loss: κ itself (the P term does MDMM's job)."""
+        return self.kappa
+
+    def loss(self, signal: Tensor, threshold: Tensor) -> None:
+        """None: the controller is not trained."""
+        return None
+
+    @torch.no_grad()
+    def step(self, signal: Tensor, threshold: Tensor) -> None:
+        """One controller update from the batch-mean ``signal`` (see the class doc)."""
+        g = self.gains
+        x = torch.as_tensor(signal, dtype=torch.float32, device=self.kappa_value.device).mean()
+        valid = x.isfinite()
+        x = torch.where(valid, x, torch.zeros_like(x))
+        error = x - torch.as_tensor(threshold, dtype=x.dtype, device=x.device)
+        first = self.steps == 0
+        error_ema = g.p_ema * self.error_ema + (1.0 - g.p_ema) * error
+        integral = (self.integral + g.ki * error).clamp(0.0, g.max_kappa)
+        signal_ema = torch.where(first, x, g.d_ema * self.signal_ema + (1.0 - g.d_ema) * x)
+        slot = self.steps % g.d_delay
+        past = self.history[slot]
+        rise = torch.where(self.steps >= g.d_delay, (signal_ema - past).clamp(min=0.0), 0.0)
+        kappa = (g.kp * error_ema + integral + g.kd * rise).clamp(0.0, g.max_kappa)
+        # a NaN signal changes nothing
+        self.error_ema.copy_(torch.where(valid, error_ema, self.error_ema))
+        self.integral.copy_(torch.where(valid, integral, self.integral))
+        self.signal_ema.copy_(torch.where(valid, signal_ema, self.signal_ema))
+        self.history[slot] = torch.where(valid, signal_ema, past)
+        self.kappa_value.copy_(torch.where(valid, kappa, self.kappa_value))
+        self.steps.add_(valid.long())
+
+    def extra_repr(self) -> str:
+        return ", ".join(f"{k}={v}" for k, v in vars(self.gains).items())
+
+
+def make_constraint(
+    rule: str,
+    *,
+    kappa_init: float,
+    parametrization: str = "softplus",
+    damp_scale: float = 0.0,
+    pid: PIDGains | dict | None = None,
+) -> GradientLagrangian | PIDLagrangian:
+    """The constraint for ``rule`` (``"gradient"`` or ``"pid"``) with its options.
+
+    ``damp_scale`` and ``parametrization`` are the gradient rule's, ``pid`` the PID
+    rule's gains; an option of the other rule is refused by name.
+    """
+    if rule not in CONSTRAINT_RULES:
+        raise ValueError(f"kappa_rule must be one of {CONSTRAINT_RULES}, got {rule!r}")
+    if rule == "gradient":
+        if pid is not None:
+            raise ValueError("pid gains apply to kappa_rule='pid' only (kappa_rule='gradient')")
+        return GradientLagrangian(kappa_init, parametrization, damp_scale)
+    if damp_scale:
+        raise ValueError(
+            f"damp_scale={damp_scale} is the gradient rule's MDMM damping; with "
+            "kappa_rule='pid' the proportional gain pid.kp plays its part (set damp_scale=0)"
+        )
+    gains = pid if isinstance(pid, PIDGains) else PIDGains(**(pid or {}))
+    return PIDLagrangian(kappa_init, gains)
