@@ -21,7 +21,7 @@ from wcsac_rl.evaluation.plots import plot_run_curves
 from wcsac_rl.training import ConfigError, TrainingError, make_trainer
 from wcsac_rl.training.checkpoint import resume_config
 from wcsac_rl.training.preemption import Preempted
-from wcsac_rl.training.run_dir import AUTO_RESUME
+from wcsac_rl.training.run_dir import AUTO_RESUME, discard_unused_run_dir
 
 # errors a user can cause or fix: printed as one line (exit code 1), never a traceback
 USER_ERRORS = (ConfigError, TrainingError, NonFiniteStepError)
@@ -29,14 +29,16 @@ USER_ERRORS = (ConfigError, TrainingError, NonFiniteStepError)
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> None:
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
         # resume=RUN_DIR: the run's own config, with only the explicit overrides applied;
         # resume=auto (sweeps): the composed config, checked against this run dir's checkpoint
         overrides = list(HydraConfig.get().overrides.task)
         if cfg.resume and cfg.resume != AUTO_RESUME:
             cfg = resume_config(cfg, overrides)
-        trainer = make_trainer(cfg, Path(HydraConfig.get().runtime.output_dir), overrides=overrides)
+        trainer = make_trainer(cfg, run_dir, overrides=overrides)
     except USER_ERRORS as err:
+        discard_unused_run_dir(run_dir)  # a refused command leaves no directory behind
         sys.exit(f"error: {err}")
     try:
         run_dir = trainer.run()

@@ -537,7 +537,7 @@ class WCSACLoss(SACLoss):
 
         device = self.log_alpha.device
         self.constraint = constraint.to(device)
-        self._register_load_state_dict_pre_hook(_rename_kappa_raw)
+        self.register_load_state_dict_pre_hook(_rename_kappa_raw)
         self.register_buffer("cost_threshold", torch.zeros((), device=device))
         # derived from cost_gamma / the value estimator: not part of the state dict
         self.register_buffer("cost_discount", torch.zeros((), device=device), persistent=False)

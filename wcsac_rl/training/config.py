@@ -263,10 +263,11 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int) -> None:
             raise ConfigError(
                 f"algo.kappa_episode_window must be an integer >= 1 (episodes), got {window!r}"
             )
-    if algo_option(algo, "kappa_rule") == "pid":
-        pid = algo.get("pid")
+    pid = algo.get("pid")
+    if pid is not None or algo_option(algo, "kappa_rule") == "pid":
+        # (checked under either rule: a wrong gain is wrong whichever rule runs)
         if not isinstance(pid, Mapping):
-            raise ConfigError(f"algo.kappa_rule=pid needs the algo.pid gains, got {pid!r}")
+            raise ConfigError(f"algo.pid must hold the PID gains, got {pid!r}")
         known = set(PIDGains.__dataclass_fields__)
         unknown = sorted(set(pid) - known)
         if unknown:

@@ -37,6 +37,7 @@ __all__ = [
     "check_new_run_dir",
     "check_restartable_run_dir",
     "cut_records_to",
+    "discard_unused_run_dir",
     "lock_holder",
     "replace_text",
 ]
@@ -144,6 +145,22 @@ class RunLock:
         if self._fd is not None:
             os.close(self._fd)  # closing the descriptor releases the flock
             self._fd = None
+
+
+def discard_unused_run_dir(run_dir: Path) -> bool:
+    """Remove ``run_dir`` if it holds nothing but what Hydra writes before the trainer
+    starts (``.hydra/``, ``*.log``) and a lock file: a command refused before it could
+    train leaves no directory behind. A directory with anything else in it (a run, a
+    user's files) is left as it is. Returns whether it was removed."""
+    import shutil
+
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        return False
+    if any(p.name != LOCK_FILE and not _is_hydra_entry(p) for p in run_dir.iterdir()):
+        return False
+    shutil.rmtree(run_dir, ignore_errors=True)
+    return True
 
 
 def check_new_run_dir(run_dir: Path) -> None:

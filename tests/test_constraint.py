@@ -1,0 +1,300 @@
+"""The constraint part: the gradient rule and the PID Lagrangian, alone and wired into
+every Lagrangian algorithm (WCSAC Gaussian, WCSAC IQN, SAC-Lag)."""
+
+from __future__ import annotations
+
+import math
+import re
+import subprocess
+import sys
+
+import pytest
+import torch
+from _loss_helpers import make_batch, make_loss
+from _training_helpers import ROOT, TINY_CLI, compose_config
+
+from wcsac_rl.objectives.constraint import (
+    GradientLagrangian,
+    PIDGains,
+    PIDLagrangian,
+    make_constraint,
+)
+from wcsac_rl.training import ConfigError, make_trainer
+from wcsac_rl.training.builders import make_optimizers
+
+D = torch.tensor(15.0)
+
+
+def _kappas(pid: PIDLagrangian, signals: list[float]) -> list[float]:
+    out = []
+    for x in signals:
+        pid.step(torch.tensor(x), D)
+        out.append(float(pid.kappa))
+    return out
+
+
+# ------------------------------------------------------------------ the PID rule
+def test_proportional_term_answers_at_once_and_stops_at_zero():
+    pid = PIDLagrangian(0.0, PIDGains(kp=0.1, ki=0.0))
+    # 10 over d: κ = 0.1 · 10; 5 under: 0.1 · (−5) clipped to 0; at d: 0
+    assert _kappas(pid, [25.0, 10.0, 15.0, 35.0]) == pytest.approx([1.0, 0.0, 0.0, 2.0])
+
+
+def test_proportional_term_reads_an_ema_of_the_error():
+    pid = PIDLagrangian(0.0, PIDGains(kp=1.0, ki=0.0, p_ema=0.5))
+    # P ← 0.5 P + 0.5 e with e = 10: 5, 7.5, 8.75
+    assert _kappas(pid, [25.0, 25.0, 25.0]) == pytest.approx([5.0, 7.5, 8.75])
+
+
+def test_integral_starts_at_kappa_init_and_is_clipped_both_ways():
+    pid = PIDLagrangian(0.5, PIDGains(ki=0.1, max_kappa=2.0))
+    assert float(pid.kappa) == 0.5  # where the gradient rule's κ starts too
+    # e = +10 per step: I = 1.5, 2 (clipped: anti-windup), 2, 2
+    assert _kappas(pid, [25.0] * 4) == pytest.approx([1.5, 2.0, 2.0, 2.0])
+    # e = −10: it unwinds at once (without the clip it would first fall from 4.5) ...
+    assert _kappas(pid, [5.0] * 3) == pytest.approx([1.0, 0.0, 0.0])
+    # ... and never goes below 0: one step over d brings κ back at once
+    assert _kappas(pid, [25.0]) == pytest.approx([1.0])
+
+
+def test_derivative_term_sees_a_rise_over_exactly_the_delay_and_ignores_falls():
+    pid = PIDLagrangian(0.0, PIDGains(ki=0.0, kd=1.0, d_delay=3))
+    # signals stay under d (no P or I); a step from 0 to 5 is a rise of 5 for the
+    # d_delay = 3 steps whose comparison reaches back before it, then it is old news
+    kappas = _kappas(pid, [0.0, 0.0, 0.0, 5.0, 5.0, 5.0, 5.0, 5.0, 0.0, 0.0])
+    assert kappas == pytest.approx([0, 0, 0, 5, 5, 5, 0, 0, 0, 0])
+
+
+def test_derivative_term_waits_for_a_full_history():
+    pid = PIDLagrangian(0.0, PIDGains(ki=0.0, kd=1.0, d_delay=4))
+    # the first d_delay steps have nothing d_delay steps back: no derivative yet
+    assert _kappas(pid, [0.0, 2.0, 4.0, 6.0, 8.0]) == pytest.approx([0, 0, 0, 0, 8.0])
+
+
+def test_derivative_reads_an_ema_of_the_signal():
+    pid = PIDLagrangian(0.0, PIDGains(ki=0.0, kd=1.0, d_delay=1, d_ema=0.5))
+    # C starts at the first signal (0), then C ← 0.5 C + 0.5 x: 4, 6; rises 4, 2
+    assert _kappas(pid, [0.0, 8.0, 8.0]) == pytest.approx([0.0, 4.0, 2.0])
+
+
+def test_kappa_is_clipped_to_max_kappa():
+    pid = PIDLagrangian(0.0, PIDGains(kp=1.0, ki=0.0, max_kappa=3.0))
+    assert _kappas(pid, [115.0]) == [3.0]
+
+
+def test_a_nan_signal_changes_nothing():
+    pid = PIDLagrangian(0.5, PIDGains(kp=0.1, ki=0.1, kd=0.1, d_delay=2, p_ema=0.5))
+    _kappas(pid, [20.0, 30.0])
+    before = {k: v.clone() for k, v in pid.state_dict().items()}
+    pid.step(torch.tensor(math.nan), D)
+    for key, value in pid.state_dict().items():
+        assert torch.equal(value, before[key]), key
+
+
+def test_the_controller_state_survives_a_state_dict_round_trip():
+    gains = PIDGains(kp=0.05, ki=0.01, kd=0.2, d_delay=3, p_ema=0.9, d_ema=0.5)
+    first = PIDLagrangian(0.7, gains)
+    signals = [3.0, 30.0, 12.0, 40.0, 18.0]
+    _kappas(first, signals)
+    second = PIDLagrangian(0.7, gains)
+    second.load_state_dict(first.state_dict())
+    assert _kappas(first, [25.0, 9.0, 50.0]) == _kappas(second, [25.0, 9.0, 50.0])
+
+
+def test_pid_step_averages_a_batch_of_signals():
+    pid = PIDLagrangian(0.0, PIDGains(kp=0.1, ki=0.0))
+    pid.step(torch.tensor([[20.0], [30.0]]), D)
+    assert float(pid.kappa) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(
+    ("gains", "message"),
+    [
+        ({"kp": -0.1}, "pid.kp must be a finite number >= 0"),
+        ({"ki": -1e-4}, "pid.ki must be a finite number >= 0"),
+        ({"kd": math.inf}, "pid.kd must be a finite number >= 0"),
+        ({"d_delay": 0}, "pid.d_delay must be an integer >= 1"),
+        ({"d_delay": 2.5}, "pid.d_delay must be an integer >= 1"),
+        ({"p_ema": 1.0}, "pid.p_ema must be in [0, 1)"),
+        ({"d_ema": -0.1}, "pid.d_ema must be in [0, 1)"),
+        ({"max_kappa": 0.0}, "pid.max_kappa must be a finite number > 0"),
+    ],
+)
+def test_bad_gains_are_refused_by_name(gains, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        PIDGains(**gains)
+
+
+def test_make_constraint_refuses_the_other_rules_options():
+    with pytest.raises(
+        ValueError, match=re.escape("kappa_rule must be one of ('gradient', 'pid')")
+    ):
+        make_constraint("lagrange", kappa_init=0.5)
+    with pytest.raises(ValueError, match=re.escape("damp_scale=0.1 is the gradient rule's")):
+        make_constraint("pid", kappa_init=0.5, damp_scale=0.1)
+    with pytest.raises(ValueError, match=re.escape("pid gains apply to kappa_rule='pid' only")):
+        make_constraint("gradient", kappa_init=0.5, pid={"kp": 1.0})
+    with pytest.raises(ValueError, match=re.escape("above pid.max_kappa")):
+        make_constraint("pid", kappa_init=5.0, pid={"max_kappa": 1.0})
+
+
+# ------------------------------------------------------------- the gradient rule
+@pytest.mark.parametrize("parametrization", ["softplus", "log"])
+def test_gradient_rule_raises_kappa_while_the_signal_is_over(parametrization):
+    constraint = GradientLagrangian(0.5, parametrization)
+    assert float(constraint.kappa) == pytest.approx(0.5, rel=1e-6)
+    constraint.loss(torch.tensor([25.0, 35.0]), D).mean().backward()
+    # d/draw of κ · (d − x) = κ'(raw) · (d − x) < 0: descent raises κ
+    slope = 0.5 if parametrization == "log" else 1 - math.exp(-0.5)  # κ'(raw)
+    assert float(constraint.kappa_raw.grad) == pytest.approx(slope * (15.0 - 30.0), rel=1e-5)
+
+
+def test_gradient_rule_damping_lowers_the_penalty_while_under():
+    constraint = GradientLagrangian(0.5, damp_scale=0.1)
+    weight = constraint.penalty_weight(torch.tensor([5.0, 15.0]), D)  # 5 under on average
+    assert float(weight) == pytest.approx(0.5 - 0.1 * 5.0, rel=1e-6)
+
+
+# --------------------------------------------------------- wired into the losses
+LOSSES = {
+    "wcsac": {"risk_level": 0.1},
+    "wcsac_iqn": {"risk_level": 0.1, "kind": "iqn"},
+    "sac_lag": {"risk_level": 1.0, "variance": False},
+}
+
+
+@pytest.mark.parametrize("name", sorted(LOSSES))
+def test_pid_loss_has_no_kappa_term_or_parameter_and_steps_from_its_signal(name):
+    loss = make_loss(
+        **LOSSES[name],
+        kappa_rule="pid",
+        pid=PIDGains(kp=0.1, ki=0.0),
+        kappa_init=0.0,
+        cost_threshold=0.0,
+    )
+    assert loss.kappa_rule == "pid"
+    assert not any("kappa" in n for n, _ in loss.named_parameters())
+    out = loss(make_batch())
+    assert "loss_kappa" not in out.keys() and "loss_kappa" not in loss.out_keys
+    assert float(out["kappa"]) == 0.0
+    # the signal (Γ, positive) is over the threshold 0: κ = kp · Γ
+    loss.step_constraint(out)
+    assert float(loss.kappa) == pytest.approx(0.1 * float(out["cvar"]), rel=1e-5)
+    assert float(loss.kappa) > 0
+    # the actor's penalty weight is the new κ: its loss changes
+    torch.manual_seed(0)
+    after = loss(make_batch())
+    assert float(after["kappa"]) == float(loss.kappa)
+
+
+def test_gradient_loss_keeps_its_kappa_parameter_and_step_constraint_is_a_no_op():
+    loss = make_loss(risk_level=0.5)
+    before = float(loss.kappa)
+    out = loss(make_batch())
+    assert "loss_kappa" in out.keys()
+    loss.step_constraint(out)
+    assert float(loss.kappa) == before
+    assert [n for n, _ in loss.named_parameters() if "kappa" in n] == ["constraint.kappa_raw"]
+
+
+def test_a_state_dict_saved_before_the_split_still_loads():
+    loss = make_loss(risk_level=0.5)
+    state = loss.state_dict()
+    state["kappa_raw"] = state.pop("constraint.kappa_raw").clone().fill_(1.25)
+    loss.load_state_dict(state)
+    assert float(loss.kappa_raw.detach()) == 1.25
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [["algo=wcsac"], ["algo=wcsac", "algo.safety_critic=iqn"], ["algo=sac_lag"]],
+    ids=["wcsac", "wcsac_iqn", "sac_lag"],
+)
+def test_kappa_rule_pid_is_selectable_for_every_lagrangian_algorithm(tmp_path, overrides):
+    cfg = compose_config(
+        "env=tiny", *overrides, "algo.kappa_rule=pid", "algo.pid.kp=0.5", "total_frames=600"
+    )
+    trainer = make_trainer(cfg, tmp_path / "run")
+    try:
+        assert trainer.loss.kappa_rule == "pid"
+        assert "kappa" not in make_optimizers(cfg, trainer.loss)
+        assert "kappa" not in trainer.optimizers
+        trainer.run()
+        kappa = trainer.loss.constraint
+        assert int(kappa.steps) == trainer.updates > 0  # one controller step per update
+    finally:
+        trainer.close()
+
+
+def test_the_trainer_steps_the_pid_and_resume_continues_its_state(tmp_path):
+    run = tmp_path / "run"
+    cfg = compose_config("env=tiny", "algo.kappa_rule=pid", "algo.pid.ki=0.001")
+    trainer = make_trainer(cfg, run)
+    try:
+        trainer.run()
+        state = {k: v.clone() for k, v in trainer.loss.constraint.state_dict().items()}
+    finally:
+        trainer.close()
+    resumed = make_trainer(
+        compose_config("env=tiny", "algo.kappa_rule=pid", "algo.pid.ki=0.001", f"resume={run}"),
+        run,
+    )
+    try:
+        for key, value in resumed.loss.constraint.state_dict().items():
+            assert torch.equal(value, state[key]), key
+    finally:
+        resumed.close()
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        (
+            "algo.kappa_rule=lagrange",
+            "algo.kappa_rule must be one of gradient, pid, got 'lagrange'",
+        ),
+        ("algo.pid.kp=-0.5", "algo.pid.kp must be a finite number >= 0, got -0.5"),
+        ("algo.pid.kd=abc", "algo.pid.kd must be a finite number >= 0, got 'abc'"),
+        ("algo.pid.d_delay=0", "algo.pid.d_delay must be an integer >= 1"),
+        ("algo.pid.max_kappa=-1", "algo.pid.max_kappa must be a finite number > 0"),
+        ("+algo.pid.kq=1", "unknown PID option algo.pid.kq"),
+    ],
+)
+def test_bad_pid_config_is_one_line_naming_the_option(tmp_path, override, message):
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        make_trainer(compose_config("env=tiny", "algo.kappa_rule=pid", override), tmp_path / "r")
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_delay_longer_than_the_run_is_refused(tmp_path):
+    # 800 frames, 200 of them random, 0.25 updates per frame: 150 updates
+    cfg = compose_config("env=tiny", "algo.kappa_rule=pid", "algo.pid.d_delay=151")
+    with pytest.raises(
+        ConfigError, match=re.escape("d_delay=151 updates is longer than the run's 150")
+    ):
+        make_trainer(cfg, tmp_path / "r")
+
+
+def test_a_refused_command_leaves_no_run_directory(tmp_path):
+    run = tmp_path / "run"
+    result = subprocess.run(
+        [
+            sys.executable,
+            "train.py",
+            *TINY_CLI,
+            "algo.kappa_rule=pid",
+            "algo.pid.ki=-1",
+            "total_frames=400",
+            f"hydra.run.dir={run}",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines()[-1] == (
+        "error: algo.pid.ki must be a finite number >= 0, got -1"
+    )
+    assert "Traceback" not in result.stderr
+    assert not run.exists()
