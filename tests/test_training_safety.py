@@ -1,5 +1,5 @@
-"""Training-time safety: the metrics' one definition and the trainer's running columns
-(carried over by a resume)."""
+"""Training-time safety: the metrics' one definition, the trainer's running columns
+(carried over by a resume) and the curves' cumulative-cost panel."""
 
 from __future__ import annotations
 
@@ -8,6 +8,7 @@ import math
 import pytest
 from _training_helpers import ROOT, compose_config
 
+from wcsac_rl.evaluation.plots import CUMULATIVE_PANEL, run_curves_figure
 from wcsac_rl.training import make_trainer
 from wcsac_rl.training.checkpoint import load_checkpoint, save_checkpoint
 from wcsac_rl.training.progress import read_progress
@@ -235,3 +236,17 @@ def test_the_progress_bar_shows_the_cumulative_cost_and_epochs_over_d():
     assert _postfix({**row, "train/episodes": 0}) == (
         "no finished episode, cum_cost=1234, epochs>d=3"
     )
+
+
+# ---------------------------------------------------------------------- curves.png
+def test_curves_have_a_cumulative_cost_panel_also_for_old_runs():
+    old = _columns(COSTS, EPISODES, TOTALS)
+    for columns in (old, old | {"train/cumulative_cost": TOTALS}):
+        fig = run_curves_figure(columns, cost_limit=D)
+        titles = [ax.get_title() for ax in fig.axes]
+        assert titles[:4] == ["episode return", "episode cost", "cost rate", CUMULATIVE_PANEL]
+        line = fig.axes[3].get_lines()[0]
+        assert line.get_ydata() == pytest.approx(TOTALS, rel=1e-12)
+        # the episode-cost panel has the limit d dashed
+        dashed = [ln for ln in fig.axes[1].get_lines() if ln.get_linestyle() == "--"]
+        assert [ln.get_ydata()[0] for ln in dashed] == [D]
