@@ -1,14 +1,18 @@
 """Training-time safety: the metrics' one definition, the trainer's running columns
-(carried over by a resume) and the curves' cumulative-cost panel."""
+(carried over by a resume), the curves' cumulative-cost panel and the report's table."""
 
 from __future__ import annotations
 
+import csv
 import math
 
 import pytest
 from _training_helpers import ROOT, compose_config
+from omegaconf import OmegaConf
 
 from wcsac_rl.evaluation.plots import CUMULATIVE_PANEL, run_curves_figure
+from wcsac_rl.evaluation.reporting import build_report
+from wcsac_rl.evaluation.training_safety_table import TRAINING_SAFETY_CSV, TRAINING_SAFETY_MD
 from wcsac_rl.training import make_trainer
 from wcsac_rl.training.checkpoint import load_checkpoint, save_checkpoint
 from wcsac_rl.training.progress import read_progress
@@ -250,3 +254,46 @@ def test_curves_have_a_cumulative_cost_panel_also_for_old_runs():
         # the episode-cost panel has the limit d dashed
         dashed = [ln for ln in fig.axes[1].get_lines() if ln.get_linestyle() == "--"]
         assert [ln.get_ydata()[0] for ln in dashed] == [D]
+
+
+# ------------------------------------------------------------------------ the report
+def _fake_run(root, name, label, seed, columns):
+    run_dir = root / name
+    run_dir.mkdir(parents=True)
+    cfg = {"algo": {"name": label.split("_")[0], "label": label}, "env": {"name": "static"}}
+    OmegaConf.save({**cfg, "seed": seed, "cost_limit": D}, run_dir / "config.yaml")
+    keys = list(columns)
+    with (run_dir / "progress.csv").open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["epoch", *keys])
+        writer.writerows([i + 1, *row] for i, row in enumerate(zip(*columns.values())))
+
+
+def test_the_report_writes_the_training_safety_table_in_table_1s_row_order(tmp_path):
+    runs = tmp_path / "runs"
+    _fake_run(runs, "w_seed10", "wcsac_0.1", 10, _columns([3.0, 2.0], [1, 1], [3.0, 5.0]))
+    _fake_run(runs, "w_seed0", "wcsac_0.1", 0, _columns(COSTS, EPISODES, TOTALS))
+    sac = _columns([40.0, 30.0], [1, 1], [40.0, 70.0]) | {"train/cumulative_cost": [40.0, 71.0]}
+    _fake_run(runs, "sac_seed0", "sac", 0, sac)
+    report = build_report([runs], tmp_path / "out", trajectories=False, log=lambda _: None)
+    assert {TRAINING_SAFETY_MD, TRAINING_SAFETY_CSV} <= {p.name for p in report.files}
+    with (tmp_path / "out" / TRAINING_SAFETY_CSV).open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["label"], r["seed_list"]) for r in rows] == [("sac", "0"), ("wcsac_0.1", "0 10")]
+    sac_row, wcsac = rows
+    assert float(sac_row["cumulative_cost"]) == 71.0  # the logged column
+    assert sac_row["safe_from_frames"] == "nan" and sac_row["epochs_over_limit"] == "2.0"
+    assert wcsac["epochs_over_limit_per_seed"] == "4 0"
+    assert wcsac["epochs_over_limit_after_warmup_per_seed"] == "1 0"
+    assert float(wcsac["epochs_over_limit"]) == 2.0
+    assert wcsac["peak_epoch_cost_per_seed"] == "50.0 3.0"
+    assert wcsac["safe_from_frames_per_seed"] == "60000.0 0.0"
+    assert float(wcsac["safe_from_frames"]) == 30_000
+    assert float(wcsac["cumulative_cost"]) == pytest.approx((289.0 + 5.0) / 2, rel=1e-12)
+    lines = (tmp_path / "out" / TRAINING_SAFETY_MD).read_text().splitlines()
+    assert lines[0] == "# Training safety — StaticEnv, budget d = 15"
+    assert lines[4] == "| SAC | 71 | 2 | 0 | 40.00 | never | 20 k (1) |"
+    assert lines[5] == (
+        "| WCSAC-0.1 | 147 (289 / 5) | 2 (4 / 0) | 0.5 (1 / 0) | 26.50 (50.00 / 3.00) "
+        "| 30 k (60 k / 0 k) | 80 k (2) |"
+    )
