@@ -329,9 +329,9 @@ def test_each_epoch_logs_calibration_of_its_test_episodes(runs):
     for row in rows:
         slack = float(row["loss/cost_threshold"]) - float(row["loss/cvar"])
         assert float(row["loss/constraint_slack"]) == pytest.approx(slack, rel=F64, abs=F64)
-    # its curves: the three usual panels and the two new ones, 4 inches × 100 dpi each
+    # its curves: the four usual panels and the two new ones, 4 inches × 100 dpi each
     curves = plot_run_curves(runs["wcsac"] / "progress.csv", runs["wcsac"] / "curves.png")
-    assert png_size(curves)[0] == 5 * 400
+    assert png_size(curves)[0] == 6 * 400
 
 
 def test_calibration_changes_neither_the_episodes_nor_the_training(runs, tmp_path, monkeypatch):
@@ -350,7 +350,7 @@ def test_runs_without_a_safety_critic_have_no_calibration_columns(runs):
     assert not any(c.startswith("calib/") for c in columns)
     assert "loss/constraint_slack" not in columns
     curves = plot_run_curves(runs["sac"] / "progress.csv", runs["sac"] / "curves.png")
-    assert png_size(curves)[0] == 3 * 400
+    assert png_size(curves)[0] == 4 * 400  # return, cost, cost rate, cumulative cost
 
 
 def test_curves_figure_gets_calibration_and_slack_panels_only_when_logged():
@@ -369,7 +369,7 @@ def test_curves_figure_gets_calibration_and_slack_panels_only_when_logged():
     assert titles["plain"] == titles["all-nan"] == usual
     assert titles["calibrated"] == [*usual, CALIBRATION_PANEL, SLACK_PANEL]
     fig = run_curves_figure({**base, **calib, "loss/constraint_slack": [0.5, -0.5]})
-    calibration_axes = fig.axes[3]
+    calibration_axes = fig.axes[3]  # (no cost columns: no cumulative-cost panel)
     assert [line.get_ydata().tolist() for line in calibration_axes.get_lines()] == [[1.0, 2.0]] * 4
 
 

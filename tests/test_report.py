@@ -73,6 +73,8 @@ def test_report_writes_every_file(report):
             "fig5_random_seed0.png",
             "fig6_evaluation.png",
             "runs.md",
+            "training_safety.md",
+            "training_safety.csv",
         ]
     )
     assert sorted(p.name for p in result.out_dir.iterdir()) == names
@@ -198,6 +200,8 @@ def test_existing_report_is_not_overwritten_without_force(report, sweep):
         "fig4_training_curves.png",
         "fig6_evaluation.png",
         "runs.md",
+        "training_safety.md",
+        "training_safety.csv",
     }
     assert (result.out_dir / "table1.csv").read_bytes() == before[result.out_dir / "table1.csv"]
 
@@ -219,7 +223,12 @@ def test_unevaluated_runs_give_curves_and_a_warning(tmp_path):
     sweep = copy_sweep(tmp_path)
     lines: list[str] = []
     result = build_report([sweep], tmp_path / "out", trajectories=False, log=lines.append)
-    assert [p.name for p in result.files] == ["runs.md", "fig4_training_curves.png"]
+    assert [p.name for p in result.files] == [
+        "runs.md",
+        "training_safety.md",
+        "training_safety.csv",
+        "fig4_training_curves.png",
+    ]
     assert any("4 training run(s) have no evaluation" in w for w in result.warnings)
     assert any("Table 1 and Figure 6 skipped" in w for w in result.warnings)
     assert all(line.startswith(("warning: ", "wrote ")) for line in lines)
@@ -376,7 +385,7 @@ def test_an_archived_report_is_made_again_from_its_archive_alone(sweep, tmp_path
     assert (archive / names[0] / "calibration.json").read_text() == measured.read_text()
     again = build_report([archive], tmp_path / "again", trajectories=False, log=lambda _: None)
     assert again.warnings == []
-    for name in ("table1.md", "table1.csv", "runs.md"):
+    for name in ("table1.md", "table1.csv", "runs.md", "training_safety.md", "training_safety.csv"):
         assert (tmp_path / "again" / name).read_bytes() == (out / name).read_bytes()
     lines: list[str] = []
     rerun = build_report([root], out, trajectories=False, force=True, log=lines.append)

@@ -16,6 +16,9 @@ Table-1 row (``algo.label``, seeds pooled) and writes into ``--out`` (default
   and the orderings of C0.1 and EC in both;
 * ``runs.md`` — the training runs: row, seed, frames, wall time, sessions, and the
   commit each session ran (its ``provenance.json``);
+* ``training_safety.md`` / ``training_safety.csv`` — how safely each row trained:
+  cumulative training cost, epochs over d (all, after 50 k frames), peak epoch cost,
+  frames from which every epoch stayed ≤ d (per seed and the mean over seeds);
 * with ``--archive``, ``runs/<run>/`` — each run's ``evaluation.json``/``.csv``,
   ``config*.yaml``, ``provenance*.json``, ``progress.csv`` (and ``calibration.json``
   when measured): results to commit

@@ -16,6 +16,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from wcsac_rl.training.progress import read_progress
+from wcsac_rl.training.training_safety import cumulative_cost
 
 __all__ = [
     "DPI",
@@ -46,6 +47,7 @@ _CALIBRATION_LINES = (
 )
 CALIBRATION_PANEL = r"safety critic at $s_0$ (test episodes)"
 SLACK_PANEL = r"$\kappa$-loss slack: threshold $-\ \Gamma$"
+CUMULATIVE_PANEL = "cumulative training cost"
 
 
 def _has_values(columns: dict[str, list[float]], key: str) -> bool:
@@ -58,50 +60,24 @@ def run_curves_figure(
 ) -> Figure:
     """The figure of :func:`plot_run_curves` from ``read_progress`` columns.
 
-    Panels: return, cost, cost rate; then, when the run logged them, the safety
-    critic's calibration at the test episodes' start states (predicted Γ_α and Q^c
-    against the realised CVaR_α and mean of the discounted cost-to-go, ``calib/*``)
-    and the constraint slack the κ loss sees (``loss/constraint_slack``).
+    Panels: return, cost (training and test, the limit d dashed), cost rate, the
+    cumulative training cost (:mod:`~wcsac_rl.training.training_safety`); then, when
+    the run logged them, the safety critic's calibration at the test episodes' start
+    states (predicted Γ_α and Q^c against the realised CVaR_α and mean of the
+    discounted cost-to-go, ``calib/*``) and the constraint slack the κ loss sees
+    (``loss/constraint_slack``).
     """
-    frames = columns["frames"]
     panels: list[str] = [title for title, _ in _PANELS]
+    if _has_values(columns, "train/cumulative_cost") or _has_values(columns, "train/cost_rate"):
+        panels.append(CUMULATIVE_PANEL)
     if any(_has_values(columns, key) for key, *_ in _CALIBRATION_LINES):
         panels.append(CALIBRATION_PANEL)
     if _has_values(columns, "loss/constraint_slack"):
         panels.append(SLACK_PANEL)
     fig = Figure(figsize=(PANEL_SIZE[0] * len(panels), PANEL_SIZE[1]), layout="constrained")
     axes = fig.subplots(1, len(panels))
-    keys_of = dict(_PANELS)
     for ax, panel in zip(axes, panels):
-        if panel in keys_of:
-            for key in keys_of[panel]:
-                if not _has_values(columns, key):
-                    continue
-                label = "test (deterministic)" if key.startswith("eval/") else "training"
-                ax.plot(frames, columns[key], marker="o", markersize=3, label=label)
-            if panel == "episode cost" and cost_limit is not None:
-                ax.axhline(
-                    cost_limit,
-                    color="k",
-                    linestyle="--",
-                    linewidth=1,
-                    label=f"limit d = {cost_limit:g}",
-                )
-        elif panel == CALIBRATION_PANEL:
-            for key, label, color, style in _CALIBRATION_LINES:
-                if _has_values(columns, key):
-                    ax.plot(
-                        frames,
-                        columns[key],
-                        color=color,
-                        linestyle=style,
-                        marker="o",
-                        markersize=3,
-                        label=label,
-                    )
-        else:
-            ax.plot(frames, columns["loss/constraint_slack"], color="C2", marker="o", markersize=3)
-            ax.axhline(0.0, color="k", linestyle="--", linewidth=1)
+        _draw_run_panel(ax, panel, columns, cost_limit)
         ax.set_title(panel)
         ax.set_xlabel("env steps")
         ax.grid(alpha=0.3)
@@ -111,8 +87,47 @@ def run_curves_figure(
     return fig
 
 
+def _draw_run_panel(
+    ax: Any, panel: str, columns: dict[str, list[float]], cost_limit: float | None
+) -> None:
+    """One panel of :func:`run_curves_figure`."""
+    frames = columns["frames"]
+    keys_of = dict(_PANELS)
+    if panel in keys_of:
+        for key in keys_of[panel]:
+            if _has_values(columns, key):
+                label = "test (deterministic)" if key.startswith("eval/") else "training"
+                ax.plot(frames, columns[key], marker="o", markersize=3, label=label)
+        if panel == "episode cost" and cost_limit is not None:
+            ax.axhline(
+                cost_limit,
+                color="k",
+                linestyle="--",
+                linewidth=1,
+                label=f"limit d = {cost_limit:g}",
+            )
+    elif panel == CUMULATIVE_PANEL:
+        ax.plot(frames, cumulative_cost(columns), color="C3", marker="o", markersize=3)
+    elif panel == CALIBRATION_PANEL:
+        for key, label, color, style in _CALIBRATION_LINES:
+            if _has_values(columns, key):
+                ax.plot(
+                    frames,
+                    columns[key],
+                    color=color,
+                    linestyle=style,
+                    marker="o",
+                    markersize=3,
+                    label=label,
+                )
+    else:
+        ax.plot(frames, columns["loss/constraint_slack"], color="C2", marker="o", markersize=3)
+        ax.axhline(0.0, color="k", linestyle="--", linewidth=1)
+
+
 def plot_run_curves(progress_csv: Path, out: Path, *, cost_limit: float | None = None) -> Path:
-    """Return, cost and cost rate of one run against env steps (``progress.csv`` → PNG).
+    """Return, cost, cost rate and cumulative training cost of one run against env steps
+    (``progress.csv`` → PNG).
 
     Training curves are means over the episodes that ended in each epoch; test
     curves are the deterministic test episodes. A dashed line marks ``cost_limit``.

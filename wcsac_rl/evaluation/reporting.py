@@ -4,7 +4,8 @@
 
 * every evaluated directory (``evaluation.json`` + ``evaluation.csv`` from
   ``python -m wcsac_rl.evaluate``) → Table 1 and Figure 6;
-* every run directory with ``config.yaml`` + ``progress.csv`` → Figure 4;
+* every run directory with ``config.yaml`` + ``progress.csv`` → Figure 4, the
+  training-safety table and ``runs.md``;
 * chosen runs' checkpoints → Figure 5 (trajectories; optionally videos),
 
 groups them by Table-1 row (``algo.label``; seeds pooled) and writes
@@ -25,6 +26,10 @@ groups them by Table-1 row (``algo.label``; seeds pooled) and writes
 ``runs.md``                      the training runs: row, seed, frames, training wall time,
                                  sessions, the code commit each session ran
                                  (:mod:`~wcsac_rl.training.provenance`)
+``training_safety.md``/``.csv``  per row, each seed's and the mean over seeds of the
+                                 cumulative training cost, epochs over d (all, after 50 k
+                                 frames), peak epoch cost, frames from which every epoch
+                                 stayed <= d (:mod:`~wcsac_rl.evaluation.training_safety_table`)
 ``runs/<run>/``                  (``archive=True``) each run's evaluation, config, session
                                  records and progress
 ===============================  ============================================================
@@ -72,6 +77,7 @@ from wcsac_rl.evaluation.runs import (
     row_sort_key,
 )
 from wcsac_rl.evaluation.sweeps import SweepJob, incomplete_jobs
+from wcsac_rl.evaluation.training_safety_table import TRAINING_SAFETY_FILES, training_safety_files
 from wcsac_rl.training.checkpoint import kept_checkpoints
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
@@ -597,6 +603,7 @@ def build_report(
     runs_with_progress = [r for r in runs if r.progress]
     if runs_with_progress:
         planned += [out_dir / FIG4, out_dir / RUNS_MD]
+        planned += [out_dir / name for name in TRAINING_SAFETY_FILES]
     sources: list[_TrajectorySource] = []
     if trajectories:
         sources = _trajectory_sources(trajectory_runs, runs, evaluations)
@@ -662,6 +669,8 @@ def build_report(
     # ---- Figure 4 and the list of runs
     if runs_with_progress:
         report.files.append(_write_text(out_dir / RUNS_MD, runs_markdown(runs_with_progress, env)))
+        for name, text in training_safety_files(runs_with_progress, env, cost_limit, warn).items():
+            report.files.append(_write_text(out_dir / name, text))
         by_label: dict[str, list[dict[str, list[float]]]] = defaultdict(list)
         for run in sorted(runs_with_progress, key=lambda r: (row_sort_key(r.label), r.seed)):
             by_label[run.label].append(run.progress)

@@ -45,7 +45,7 @@ from wcsac_rl.training.checkpoint import (
 )
 from wcsac_rl.training.config import TrainingError, validate_config
 from wcsac_rl.training.preemption import Preempted, StopSignals
-from wcsac_rl.training.progress import EpisodeTracker, LossMeans, ProgressWriter
+from wcsac_rl.training.progress import EpisodeTracker, LossMeans, ProgressWriter, read_progress
 from wcsac_rl.training.provenance import session_provenance, write_provenance
 from wcsac_rl.training.run_dir import (
     AUTO_RESUME,
@@ -56,6 +56,7 @@ from wcsac_rl.training.run_dir import (
     replace_text,
 )
 from wcsac_rl.training.runtime import retain_freed_memory
+from wcsac_rl.training.training_safety import TrainingSafety, training_safety
 
 __all__ = ["RandomPolicyTrainer", "Trainer", "seed_everything"]
 
@@ -89,6 +90,18 @@ def env_max_episode_steps(cfg: DictConfig) -> int:
     from wcsac_rl.envs import env_info
 
     return int(env_info(cfg.env.name, **builders.env_kwargs(cfg))["max_episode_steps"])
+
+
+def _postfix(row: dict[str, float]) -> str:
+    """The progress bar's epoch summary: the epoch's training episodes (when one finished),
+    the run's cumulative training cost and its epochs over the cost limit d so far."""
+    safety = (
+        f"cum_cost={row['train/cumulative_cost']:.0f}, "
+        f"epochs>d={int(row['train/epochs_over_limit'])}"
+    )
+    if not row["train/episodes"]:  # episodes longer than the epoch so far
+        return f"no finished episode, {safety}"
+    return f"ret={row['train/episode_return']:.2f}, cost={row['train/episode_cost']:.1f}, {safety}"
 
 
 class Trainer:
@@ -147,6 +160,7 @@ class Trainer:
         self.epoch = 0
         self.elapsed = 0.0  # training wall time over all sessions of this run
         self.tracker = EpisodeTracker()
+        self.training_safety = TrainingSafety(float(cfg.cost_limit))  # running over the run
         # the epoch in progress (carried over by a checkpoint taken mid-epoch)
         self.loss_means = LossMeans(self.loss_keys)
         self.epoch_start_frames = self.epoch_start_updates = 0
@@ -370,13 +384,7 @@ class Trainer:
                     self.tracker.frames,
                     self.updates,
                 )
-                if row["train/episodes"]:
-                    pbar.set_postfix(
-                        ret=f"{row['train/episode_return']:.2f}",
-                        cost=f"{row['train/episode_cost']:.1f}",
-                    )
-                else:  # episodes longer than the epoch so far
-                    pbar.set_postfix_str("no finished episode")
+                pbar.set_postfix_str(_postfix(row))
                 keep = self.epoch in self.keep_epochs
                 if keep or self.epoch % int(cfg.checkpoint_every_epochs) == 0:
                     self.save()
@@ -406,6 +414,10 @@ class Trainer:
         }
         row.update(self.tracker.epoch_metrics())
         self.tracker.reset_epoch()
+        self.training_safety.add_epoch(
+            self.tracker.frames, row["train/episode_cost"], self.tracker.total_cost
+        )
+        row.update(self.training_safety.columns())
         row["train/skipped_updates"] = self.epoch_skipped_updates
         self.epoch_skipped_updates = 0
         row.update(loss_means.means())
@@ -486,6 +498,7 @@ class Trainer:
             "config": OmegaConf.to_container(self.cfg, resolve=True),
             "frames": self.tracker.frames,
             "total_cost": self.tracker.total_cost,
+            "training_safety": self.training_safety.state_dict(),
             "updates": self.updates,
             "skipped_updates": self.skipped_updates,
             # flushes the logger; on resume wandb continues the same run from it
@@ -563,6 +576,23 @@ class Trainer:
         self.epoch = int(state["epoch"])
         self.elapsed = float(state.get("elapsed", 0.0))
         self._load_epoch_progress(state.get("epoch_progress"))
+        self.training_safety = self._load_training_safety(state.get("training_safety"))
+
+    def _load_training_safety(self, saved: dict[str, Any] | None) -> TrainingSafety:
+        """The checkpoint's training-safety counts; a checkpoint from before them counts
+        the epochs ``progress.csv`` logged up to it again (none: from this epoch on)."""
+        if saved is not None:
+            return TrainingSafety.from_state(saved)
+        path = self.run_dir / "progress.csv"
+        columns = read_progress(path) if path.is_file() else {}
+        kept = [i for i, epoch in enumerate(columns.get("epoch", ())) if epoch <= self.epoch]
+        try:
+            return training_safety(
+                {key: [values[i] for i in kept] for key, values in columns.items()},
+                float(self.cfg.cost_limit),
+            )
+        except ValueError:  # no progress.csv, or one without the cost columns
+            return TrainingSafety(float(self.cfg.cost_limit))
 
     @staticmethod
     def _restore_rng(rng: dict[str, Any]) -> None:
