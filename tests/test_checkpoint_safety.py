@@ -5,7 +5,8 @@ creates a marker file) is refused by every command of the kit that reads a run â
 ``train.py resume=DIR``, ``resume=auto``, ``python -m wcsac_rl.evaluate`` on the run and
 on its sweep, ``python -m wcsac_rl.calibration``, ``python -m wcsac_rl.report`` with and
 without trajectories â€” with one line naming the file and saying it was not executed; no
-file of the sweep changes. Checkpoints written by the kit hold plain data only, and older ones
+file of the sweep changes. A saved replay buffer with a pickle in it is refused before
+TorchRL reads it. Checkpoints written by the kit hold plain data only, and older ones
 (NumPy's RNG state as a tuple with an ``ndarray``) still resume and evaluate.
 """
 
@@ -15,6 +16,7 @@ import hashlib
 import io
 import json
 import os
+import pickle
 import shutil
 import subprocess
 import sys
@@ -32,7 +34,7 @@ from wcsac_rl.evaluate import main as evaluate_main
 from wcsac_rl.evaluation.evaluator import evaluate_run
 from wcsac_rl.report import main as report_main
 from wcsac_rl.training import ConfigError, make_trainer
-from wcsac_rl.training.checkpoint import load_checkpoint
+from wcsac_rl.training.checkpoint import load_checkpoint, save_checkpoint
 from wcsac_rl.training.safe_load import load_data
 
 NOT_EXECUTED = "it was not executed"
@@ -341,3 +343,95 @@ def test_report_draws_no_trajectories_from_a_hostile_checkpoint_its_evaluation_v
     assert len(lines) == 1 and NOT_EXECUTED in lines[0]
     assert not marker.exists()
     assert _snapshot(sweep) == before
+
+
+# ------------------------------------------------------------ saved buffers
+BUFFER_OPTIONS = ("algo=wcsac", "env=tiny", "save_replay_buffer=true", "algo.kappa_states=initial")
+
+
+@pytest.fixture(scope="module")
+def buffered_run(tmp_path_factory):
+    """A run with its replay and start-state buffers saved beside the checkpoint."""
+    run = tmp_path_factory.mktemp("buffered") / "run"
+    trainer = make_trainer(compose_config(*BUFFER_OPTIONS), run)
+    try:
+        trainer.run()
+    finally:
+        trainer.close()
+    return run
+
+
+def _pickle_file(path: Path, payload: object) -> None:
+    path.write_bytes(pickle.dumps(payload))
+
+
+def _hostile_prefetch(run: Path, marker: Path) -> Path:
+    """A prefetch.pkl with a payload, and the checkpoint's manifest made to match it:
+    whoever can write the buffer can write the checkpoint too."""
+    checkpoint = run / "checkpoints" / "last.pt"
+    state = load_checkpoint(checkpoint)
+    manifest = state["learner"]["buffers"]
+    target = run / "checkpoints" / manifest["dir"] / "replay_buffer" / "prefetch.pkl"
+    _pickle_file(target, {"version": 1, "capacity": 0, "queue": [_Touch(marker)]})
+    rel = str(target.relative_to(run / "checkpoints" / manifest["dir"]))
+    data = target.read_bytes()
+    manifest["files"][rel] = [len(data), hashlib.sha256(data).hexdigest()]
+    save_checkpoint(checkpoint, state)
+    return target
+
+
+def _hostile_pickle_field(run: Path, marker: Path) -> Path:
+    """A tensordict ``other.pickle`` (which TensorDict.load_memmap would unpickle) that
+    the manifest does not list."""
+    buffers = next((run / "checkpoints").glob("buffers-*"))
+    target = buffers / "initial_state_buffer" / "storage" / "other.pickle"
+    _pickle_file(target, {"x": _Touch(marker)})
+    return target
+
+
+def _hostile_legacy(run: Path, marker: Path) -> Path:
+    """The layout from before manifests (``checkpoints/replay_buffer/``, unchecked)."""
+    checkpoint = run / "checkpoints" / "last.pt"
+    state = load_checkpoint(checkpoint)
+    buffers = run / "checkpoints" / state["learner"].pop("buffers")["dir"]
+    for name in ("replay_buffer", "initial_state_buffer"):
+        shutil.move(buffers / name, run / "checkpoints" / name)
+    buffers.rmdir()
+    save_checkpoint(checkpoint, state)
+    target = run / "checkpoints" / "replay_buffer" / "prefetch.pkl"
+    _pickle_file(target, {"version": 1, "capacity": 0, "queue": [_Touch(marker)]})
+    return target
+
+
+@pytest.mark.parametrize("plant", [_hostile_prefetch, _hostile_pickle_field, _hostile_legacy])
+def test_a_saved_buffer_with_a_pickle_in_it_is_refused_before_torchrl_reads_it(
+    buffered_run, tmp_path, plant
+):
+    run = shutil.copytree(buffered_run, tmp_path / "run")
+    marker = tmp_path / "MARKER"
+    target = plant(run, marker)
+    _assert_payload_is_live(target.read_bytes(), marker, pickle.loads)
+    before = _snapshot(run)
+    cfg = compose_config(*BUFFER_OPTIONS, "total_frames=1200", f"resume={run}")
+    with pytest.raises(ConfigError) as err:
+        make_trainer(cfg, run)
+    message = str(err.value)
+    assert not marker.exists()
+    assert _snapshot(run) == before
+    assert "\n" not in message
+    assert f"{target} is not plain data" in message and "nothing of it was loaded" in message
+    assert "to resume without it" in message
+
+
+def test_a_resume_with_its_saved_buffers_still_works(buffered_run, tmp_path):
+    run = shutil.copytree(buffered_run, tmp_path / "run")
+    trainer = make_trainer(
+        compose_config(*BUFFER_OPTIONS, "total_frames=1200", f"resume={run}"), run
+    )
+    try:
+        assert len(trainer.replay_buffer) == 800 and len(trainer.initial_state_buffer) > 0
+        assert trainer.update_start_frames == trainer.init_random_frames  # not refilled
+        trainer.run()
+    finally:
+        trainer.close()
+    assert load_checkpoint(trainer.checkpoint_path)["frames"] == 1200

@@ -14,7 +14,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from wcsac_rl.training.config import ConfigError, TrainingError
-from wcsac_rl.training.safe_load import load_data
+from wcsac_rl.training.safe_load import check_buffer_files, load_data
 
 __all__ = [
     "CHECKPOINT_DIR",
@@ -27,6 +27,7 @@ __all__ = [
     "find_checkpoint",
     "keep_checkpoint",
     "kept_checkpoints",
+    "load_buffers",
     "load_checkpoint",
     "load_optimizer_state",
     "numpy_rng_state",
@@ -248,6 +249,21 @@ def verify_buffers(checkpoint_dir: Path, manifest: dict[str, Any], checkpoint: P
                 f"changed since it was saved); {fix}"
             )
     return directory
+
+
+def load_buffers(
+    buffers: dict[str, Any], directory: Path, checkpoint: Path, *, remove: Path | None = None
+) -> None:
+    """Fill each ``buffers[name]`` from ``directory / name`` (``ReplayBuffer.loads``) where
+    that was saved, once every one of them holds data only
+    (:func:`~wcsac_rl.training.safe_load.check_buffer_files`: TorchRL unpickles some of
+    a saved buffer's files). A refusal (one line) says to delete ``remove`` (default: the
+    buffer's own directory) and loads nothing."""
+    saved = {name: directory / name for name in buffers if (directory / name).is_dir()}
+    for path in saved.values():
+        check_buffer_files(path, checkpoint, remove=path if remove is None else remove)
+    for name, path in saved.items():
+        buffers[name].loads(path)
 
 
 def remove_unreferenced_buffers(checkpoint_dir: Path, keep: str | None) -> None:

@@ -1,4 +1,4 @@
-"""Reading a run's checkpoints back as data only: nothing in a checkpoint runs.
+"""Reading a run's files back as data only: nothing in a checkpoint or a saved buffer runs.
 
 Runs are shared between people, and a pickle can carry code that runs when it is
 loaded (``__reduce__``). So every checkpoint is loaded with
@@ -11,6 +11,15 @@ NumPy's own tuple, holding a ``numpy.ndarray``. Such an array, of a plain numeri
 dtype, is read here from its bytes (:class:`_NumpyArray`), by stand-ins for the three
 NumPy names its pickle refers to; none of NumPy's own unpickling code runs. Today's
 checkpoints hold plain data only (:func:`~wcsac_rl.training.checkpoint.numpy_rng_state`).
+
+A saved replay buffer (``save_replay_buffer=true``) is read by TorchRL
+(``ReplayBuffer.loads``), which unpickles some of its files with ``pickle`` itself
+(``prefetch.pkl``; ``transform.t`` and pickled non-tensor fields when present). The
+SHA-256 manifest in the checkpoint detects damage, not a hostile run directory
+(whoever writes the buffer can write the checkpoint too), so before TorchRL reads a
+buffer directory :func:`check_buffer_files` admits only its data files (``*.json``,
+``*.memmap``) and a ``prefetch.pkl`` that holds plain data only (checked by an
+unpickler that can build nothing but plain data).
 """
 
 from __future__ import annotations
@@ -26,7 +35,7 @@ import torch
 
 from wcsac_rl.training.config import ConfigError
 
-__all__ = ["load_data"]
+__all__ = ["check_buffer_files", "load_data"]
 
 _NOT_EXECUTED = "it was not executed — wcsac_rl only loads checkpoints as data"
 
@@ -176,3 +185,48 @@ def load_data(data: bytes, path: Path) -> Any:
     except Exception as err:  # a corrupt or foreign file: one clear line
         reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ConfigError(f"cannot read checkpoint {path}: {reason}") from None
+
+
+# ------------------------------------------------------------ saved buffers
+_BUFFER_DATA_SUFFIXES = (".json", ".memmap")
+PREFETCH_FILE = "prefetch.pkl"
+"""TorchRL's ``ReplayBuffer.dumps`` pickles the buffer's prefetch queue (empty in the kit)."""
+
+
+class _PlainDataUnpickler(pickle.Unpickler):
+    """Builds ``dict``, ``list``, ``tuple``, ``str``, ``bytes``, numbers, ``bool`` and
+    ``None`` only: every class or function a pickle names is refused, so nothing runs."""
+
+    def find_class(self, module: str, name: str) -> Any:
+        raise pickle.UnpicklingError(f"{module}.{name}")
+
+
+def _plain_prefetch_state(path: Path) -> bool:
+    try:
+        state = _PlainDataUnpickler(io.BytesIO(path.read_bytes())).load()
+    except Exception:
+        return False
+    return isinstance(state, dict) and not state.get("queue")
+
+
+def check_buffer_files(directory: Path, checkpoint: Path, *, remove: Path) -> None:
+    """Refuse a saved buffer ``directory`` that holds anything but data, before TorchRL
+    reads it: ``*.json`` and ``*.memmap`` files, and a ``prefetch.pkl`` at its top that
+    unpickles to plain data with an empty queue.
+
+    Raises :class:`~wcsac_rl.training.ConfigError` (one line) naming the first other
+    file (nothing of the directory has been loaded then) and saying to delete ``remove``.
+    """
+    fix = f"delete {remove} to resume without it (the buffer is then refilled)"
+    for path in sorted(directory.rglob("*")):
+        if path.is_dir() and not path.is_symlink():
+            continue
+        rel = path.relative_to(directory)
+        if path.suffix in _BUFFER_DATA_SUFFIXES and path.is_file() and not path.is_symlink():
+            continue
+        if str(rel) == PREFETCH_FILE and not path.is_symlink() and _plain_prefetch_state(path):
+            continue
+        raise ConfigError(
+            f"cannot load the replay buffer saved with {checkpoint}: {directory / rel} is not "
+            f"plain data (tensors or JSON); nothing of it was loaded or executed; {fix}"
+        )
