@@ -15,6 +15,7 @@ from _training_helpers import compose_config
 
 from wcsac_rl.envs import NonFiniteStepError, RejectNonFinite, TinyHazardEnv, make_env
 from wcsac_rl.training import TrainingError, make_trainer
+from wcsac_rl.training.checkpoint import load_checkpoint
 
 
 def _trainer(tmp_path, *overrides):
@@ -105,7 +106,7 @@ def test_skipped_updates_are_logged_and_a_streak_stops_the_run_with_one_line(tmp
     assert [int(r["train/skipped_updates"]) for r in rows] == [2]
     assert int(rows[0]["updates"]) == 100 - 2
     # the networks were never stepped on a NaN loss: the last checkpoint is finite
-    state = torch.load(trainer.checkpoint_path, weights_only=False)["learner"]["loss"]
+    state = load_checkpoint(trainer.checkpoint_path)["learner"]["loss"]
     assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point())
     assert all(torch.isfinite(v).all() for v in _parameters(trainer).values())
 
@@ -189,5 +190,5 @@ def test_a_nan_cost_from_the_env_stops_training_with_one_line_and_keeps_the_chec
     with pytest.raises(NonFiniteStepError, match=r"env tiny \(wcsac_rl/TinyHazard-v0\)"):
         trainer.run()
     trainer.close()
-    checkpoint = torch.load(trainer.checkpoint_path, weights_only=False)
+    checkpoint = load_checkpoint(trainer.checkpoint_path)
     assert checkpoint["frames"] == 400  # the epoch-1 checkpoint, not overwritten

@@ -156,8 +156,8 @@ def stale_evaluation(directory: str | os.PathLike) -> str | None:
         return None
     try:
         frames = int(load_checkpoint(checkpoint, required=("frames",))["frames"])
-    except ConfigError:
-        return "its checkpoint cannot be read"
+    except ConfigError as err:  # damaged, or refused as not data: say which and why
+        return str(err)
     evaluated = meta.get("trained_frames")
     if recorded is None and evaluated == frames:
         return None  # an evaluation from before hashes were recorded, of these frames

@@ -4,16 +4,17 @@ from __future__ import annotations
 
 import errno
 import hashlib
-import io
 import os
 import shutil
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
 from wcsac_rl.training.config import ConfigError, TrainingError
+from wcsac_rl.training.safe_load import check_buffer_files, load_data
 
 __all__ = [
     "CHECKPOINT_DIR",
@@ -26,11 +27,14 @@ __all__ = [
     "find_checkpoint",
     "keep_checkpoint",
     "kept_checkpoints",
+    "load_buffers",
     "load_checkpoint",
     "load_optimizer_state",
+    "numpy_rng_state",
     "read_checkpoint",
     "resume_config",
     "save_checkpoint",
+    "set_numpy_rng_state",
 ]
 
 CHECKPOINT_DIR = "checkpoints"
@@ -129,6 +133,32 @@ def fsync_directory(directory: Path) -> None:
         os.close(fd)
 
 
+def numpy_rng_state() -> dict[str, Any]:
+    """NumPy's global RNG state as plain data (what a checkpoint holds: ``torch.load``
+    with ``weights_only=True`` reads no NumPy arrays)."""
+    state = np.random.get_state(legacy=False)
+    return {
+        "bit_generator": str(state["bit_generator"]),
+        "state": {
+            "key": [int(k) for k in state["state"]["key"]],
+            "pos": int(state["state"]["pos"]),
+        },
+        "has_gauss": int(state["has_gauss"]),
+        "gauss": float(state["gauss"]),
+    }
+
+
+def set_numpy_rng_state(state: dict[str, Any] | tuple) -> None:
+    """Restore NumPy's global RNG from :func:`numpy_rng_state` (or from the
+    ``np.random.get_state()`` tuple older checkpoints hold)."""
+    if isinstance(state, dict):
+        state = {
+            **state,
+            "state": {**state["state"], "key": np.asarray(state["state"]["key"], np.uint32)},
+        }
+    np.random.set_state(state)
+
+
 # ------------------------------------------------------------ replay buffers
 BUFFERS_PREFIX = "buffers-"
 """Saved buffers live in ``checkpoints/buffers-<frames>/<name>/`` (one directory per
@@ -222,6 +252,21 @@ def verify_buffers(checkpoint_dir: Path, manifest: dict[str, Any], checkpoint: P
     return directory
 
 
+def load_buffers(
+    buffers: dict[str, Any], directory: Path, checkpoint: Path, *, remove: Path | None = None
+) -> None:
+    """Fill each ``buffers[name]`` from ``directory / name`` (``ReplayBuffer.loads``) where
+    that was saved, once every one of them holds data only
+    (:func:`~wcsac_rl.training.safe_load.check_buffer_files`: TorchRL unpickles some of
+    a saved buffer's files). A refusal (one line) says to delete ``remove`` (default: the
+    buffer's own directory) and loads nothing."""
+    saved = {name: directory / name for name in buffers if (directory / name).is_dir()}
+    for path in saved.values():
+        check_buffer_files(path, checkpoint, remove=path if remove is None else remove)
+    for name, path in saved.items():
+        buffers[name].loads(path)
+
+
 def remove_unreferenced_buffers(checkpoint_dir: Path, keep: str | None) -> None:
     """Delete saved buffers no checkpoint names any more (older ``buffers-*``, temporary
     leftovers of an interrupted save, and the pre-manifest ``replay_buffer/``)."""
@@ -291,7 +336,7 @@ def find_checkpoint(path: str | os.PathLike) -> Path:
 
 
 def load_checkpoint(path: Path, *, required: tuple[str, ...] = REQUIRED_ENTRIES) -> dict[str, Any]:
-    """Load a checkpoint written by :func:`save_checkpoint` (on CPU).
+    """Load a checkpoint written by :func:`save_checkpoint` (on CPU), as data only.
 
     Raises :class:`~wcsac_rl.training.ConfigError` (one line) for a file that cannot
     be read or is not a training checkpoint (a dict with the ``required`` entries).
@@ -303,13 +348,17 @@ def read_checkpoint(
     path: Path, *, required: tuple[str, ...] = REQUIRED_ENTRIES
 ) -> tuple[dict[str, Any], str]:
     """:func:`load_checkpoint`, and the SHA-256 of the very bytes it loaded (what an
-    evaluation records to know later whether the run's checkpoint has changed)."""
+    evaluation records to know later whether the run's checkpoint has changed).
+
+    The file is read as data only (:func:`~wcsac_rl.training.safe_load.load_data`,
+    ``torch.load(weights_only=True)``): one that holds anything but tensors and plain
+    data is refused with a :class:`~wcsac_rl.training.ConfigError`, and nothing in it runs.
+    """
     try:
         data = Path(path).read_bytes()
-        state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=False)
-    except Exception as err:  # a corrupt or foreign file: one clear line
-        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise ConfigError(f"cannot read checkpoint {path}: {reason}") from None
+    except OSError as err:
+        raise ConfigError(f"cannot read checkpoint {path}: {_first_line(err)}") from None
+    state = load_data(data, path)  # data only: nothing in the file runs
     if not isinstance(state, dict):
         raise ConfigError(
             f"{path} is not a wcsac_rl training checkpoint (it holds a {type(state).__name__}, "

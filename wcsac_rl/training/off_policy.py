@@ -33,6 +33,7 @@ from wcsac_rl.training.checkpoint import (
     CHECKPOINT_DIR,
     INITIAL_STATE_BUFFER_DIR,
     REPLAY_BUFFER_DIR,
+    load_buffers,
     load_optimizer_state,
     remove_unreferenced_buffers,
     save_buffers,
@@ -215,10 +216,14 @@ class OffPolicyTrainer(Trainer):
             self.episode_window.load_state_dict(state["episode_window"])
         directory = self._buffers_to_load(state)
         if directory is not None:
-            self.replay_buffer.loads(directory / REPLAY_BUFFER_DIR)
-            initial = directory / INITIAL_STATE_BUFFER_DIR
-            if self.initial_state_buffer is not None and initial.exists():
-                self.initial_state_buffer.loads(initial)
+            buffers = {REPLAY_BUFFER_DIR: self.replay_buffer}
+            if self.initial_state_buffer is not None:
+                buffers[INITIAL_STATE_BUFFER_DIR] = self.initial_state_buffer
+            # saved with a manifest: delete its whole buffers-<frames>/ to refill instead
+            manifest = directory != self.run_dir / CHECKPOINT_DIR
+            load_buffers(
+                buffers, directory, self.checkpoint_path, remove=directory if manifest else None
+            )
             # exact resume: the warm-up threshold stays where an uninterrupted run has it
             self.update_start_frames = self.init_random_frames
         else:

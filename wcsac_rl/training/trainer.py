@@ -40,7 +40,9 @@ from wcsac_rl.training.checkpoint import (
     find_checkpoint,
     keep_checkpoint,
     load_checkpoint,
+    numpy_rng_state,
     save_checkpoint,
+    set_numpy_rng_state,
     write_error_reason,
 )
 from wcsac_rl.training.config import TrainingError, validate_config
@@ -510,7 +512,7 @@ class Trainer:
             "epoch_progress": self._epoch_progress(),
             "rng": {
                 "torch": torch.get_rng_state(),
-                "numpy": np.random.get_state(),
+                "numpy": numpy_rng_state(),  # plain data: read with weights_only=True
                 "python": random.getstate(),
             },
         }
@@ -597,7 +599,7 @@ class Trainer:
     @staticmethod
     def _restore_rng(rng: dict[str, Any]) -> None:
         torch.set_rng_state(rng["torch"])
-        np.random.set_state(rng["numpy"])
+        set_numpy_rng_state(rng["numpy"])
         random.setstate(rng["python"])
 
     def close(self) -> None:

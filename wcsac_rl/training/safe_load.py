@@ -1,0 +1,232 @@
+"""Reading a run's files back as data only: nothing in a checkpoint or a saved buffer runs.
+
+Runs are shared between people, and a pickle can carry code that runs when it is
+loaded (``__reduce__``). So every checkpoint is loaded with
+``torch.load(weights_only=True)``: tensors, and ``dict``, ``list``, ``tuple``, ``str``,
+numbers, ``bool`` and ``None`` (``OrderedDict`` and ``torch.Size`` too). Anything else is
+refused before any of it is built (:func:`load_data`).
+
+One exception keeps older checkpoints readable: those saved NumPy's RNG state as
+NumPy's own tuple, holding a ``numpy.ndarray``. Such an array, of a plain numeric
+dtype, is read here from its bytes (:class:`_NumpyArray`), by stand-ins for the three
+NumPy names its pickle refers to; none of NumPy's own unpickling code runs. Today's
+checkpoints hold plain data only (:func:`~wcsac_rl.training.checkpoint.numpy_rng_state`).
+
+A saved replay buffer (``save_replay_buffer=true``) is read by TorchRL
+(``ReplayBuffer.loads``), which unpickles some of its files with ``pickle`` itself
+(``prefetch.pkl``; ``transform.t`` and pickled non-tensor fields when present). The
+SHA-256 manifest in the checkpoint detects damage, not a hostile run directory
+(whoever writes the buffer can write the checkpoint too), so before TorchRL reads a
+buffer directory :func:`check_buffer_files` admits only its data files (``*.json``,
+``*.memmap``) and a ``prefetch.pkl`` that holds plain data only (checked by an
+unpickler that can build nothing but plain data).
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import pickle
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from wcsac_rl.training.config import ConfigError
+
+__all__ = ["check_buffer_files", "load_data"]
+
+_NOT_EXECUTED = "it was not executed — wcsac_rl only loads checkpoints as data"
+
+
+# --------------------------------------------------- NumPy arrays of old checkpoints
+_NUMPY_CODES = frozenset(["b1", "i1", "i2", "i4", "i8", "u1", "u2", "u4", "u8", "f2", "f4", "f8"])
+"""NumPy dtypes an old checkpoint's arrays may have (numbers and booleans only)."""
+
+
+class _NumpyDtype:
+    """A NumPy dtype named in an old checkpoint: its type code and byte order only."""
+
+    def __init__(self, code: Any = None, *_flags: Any) -> None:
+        if not isinstance(code, str) or code not in _NUMPY_CODES:
+            raise pickle.UnpicklingError(f"unsupported NumPy dtype {code!r}")
+        self.code = code
+        self.byteorder = "="
+
+    def __setstate__(self, state: Any) -> None:
+        # NumPy's dtype state: (version, byteorder, subarray, names, fields, elsize, ...)
+        ok = isinstance(state, tuple) and len(state) >= 5 and state[1] in ("<", ">", "|", "=")
+        if not ok or any(part is not None for part in state[2:5]):
+            raise pickle.UnpicklingError(f"unsupported NumPy dtype state {state!r}")
+        self.byteorder = state[1]
+
+    def numpy(self) -> np.dtype:
+        return np.dtype(self.code).newbyteorder(self.byteorder)
+
+
+class _NumpyArray:
+    """A ``numpy.ndarray`` in an old checkpoint, rebuilt from its raw bytes
+    (``numpy.ndarray`` itself stands for this class while loading)."""
+
+    array: np.ndarray | None = None
+
+    def __setstate__(self, state: Any) -> None:
+        # NumPy's array state: (version, shape, dtype, is_fortran, raw bytes)
+        if not (isinstance(state, tuple) and len(state) == 5):
+            raise pickle.UnpicklingError("unsupported NumPy array state")
+        _version, shape, dtype, fortran, raw = state
+        if (
+            not isinstance(shape, tuple)
+            or not all(isinstance(n, int) and n >= 0 for n in shape)
+            or not isinstance(dtype, _NumpyDtype)
+            or not isinstance(raw, (bytes, bytearray))
+        ):
+            raise pickle.UnpicklingError("unsupported NumPy array state")
+        dt = dtype.numpy()
+        if len(raw) != math.prod(shape) * dt.itemsize:
+            raise pickle.UnpicklingError("NumPy array state of the wrong size")
+        order = "F" if fortran else "C"
+        self.array = np.frombuffer(bytes(raw), dtype=dt).reshape(shape, order=order).copy()
+
+
+def _numpy_reconstruct(*args: Any) -> _NumpyArray:
+    if not args or args[0] is not _NumpyArray:
+        raise pickle.UnpicklingError("only plain NumPy arrays can be read")
+    return _NumpyArray()
+
+
+def _numpy_scalar(*args: Any) -> np.generic:
+    dtype, raw = args if len(args) == 2 else (None, None)
+    if not isinstance(dtype, _NumpyDtype) or not isinstance(raw, (bytes, bytearray)):
+        raise pickle.UnpicklingError("unsupported NumPy scalar")
+    dt = dtype.numpy()
+    if len(raw) != dt.itemsize:
+        raise pickle.UnpicklingError("NumPy scalar of the wrong size")
+    return np.frombuffer(bytes(raw), dtype=dt)[0]
+
+
+def _empty_bytes(*args: Any) -> bytes:
+    # pickle protocol 2 writes b"" (the data of an empty array) as ``bytes()``
+    if args:
+        raise pickle.UnpicklingError("only empty bytes are built by a call")
+    return b""
+
+
+_NUMPY_STAND_INS: dict[str, Any] = {
+    "numpy.ndarray": _NumpyArray,
+    "numpy.dtype": _NumpyDtype,
+    # NumPy 2 pickles as numpy._core, NumPy 1 as numpy.core
+    "numpy._core.multiarray._reconstruct": _numpy_reconstruct,
+    "numpy.core.multiarray._reconstruct": _numpy_reconstruct,
+    "numpy._core.multiarray.scalar": _numpy_scalar,
+    "numpy.core.multiarray.scalar": _numpy_scalar,
+    "builtins.bytes": _empty_bytes,
+}
+"""What the NumPy names an old checkpoint refers to are read with (each a stand-in of this
+module, none of them NumPy's: ``torch.serialization.safe_globals`` maps a name to it)."""
+
+
+def _numpy_values(obj: Any) -> Any:
+    """``obj`` with the stand-ins replaced by the NumPy arrays and dtypes they read."""
+    if isinstance(obj, _NumpyArray):
+        if obj.array is None:
+            raise pickle.UnpicklingError("a NumPy array without its data")
+        return obj.array
+    if isinstance(obj, _NumpyDtype):
+        return obj.numpy()
+    if isinstance(obj, dict):  # OrderedDict (state dicts) too: in place keeps its type
+        for key, value in obj.items():
+            obj[key] = _numpy_values(value)
+        return obj
+    if isinstance(obj, list):
+        obj[:] = [_numpy_values(value) for value in obj]
+        return obj
+    if type(obj) is tuple:
+        return tuple(_numpy_values(value) for value in obj)
+    return obj
+
+
+# -------------------------------------------------------------- checkpoints
+def _unsafe_globals(data: bytes) -> list[str]:
+    """The names a torch.save file refers to beyond what :func:`load_data` reads
+    (found by reading its pickle's opcodes, not by running them)."""
+    try:
+        names = torch.serialization.get_unsafe_globals_in_checkpoint(io.BytesIO(data))
+    except Exception:
+        return []
+    return sorted(set(names) - set(_NUMPY_STAND_INS))
+
+
+def load_data(data: bytes, path: Path) -> Any:
+    """What ``torch.save`` wrote into ``data`` (the bytes of ``path``), read as data only.
+
+    ``torch.load(weights_only=True)``, and old checkpoints' NumPy arrays (see the
+    module). Raises :class:`~wcsac_rl.training.ConfigError` with one line for a file
+    that refers to anything else (saying that it was not executed) or cannot be read.
+    """
+    stand_ins = [(obj, name) for name, obj in _NUMPY_STAND_INS.items()]
+    try:
+        with torch.serialization.safe_globals(stand_ins):
+            state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+        return _numpy_values(state)
+    except pickle.UnpicklingError as err:
+        names = _unsafe_globals(data)
+        if names:
+            raise ConfigError(
+                f"cannot read checkpoint {path}: it holds objects other than tensors and "
+                f"plain data ({', '.join(names)}); {_NOT_EXECUTED}"
+            ) from None
+        reason = str(err).split("WeightsUnpickler error:")[-1].strip()  # torch's own words
+        reason = reason.splitlines()[0] if reason else type(err).__name__
+        raise ConfigError(
+            f"cannot read checkpoint {path} as data ({reason}); {_NOT_EXECUTED}"
+        ) from None
+    except Exception as err:  # a corrupt or foreign file: one clear line
+        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ConfigError(f"cannot read checkpoint {path}: {reason}") from None
+
+
+# ------------------------------------------------------------ saved buffers
+_BUFFER_DATA_SUFFIXES = (".json", ".memmap")
+PREFETCH_FILE = "prefetch.pkl"
+"""TorchRL's ``ReplayBuffer.dumps`` pickles the buffer's prefetch queue (empty in the kit)."""
+
+
+class _PlainDataUnpickler(pickle.Unpickler):
+    """Builds ``dict``, ``list``, ``tuple``, ``str``, ``bytes``, numbers, ``bool`` and
+    ``None`` only: every class or function a pickle names is refused, so nothing runs."""
+
+    def find_class(self, module: str, name: str) -> Any:
+        raise pickle.UnpicklingError(f"{module}.{name}")
+
+
+def _plain_prefetch_state(path: Path) -> bool:
+    try:
+        state = _PlainDataUnpickler(io.BytesIO(path.read_bytes())).load()
+    except Exception:
+        return False
+    return isinstance(state, dict) and not state.get("queue")
+
+
+def check_buffer_files(directory: Path, checkpoint: Path, *, remove: Path) -> None:
+    """Refuse a saved buffer ``directory`` that holds anything but data, before TorchRL
+    reads it: ``*.json`` and ``*.memmap`` files, and a ``prefetch.pkl`` at its top that
+    unpickles to plain data with an empty queue.
+
+    Raises :class:`~wcsac_rl.training.ConfigError` (one line) naming the first other
+    file (nothing of the directory has been loaded then) and saying to delete ``remove``.
+    """
+    fix = f"delete {remove} to resume without it (the buffer is then refilled)"
+    for path in sorted(directory.rglob("*")):
+        if path.is_dir() and not path.is_symlink():
+            continue
+        rel = path.relative_to(directory)
+        if path.suffix in _BUFFER_DATA_SUFFIXES and path.is_file() and not path.is_symlink():
+            continue
+        if str(rel) == PREFETCH_FILE and not path.is_symlink() and _plain_prefetch_state(path):
+            continue
+        raise ConfigError(
+            f"cannot load the replay buffer saved with {checkpoint}: {directory / rel} is not "
+            f"plain data (tensors or JSON); nothing of it was loaded or executed; {fix}"
+        )
