@@ -363,3 +363,25 @@ def test_compile_option_trains_with_the_compiled_loss(tmp_path):
     for row in rows:
         for key in ("loss/loss_actor", "loss/loss_qvalue", "loss/loss_cost_value"):
             assert math.isfinite(float(row[key])), key
+
+
+def test_actor_lr_sets_the_actors_rate_only(tmp_path):
+    from wcsac_rl.training.builders import make_optimizers
+
+    trainer = make_trainer(compose_config("env=tiny", "algo.actor_lr=3e-4"), tmp_path / "run")
+    try:
+        rates = {
+            k: o.param_groups[0]["lr"]
+            for k, o in make_optimizers(trainer.cfg, trainer.loss).items()
+        }
+    finally:
+        trainer.close()
+    assert rates == {"actor": 3e-4, "critic": 1e-3, "alpha": 1e-3, "kappa": 1e-3}
+
+
+@pytest.mark.parametrize("value", ["0", "-1e-4", "abc", "true"])
+def test_a_bad_actor_lr_is_one_line(tmp_path, value):
+    with pytest.raises(
+        ConfigError, match=re.escape("algo.actor_lr must be null (= algo.lr) or > 0")
+    ):
+        make_trainer(compose_config("env=tiny", f"algo.actor_lr={value}"), tmp_path / "run")

@@ -242,11 +242,13 @@ def make_optimizers(cfg: DictConfig, loss: LossModule) -> dict[str, torch.optim.
     κ's learning rate is ``lr × kappa_lr_scale`` (the authors' ``lr_scale``).
     """
     lr = float(cfg.algo.lr)
+    actor_lr = cfg.algo.get("actor_lr")
+    actor_lr = lr if actor_lr is None else float(actor_lr)
     critics = list(loss.qvalue_network_params.values(True, True))
     if isinstance(loss, WCSACLoss):
         critics += list(loss.safety_network_params.values(True, True))
     optimizers = {
-        "actor": adam(loss.actor_network_params.values(True, True), lr),
+        "actor": adam(loss.actor_network_params.values(True, True), actor_lr),
         "critic": adam(critics, lr),
         "alpha": adam([loss.log_alpha], lr),
     }

@@ -416,6 +416,7 @@ RESUME_CHANGEABLE = (
     "eval_episodes",
     "max_nonfinite_updates",
     "algo.lr",
+    "algo.actor_lr",
     "algo.kappa_lr_scale",
 )
 """What a resumed session may change (a key or a whole config group): extending the

@@ -134,6 +134,11 @@ def validate_config(cfg: DictConfig) -> None:
             raise ConfigError(f"algo.gamma must be in [0, 1], got {cfg.algo.gamma}")
         if not float(cfg.algo.lr) > 0:
             raise ConfigError(f"algo.lr must be > 0, got {cfg.algo.lr}")
+        actor_lr = cfg.algo.get("actor_lr")
+        if actor_lr is not None and not (
+            isinstance(actor_lr, (int, float)) and not isinstance(actor_lr, bool) and actor_lr > 0
+        ):
+            raise ConfigError(f"algo.actor_lr must be null (= algo.lr) or > 0, got {actor_lr!r}")
     if algo in ("wcsac", "sac_lag"):
         collector = cfg.algo.collector
         learning_frames = max(0, int(cfg.total_frames) - int(collector.init_random_frames))
