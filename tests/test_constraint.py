@@ -164,7 +164,7 @@ LOSSES = {
 
 
 @pytest.mark.parametrize("name", sorted(LOSSES))
-def test_pid_loss_has_no_kappa_term_or_parameter_and_steps_from_its_signal(name):
+def test_pid_loss_has_no_kappa_term_or_parameter_and_steps_in_training_mode(name):
     loss = make_loss(
         **LOSSES[name],
         kappa_rule="pid",
@@ -176,23 +176,39 @@ def test_pid_loss_has_no_kappa_term_or_parameter_and_steps_from_its_signal(name)
     assert not any("kappa" in n for n, _ in loss.named_parameters())
     out = loss(make_batch())
     assert "loss_kappa" not in out.keys() and "loss_kappa" not in loss.out_keys
+    # this forward's actor loss used κ = 0; then the controller stepped on its signal
+    # (Γ, positive, over the threshold 0): κ = kp · Γ
     assert float(out["kappa"]) == 0.0
-    # the signal (Γ, positive) is over the threshold 0: κ = kp · Γ
-    loss.step_constraint(out)
     assert float(loss.kappa) == pytest.approx(0.1 * float(out["cvar"]), rel=1e-5)
     assert float(loss.kappa) > 0
-    # the actor's penalty weight is the new κ: its loss changes
-    torch.manual_seed(0)
-    after = loss(make_batch())
-    assert float(after["kappa"]) == float(loss.kappa)
+    assert int(loss.constraint.steps) == 1
+    # the next forward's actor loss sees the new κ; eval mode freezes the controller
+    loss.eval()
+    frozen = float(loss.kappa)
+    after = loss(make_batch(seed=1))
+    assert float(after["kappa"]) == frozen == float(loss.kappa)
+    assert int(loss.constraint.steps) == 1
 
 
-def test_gradient_loss_keeps_its_kappa_parameter_and_step_constraint_is_a_no_op():
+def test_the_pid_kappa_weighs_the_actors_cost_term():
+    batch = make_batch()
+    actors = []
+    for kappa in (0.0, 2.0):
+        loss = make_loss(risk_level=0.1, kappa_rule="pid", kappa_init=kappa)
+        loss.eval()
+        torch.manual_seed(0)
+        actors.append(loss.actor_loss(batch))
+    (loss_0, meta), (loss_2, _) = actors
+    # same networks and draws: the actor losses differ by exactly κ · mean Γ_π
+    gamma = meta["cvar_policy"].mean()
+    assert float(loss_2 - loss_0) == pytest.approx(2.0 * float(gamma), rel=1e-4)
+
+
+def test_gradient_loss_keeps_its_kappa_parameter_and_forward_leaves_kappa_alone():
     loss = make_loss(risk_level=0.5)
     before = float(loss.kappa)
     out = loss(make_batch())
     assert "loss_kappa" in out.keys()
-    loss.step_constraint(out)
     assert float(loss.kappa) == before
     assert [n for n, _ in loss.named_parameters() if "kappa" in n] == ["constraint.kappa_raw"]
 

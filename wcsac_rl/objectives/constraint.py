@@ -15,9 +15,9 @@ moves is this module's business, and the loss never asks which rule it holds:
   clipped to ``[0, max_kappa]``, with the integral ``I ← clip(I + Ki·e, 0, max_kappa)``
   (anti-windup) and ``Ĉ`` an exponential moving average of the signal. The
   proportional term answers a violation at once; the derivative term answers a rising
-  cost before it crosses the threshold. It has no loss term: call :meth:`step` once
-  per update with the signal (``WCSACLoss.step_constraint(out)`` does it from the
-  loss's outputs; the wcsac_rl trainer calls it after every gradient step).
+  cost before it crosses the threshold. It has no loss term: :meth:`step` is called
+  once per update with the signal (``WCSACLoss.forward`` does it in training mode, as
+  batch norm updates its running statistics).
 
 Both are ``nn.Module`` with the same small interface: :attr:`kappa` (the multiplier,
 detached), :meth:`penalty_weight` (κ's weight on Γ in the actor loss), :meth:`loss`

@@ -242,9 +242,11 @@ class WCSACLoss(SACLoss):
         kappa_rule (str): how κ moves (:mod:`wcsac_rl.objectives.constraint`, held by
             the loss as :attr:`constraint`): ``"gradient"`` (the paper: κ is trained
             on ``loss_kappa``) or ``"pid"`` (a PID Lagrangian, Stooke et al. 2020: κ
-            is set from the error ``signal − threshold`` by :meth:`step_constraint`,
-            which must be called once per update; no ``loss_kappa``). Default
-            ``"gradient"``.
+            is set from the error ``signal − threshold``; no ``loss_kappa``). Like
+            batch norm's running statistics, the controller steps in :meth:`forward`
+            while the loss is in training mode (``loss.train()``, the default), once
+            per call, with that batch's signal and after the actor loss has used the
+            current κ; ``loss.eval()`` freezes it. Default ``"gradient"``.
         pid (PIDGains or dict, optional): the PID rule's gains
             (:class:`~wcsac_rl.objectives.constraint.PIDGains`: ``kp``, ``ki``, ``kd``,
             ``d_delay``, ``p_ema``, ``d_ema``, ``max_kappa``); ``kappa_rule="pid"`` only.
@@ -1332,28 +1334,12 @@ class WCSACLoss(SACLoss):
     def kappa_loss(self, cvar: Tensor, tensordict: TensorDictBase | None = None) -> Tensor | None:
         """The constraint's loss term: ``κ · (threshold − Γ)`` with Γ detached (κ grows
         while Γ exceeds the threshold) under the gradient rule; ``None`` under the PID
-        rule, whose κ is set by :meth:`step_constraint`."""
+        rule, whose κ the forward pass sets (see ``kappa_rule``)."""
         loss = self.constraint.loss(cvar, self.cost_threshold)
         if loss is None:
             return None
         weights = None if tensordict is None else self._maybe_get_priority_weight(tensordict)
         return self._reduce_loss(loss, tensordict=tensordict, weights=weights)
-
-    def step_constraint(self, out: TensorDictBase | Tensor) -> None:
-        """Update κ after a gradient step, from that step's outputs (or the signal itself).
-
-        Under ``kappa_rule="pid"`` this is the controller's update; call it once per
-        update with what :meth:`forward` returned (the wcsac_rl trainer does). Under the
-        gradient rule κ moves with its optimizer and this does nothing.
-        """
-        if self.constraint.rule == "gradient":
-            return
-        if isinstance(out, Tensor):
-            signal = out
-        else:
-            key = "constraint_cvar" if "constraint_cvar" in out.keys() else "cvar"
-            signal = out.get(key)
-        self.constraint.step(signal.detach(), self.cost_threshold)
 
     # ---------------------------------------------------------------- forward
     @dispatch
@@ -1405,6 +1391,9 @@ class WCSACLoss(SACLoss):
             scalars["constraint_cvar"] = actor_metadata["cvar_constraint"].mean()
         if safety_metadata["cost_variance"] is not None:
             scalars["cost_variance"] = safety_metadata["cost_variance"].mean()
+        if self.training and self.constraint.rule != "gradient":
+            # the controller's update, after this batch's actor loss used the current κ
+            self.constraint.step(actor_metadata["cvar_constraint"].detach(), self.cost_threshold)
         if self.reduction == "none":
             td_out = TensorDict(out, batch_size=tensordict.batch_size)
             if self.scalar_output_mode == "non_tensor":

@@ -62,7 +62,6 @@ class OffPolicyTrainer(Trainer):
         self.initial_state_buffer = None
         if getattr(self.loss, "kappa_states", "replay") == "initial":
             self.initial_state_buffer = builders.make_initial_state_buffer(cfg, self.loss)
-        self.steps_constraint = getattr(self.loss, "kappa_rule", "gradient") != "gradient"
         self.episode_window = None
         if getattr(self.loss, "kappa_signal", "critic") != "critic":
             self.episode_window = builders.make_episode_window(cfg, self.loss)
@@ -118,8 +117,6 @@ class OffPolicyTrainer(Trainer):
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
         self.target_updater.step()
-        if self.steps_constraint:  # kappa_rule=pid: the controller's update
-            self.loss.step_constraint(out)
         self.updates += 1
         self.nonfinite_streak = 0
         return out.detach()
