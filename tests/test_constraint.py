@@ -314,3 +314,24 @@ def test_a_refused_command_leaves_no_run_directory(tmp_path):
     )
     assert "Traceback" not in result.stderr
     assert not run.exists()
+
+
+@pytest.mark.slow
+def test_pid_forward_compiles_with_fullgraph_and_steps_as_eager():
+    import torch._inductor.config as inductor_config
+
+    gains = PIDGains(kp=0.1, ki=0.01, kd=0.5, d_delay=2, p_ema=0.5, d_ema=0.5)
+    eager = make_loss(risk_level=0.1, width=16, kappa_rule="pid", pid=gains)
+    compiled_loss = make_loss(risk_level=0.1, width=16, kappa_rule="pid", pid=gains)
+    compiled = torch.compile(compiled_loss, fullgraph=True)
+    with inductor_config.patch(fallback_random=True):
+        for seed in range(3):
+            batch = make_batch(seed=seed)
+            torch.manual_seed(seed)
+            got = compiled(batch.clone())
+            torch.manual_seed(seed)
+            expected = eager(batch.clone())
+            assert float(got["kappa"]) == pytest.approx(float(expected["kappa"]), rel=1e-4)
+    for key, value in eager.constraint.state_dict().items():
+        got = compiled_loss.constraint.state_dict()[key]
+        assert torch.allclose(got.double(), value.double(), rtol=1e-4, atol=1e-6), key

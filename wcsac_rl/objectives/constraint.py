@@ -209,8 +209,8 @@ class PIDLagrangian(nn.Module):
         self.register_buffer("integral", torch.tensor(float(kappa_init)))
         self.register_buffer("error_ema", torch.zeros(()))
         self.register_buffer("signal_ema", torch.zeros(()))
-        # the signal's EMA over the last d_delay steps (a ring; slot steps % d_delay
-        # holds the value d_delay steps back)
+        # the signal's EMA over the last d_delay steps, oldest first (a shift register:
+        # static shapes, so the step compiles without data-dependent indexing)
         self.register_buffer("history", torch.zeros(int(gains.d_delay)))
         self.register_buffer("steps", torch.zeros((), dtype=torch.long))
 
@@ -242,15 +242,15 @@ class PIDLagrangian(nn.Module):
         error_ema = g.p_ema * self.error_ema + (1.0 - g.p_ema) * error
         integral = (self.integral + g.ki * error).clamp(0.0, g.max_kappa)
         signal_ema = torch.where(first, x, g.d_ema * self.signal_ema + (1.0 - g.d_ema) * x)
-        slot = self.steps % g.d_delay
-        past = self.history[slot]
+        past = self.history[0]  # the EMA d_delay steps back (once that many exist)
         rise = torch.where(self.steps >= g.d_delay, (signal_ema - past).clamp(min=0.0), 0.0)
         kappa = (g.kp * error_ema + integral + g.kd * rise).clamp(0.0, g.max_kappa)
         # a NaN signal changes nothing
         self.error_ema.copy_(torch.where(valid, error_ema, self.error_ema))
         self.integral.copy_(torch.where(valid, integral, self.integral))
         self.signal_ema.copy_(torch.where(valid, signal_ema, self.signal_ema))
-        self.history[slot] = torch.where(valid, signal_ema, past)
+        history = torch.cat([self.history[1:], signal_ema.reshape(1)])
+        self.history.copy_(torch.where(valid, history, self.history))
         self.kappa_value.copy_(torch.where(valid, kappa, self.kappa_value))
         self.steps.add_(valid.long())
 
