@@ -21,12 +21,14 @@ from wcsac_rl.objectives import PAPER_OPTIONS, NStepCost, StartStateBuffer
 REFERENCE = Path(__file__).parent / "data" / "loss_reference.pt"
 OBS_DIM, ACT_DIM, WIDTH = 5, 2, 32
 
+# The defaults when the reference was recorded (b61cb3e), where they have changed since
+RECORDED_DEFAULTS = {"cost_n_steps": 10, "kappa_signal": "critic", "kappa_rule": "gradient"}
 # name -> (safety-critic kind, variance head, loss options): the presets of conf/algo
 PRESETS = {
-    "wcsac": ("gaussian", True, {"risk_level": 0.1}),
+    "wcsac": ("gaussian", True, {"risk_level": 0.1, **RECORDED_DEFAULTS}),
     "wcsac_paper": ("gaussian", True, {"risk_level": 0.1, **PAPER_OPTIONS}),
-    "wcsac_iqn": ("iqn", True, {"risk_level": 0.1}),
-    "sac_lag": ("gaussian", False, {"risk_level": 1.0}),
+    "wcsac_iqn": ("iqn", True, {"risk_level": 0.1, **RECORDED_DEFAULTS}),
+    "sac_lag": ("gaussian", False, {"risk_level": 1.0, **RECORDED_DEFAULTS}),
     "sac_lag_paper": ("gaussian", False, {"risk_level": 1.0, **PAPER_OPTIONS}),
 }
 

@@ -25,6 +25,11 @@ from wcsac_rl.training.builders import make_optimizers
 D = torch.tensor(15.0)
 
 
+def _gains(**gains) -> PIDGains:
+    """PID gains with every term off unless given (the analytic sequences below)."""
+    return PIDGains(**{"kp": 0.0, "ki": 0.0, "kd": 0.0, "p_ema": 0.0, "d_ema": 0.0, **gains})
+
+
 def _kappas(pid: PIDLagrangian, signals: list[float]) -> list[float]:
     out = []
     for x in signals:
@@ -35,19 +40,19 @@ def _kappas(pid: PIDLagrangian, signals: list[float]) -> list[float]:
 
 # ------------------------------------------------------------------ the PID rule
 def test_proportional_term_answers_at_once_and_stops_at_zero():
-    pid = PIDLagrangian(0.0, PIDGains(kp=0.1, ki=0.0))
+    pid = PIDLagrangian(0.0, _gains(kp=0.1, ki=0.0))
     # 10 over d: κ = 0.1 · 10; 5 under: 0.1 · (−5) clipped to 0; at d: 0
     assert _kappas(pid, [25.0, 10.0, 15.0, 35.0]) == pytest.approx([1.0, 0.0, 0.0, 2.0])
 
 
 def test_proportional_term_reads_an_ema_of_the_error():
-    pid = PIDLagrangian(0.0, PIDGains(kp=1.0, ki=0.0, p_ema=0.5))
+    pid = PIDLagrangian(0.0, _gains(kp=1.0, ki=0.0, p_ema=0.5))
     # P ← 0.5 P + 0.5 e with e = 10: 5, 7.5, 8.75
     assert _kappas(pid, [25.0, 25.0, 25.0]) == pytest.approx([5.0, 7.5, 8.75])
 
 
 def test_integral_starts_at_kappa_init_and_is_clipped_both_ways():
-    pid = PIDLagrangian(0.5, PIDGains(ki=0.1, max_kappa=2.0))
+    pid = PIDLagrangian(0.5, _gains(ki=0.1, max_kappa=2.0))
     assert float(pid.kappa) == 0.5  # where the gradient rule's κ starts too
     # e = +10 per step: I = 1.5, 2 (clipped: anti-windup), 2, 2
     assert _kappas(pid, [25.0] * 4) == pytest.approx([1.5, 2.0, 2.0, 2.0])
@@ -58,7 +63,7 @@ def test_integral_starts_at_kappa_init_and_is_clipped_both_ways():
 
 
 def test_derivative_term_sees_a_rise_over_exactly_the_delay_and_ignores_falls():
-    pid = PIDLagrangian(0.0, PIDGains(ki=0.0, kd=1.0, d_delay=3))
+    pid = PIDLagrangian(0.0, _gains(ki=0.0, kd=1.0, d_delay=3))
     # signals stay under d (no P or I); a step from 0 to 5 is a rise of 5 for the
     # d_delay = 3 steps whose comparison reaches back before it, then it is old news
     kappas = _kappas(pid, [0.0, 0.0, 0.0, 5.0, 5.0, 5.0, 5.0, 5.0, 0.0, 0.0])
@@ -66,24 +71,24 @@ def test_derivative_term_sees_a_rise_over_exactly_the_delay_and_ignores_falls():
 
 
 def test_derivative_term_waits_for_a_full_history():
-    pid = PIDLagrangian(0.0, PIDGains(ki=0.0, kd=1.0, d_delay=4))
+    pid = PIDLagrangian(0.0, _gains(ki=0.0, kd=1.0, d_delay=4))
     # the first d_delay steps have nothing d_delay steps back: no derivative yet
     assert _kappas(pid, [0.0, 2.0, 4.0, 6.0, 8.0]) == pytest.approx([0, 0, 0, 0, 8.0])
 
 
 def test_derivative_reads_an_ema_of_the_signal():
-    pid = PIDLagrangian(0.0, PIDGains(ki=0.0, kd=1.0, d_delay=1, d_ema=0.5))
+    pid = PIDLagrangian(0.0, _gains(ki=0.0, kd=1.0, d_delay=1, d_ema=0.5))
     # C starts at the first signal (0), then C ← 0.5 C + 0.5 x: 4, 6; rises 4, 2
     assert _kappas(pid, [0.0, 8.0, 8.0]) == pytest.approx([0.0, 4.0, 2.0])
 
 
 def test_kappa_is_clipped_to_max_kappa():
-    pid = PIDLagrangian(0.0, PIDGains(kp=1.0, ki=0.0, max_kappa=3.0))
+    pid = PIDLagrangian(0.0, _gains(kp=1.0, ki=0.0, max_kappa=3.0))
     assert _kappas(pid, [115.0]) == [3.0]
 
 
 def test_a_nan_signal_changes_nothing():
-    pid = PIDLagrangian(0.5, PIDGains(kp=0.1, ki=0.1, kd=0.1, d_delay=2, p_ema=0.5))
+    pid = PIDLagrangian(0.5, _gains(kp=0.1, ki=0.1, kd=0.1, d_delay=2, p_ema=0.5))
     _kappas(pid, [20.0, 30.0])
     before = {k: v.clone() for k, v in pid.state_dict().items()}
     pid.step(torch.tensor(math.nan), D)
@@ -102,7 +107,7 @@ def test_the_controller_state_survives_a_state_dict_round_trip():
 
 
 def test_pid_step_averages_a_batch_of_signals():
-    pid = PIDLagrangian(0.0, PIDGains(kp=0.1, ki=0.0))
+    pid = PIDLagrangian(0.0, _gains(kp=0.1, ki=0.0))
     pid.step(torch.tensor([[20.0], [30.0]]), D)
     assert float(pid.kappa) == pytest.approx(1.0)
 
@@ -168,7 +173,7 @@ def test_pid_loss_has_no_kappa_term_or_parameter_and_steps_in_training_mode(name
     loss = make_loss(
         **LOSSES[name],
         kappa_rule="pid",
-        pid=PIDGains(kp=0.1, ki=0.0),
+        pid=_gains(kp=0.1),
         kappa_init=0.0,
         cost_threshold=0.0,
     )

@@ -145,11 +145,11 @@ class PIDGains:
         max_kappa: upper bound of κ and of the integral (anti-windup), > 0.
     """
 
-    kp: float = 0.0
-    ki: float = 1.0e-4
+    kp: float = 0.05
+    ki: float = 1.0e-6
     kd: float = 0.0
     d_delay: int = 1
-    p_ema: float = 0.0
+    p_ema: float = 0.99
     d_ema: float = 0.0
     max_kappa: float = 100.0
 
@@ -189,7 +189,7 @@ class PIDLagrangian(nn.Module):
 
     Example:
         >>> import torch
-        >>> pid = PIDLagrangian(0.5, PIDGains(kp=0.1, ki=0.01))
+        >>> pid = PIDLagrangian(0.5, PIDGains(kp=0.1, ki=0.01, p_ema=0.0))
         >>> pid.step(torch.tensor(25.0), torch.tensor(15.0))  # 10 over the limit
         >>> round(float(pid.kappa), 4)  # 0.1 * 10 + (0.5 + 0.01 * 10)
         1.6
