@@ -53,6 +53,8 @@ SWEEP_EXPERIMENTS = (
     "table1_static_laptop",
     "table1_dynamic",
     "table1_dynamic_laptop",
+    "training_safety_static",
+    "training_safety_dynamic",
 )
 
 
@@ -276,6 +278,20 @@ def test_laptop_table_sweeps_hold_every_paper_row_on_two_seeds_with_kept_stages(
         assert list(cfg.keep_checkpoints_at) == [1, 10] and cfg.epoch_frames == 10_000
         assert cfg.threads == 1 and cfg.hydra.launcher.n_jobs == 2 and cfg.resume == "auto"
         assert cfg.hydra.runtime.choices.experiment == experiment
+
+
+def test_training_safety_sweeps_hold_the_studys_rows_seeds_and_budgets():
+    for experiment, env, rows, frames in (
+        ("training_safety_static", "static", {"wcsac_0.1", "sac_lag"}, 200_000),
+        ("training_safety_dynamic", "dynamic", {"wcsac_0.1", "wcsac_0.5", "sac_lag", "sac"}, 10**6),
+    ):
+        cfg = _hydra_config(f"experiment={experiment}")
+        params = cfg.hydra.sweeper.params
+        assert set(params["+row"].split(",")) == rows and params.seed == "0,10,20"
+        assert cfg.env.name == env and cfg.total_frames == frames
+        assert cfg.threads == 1 and cfg.hydra.launcher.n_jobs == 2 and cfg.resume == "auto"
+    # a job longer than a working session continues with its replay buffer
+    assert _hydra_config("experiment=training_safety_dynamic").save_replay_buffer is True
 
 
 @needs_ray
