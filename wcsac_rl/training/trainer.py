@@ -35,8 +35,11 @@ from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import (
     CHECKPOINT_DIR,
     LAST_CHECKPOINT,
+    StateMismatch,
     check_compatible,
+    check_not_behind,
     check_resume_changes,
+    check_run_config,
     find_checkpoint,
     keep_checkpoint,
     load_checkpoint,
@@ -45,7 +48,7 @@ from wcsac_rl.training.checkpoint import (
     set_numpy_rng_state,
     write_error_reason,
 )
-from wcsac_rl.training.config import TrainingError, validate_config
+from wcsac_rl.training.config import ConfigError, TrainingError, validate_config
 from wcsac_rl.training.preemption import Preempted, StopSignals
 from wcsac_rl.training.progress import EpisodeTracker, LossMeans, ProgressWriter, read_progress
 from wcsac_rl.training.provenance import session_provenance, write_provenance
@@ -126,6 +129,7 @@ class Trainer:
         self.run_dir = Path(run_dir)
         self.overrides = None if overrides is None else list(overrides)
         self.lock: RunLock | None = None
+        self._resumed_from: Path | None = None  # the checkpoint a resume continues
         self.env = self.eval_env = self.logger = None
         try:
             self._set_up(self._resume_checkpoint())
@@ -171,7 +175,10 @@ class Trainer:
         self._checkpoint_frames: int | None = None  # frames of this session's last save
         if checkpoint is not None:
             self._load_state(checkpoint)
-            self.load_learner_state(checkpoint.get("learner", {}))
+            try:
+                self.load_learner_state(checkpoint.get("learner", {}))
+            except StateMismatch as err:
+                raise ConfigError(f"checkpoint {self._resumed_from}: {err}") from None
             # rows logged after this checkpoint (by a session killed before its next
             # checkpoint) are dropped: the resumed session logs those epochs again
             dropped = cut_records_to(self.run_dir, epoch=self.epoch, frames=self.tracker.frames)
@@ -248,8 +255,8 @@ class Trainer:
             if self.lock is None:
                 self.lock = RunLock(self.run_dir)
             checkpoint = load_checkpoint(path, required=RESUME_ENTRIES)
-            check_compatible(checkpoint["config"], cfg, path)
-            check_resume_changes(checkpoint["config"], cfg, path)
+            self._check_resumable(checkpoint, path)
+            check_not_behind(path, int(checkpoint["frames"]), self.run_dir)
             return checkpoint
         self.lock = RunLock(self.run_dir)
         check_new_run_dir(self.run_dir)
@@ -270,10 +277,19 @@ class Trainer:
             check_restartable_run_dir(self.run_dir)
             return None
         checkpoint = load_checkpoint(path, required=RESUME_ENTRIES)
-        check_compatible(checkpoint["config"], self.cfg, path)
-        check_resume_changes(checkpoint["config"], self.cfg, path)
+        self._check_resumable(checkpoint, path)
         print(f"{self.run_dir}: resuming from {path} ({int(checkpoint['frames'])} frames)")
         return checkpoint
+
+    def _check_resumable(self, checkpoint: dict[str, Any], path: Path) -> None:
+        """What every resume verifies before it writes anything: the checkpoint's
+        algorithm, α, env and networks are the config's (:func:`check_compatible`) and
+        the run directory's own record's (:func:`check_run_config`: a checkpoint copied
+        under another run), and the config changes only what may change on resume."""
+        self._resumed_from = path
+        check_compatible(checkpoint["config"], self.cfg, path)
+        check_run_config(checkpoint["config"], self.run_dir, path)
+        check_resume_changes(checkpoint["config"], self.cfg, path)
 
     # ---------------------------------------------------------- algorithm
     def _build_learner(self) -> None:
