@@ -64,5 +64,24 @@ def main(cfg: DictConfig) -> None:
     print(f"  training curves:             {curves}")
 
 
+def check_command_line(argv: list[str]) -> None:
+    """Refuse an override of a key no chosen config has (``algo.batchsize=64``) in one
+    line naming the closest key, before Hydra composes the config (Hydra's own refusal
+    names none)."""
+    from hydra._internal.utils import get_args_parser
+
+    from wcsac_rl.training.config_keys import check_override_keys
+
+    try:
+        args, _ = get_args_parser().parse_known_args(argv)
+    except SystemExit:  # --help and friends: Hydra answers them
+        return
+    try:
+        check_override_keys(list(args.overrides))
+    except ConfigError as err:
+        sys.exit(f"error: {err}")
+
+
 if __name__ == "__main__":
+    check_command_line(sys.argv[1:])
     main()

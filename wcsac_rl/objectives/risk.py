@@ -27,15 +27,19 @@ __all__ = [
 _STD_NORMAL = NormalDist()
 
 
-def validate_risk_level(risk_level: float) -> float:
-    """Return ``risk_level`` as a float, or raise ``ValueError`` if it is not in (0, 1]."""
-    try:
-        alpha = float(risk_level)
-    except (TypeError, ValueError):
-        alpha = math.nan
+def validate_risk_level(risk_level: float, *, name: str = "risk_level") -> float:
+    """Return ``risk_level`` as a float, or raise ``ValueError`` if it is not a number in
+    (0, 1] (a bool or a string is not a number: ``risk_level=true`` is refused, not 1).
+    ``name`` is how the message calls it (``algo.risk_level`` in a config)."""
+    alpha = math.nan
+    if not isinstance(risk_level, (bool, str, bytes)):
+        try:
+            alpha = float(risk_level)
+        except (TypeError, ValueError):
+            pass
     if not 0.0 < alpha <= 1.0:  # also refuses NaN
         raise ValueError(
-            f"risk_level α must be a number in (0, 1], got {risk_level!r}. α is the tail "
+            f"{name} α must be a number in (0, 1], got {risk_level!r}. α is the tail "
             "fraction of the cost distribution that CVaR_α averages over: α = 0.1 is the mean "
             "of the worst 10% (risk-averse), α = 1 is the plain expected cost (risk-neutral, "
             "SAC-Lag)."

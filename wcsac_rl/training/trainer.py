@@ -49,6 +49,7 @@ from wcsac_rl.training.checkpoint import (
     write_error_reason,
 )
 from wcsac_rl.training.config import ConfigError, TrainingError, validate_config
+from wcsac_rl.training.config_keys import check_known_keys, key_paths
 from wcsac_rl.training.preemption import Preempted, StopSignals
 from wcsac_rl.training.progress import EpisodeTracker, LossMeans, ProgressWriter, read_progress
 from wcsac_rl.training.provenance import session_provenance, write_provenance
@@ -109,6 +110,23 @@ def _postfix(row: dict[str, float]) -> str:
     return f"ret={row['train/episode_return']:.2f}, cost={row['train/episode_cost']:.1f}, {safety}"
 
 
+def _resumes_a_path(cfg: DictConfig) -> bool:
+    return bool(cfg.get("resume")) and cfg.resume != AUTO_RESUME
+
+
+def _say_rounding(cfg: DictConfig, frames: int, remaining: int) -> None:
+    """Say once that the collector trains whole batches: ``total_frames`` not a multiple
+    of ``algo.collector.frames_per_batch`` is rounded up (TorchRL's collector does)."""
+    batch = int(cfg.algo.collector.frames_per_batch)
+    if remaining > 0 and remaining % batch:
+        rounded = frames + math.ceil(remaining / batch) * batch
+        print(
+            f"total_frames={int(cfg.total_frames)} is rounded up to {rounded} (whole collector "
+            f"batches of {batch} frames)",
+            flush=True,
+        )
+
+
 class Trainer:
     """A training run built from a Hydra config; ``run()`` trains and returns the run dir.
 
@@ -124,7 +142,8 @@ class Trainer:
     def __init__(
         self, cfg: DictConfig, run_dir: str | Path, *, overrides: Sequence[str] | None = None
     ) -> None:
-        validate_config(cfg)
+        # (a resumed run's keys are checked against its checkpoint: _check_resumable)
+        validate_config(cfg, check_keys=not _resumes_a_path(cfg))
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.overrides = None if overrides is None else list(overrides)
@@ -188,6 +207,7 @@ class Trainer:
                     f"checkpoint (epoch {self.epoch}, {self.tracker.frames} frames)"
                 )
         remaining = max(0, int(cfg.total_frames) - self.tracker.frames)
+        _say_rounding(cfg, self.tracker.frames, remaining)
         self.collector = (
             builders.make_collector(
                 cfg,
@@ -289,6 +309,8 @@ class Trainer:
         self._resumed_from = path
         check_compatible(checkpoint["config"], self.cfg, path)
         check_run_config(checkpoint["config"], self.run_dir, path)
+        # keys the run was saved with are its own (an option since removed included)
+        check_known_keys(self.cfg, extra=key_paths(checkpoint["config"]))
         check_resume_changes(checkpoint["config"], self.cfg, path)
 
     # ---------------------------------------------------------- algorithm
