@@ -11,6 +11,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
+from wcsac_rl.training.errors import ConfigError, TrainingError
 
 __all__ = [
     "ALGOS",
@@ -26,17 +27,6 @@ __all__ = [
 OFF_POLICY_ALGOS = ("wcsac", "sac_lag", "sac")
 ON_POLICY_ALGOS = ("cpo",)
 ALGOS = (*OFF_POLICY_ALGOS, *ON_POLICY_ALGOS, "random")
-
-
-class ConfigError(ValueError):
-    """A configuration a run cannot start from; the message says what to change."""
-
-
-class TrainingError(RuntimeError):
-    """A run that cannot go on (or cannot be saved); the message says why and what to do.
-
-    Raised after the last good checkpoint is safe: ``train.py`` prints it as one line.
-    """
 
 
 SEED_MAX = 2**63 - 1

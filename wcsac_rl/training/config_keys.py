@@ -21,7 +21,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from wcsac_rl.training.config import ConfigError
+from wcsac_rl.training.errors import ConfigError
 
 __all__ = [
     "CONF_DIR",
