@@ -29,6 +29,8 @@ from torchrl import timeit
 from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
+from wcsac_rl.envs import NonFiniteStepError
+from wcsac_rl.objectives.inputs import nonfinite_entry
 from wcsac_rl.rollouts import calibration
 from wcsac_rl.rollouts.episodes import run_episodes, summarize_episodes
 from wcsac_rl.training import builders
@@ -68,6 +70,9 @@ __all__ = ["RandomPolicyTrainer", "Trainer", "seed_everything"]
 
 # a run's own files cannot be written: disk full, quota, read-only, permissions
 WRITE_ERRNOS = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EROFS, errno.EACCES}
+
+COLLECTED_ENTRIES = (("next", "cost"), ("next", "reward"), ("next", "observation"), "observation")
+"""What a collected batch must hold finite numbers in (checked once per batch)."""
 
 RESUME_ENTRIES = ("config", "frames", "total_cost", "updates", "epoch", "rng", "learner")
 """What a checkpoint must hold to resume a run (:meth:`Trainer.state_dict`)."""
@@ -399,7 +404,7 @@ class Trainer:
         collector_iter = iter(self.collector)
         while True:
             with timeit("collect"):
-                batch = next(collector_iter, None)
+                batch = self._next_batch(collector_iter)
             if batch is None:
                 break
             self.tracker.add(batch)
@@ -442,6 +447,36 @@ class Trainer:
                 )
                 stop.forward()  # a scheduler's handler (submitit: requeue) may exit here
                 raise Preempted(stop.received, self.checkpoint_path, self.tracker.frames)
+
+    def _kept_checkpoint(self) -> str:
+        if self.checkpoint_path.is_file():
+            return f"the last checkpoint {self.checkpoint_path} is kept"
+        return "no checkpoint had been written yet"
+
+    def _next_batch(self, batches) -> TensorDictBase | None:
+        """The next collected batch (``None``: the run is done), refused with one line
+        naming the entry and the frames when a reward, cost or observation in it is not
+        finite: it never reaches the replay buffer, and the last checkpoint stays."""
+        start = self.tracker.frames
+        try:
+            batch = next(batches, None)
+        except NonFiniteStepError as err:  # an env under RejectNonFinite: the env's own words
+            raise NonFiniteStepError(
+                f"{err}; training stopped while collecting the frames after {start} "
+                f"({self._kept_checkpoint()})"
+            ) from None
+        if batch is None:
+            return None
+        found = nonfinite_entry(batch, COLLECTED_ENTRIES)
+        if found is not None:
+            key, count, total, first = found
+            raise TrainingError(
+                f"the batch collected at frames {start}-{start + batch.numel()} holds a "
+                f"non-finite {key!r} ({count} of {total} values, e.g. {first}); training "
+                f"stopped before it reached the replay buffer ({self._kept_checkpoint()}). "
+                "Check the env's rewards, costs and observations"
+            )
+        return batch
 
     def _epoch_row(
         self, loss_means: LossMeans, seconds: float, frames: int, updates: int
