@@ -14,6 +14,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from wcsac_rl.training.config import ConfigError, TrainingError
+from wcsac_rl.training.preemption import DeferredSignals
 from wcsac_rl.training.safe_load import check_buffer_files, load_data
 
 __all__ = [
@@ -108,11 +109,12 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
     try:
-        with tmp.open("wb") as f:
-            torch.save(state, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        with DeferredSignals():  # a stop signal waits until the file is in place
+            with tmp.open("wb") as f:
+                torch.save(state, f)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
     except BaseException as err:  # Ctrl-C mid-write too: never leave the temporary file
         tmp.unlink(missing_ok=True)
         if not isinstance(err, Exception):
@@ -199,17 +201,18 @@ def save_buffers(checkpoint_dir: Path, buffers: dict[str, Any], *, frames: int) 
     tmp = checkpoint_dir / f".tmp-{name}"
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        tmp.mkdir(parents=True)
-        for key, buffer in buffers.items():
-            buffer.dumps(tmp / key)
-        files = {}
-        for path in sorted(p for p in tmp.rglob("*") if p.is_file()):
-            _fsync_file(path)
-            files[str(path.relative_to(tmp))] = [path.stat().st_size, _file_digest(path)]
-        if final.exists():  # buffers of an earlier save at the same frame count
-            shutil.rmtree(final)
-        os.replace(tmp, final)
-        fsync_directory(checkpoint_dir)
+        with DeferredSignals():  # a stop signal waits until the directory is in place
+            tmp.mkdir(parents=True)
+            for key, buffer in buffers.items():
+                buffer.dumps(tmp / key)
+            files = {}
+            for path in sorted(p for p in tmp.rglob("*") if p.is_file()):
+                _fsync_file(path)
+                files[str(path.relative_to(tmp))] = [path.stat().st_size, _file_digest(path)]
+            if final.exists():  # buffers of an earlier save at the same frame count
+                shutil.rmtree(final)
+            os.replace(tmp, final)
+            fsync_directory(checkpoint_dir)
     except BaseException as err:
         shutil.rmtree(tmp, ignore_errors=True)
         if not isinstance(err, Exception):
@@ -293,10 +296,11 @@ def keep_checkpoint(checkpoint: Path, frames: int) -> Path:
     kept = checkpoint.with_name(f"{KEPT_PREFIX}{int(frames)}.pt")
     tmp = kept.with_name(f".tmp-{kept.name}")
     try:
-        shutil.copyfile(checkpoint, tmp)
-        with open(tmp, "rb+") as handle:
-            os.fsync(handle.fileno())
-        os.replace(tmp, kept)
+        with DeferredSignals():
+            shutil.copyfile(checkpoint, tmp)
+            with open(tmp, "rb+") as handle:
+                os.fsync(handle.fileno())
+            os.replace(tmp, kept)
     except BaseException as err:  # never leave the temporary file
         tmp.unlink(missing_ok=True)
         if not isinstance(err, Exception):

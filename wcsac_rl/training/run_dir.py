@@ -223,13 +223,16 @@ def check_restartable_run_dir(run_dir: Path) -> None:
 
 def replace_text(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` atomically (a temporary file, flushed, then renamed)."""
+    from wcsac_rl.training.preemption import DeferredSignals
+
     tmp = path.with_name(path.name + ".tmp")
     try:
-        with tmp.open("w", newline="") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        with DeferredSignals():  # a stop signal waits until the file is in place
+            with tmp.open("w", newline="") as f:
+                f.write(text)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

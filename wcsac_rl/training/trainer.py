@@ -368,6 +368,7 @@ class Trainer:
         try:
             with StopSignals() as stop:  # SIGTERM / SIGUSR1 / SIGUSR2: checkpoint, then stop
                 self._train(pbar, stop)
+                self.save()  # the final checkpoint (a stop signal now finds the run complete)
         except KeyboardInterrupt:
             self._save_interrupted()  # with the epoch in progress: the resumed session completes its row
             pbar.close()
@@ -384,7 +385,12 @@ class Trainer:
         finally:
             pbar.close()
             self.collector.shutdown()
-        self.save()
+        if stop.received is not None:  # in the last batch or the final checkpoint
+            print(
+                f"{signal.Signals(stop.received).name}: the run is complete "
+                f"({self.tracker.frames} frames); checkpoint written to {self.checkpoint_path}",
+                flush=True,
+            )
         return self.run_dir
 
     def _save_interrupted(self) -> None:
@@ -446,7 +452,12 @@ class Trainer:
                     flush=True,
                 )
                 stop.forward()  # a scheduler's handler (submitit: requeue) may exit here
-                raise Preempted(stop.received, self.checkpoint_path, self.tracker.frames)
+                raise Preempted(
+                    stop.received,
+                    self.checkpoint_path,
+                    self.tracker.frames,
+                    resume_auto=cfg.resume == AUTO_RESUME,
+                )
 
     def _kept_checkpoint(self) -> str:
         if self.checkpoint_path.is_file():
