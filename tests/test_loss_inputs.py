@@ -132,3 +132,11 @@ def test_the_envs_own_refusal_says_where_training_stopped(tmp_path, monkeypatch)
     assert "training stopped while collecting the frames after 400" in message
     assert f"the last checkpoint {trainer.checkpoint_path} is kept" in message
     assert load_checkpoint(trainer.checkpoint_path)["frames"] == 400
+
+
+def test_the_loss_still_takes_its_entries_as_keyword_tensors():
+    """(TorchRL's ``dispatch``: the checks did not take the forward's decorator away.)"""
+    loss = make_loss()
+    batch = make_batch(8)
+    entries = {"_".join(k) if isinstance(k, tuple) else k: batch.get(k) for k in loss.in_keys}
+    assert len(loss(**entries)) == len(loss.out_keys)

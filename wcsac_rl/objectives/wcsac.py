@@ -1362,7 +1362,6 @@ class WCSACLoss(SACLoss):
         self.constraint.step(signal.detach(), self.cost_threshold)
 
     # ---------------------------------------------------------------- forward
-    @dispatch
     def check_inputs(self, tensordict: TensorDictBase) -> None:
         """Raise a ``ValueError`` naming the first entry the loss reads (``in_keys``) that
         holds a NaN or ±inf, or an empty batch. Reads the values (a host
@@ -1372,6 +1371,7 @@ class WCSACLoss(SACLoss):
         check_nonempty_batch(tensordict, type(self).__name__)
         check_finite_entries(tensordict, self.in_keys, type(self).__name__)
 
+    @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         check_nonempty_batch(tensordict, type(self).__name__)  # (shapes only: no sync)
         if self.check_finite:
