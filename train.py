@@ -64,5 +64,49 @@ def main(cfg: DictConfig) -> None:
     print(f"  training curves:             {curves}")
 
 
+def check_command_line(argv: list[str]) -> None:
+    """Refuse an override of a key no chosen config has (``algo.batchsize=64``) in one
+    line naming the closest key, before Hydra composes the config (Hydra's own refusal
+    names none)."""
+    from hydra._internal.utils import get_args_parser
+
+    from wcsac_rl.training.config_keys import check_override_keys
+
+    try:
+        args, _ = get_args_parser().parse_known_args(argv)
+    except SystemExit:  # --help and friends: Hydra answers them
+        return
+    try:
+        check_override_keys(list(args.overrides))
+        check_output_dirs(list(args.overrides))
+    except ConfigError as err:
+        sys.exit(f"error: {err}")
+
+
+def check_output_dirs(overrides: list[str]) -> None:
+    """Refuse, in one line, a run or sweep directory that cannot be written (a read-only
+    file system, another user's directory) before Hydra tries to create it (its own
+    failure is a stack of lines). Directories given with interpolations are checked up
+    to their first one; without ``hydra.run.dir`` / ``hydra.sweep.dir``, Hydra writes
+    below the current directory."""
+    from wcsac_rl.training.run_dir import unwritable_reason
+
+    given = {}
+    for override in overrides:
+        key, sep, value = override.lstrip("+").partition("=")
+        if sep and key in ("hydra.run.dir", "hydra.sweep.dir"):
+            given[key] = value.strip("'\"")
+    for key, value in (given or {"the current directory": "."}).items():
+        literal = value.split("${", 1)[0] or "."
+        reason = unwritable_reason(literal)
+        if reason is not None:
+            where = f"{key}={value}" if key != "the current directory" else key
+            raise ConfigError(
+                f"cannot write the run's directory ({where}): {reason}; choose a directory "
+                "you can write (hydra.run.dir=..., or hydra.sweep.dir=... for a sweep)"
+            )
+
+
 if __name__ == "__main__":
+    check_command_line(sys.argv[1:])
     main()

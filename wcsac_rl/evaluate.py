@@ -200,8 +200,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             errors.append(str(err))
             print(f"error: {err}", file=sys.stderr, flush=True)
         except Exception as err:  # one broken run must not stop a sweep's evaluation
-            errors.append(f"{directory}: {err}")
-            print(f"error: {directory}: {type(err).__name__}: {err}", file=sys.stderr, flush=True)
+            first = (str(err).strip().splitlines() or [""])[0]  # one line, never a dump
+            errors.append(f"{directory}: {first}")
+            print(f"error: {directory}: {type(err).__name__}: {first}", file=sys.stderr, flush=True)
     print(
         f"{len(done)} evaluated, {len(skipped)} skipped (already evaluated; --force "
         f"re-evaluates), {len(errors)} failed",

@@ -80,7 +80,12 @@ def load_safety_run(run_dir: str | os.PathLike, *, seed: int, num_envs: int = 1)
 
     from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
     from wcsac_rl.training import builders
-    from wcsac_rl.training.checkpoint import find_checkpoint, load_checkpoint
+    from wcsac_rl.training.checkpoint import (
+        StateMismatch,
+        find_checkpoint,
+        load_checkpoint,
+        load_module_state,
+    )
     from wcsac_rl.training.devices import on_cpu
     from wcsac_rl.training.trainer import env_max_episode_steps
 
@@ -102,7 +107,10 @@ def load_safety_run(run_dir: str | os.PathLike, *, seed: int, num_envs: int = 1)
     try:
         agent = builders.make_agent(cfg, env)
         loss = builders.make_loss(cfg, agent, env_max_episode_steps(cfg))
-        loss.load_state_dict(learner["loss"])
+        load_module_state(loss, learner.get("loss"))
+    except StateMismatch as err:
+        env.close()
+        raise ConfigError(f"checkpoint {path}: {err}") from None
     except (KeyError, RuntimeError) as err:
         env.close()
         first = str(err).strip().splitlines()[0] if str(err).strip() else repr(err)

@@ -136,7 +136,10 @@ def plot_run_curves(progress_csv: Path, out: Path, *, cost_limit: float | None =
     columns = read_progress(progress_csv)
     if not columns:
         raise ValueError(f"{progress_csv} has no rows yet")
-    fig = run_curves_figure(columns, cost_limit=cost_limit, title=Path(progress_csv).parent.name)
+    from wcsac_rl.evaluation.runs import display_text
+
+    title = display_text(Path(progress_csv).parent.name)  # (a name that is not UTF-8 too)
+    fig = run_curves_figure(columns, cost_limit=cost_limit, title=title)
     out = Path(out)
     fig.savefig(out, dpi=100)
     return out

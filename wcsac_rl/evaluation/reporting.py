@@ -69,6 +69,7 @@ from wcsac_rl.evaluation.paper import paper_comparison_markdown
 from wcsac_rl.evaluation.runs import (
     EVALUATION_CSV,
     EVALUATION_JSON,
+    display_text,
     env_title,
     find_evaluated_dirs,
     find_progress_dirs,
@@ -78,7 +79,7 @@ from wcsac_rl.evaluation.runs import (
 )
 from wcsac_rl.evaluation.sweeps import SweepJob, incomplete_jobs
 from wcsac_rl.evaluation.training_safety_table import TRAINING_SAFETY_FILES, training_safety_files
-from wcsac_rl.training.checkpoint import kept_checkpoints
+from wcsac_rl.training.checkpoint import IDENTITY_KEYS, kept_checkpoints
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
 from wcsac_rl.training.provenance import read_provenance
@@ -358,10 +359,77 @@ def _common(values: dict[str, set], what: str, flag: str) -> Any:
 
 
 def _write_text(path: Path, text: str) -> Path:
+    """Write ``text`` (UTF-8; a run name that is not is shown with U+FFFD) atomically:
+    a temporary file renamed into place, removed again if anything fails."""
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(display_text(text), encoding="utf-8")
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return path
+
+
+POOLED_KEYS = ("cost_limit", "total_frames", *(k for k in IDENTITY_KEYS if k != "cost_limit"))
+"""What the runs pooled into one row must share (besides the env): the budget d, the
+frame budget and what their networks and losses depend on (``IDENTITY_KEYS``)."""
+
+
+def _session_config(directory: Path) -> Any:
+    """The run's config as its last session ran it (``config.resume<k>.yaml`` with the
+    largest k, else ``config.yaml``); ``None`` without a readable one."""
+    resumed = sorted(
+        directory.glob("config.resume*.yaml"),
+        key=lambda p: (
+            int(p.stem[len("config.resume") :] or 0)
+            if p.stem[len("config.resume") :].isdigit()
+            else -1
+        ),
+    )
+    for path in [*reversed(resumed), directory / "config.yaml"]:
+        try:
+            return OmegaConf.load(path)
+        except Exception:  # missing or damaged: the next one
+            continue
+    return None
+
+
+def _identity(directory: Path, meta: dict[str, Any] | None = None) -> dict[str, str]:
+    """The :data:`POOLED_KEYS` a run (or an evaluation's ``meta``) was made with, as text."""
+    identity: dict[str, str] = {}
+    cfg = _session_config(Path(directory))
+    for key in POOLED_KEYS:
+        try:
+            value = None if cfg is None else OmegaConf.select(cfg, key, default=None)
+        except Exception:  # an interpolation that does not resolve: not compared
+            value = None
+        if value is not None:
+            plain = OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
+            identity[key] = repr(plain)
+    if meta is not None:
+        identity["cost_limit"] = repr(float(meta["cost_limit"]))
+        identity["evaluation max_episode_steps"] = repr(meta.get("max_episode_steps"))
+    return identity
+
+
+def _check_rows_pool_one_configuration(members: dict[str, list[tuple[str, dict[str, str]]]]):
+    """Refuse a row whose runs differ in a :data:`POOLED_KEYS` setting (keys a run's
+    records lack are not compared): seeds of one configuration only are pooled."""
+    for label, runs in members.items():
+        keys = set().union(*(identity for _, identity in runs))
+        for key in sorted(keys):
+            values: dict[str, list[str]] = defaultdict(list)
+            for name, identity in runs:
+                if key in identity:
+                    values[identity[key]].append(name)
+            if len(values) > 1:
+                listing = "; ".join(f"{v}: {', '.join(names)}" for v, names in values.items())
+                raise ReportError(
+                    f"row {label} would pool runs of different configurations ({key} {listing}); "
+                    "a row pools the seeds of one configuration: report each configuration "
+                    "on its own (pass its directories)"
+                )
 
 
 @dataclass
@@ -501,6 +569,10 @@ def build_report(
     """
     out_dir = Path(out_dir).expanduser()
     report = Report(out_dir=out_dir)
+    raw_log = log
+
+    def log(message: str) -> None:  # (a run name that is not UTF-8 is printable too)
+        raw_log(display_text(message))
 
     def warn(message: str) -> None:
         report.warnings.append(message)
@@ -563,6 +635,14 @@ def build_report(
     cost_limit = float(cost_limit)
     if not math.isfinite(cost_limit) or cost_limit < 0:
         raise ReportError(f"cost limit must be a number >= 0, got {cost_limit!r}")
+    by_row: dict[str, list[tuple[str, dict[str, str]]]] = defaultdict(list)
+    for ev in evaluations:
+        by_row[ev.label].append((Path(ev.directory).name, _identity(ev.directory, ev.meta)))
+    _check_rows_pool_one_configuration(by_row)
+    by_row = defaultdict(list)
+    for run in runs:
+        by_row[run.label].append((run.directory.name, _identity(run.directory)))
+    _check_rows_pool_one_configuration(by_row)
 
     # every job of the sweeps below paths (any launcher): those not finished are named
     report.incomplete = incomplete_jobs(paths)

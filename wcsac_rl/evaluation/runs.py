@@ -22,6 +22,7 @@ __all__ = [
     "EVALUATION_JSON",
     "ROW_NAMES",
     "ROW_ORDER",
+    "display_text",
     "env_title",
     "find_evaluated_dirs",
     "find_progress_dirs",
@@ -111,6 +112,16 @@ def row_sort_key(label: str) -> tuple[int, float, str]:
     if label == "sac_lag_paper":
         return (ROW_ORDER.index("sac_lag"), 1.0, label)
     return (len(ROW_ORDER), 0.0, label)
+
+
+def display_text(text: str) -> str:
+    """``text`` as valid UTF-8: the bytes of a file name that is not UTF-8 (which Python
+    carries as lone surrogates) are shown as U+FFFD, so that it can be printed and
+    written into a report."""
+    try:
+        return text.encode("utf-8", "surrogateescape").decode("utf-8", "replace")
+    except UnicodeEncodeError:
+        return text.encode("utf-8", "replace").decode("utf-8")
 
 
 def has_checkpoint(run_dir: str | os.PathLike) -> bool:

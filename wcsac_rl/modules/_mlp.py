@@ -6,6 +6,8 @@ from torch import nn
 from torchrl.modules import MLP
 
 _ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "gelu": nn.GELU}
+ACTIVATION_NAMES = tuple(_ACTIVATIONS)
+"""What ``algo.network.activation`` may be."""
 
 
 def make_mlp(

@@ -16,6 +16,7 @@ from statistics import NormalDist
 import torch
 
 __all__ = [
+    "MIN_RISK_LEVEL",
     "empirical_cvar",
     "gaussian_cvar",
     "gaussian_cvar_multiplier",
@@ -27,18 +28,36 @@ __all__ = [
 _STD_NORMAL = NormalDist()
 
 
-def validate_risk_level(risk_level: float) -> float:
-    """Return ``risk_level`` as a float, or raise ``ValueError`` if it is not in (0, 1]."""
-    try:
-        alpha = float(risk_level)
-    except (TypeError, ValueError):
-        alpha = math.nan
+MIN_RISK_LEVEL = 1e-12
+"""The smallest accepted α. Every CVaR here is exact (to float64 rounding, then the
+input's dtype) for α in ``[MIN_RISK_LEVEL, 1]``: the Gaussian mixture's VaR search and
+tail expectation run in float64 with the tail mass as ``erfc`` (no ``1 − Φ``
+cancellation). Below it a tail fraction means one episode in more than 10¹² and float32
+networks cannot tell the fractions ``1 − α`` of an IQN critic from 1."""
+
+
+def validate_risk_level(risk_level: float, *, name: str = "risk_level") -> float:
+    """Return ``risk_level`` as a float, or raise ``ValueError`` if it is not a number in
+    ``[MIN_RISK_LEVEL, 1]`` (10⁻¹² to 1; a bool or a string is not a number:
+    ``risk_level=true`` is refused, not 1). ``name`` is how the message calls it
+    (``algo.risk_level`` in a config)."""
+    alpha = math.nan
+    if not isinstance(risk_level, (bool, str, bytes)):
+        try:
+            alpha = float(risk_level)
+        except (TypeError, ValueError):
+            pass
     if not 0.0 < alpha <= 1.0:  # also refuses NaN
         raise ValueError(
-            f"risk_level α must be a number in (0, 1], got {risk_level!r}. α is the tail "
+            f"{name} α must be a number in (0, 1], got {risk_level!r}. α is the tail "
             "fraction of the cost distribution that CVaR_α averages over: α = 0.1 is the mean "
             "of the worst 10% (risk-averse), α = 1 is the plain expected cost (risk-neutral, "
             "SAC-Lag)."
+        )
+    if alpha < MIN_RISK_LEVEL:
+        raise ValueError(
+            f"{name} α={risk_level!r} is below the smallest supported tail fraction "
+            f"{MIN_RISK_LEVEL:g}: use a risk level in [{MIN_RISK_LEVEL:g}, 1]"
         )
     return alpha
 
@@ -98,6 +117,19 @@ def empirical_cvar(costs: Sequence[float] | torch.Tensor, risk_level: float) -> 
     return float(worst.mean())
 
 
+_SQRT2 = math.sqrt(2.0)
+_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+def _normal_sf(z: torch.Tensor) -> torch.Tensor:
+    """``1 − Φ(z)`` without cancellation: ``erfc(z/√2)/2`` is exact far into the tail."""
+    return 0.5 * torch.special.erfc(z / _SQRT2)
+
+
+def _normal_pdf(z: torch.Tensor) -> torch.Tensor:
+    return torch.exp(-0.5 * z * z - _LOG_SQRT_2PI)
+
+
 def gaussian_mixture_cvar(
     mean: torch.Tensor,
     variance: torch.Tensor | None,
@@ -114,11 +146,21 @@ def gaussian_mixture_cvar(
     is never larger), this counts a few risky start states among many safe ones as
     the tail they are. Computed exactly through Rockafellar–Uryasev,
     ``CVaR_α = min_v v + E[(C − v)⁺] / α``, ``E[(C − v)⁺] = σ φ(z) + (μ − v)(1 − Φ(z))``,
-    ``z = (v − μ)/σ``. The minimiser (the VaR, where the tail mass equals α) is
-    bracketed by ``rounds`` grid searches of ``points`` candidates each, every one a
-    single batched evaluation (no host synchronisation): the bracket shrinks by
-    ``(points − 1)^rounds`` (32⁵ ≈ 2²⁵ by default, float32's resolution), and the
-    objective is flat at its minimum, so the CVaR's error is second order in it.
+    ``z = (v − μ)/σ``. The minimiser (the VaR, where the tail mass equals α) lies
+    between the smallest and the largest of the components' own VaRs
+    ``μ_i + Φ⁻¹(1 − α) σ_i``; it is bracketed by ``rounds`` grid searches of ``points``
+    candidates each, every one a single batched evaluation (no host synchronisation):
+    the bracket shrinks by ``(points − 1)^rounds`` (32⁵ ≈ 2²⁵ by default), and the
+    objective is flat at its minimum, so the CVaR's error is second order in it. With
+    one component (or equal ones) the bracket is the exact VaR.
+
+    **Precision.** The search and the tail expectation run in float64, the tail mass
+    ``1 − Φ(z)`` as ``erfc(z/√2)/2`` (float32's ``1 − Φ`` is 0 beyond z ≈ 5.3, where
+    α = 10⁻⁸ lives), and the result is returned in ``mean``'s dtype (gradients flow
+    through the cast). It is exact to float64 rounding for every accepted α,
+    ``[MIN_RISK_LEVEL, 1]`` = [10⁻¹², 1] (:func:`validate_risk_level` refuses smaller
+    ones); e.g. N(1, 4) at α = 10⁻⁸ gives 12.5607 (closed form μ + σ φ(Φ⁻¹(1−α))/α).
+
     Zero (or ``None``) variances give the CVaR of the means themselves, with the
     fractional atom at the VaR counted in part (so with ``n·α`` an integer it is the
     mean of the worst ``n·α`` means). No gradient flows through the VaR.
@@ -131,29 +173,37 @@ def gaussian_mixture_cvar(
     True
     """
     alpha = validate_risk_level(risk_level)
+    if int(rounds) != rounds or rounds < 1 or int(points) != points or points < 3:
+        raise ValueError(f"need rounds >= 1 and points >= 3, got {rounds} and {points}")
+    dtype = mean.dtype
     mean = mean.reshape(-1)
     if alpha == 1.0:
         return mean.mean()
-    std = torch.zeros_like(mean) if variance is None else variance.reshape(-1).sqrt()
+    mean = mean.double()
+    std = torch.zeros_like(mean) if variance is None else variance.reshape(-1).double().sqrt()
     std = std.clamp(min=min_std)
-    normal = torch.distributions.Normal(torch.zeros((), dtype=mean.dtype, device=mean.device), 1.0)
-    if int(rounds) != rounds or rounds < 1 or int(points) != points or points < 3:
-        raise ValueError(f"need rounds >= 1 and points >= 3, got {rounds} and {points}")
-    with torch.no_grad():
-        low = (mean - 10 * std).min()
-        high = (mean + 10 * std).max()
-        steps = torch.linspace(0.0, 1.0, int(points), dtype=mean.dtype, device=mean.device)
-        for _ in range(int(rounds)):
-            grid = low + (high - low) * steps
-            tail = (1 - normal.cdf((grid.unsqueeze(-1) - mean) / std)).mean(-1)
-            # the tail mass falls along the grid: the VaR lies after the last point
-            # with more than α of the mass above it
-            last = ((tail > alpha).sum() - 1).clamp(0, int(points) - 2)
-            low, high = grid[last], grid[last + 1]
-        var = (low + high) / 2
+    var = _mixture_var(mean.detach(), std.detach(), alpha, int(rounds), int(points))
     z = (var - mean) / std
-    excess = std * normal.log_prob(z).exp() + (mean - var) * (1 - normal.cdf(z))
-    return var + excess.mean() / alpha
+    excess = std * _normal_pdf(z) + (mean - var) * _normal_sf(z)
+    return (var + excess.mean() / alpha).to(dtype)
+
+
+def _mixture_var(
+    mean: torch.Tensor, std: torch.Tensor, alpha: float, rounds: int, points: int
+) -> torch.Tensor:
+    """The VaR of :func:`gaussian_mixture_cvar`'s mixture (float64, no gradient)."""
+    z_alpha = -_STD_NORMAL.inv_cdf(alpha)  # Φ⁻¹(1 − α), exact even where 1 − α rounds to 1
+    own = mean + z_alpha * std  # each component's VaR: the mixture's lies among them
+    low, high = own.min(), own.max()
+    steps = torch.linspace(0.0, 1.0, points, dtype=mean.dtype, device=mean.device)
+    for _ in range(rounds):
+        grid = low + (high - low) * steps
+        tail = _normal_sf((grid.unsqueeze(-1) - mean) / std).mean(-1)
+        # the tail mass falls along the grid: the VaR lies after the last point with
+        # more than α of the mass above it
+        last = ((tail > alpha).sum() - 1).clamp(0, points - 2)
+        low, high = grid[last], grid[last + 1]
+    return (low + high) / 2
 
 
 def quantile_mixture_cvar(quantiles: torch.Tensor, risk_level: float) -> torch.Tensor:
@@ -182,7 +232,10 @@ def quantile_mixture_cvar(quantiles: torch.Tensor, risk_level: float) -> torch.T
     if alpha == 1.0:
         return pooled.mean()
     # M·α in floating point can land just above an integer: round that noise away
+    # (not below one atom: a tail lighter than one atom is the largest atom)
     mass = round(count * alpha, 9)
+    if mass <= 1.0:
+        return pooled.max()
     whole = math.floor(mass)
     top = torch.topk(pooled, min(count, math.ceil(mass))).values
     weights = torch.ones(top.shape[0], dtype=pooled.dtype, device=pooled.device)

@@ -61,6 +61,7 @@ from wcsac_rl.objectives.constraint import (
     make_constraint,
 )
 from wcsac_rl.objectives.critic_ensemble import FusedCritics, Layers
+from wcsac_rl.objectives.inputs import check_finite_entries, check_nonempty_batch, finite_number
 from wcsac_rl.objectives.quantile import (
     midpoint_fractions,
     quantile_huber_loss,
@@ -293,6 +294,10 @@ class WCSACLoss(SACLoss):
             :func:`wcsac_rl.modules.make_actor`; ``None`` (default) does it when
             possible, ``False`` never. Same draws, log-probabilities and gradients
             either way.
+        check_finite (bool): run :meth:`check_inputs` on every call: a NaN or ±inf in
+            an entry the loss reads is a ``ValueError`` naming it instead of NaN losses
+            (one host synchronisation per entry: not under ``torch.compile``). Default
+            ``False``; an empty batch is refused either way.
         num_qvalue_nets, loss_function, alpha_init, min_alpha, max_alpha, action_spec,
         fixed_alpha, target_entropy, delay_actor, delay_qvalue, separate_losses,
         reduction, skip_done_states, deactivate_vmap, scalar_output_mode: as in
@@ -445,6 +450,7 @@ class WCSACLoss(SACLoss):
         direct_sampling: bool | None = None,
         num_qvalue_nets: int = 2,
         loss_function: str = "l2",
+        check_finite: bool = False,
         **sac_kwargs,
     ) -> None:
         if "value_network" in sac_kwargs and sac_kwargs["value_network"] is not None:
@@ -452,11 +458,10 @@ class WCSACLoss(SACLoss):
         sac_kwargs.pop("value_network", None)
         self.risk_level = validate_risk_level(risk_level)
         self.cvar_multiplier = gaussian_cvar_multiplier(self.risk_level)
+        validate_cost_limit(cost_limit)  # (NaN and inf too: one line naming it)
         if cost_threshold is not None:
-            if cost_threshold < 0:
-                raise ValueError(f"cost_threshold must be >= 0, got {cost_threshold}")
+            finite_number(cost_threshold, "cost_threshold", minimum=0.0)
         else:  # (what the threshold is made from, checked now whatever γ is later)
-            validate_cost_limit(cost_limit)
             validate_max_episode_steps(max_episode_steps)
         constraint = make_constraint(
             kappa_rule,
@@ -486,6 +491,7 @@ class WCSACLoss(SACLoss):
         if int(cost_n_steps) != cost_n_steps or cost_n_steps < 1:
             raise ValueError(f"cost_n_steps must be an integer >= 1, got {cost_n_steps}")
         self.cost_n_steps = int(cost_n_steps)
+        self.check_finite = bool(check_finite)
         self.nonnegative_cost = bool(nonnegative_cost)
         if kappa_statistic not in KAPPA_STATISTICS:
             raise ValueError(
@@ -1352,8 +1358,20 @@ class WCSACLoss(SACLoss):
         return self._reduce_loss(loss, tensordict=tensordict, weights=weights)
 
     # ---------------------------------------------------------------- forward
+    def check_inputs(self, tensordict: TensorDictBase) -> None:
+        """Raise a ``ValueError`` naming the first entry the loss reads (``in_keys``) that
+        holds a NaN or ±inf, or an empty batch. Reads the values (a host
+        synchronisation): call it before :meth:`forward` where that is affordable, or
+        construct the loss with ``check_finite=True`` to run it on every call (not
+        under ``torch.compile``)."""
+        check_nonempty_batch(tensordict, type(self).__name__)
+        check_finite_entries(tensordict, self.in_keys, type(self).__name__)
+
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        check_nonempty_batch(tensordict, type(self).__name__)  # (shapes only: no sync)
+        if self.check_finite:
+            self.check_inputs(tensordict)
         targets = self.compute_targets(tensordict)
         # the fused critics' parameters are gathered once: trainable for the critic
         # losses, detached for the actor's

@@ -14,6 +14,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from wcsac_rl.training.config import ConfigError, TrainingError
+from wcsac_rl.training.preemption import DeferredSignals
 from wcsac_rl.training.safe_load import check_buffer_files, load_data
 
 __all__ = [
@@ -21,18 +22,24 @@ __all__ = [
     "INITIAL_STATE_BUFFER_DIR",
     "LAST_CHECKPOINT",
     "RESUME_CHANGEABLE",
+    "StateMismatch",
     "check_compatible",
+    "check_not_behind",
     "check_resume_changes",
+    "check_run_config",
     "checkpoint_digest",
     "find_checkpoint",
     "keep_checkpoint",
     "kept_checkpoints",
     "load_buffers",
     "load_checkpoint",
+    "load_module_state",
     "load_optimizer_state",
     "numpy_rng_state",
     "read_checkpoint",
     "resume_config",
+    "run_config_record",
+    "run_latest_frames",
     "save_checkpoint",
     "set_numpy_rng_state",
 ]
@@ -102,11 +109,12 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
     try:
-        with tmp.open("wb") as f:
-            torch.save(state, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        with DeferredSignals():  # a stop signal waits until the file is in place
+            with tmp.open("wb") as f:
+                torch.save(state, f)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
     except BaseException as err:  # Ctrl-C mid-write too: never leave the temporary file
         tmp.unlink(missing_ok=True)
         if not isinstance(err, Exception):
@@ -193,17 +201,18 @@ def save_buffers(checkpoint_dir: Path, buffers: dict[str, Any], *, frames: int) 
     tmp = checkpoint_dir / f".tmp-{name}"
     shutil.rmtree(tmp, ignore_errors=True)
     try:
-        tmp.mkdir(parents=True)
-        for key, buffer in buffers.items():
-            buffer.dumps(tmp / key)
-        files = {}
-        for path in sorted(p for p in tmp.rglob("*") if p.is_file()):
-            _fsync_file(path)
-            files[str(path.relative_to(tmp))] = [path.stat().st_size, _file_digest(path)]
-        if final.exists():  # buffers of an earlier save at the same frame count
-            shutil.rmtree(final)
-        os.replace(tmp, final)
-        fsync_directory(checkpoint_dir)
+        with DeferredSignals():  # a stop signal waits until the directory is in place
+            tmp.mkdir(parents=True)
+            for key, buffer in buffers.items():
+                buffer.dumps(tmp / key)
+            files = {}
+            for path in sorted(p for p in tmp.rglob("*") if p.is_file()):
+                _fsync_file(path)
+                files[str(path.relative_to(tmp))] = [path.stat().st_size, _file_digest(path)]
+            if final.exists():  # buffers of an earlier save at the same frame count
+                shutil.rmtree(final)
+            os.replace(tmp, final)
+            fsync_directory(checkpoint_dir)
     except BaseException as err:
         shutil.rmtree(tmp, ignore_errors=True)
         if not isinstance(err, Exception):
@@ -287,10 +296,11 @@ def keep_checkpoint(checkpoint: Path, frames: int) -> Path:
     kept = checkpoint.with_name(f"{KEPT_PREFIX}{int(frames)}.pt")
     tmp = kept.with_name(f".tmp-{kept.name}")
     try:
-        shutil.copyfile(checkpoint, tmp)
-        with open(tmp, "rb+") as handle:
-            os.fsync(handle.fileno())
-        os.replace(tmp, kept)
+        with DeferredSignals():
+            shutil.copyfile(checkpoint, tmp)
+            with open(tmp, "rb+") as handle:
+                os.fsync(handle.fileno())
+            os.replace(tmp, kept)
     except BaseException as err:  # never leave the temporary file
         tmp.unlink(missing_ok=True)
         if not isinstance(err, Exception):
@@ -387,18 +397,114 @@ def _select(cfg: DictConfig | dict, key: str) -> Any:
     return value
 
 
-def check_compatible(saved_config: dict, cfg: DictConfig, path: Path) -> None:
-    """Refuse a checkpoint whose networks/loss were made by a different configuration."""
-    diffs = [
-        f"{key}: checkpoint={_select(saved_config, key)!r}, now={_select(cfg, key)!r}"
+def _identity_diffs(saved_config: dict, cfg: DictConfig | dict, *, now: str) -> list[str]:
+    return [
+        f"{key}: checkpoint={_select(saved_config, key)!r}, {now}={_select(cfg, key)!r}"
         for key in IDENTITY_KEYS
         if _select(saved_config, key) != _select(cfg, key)
     ]
+
+
+def check_compatible(saved_config: dict, cfg: DictConfig, path: Path) -> None:
+    """Refuse a checkpoint whose networks/loss were made by a different configuration."""
+    diffs = _identity_diffs(saved_config, cfg, now="now")
     if diffs:
         raise ConfigError(
             f"checkpoint {path} was made by another configuration ({'; '.join(diffs)}); "
             "run with the same settings or start a new run"
         )
+
+
+RUN_CONFIG_RECORDS = ("config.yaml", ".hydra/config.yaml")
+"""Where a run directory records the configuration it was started with (the trainer's
+resolved ``config.yaml`` first; Hydra's composed one when the run died before writing it)."""
+
+
+def run_config_record(run_dir: Path) -> tuple[Path, dict] | None:
+    """The configuration ``run_dir`` records for itself, and the file it came from
+    (``None``: no readable record). Read as YAML data (OmegaConf's safe loader)."""
+    for name in RUN_CONFIG_RECORDS:
+        path = Path(run_dir) / name
+        if not path.is_file():
+            continue
+        try:
+            record = OmegaConf.load(path)
+        except Exception:  # a damaged record says nothing: try the next one
+            continue
+        if isinstance(record, DictConfig):
+            return path, record
+    return None
+
+
+def check_run_config(saved_config: dict, run_dir: Path, path: Path) -> None:
+    """Refuse a checkpoint whose algorithm, α, env or networks (:data:`IDENTITY_KEYS`)
+    differ from what the run directory records it was started with (a checkpoint copied
+    under another run's directory). Keys a record cannot resolve or lacks are not compared.
+    """
+    found = run_config_record(run_dir)
+    if found is None:
+        return
+    record_path, record = found
+    diffs = []
+    for key in IDENTITY_KEYS:
+        try:
+            recorded = _select(record, key)
+        except Exception:  # an interpolation Hydra alone resolves (${hydra:...})
+            continue
+        saved = _select(saved_config, key)
+        if recorded is not None and saved is not None and recorded != saved:
+            diffs.append(f"{key}: checkpoint={saved!r}, run={recorded!r}")
+    if diffs:
+        raise ConfigError(
+            f"checkpoint {path} does not belong to the run {run_dir}: {'; '.join(diffs)} "
+            f"(the run's {record_path.relative_to(run_dir)}); resume a run from its own "
+            "checkpoint"
+        )
+
+
+def _progress_frames(run_dir: Path) -> int | None:
+    """The frames of ``progress.csv``'s last whole row (``None``: no such row)."""
+    from wcsac_rl.training.progress import read_progress  # (progress imports no checkpoint)
+
+    path = Path(run_dir) / "progress.csv"
+    if not path.is_file():
+        return None
+    try:
+        frames = [f for f in read_progress(path, warn=False).get("frames", ()) if f == f]
+    except (OSError, ValueError):
+        return None
+    return int(max(frames)) if frames else None
+
+
+def run_latest_frames(run_dir: Path) -> tuple[int, str] | None:
+    """How far ``run_dir`` has trained, and what says so: its ``checkpoints/last.pt``
+    (when readable), else the last row of its ``progress.csv``; ``None`` when neither does."""
+    last = Path(run_dir) / CHECKPOINT_DIR / LAST_CHECKPOINT
+    if last.is_file():
+        try:
+            return int(load_checkpoint(last)["frames"]), f"{CHECKPOINT_DIR}/{LAST_CHECKPOINT}"
+        except ConfigError:
+            pass  # damaged: the records say how far it went
+    frames = _progress_frames(run_dir)
+    return None if frames is None else (frames, "progress.csv")
+
+
+def check_not_behind(path: Path, frames: int, run_dir: Path) -> None:
+    """Refuse to resume from a checkpoint other than the run's ``last.pt`` (a kept
+    ``frames-<N>.pt``) when the run has trained further: continuing from it would write
+    over ``last.pt`` and cut ``progress.csv`` back, losing the later progress."""
+    last = Path(run_dir) / CHECKPOINT_DIR / LAST_CHECKPOINT
+    if Path(path).resolve() == last.resolve():
+        return
+    latest = run_latest_frames(run_dir)
+    if latest is None or latest[0] <= int(frames):
+        return
+    raise ConfigError(
+        f"checkpoint {path} is at {int(frames)} frames but the run {run_dir} has trained to "
+        f"{latest[0]} frames ({latest[1]}); resuming from it would overwrite that progress. "
+        f"Resume the latest with resume={run_dir} (starting a new run from a kept checkpoint "
+        "is not supported)"
+    )
 
 
 RESUME_CHANGEABLE = (
@@ -498,6 +604,38 @@ def resume_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
         OmegaConf.update(run, key, value, merge=False, force_add=True)
     run.resume = str(cfg.resume)
     return run
+
+
+class StateMismatch(ConfigError):
+    """A checkpoint's saved networks do not fit the networks its config builds."""
+
+
+def _shape(value: Any) -> str:
+    return str(list(value.shape)) if isinstance(value, torch.Tensor) else type(value).__name__
+
+
+def load_module_state(module: torch.nn.Module, state: Any, what: str = "loss") -> None:
+    """``module.load_state_dict(state)``, or one :class:`StateMismatch` line naming the
+    first entry whose shape differs (networks of another width or depth than the config
+    says), or the missing / unexpected entries. Nothing is loaded when it raises."""
+    if not isinstance(state, dict):
+        raise StateMismatch(f"its learner state has no {what!r} networks (got {_shape(state)})")
+    expected = module.state_dict()
+    for key, value in expected.items():
+        saved = state.get(key)
+        if saved is not None and (
+            not isinstance(saved, torch.Tensor) or saved.shape != value.shape
+        ):
+            raise StateMismatch(
+                f"its networks do not fit its config: {key} is {_shape(saved)} in the "
+                f"checkpoint, {_shape(value)} as configured"
+            )
+    try:
+        module.load_state_dict(state)
+    except (RuntimeError, ValueError, KeyError, TypeError) as err:
+        lines = [line.strip() for line in str(err).splitlines() if line.strip()]
+        detail = lines[1] if len(lines) > 1 and lines[0].startswith("Error(s)") else lines[0]
+        raise StateMismatch(f"its networks do not fit its config: {detail[:300]}") from None
 
 
 def load_optimizer_state(optimizer: torch.optim.Optimizer, state: dict[str, Any]) -> None:

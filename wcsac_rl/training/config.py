@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Any
@@ -10,6 +11,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
+from wcsac_rl.training.errors import ConfigError, TrainingError
 
 __all__ = [
     "ALGOS",
@@ -27,60 +29,174 @@ ON_POLICY_ALGOS = ("cpo",)
 ALGOS = (*OFF_POLICY_ALGOS, *ON_POLICY_ALGOS, "random")
 
 
-class ConfigError(ValueError):
-    """A configuration a run cannot start from; the message says what to change."""
+SEED_MAX = 2**63 - 1
+"""The largest seed: torch seeds are 64-bit, and a run seeds its envs and collector with
+``seed`` plus offsets (frames, env indices)."""
 
 
-class TrainingError(RuntimeError):
-    """A run that cannot go on (or cannot be saved); the message says why and what to do.
+def _get(cfg: Mapping[str, Any], key: str) -> Any:
+    """``cfg``'s entry at the dotted ``key`` (``None`` where there is none)."""
+    if isinstance(cfg, DictConfig):
+        return OmegaConf.select(cfg, key)
+    node: Any = cfg
+    for part in key.split("."):
+        node = node.get(part) if isinstance(node, Mapping) else None
+    return node
 
-    Raised after the last good checkpoint is safe: ``train.py`` prints it as one line.
-    """
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
-def _positive_int(cfg: Mapping[str, Any], key: str, *, allow_zero: bool = False) -> None:
-    value = OmegaConf.select(cfg, key) if isinstance(cfg, DictConfig) else cfg.get(key)
-    ok = isinstance(value, int) and not isinstance(value, bool)
-    ok = ok and (value >= 0 if allow_zero else value > 0)
-    if not ok:
+def _positive_int(cfg: Mapping[str, Any], key: str, *, allow_zero: bool = False) -> int:
+    value = _get(cfg, key)
+    if not (_is_int(value) and (value >= 0 if allow_zero else value > 0)):
         bound = ">= 0" if allow_zero else "> 0"
         raise ConfigError(f"{key} must be an integer {bound}, got {value!r}")
+    return value
+
+
+def _range_text(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:
+    if low is not None and high is not None:
+        return f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+    if low is not None:
+        return f"{'>' if low_open else '>='} {low:g}"
+    if high is not None:
+        return f"{'<' if high_open else '<='} {high:g}"
+    return ""
+
+
+def _number(
+    cfg: Mapping[str, Any],
+    key: str,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    high_open: bool = False,
+    allow_none: bool = False,
+) -> float | None:
+    """``cfg[key]`` as a float, or one :class:`ConfigError` naming the key and its range:
+    a finite number (not a bool, not a string) within ``[low, high]`` (``low_open`` /
+    ``high_open``: the bound itself excluded)."""
+    value = _get(cfg, key)
+    if value is None and allow_none:
+        return None
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    ok = ok and math.isfinite(value)
+    ok = ok and (low is None or (value > low if low_open else value >= low))
+    ok = ok and (high is None or (value < high if high_open else value <= high))
+    if not ok:
+        bounds = _range_text(low, high, low_open, high_open)
+        what = f"{bounds} (a number)" if bounds else "a finite number"
+        raise ConfigError(f"{key} must be {'null or ' if allow_none else ''}{what}, got {value!r}")
+    return float(value)
+
+
+def _boolean(cfg: Mapping[str, Any], key: str, *, allow_none: bool = False) -> None:
+    value = _get(cfg, key)
+    if not (isinstance(value, bool) or (allow_none and value is None)):
+        raise ConfigError(
+            f"{key} must be {'null, ' if allow_none else ''}true or false, got {value!r}"
+        )
+
+
+def _choice(cfg: Mapping[str, Any], key: str, allowed: tuple[str, ...]) -> None:
+    value = _get(cfg, key)
+    if value not in allowed:
+        raise ConfigError(f"{key} must be one of {', '.join(allowed)}, got {value!r}")
 
 
 def _validate_cpo(cfg: DictConfig) -> None:
-    algo = cfg.algo
     for key in ("gamma", "lmbda", "cost_gamma", "cost_lmbda"):
-        if not 0.0 <= float(algo[key]) <= 1.0:
-            raise ConfigError(f"algo.{key} must be in [0, 1], got {algo[key]}")
+        _number(cfg, f"algo.{key}", low=0.0, high=1.0)
     for key in ("max_kl", "value_lr"):
-        if not float(algo[key]) > 0:
-            raise ConfigError(f"algo.{key} must be > 0, got {algo[key]}")
-    if not float(algo.damping) >= 0:
-        raise ConfigError(f"algo.damping must be >= 0, got {algo.damping}")
-    if not float(algo.entropy_coeff) >= 0:
-        raise ConfigError(f"algo.entropy_coeff must be >= 0, got {algo.entropy_coeff}")
-    if not 0.0 < float(algo.backtrack_coeff) < 1.0:
-        raise ConfigError(f"algo.backtrack_coeff must be in (0, 1), got {algo.backtrack_coeff}")
+        _number(cfg, f"algo.{key}", low=0.0, low_open=True)
+    _number(cfg, "algo.damping", low=0.0)
+    _number(cfg, "algo.entropy_coeff", low=0.0)
+    _number(cfg, "algo.backtrack_coeff", low=0.0, high=1.0, low_open=True, high_open=True)
     for key in ("cg_iters", "backtrack_iters", "value_iters"):
         _positive_int(cfg, f"algo.{key}")
-    if algo.value_batch_size is not None:
+    if cfg.algo.value_batch_size is not None:
         _positive_int(cfg, "algo.value_batch_size")
+    for key in ("normalize_advantage", "center_cost_advantage"):
+        _boolean(cfg, f"algo.{key}")
+    _validate_network(cfg)
+    _number(cfg, "algo.network.log_std_init")
 
 
-def validate_config(cfg: DictConfig) -> None:
-    """Raise :class:`ConfigError` if ``cfg`` cannot give a sensible run. Does no work."""
+def _validate_network(cfg: DictConfig) -> None:
+    """``algo.network``: every MLP's width, depth and activation."""
+    from wcsac_rl.modules._mlp import ACTIVATION_NAMES
+
+    _positive_int(cfg, "algo.network.width")
+    _positive_int(cfg, "algo.network.depth", allow_zero=True)
+    _choice(cfg, "algo.network.activation", ACTIVATION_NAMES)
+
+
+def _validate_off_policy(cfg: DictConfig) -> None:
+    """The SAC family's schedule, optimiser, entropy weight and networks."""
+    batch = _positive_int(cfg, "algo.batch_size")
+    buffer = _positive_int(cfg, "algo.buffer_size")
+    if batch > buffer:
+        raise ConfigError(
+            f"algo.batch_size ({batch}) must be <= algo.buffer_size ({buffer}): a batch is "
+            "sampled from the replay buffer"
+        )
+    _positive_int(cfg, "algo.collector.init_random_frames", allow_zero=True)
+    _number(cfg, "algo.collector.utd_ratio", low=0.0, low_open=True)
+    _number(cfg, "algo.tau", low=0.0, high=1.0, low_open=True)
+    _number(cfg, "algo.gamma", low=0.0, high=1.0)
+    _number(cfg, "algo.lr", low=0.0, low_open=True)
+    actor_lr = cfg.algo.get("actor_lr")
+    if actor_lr is not None and not (
+        isinstance(actor_lr, (int, float)) and not isinstance(actor_lr, bool) and actor_lr > 0
+    ):
+        raise ConfigError(f"algo.actor_lr must be null (= algo.lr) or > 0, got {actor_lr!r}")
+    _number(cfg, "algo.alpha_init", low=0.0, low_open=True)
+    if cfg.algo.target_entropy != "auto":
+        try:
+            _number(cfg, "algo.target_entropy")
+        except ConfigError:
+            raise ConfigError(
+                f"algo.target_entropy must be auto (-|A|) or a finite number, got "
+                f"{cfg.algo.target_entropy!r}"
+            ) from None
+    _validate_network(cfg)
+    low = _number(cfg, "algo.network.log_std_min")
+    high = _number(cfg, "algo.network.log_std_max")
+    if not low < high:
+        raise ConfigError(
+            f"algo.network.log_std_min ({low:g}) must be < algo.network.log_std_max ({high:g})"
+        )
+
+
+NODES = ("algo", "env", "logger", "algo.collector")
+"""Entries that hold options (a value there is a mistake: ``algo.collector=4``)."""
+
+
+def _validate_choices(cfg: DictConfig) -> str:
+    """The algorithm and env must be known ones; returns the algorithm's name."""
     from wcsac_rl.envs import PRESET_NAMES  # local: importing envs loads MuJoCo
 
+    for node in (*NODES, *(("algo.network",) if _get(cfg, "algo.network") is not None else ())):
+        value = _get(cfg, node)
+        if not isinstance(value, Mapping):
+            raise ConfigError(f"{node} must hold its options (a mapping), got {value!r}")
     algo = cfg.algo.get("name")
     if algo not in ALGOS:
         raise ConfigError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}")
     env = cfg.env.get("name")
     if env not in PRESET_NAMES:
         raise ConfigError(f"unknown env {env!r}; choose one of {', '.join(PRESET_NAMES)}")
+    return algo
+
+
+def _validate_risk(cfg: DictConfig, algo: str) -> None:
     try:
         validate_risk_level(cfg.risk_level)
         if algo in ("wcsac", "sac_lag"):
-            validate_risk_level(cfg.algo.risk_level)
+            validate_risk_level(cfg.algo.risk_level, name="algo.risk_level")
     except ValueError as err:
         raise ConfigError(str(err)) from None
     if algo == "sac_lag" and float(cfg.algo.risk_level) != 1.0:
@@ -91,7 +207,14 @@ def validate_config(cfg: DictConfig) -> None:
         validate_cost_limit(cfg.cost_limit)
     except ValueError as err:
         raise ConfigError(str(err)) from None
+
+
+def _validate_run(cfg: DictConfig) -> None:
+    """The run's schedule, checkpoints and switches (the top-level keys)."""
+    seed = _get(cfg, "seed")
     _positive_int(cfg, "seed", allow_zero=True)  # gymnasium and NumPy need seeds >= 0
+    if seed > SEED_MAX:
+        raise ConfigError(f"seed must be at most 2**63 - 1 = {SEED_MAX}, got {seed!r}")
     for key in ("total_frames", "epoch_frames", "threads", "checkpoint_every_epochs"):
         _positive_int(cfg, key)
     if cfg.get("max_nonfinite_updates") is not None:
@@ -99,49 +222,57 @@ def validate_config(cfg: DictConfig) -> None:
     _positive_int(cfg, "eval_episodes", allow_zero=True)
     keep = cfg.get("keep_checkpoints_at") or []
     if not isinstance(keep, (list, tuple, ListConfig)) or not all(
-        isinstance(e, int) and not isinstance(e, bool) and e >= 1 for e in keep
+        _is_int(e) and e >= 1 for e in keep
     ):
         raise ConfigError(
             f"keep_checkpoints_at must be a list of epochs >= 1 (e.g. [1,5]), got {keep!r}"
         )
     for key in ("compile", "retain_freed_memory", "save_replay_buffer", "progress_bar"):
-        value = cfg.get(key, False)
-        if not isinstance(value, bool):
-            raise ConfigError(f"{key} must be true or false, got {value!r}")
+        if key in cfg:
+            _boolean(cfg, key)
+    resume = cfg.get("resume")
+    if resume is not None and not isinstance(resume, str):
+        raise ConfigError(f"resume must be null, auto or a run directory, got {resume!r}")
     if cfg.env.get("max_episode_steps") is not None:
         _positive_int(cfg, "env.max_episode_steps")
+    kwargs = cfg.env.get("kwargs")
+    if kwargs is not None and not isinstance(kwargs, Mapping):
+        raise ConfigError(f"env.kwargs must be a mapping of env arguments, got {kwargs!r}")
+
+
+def _validate_collector(cfg: DictConfig) -> None:
     collector = cfg.algo.collector
-    _positive_int(cfg, "algo.collector.num_envs")
-    _positive_int(cfg, "algo.collector.frames_per_batch")
-    if collector.frames_per_batch % collector.num_envs:
+    envs = _positive_int(cfg, "algo.collector.num_envs")
+    frames = _positive_int(cfg, "algo.collector.frames_per_batch")
+    if frames % envs:
         raise ConfigError(
-            f"algo.collector.frames_per_batch ({collector.frames_per_batch}) must be a multiple "
-            f"of algo.collector.num_envs ({collector.num_envs})"
+            f"algo.collector.frames_per_batch ({frames}) must be a multiple "
+            f"of algo.collector.num_envs ({envs})"
         )
     if collector.get("env_backend", "serial") not in ("serial", "parallel"):
         raise ConfigError(
             f"algo.collector.env_backend must be 'serial' or 'parallel', got {collector.env_backend!r}"
         )
+
+
+def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
+    """Raise :class:`ConfigError` if ``cfg`` cannot give a sensible run. Does no work.
+
+    Every value is checked for its type and range (one line naming the key and what it
+    may be), before anything is built; and, with ``check_keys``, every key must be one
+    of the chosen algorithm's, env's and logger's defaults
+    (:func:`~wcsac_rl.training.config_keys.check_known_keys`: a typo names the closest
+    key). A resumed run's saved keys are checked against its checkpoint instead.
+    """
+    algo = _validate_choices(cfg)
+    _validate_risk(cfg, algo)
+    _validate_run(cfg)
+    _validate_collector(cfg)
     if algo in OFF_POLICY_ALGOS:
-        _positive_int(cfg, "algo.batch_size")
-        _positive_int(cfg, "algo.buffer_size")
-        _positive_int(cfg, "algo.collector.init_random_frames", allow_zero=True)
-        if not 0 < float(collector.utd_ratio):
-            raise ConfigError(f"algo.collector.utd_ratio must be > 0, got {collector.utd_ratio}")
-        if not 0.0 < float(cfg.algo.tau) <= 1.0:
-            raise ConfigError(f"algo.tau must be in (0, 1], got {cfg.algo.tau}")
-        if not 0.0 <= float(cfg.algo.gamma) <= 1.0:
-            raise ConfigError(f"algo.gamma must be in [0, 1], got {cfg.algo.gamma}")
-        if not float(cfg.algo.lr) > 0:
-            raise ConfigError(f"algo.lr must be > 0, got {cfg.algo.lr}")
-        actor_lr = cfg.algo.get("actor_lr")
-        if actor_lr is not None and not (
-            isinstance(actor_lr, (int, float)) and not isinstance(actor_lr, bool) and actor_lr > 0
-        ):
-            raise ConfigError(f"algo.actor_lr must be null (= algo.lr) or > 0, got {actor_lr!r}")
+        _validate_off_policy(cfg)
     if algo in ("wcsac", "sac_lag"):
         collector = cfg.algo.collector
-        learning_frames = max(0, int(cfg.total_frames) - int(collector.init_random_frames))
+        learning_frames = max(0, cfg.total_frames - collector.init_random_frames)
         _validate_safety_keys(cfg.algo, updates=int(learning_frames * float(collector.utd_ratio)))
     if algo in ON_POLICY_ALGOS:
         _validate_cpo(cfg)
@@ -150,7 +281,11 @@ def validate_config(cfg: DictConfig) -> None:
             f"logger.backend must be csv, wandb, tensorboard or none, got {cfg.logger.backend!r}"
         )
     _check_logger_package(str(cfg.logger.backend))
-    _check_device(str(cfg.device))
+    _check_device(cfg.device)
+    if check_keys:
+        from wcsac_rl.training.config_keys import check_known_keys
+
+        check_known_keys(cfg)
 
 
 LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb"}
@@ -168,9 +303,11 @@ def _check_logger_package(backend: str) -> None:
         )
 
 
-def _check_device(device: str) -> None:
+def _check_device(device: Any) -> None:
     import torch
 
+    if not isinstance(device, str):
+        raise ConfigError(f"device must be cpu, cuda[:N] or mps, got {device!r}")
     kind, _, index = device.partition(":")
     if kind not in ("cpu", "cuda", "mps") or (index and not index.isdigit()):
         raise ConfigError(f"device must be cpu, cuda[:N] or mps, got {device!r}")
@@ -289,15 +426,11 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int) -> None:
                 f"algo.pid.d_delay={gains.d_delay} updates is longer than the run's "
                 f"{updates} updates: the derivative term would never act"
             )
-    if not float(algo.kappa_init) > 0:
-        raise ConfigError(
-            f"algo.kappa_init must be > 0 (κ is a Lagrange multiplier), got {algo.kappa_init}"
-        )
-    if not float(algo.damp_scale) >= 0:
-        raise ConfigError(f"algo.damp_scale must be >= 0, got {algo.damp_scale}")
-    cost_gamma = algo.get("cost_gamma")
-    if cost_gamma is not None and not 0.0 <= float(cost_gamma) <= 1.0:
-        raise ConfigError(f"algo.cost_gamma must be null or in [0, 1], got {cost_gamma}")
+    cfg = {"algo": algo}  # (so that messages name the keys as the command line does)
+    _number(cfg, "algo.kappa_init", low=0.0, low_open=True)  # κ is a Lagrange multiplier
+    _number(cfg, "algo.damp_scale", low=0.0)
+    _number(cfg, "algo.cost_gamma", low=0.0, high=1.0, allow_none=True)
+    _boolean(cfg, "algo.variance")
     if not isinstance(algo_option(algo, "cost_bootstrap_truncated"), (bool, type(None))):
         raise ConfigError(
             "algo.cost_bootstrap_truncated must be null, true or false, got "
@@ -312,16 +445,16 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int) -> None:
         raise ConfigError(
             f"algo.safety_critic must be one of {', '.join(SAFETY_CRITIC_KINDS)}, got {kind!r}"
         )
-    if kind == "iqn":
+    if kind == "iqn" or algo.get("iqn") is not None:  # (wrong whichever critic runs)
         iqn = algo.get("iqn") or {}
+        if not isinstance(iqn, Mapping):
+            raise ConfigError(f"algo.iqn must hold the IQN critic's options, got {iqn!r}")
         for key in ("num_quantiles", "num_target_quantiles", "num_cosines"):
             value = iqn.get(key)
             if not isinstance(value, int) or isinstance(value, bool) or value < 1:
                 raise ConfigError(f"algo.iqn.{key} must be an integer >= 1, got {value!r}")
-        if not isinstance(iqn.get("huber_kappa"), (int, float)) or not iqn.huber_kappa > 0:
-            raise ConfigError(f"algo.iqn.huber_kappa must be > 0, got {iqn.get('huber_kappa')!r}")
+        _number({"algo": {"iqn": iqn}}, "algo.iqn.huber_kappa", low=0.0, low_open=True)
     n_steps = algo_option(algo, "cost_n_steps")
     if not isinstance(n_steps, int) or isinstance(n_steps, bool) or n_steps < 1:
         raise ConfigError(f"algo.cost_n_steps must be an integer >= 1, got {n_steps!r}")
-    if not float(algo.kappa_lr_scale) > 0:
-        raise ConfigError(f"algo.kappa_lr_scale must be > 0, got {algo.kappa_lr_scale}")
+    _number(cfg, "algo.kappa_lr_scale", low=0.0, low_open=True)

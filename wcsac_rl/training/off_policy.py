@@ -34,6 +34,7 @@ from wcsac_rl.training.checkpoint import (
     INITIAL_STATE_BUFFER_DIR,
     REPLAY_BUFFER_DIR,
     load_buffers,
+    load_module_state,
     load_optimizer_state,
     remove_unreferenced_buffers,
     save_buffers,
@@ -150,7 +151,7 @@ class OffPolicyTrainer(Trainer):
         agent = builders.make_agent(cfg, env)
         max_steps = env_max_episode_steps(cfg)
         loss = builders.make_loss(cfg, agent, max_steps)
-        loss.load_state_dict(learner_state["loss"])  # the actor shares these parameters
+        load_module_state(loss, learner_state.get("loss"))  # the actor shares these parameters
         return TanhNormalPolicy(agent.actor)
 
     # ---------------------------------------------------------- checkpoint
@@ -206,7 +207,7 @@ class OffPolicyTrainer(Trainer):
         return None
 
     def load_learner_state(self, state: dict[str, Any]) -> None:
-        self.loss.load_state_dict(state["loss"])
+        load_module_state(self.loss, state.get("loss"))
         for key, optimizer in self.optimizers.items():
             load_optimizer_state(optimizer, state["optimizers"][key])
         if self.episode_window is not None and "episode_window" in state:

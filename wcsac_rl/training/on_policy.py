@@ -32,7 +32,7 @@ from torchrl.modules import ProbabilisticActor, ValueOperator
 from wcsac_rl.modules.gaussian_actor import make_gaussian_actor, make_state_value
 from wcsac_rl.objectives.cpo import CPOLoss
 from wcsac_rl.training import builders
-from wcsac_rl.training.checkpoint import load_optimizer_state
+from wcsac_rl.training.checkpoint import load_module_state, load_optimizer_state
 from wcsac_rl.training.devices import run_devices
 from wcsac_rl.training.trainer import Trainer, env_max_episode_steps
 
@@ -171,7 +171,7 @@ class CPOLearner:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore :meth:`state_dict`."""
-        self.loss.load_state_dict(state["loss"])
+        load_module_state(self.loss, state.get("loss"))
         load_optimizer_state(self.value_optimizer, state["value_optimizer"])
 
 
@@ -210,7 +210,7 @@ class OnPolicyTrainer(Trainer):
     def restore_policy(cls, cfg, learner_state, env):
         actor, value, cost_value = make_cpo_networks(cfg, env)
         loss = make_cpo_loss(cfg, actor, value, cost_value, env_max_episode_steps(cfg))
-        loss.load_state_dict(learner_state["loss"])  # the actor shares these parameters
+        load_module_state(loss, learner_state.get("loss"))  # the actor shares these parameters
         return actor
 
     # ---------------------------------------------------------- checkpoint

@@ -11,9 +11,16 @@ in progress, as on Ctrl-C) and then calls :meth:`StopSignals.forward`, which han
 signal to the handler that was installed before (submitit's, which requeues the job
 and exits); without one the trainer raises :class:`Preempted`.
 
-The run is then continued by running the same command again (a sweep of an
-``experiment=...`` runs with ``resume=auto``: each job continues from its own run
-directory's checkpoint), or by ``resume=RUN_DIR``.
+The run is then continued by running the same command again when it has
+``resume=auto`` (a sweep of an ``experiment=...`` does: each job continues from its own
+run directory's checkpoint), else by ``python train.py resume=RUN_DIR``: the message of
+:class:`Preempted` names the one that applies.
+
+While a checkpoint (or any of a run's records) is being written, :class:`DeferredSignals`
+holds back these signals and ``SIGINT``/``SIGHUP`` too: the write finishes (the file is
+renamed into place and no temporary file is left), then the signal is delivered as it
+would have been. ``kill -9`` cannot be held back: it leaves the previous file in place
+and possibly the temporary one, which the next write replaces.
 """
 
 from __future__ import annotations
@@ -24,11 +31,15 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-__all__ = ["STOP_SIGNALS", "Preempted", "StopSignals"]
+__all__ = ["DEFERRED_SIGNALS", "STOP_SIGNALS", "DeferredSignals", "Preempted", "StopSignals"]
 
 STOP_SIGNALS: tuple[str, ...] = ("SIGTERM", "SIGUSR1", "SIGUSR2")
 """The signals after which a training run checkpoints and stops (``SIGINT``, Ctrl-C, is
 a ``KeyboardInterrupt``, which the trainer handles the same way)."""
+
+
+DEFERRED_SIGNALS: tuple[str, ...] = (*STOP_SIGNALS, "SIGINT", "SIGHUP")
+"""The signals :class:`DeferredSignals` holds back while a file is written."""
 
 
 class Preempted(Exception):
@@ -40,15 +51,22 @@ class Preempted(Exception):
         frames: the frames trained so far.
     """
 
-    def __init__(self, signum: int, checkpoint: Path, frames: int) -> None:
+    def __init__(
+        self, signum: int, checkpoint: Path, frames: int, *, resume_auto: bool = False
+    ) -> None:
         self.signum = int(signum)
         self.checkpoint = Path(checkpoint)
         self.frames = int(frames)
         self.signal_name = signal.Signals(self.signum).name
+        run_dir = self.checkpoint.parent.parent
+        how = (
+            "run the same command again to continue it (it has resume=auto)"
+            if resume_auto
+            else f"continue it with: python train.py resume={run_dir}"
+        )
         super().__init__(
             f"stopped by {self.signal_name} at {self.frames} frames; checkpoint written to "
-            f"{self.checkpoint}: run the same command again to continue (resume=auto), or "
-            f"resume={self.checkpoint.parent.parent}"
+            f"{self.checkpoint}: {how}"
         )
 
     @property
@@ -104,3 +122,54 @@ class StopSignals:
         self.restore()
         if callable(previous):
             previous(signum, None)
+
+
+class DeferredSignals:
+    """Hold back :data:`DEFERRED_SIGNALS` while the ``with`` block runs (a file being
+    written), then deliver the first one that came, to the handler that was there
+    before (the default one ends the process, 128 + the signal's number; a
+    :class:`StopSignals` records it; ``SIGINT`` raises ``KeyboardInterrupt``).
+
+    The signals are caught by a Python handler, which holds for every thread of the
+    process (a blocked signal mask would not: a signal may be delivered to another
+    thread). Outside the main thread, where handlers cannot be installed, this does
+    nothing. Nested blocks defer to the outermost one.
+    """
+
+    def __init__(self, names: tuple[str, ...] = DEFERRED_SIGNALS) -> None:
+        self.signums = [getattr(signal, n) for n in names if hasattr(signal, n)]
+        self.received: int | None = None
+        self._previous: dict[int, Any] = {}
+
+    def __enter__(self) -> DeferredSignals:
+        if threading.current_thread() is not threading.main_thread():
+            return self
+        for signum in self.signums:
+            previous = signal.getsignal(signum)
+            if previous is signal.SIG_IGN or isinstance(previous, _Deferring):
+                continue  # ignored, or an outer block already defers it
+            signal.signal(signum, _Deferring(self))
+            self._previous[signum] = previous
+        return self
+
+    def _record(self, signum: int) -> None:
+        if self.received is None:
+            self.received = signum
+
+    def __exit__(self, *exc: object) -> None:
+        for signum, previous in self._previous.items():
+            signal.signal(signum, previous if previous is not None else signal.SIG_DFL)
+        self._previous.clear()
+        if self.received is not None:
+            received, self.received = self.received, None
+            signal.raise_signal(received)
+
+
+class _Deferring:
+    """The handler :class:`DeferredSignals` installs (a class: nested blocks see it)."""
+
+    def __init__(self, owner: DeferredSignals) -> None:
+        self.owner = owner
+
+    def __call__(self, signum: int, frame: FrameType | None) -> None:
+        self.owner._record(signum)

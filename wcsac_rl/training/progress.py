@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import csv
+import io
 import math
+import sys
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -53,18 +55,43 @@ class ProgressWriter:
         tmp.replace(self.path)
 
 
-def read_progress(path: Path) -> dict[str, list[float]]:
-    """Columns of a ``progress.csv`` as lists of floats (NaN for empty cells)."""
-    with Path(path).open(newline="") as f:
-        rows = list(csv.DictReader(f))
-    if not rows:
+def _float(text: str | None) -> float:
+    """A cell's number (NaN for an empty cell); ``ValueError`` for anything else."""
+    return float(text) if text not in ("", None) else math.nan
+
+
+def read_progress(path: Path, *, warn: bool = True) -> dict[str, list[float]]:
+    """Columns of a ``progress.csv`` as lists of floats (NaN for empty cells).
+
+    Only whole rows are read. A row a killed process left half-written — the file's
+    last line without its line end (a number cut short), fewer or more cells than the
+    header, a cell that is not a number — is skipped, with one warning line on stderr
+    (``warn=False``: silently).
+    """
+    path = Path(path)
+    with path.open(newline="", errors="replace") as f:
+        text = f.read()
+    lines = list(csv.reader(io.StringIO(text)))
+    if len(lines) < 2:
         return {}
-    columns: dict[str, list[float]] = {key: [] for key in rows[0]}
-    for row in rows:
-        for key in columns:
-            value = row.get(key, "")
-            columns[key].append(float(value) if value not in ("", None) else math.nan)
-    return columns
+    header, body = lines[0], lines[1:]
+    if not text.endswith(("\n", "\r")):  # the last row was being written when it stopped
+        body = body[:-1]
+    kept: list[list[float]] = []
+    for row in body:
+        try:
+            if len(row) == len(header):
+                kept.append([_float(cell) for cell in row])
+        except ValueError:
+            pass
+    skipped = len(lines) - 1 - len(kept)
+    if skipped and warn:
+        print(
+            f"warning: {path}: skipped {skipped} incomplete row(s) (a process stopped while "
+            "writing it); the whole rows are read",
+            file=sys.stderr,
+        )
+    return {key: [row[i] for row in kept] for i, key in enumerate(header)} if kept else {}
 
 
 class LossMeans:

@@ -12,7 +12,8 @@ from tensordict.nn import TensorDictModule
 from torchrl.envs import EnvBase
 
 from wcsac_rl.training import builders
-from wcsac_rl.training.checkpoint import find_checkpoint, read_checkpoint
+from wcsac_rl.training.checkpoint import StateMismatch, find_checkpoint, read_checkpoint
+from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.devices import on_cpu
 from wcsac_rl.training.registry import trainer_class
 
@@ -60,7 +61,13 @@ def load_run(path: str | os.PathLike, *, seed: int | None = None, num_envs: int 
     checkpoint, digest = read_checkpoint(checkpoint_path)
     cfg = on_cpu(OmegaConf.create(checkpoint["config"]))  # whatever it trained on
     env = builders.make_eval_env(cfg, seed=seed, num_envs=num_envs)
-    policy = trainer_class(cfg.algo.name).restore_policy(cfg, checkpoint.get("learner", {}), env)
+    try:
+        policy = trainer_class(cfg.algo.name).restore_policy(
+            cfg, checkpoint.get("learner", {}), env
+        )
+    except StateMismatch as err:
+        env.close()
+        raise ConfigError(f"checkpoint {checkpoint_path}: {err}") from None
     if policy is not None:
         policy.eval()
     return RestoredRun(

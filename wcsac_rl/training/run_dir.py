@@ -40,6 +40,7 @@ __all__ = [
     "discard_unused_run_dir",
     "lock_holder",
     "replace_text",
+    "unwritable_reason",
 ]
 
 AUTO_RESUME = "auto"
@@ -116,8 +117,15 @@ class RunLock:
             import fcntl
         except ImportError:  # pragma: no cover - not POSIX
             return
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as err:  # read-only, not ours, not a directory
+            raise ConfigError(
+                f"cannot write to the run directory {self.path.parent}: "
+                f"{err.strerror or err}; a run (or a resume) writes its records and "
+                "checkpoints there: choose a directory you can write"
+            ) from None
         for attempt in range(LOCK_ATTEMPTS):
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -145,6 +153,27 @@ class RunLock:
         if self._fd is not None:
             os.close(self._fd)  # closing the descriptor releases the flock
             self._fd = None
+
+
+def unwritable_reason(directory: str | os.PathLike) -> str | None:
+    """Why ``directory`` (created if missing) cannot be written, or ``None`` if it can:
+    its nearest existing ancestor must be a directory in which a file can be created
+    (tried with a temporary file, removed at once: this holds for root on a read-only
+    file system too, where permission bits do not)."""
+    import tempfile
+
+    path = Path(directory).expanduser().absolute()
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{existing} is not a directory"
+    try:
+        with tempfile.TemporaryFile(dir=existing):
+            pass
+    except OSError as err:
+        return f"{existing}: {err.strerror or err}"
+    return None
 
 
 def discard_unused_run_dir(run_dir: Path) -> bool:
@@ -223,13 +252,16 @@ def check_restartable_run_dir(run_dir: Path) -> None:
 
 def replace_text(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` atomically (a temporary file, flushed, then renamed)."""
+    from wcsac_rl.training.preemption import DeferredSignals
+
     tmp = path.with_name(path.name + ".tmp")
     try:
-        with tmp.open("w", newline="") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
+        with DeferredSignals():  # a stop signal waits until the file is in place
+            with tmp.open("w", newline="") as f:
+                f.write(text)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

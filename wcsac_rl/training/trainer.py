@@ -29,14 +29,19 @@ from torchrl import timeit
 from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
+from wcsac_rl.envs import NonFiniteStepError
+from wcsac_rl.objectives.inputs import nonfinite_entry
 from wcsac_rl.rollouts import calibration
 from wcsac_rl.rollouts.episodes import run_episodes, summarize_episodes
 from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import (
     CHECKPOINT_DIR,
     LAST_CHECKPOINT,
+    StateMismatch,
     check_compatible,
+    check_not_behind,
     check_resume_changes,
+    check_run_config,
     find_checkpoint,
     keep_checkpoint,
     load_checkpoint,
@@ -45,7 +50,8 @@ from wcsac_rl.training.checkpoint import (
     set_numpy_rng_state,
     write_error_reason,
 )
-from wcsac_rl.training.config import TrainingError, validate_config
+from wcsac_rl.training.config import ConfigError, TrainingError, validate_config
+from wcsac_rl.training.config_keys import check_known_keys, key_paths
 from wcsac_rl.training.preemption import Preempted, StopSignals
 from wcsac_rl.training.progress import EpisodeTracker, LossMeans, ProgressWriter, read_progress
 from wcsac_rl.training.provenance import session_provenance, write_provenance
@@ -64,6 +70,9 @@ __all__ = ["RandomPolicyTrainer", "Trainer", "seed_everything"]
 
 # a run's own files cannot be written: disk full, quota, read-only, permissions
 WRITE_ERRNOS = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC), errno.EROFS, errno.EACCES}
+
+COLLECTED_ENTRIES = (("next", "cost"), ("next", "reward"), ("next", "observation"), "observation")
+"""What a collected batch must hold finite numbers in (checked once per batch)."""
 
 RESUME_ENTRIES = ("config", "frames", "total_cost", "updates", "epoch", "rng", "learner")
 """What a checkpoint must hold to resume a run (:meth:`Trainer.state_dict`)."""
@@ -106,6 +115,23 @@ def _postfix(row: dict[str, float]) -> str:
     return f"ret={row['train/episode_return']:.2f}, cost={row['train/episode_cost']:.1f}, {safety}"
 
 
+def _resumes_a_path(cfg: DictConfig) -> bool:
+    return bool(cfg.get("resume")) and cfg.resume != AUTO_RESUME
+
+
+def _say_rounding(cfg: DictConfig, frames: int, remaining: int) -> None:
+    """Say once that the collector trains whole batches: ``total_frames`` not a multiple
+    of ``algo.collector.frames_per_batch`` is rounded up (TorchRL's collector does)."""
+    batch = int(cfg.algo.collector.frames_per_batch)
+    if remaining > 0 and remaining % batch:
+        rounded = frames + math.ceil(remaining / batch) * batch
+        print(
+            f"total_frames={int(cfg.total_frames)} is rounded up to {rounded} (whole collector "
+            f"batches of {batch} frames)",
+            flush=True,
+        )
+
+
 class Trainer:
     """A training run built from a Hydra config; ``run()`` trains and returns the run dir.
 
@@ -121,11 +147,13 @@ class Trainer:
     def __init__(
         self, cfg: DictConfig, run_dir: str | Path, *, overrides: Sequence[str] | None = None
     ) -> None:
-        validate_config(cfg)
+        # (a resumed run's keys are checked against its checkpoint: _check_resumable)
+        validate_config(cfg, check_keys=not _resumes_a_path(cfg))
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.overrides = None if overrides is None else list(overrides)
         self.lock: RunLock | None = None
+        self._resumed_from: Path | None = None  # the checkpoint a resume continues
         self.env = self.eval_env = self.logger = None
         try:
             self._set_up(self._resume_checkpoint())
@@ -171,7 +199,10 @@ class Trainer:
         self._checkpoint_frames: int | None = None  # frames of this session's last save
         if checkpoint is not None:
             self._load_state(checkpoint)
-            self.load_learner_state(checkpoint.get("learner", {}))
+            try:
+                self.load_learner_state(checkpoint.get("learner", {}))
+            except StateMismatch as err:
+                raise ConfigError(f"checkpoint {self._resumed_from}: {err}") from None
             # rows logged after this checkpoint (by a session killed before its next
             # checkpoint) are dropped: the resumed session logs those epochs again
             dropped = cut_records_to(self.run_dir, epoch=self.epoch, frames=self.tracker.frames)
@@ -181,6 +212,7 @@ class Trainer:
                     f"checkpoint (epoch {self.epoch}, {self.tracker.frames} frames)"
                 )
         remaining = max(0, int(cfg.total_frames) - self.tracker.frames)
+        _say_rounding(cfg, self.tracker.frames, remaining)
         self.collector = (
             builders.make_collector(
                 cfg,
@@ -248,8 +280,8 @@ class Trainer:
             if self.lock is None:
                 self.lock = RunLock(self.run_dir)
             checkpoint = load_checkpoint(path, required=RESUME_ENTRIES)
-            check_compatible(checkpoint["config"], cfg, path)
-            check_resume_changes(checkpoint["config"], cfg, path)
+            self._check_resumable(checkpoint, path)
+            check_not_behind(path, int(checkpoint["frames"]), self.run_dir)
             return checkpoint
         self.lock = RunLock(self.run_dir)
         check_new_run_dir(self.run_dir)
@@ -270,10 +302,21 @@ class Trainer:
             check_restartable_run_dir(self.run_dir)
             return None
         checkpoint = load_checkpoint(path, required=RESUME_ENTRIES)
-        check_compatible(checkpoint["config"], self.cfg, path)
-        check_resume_changes(checkpoint["config"], self.cfg, path)
+        self._check_resumable(checkpoint, path)
         print(f"{self.run_dir}: resuming from {path} ({int(checkpoint['frames'])} frames)")
         return checkpoint
+
+    def _check_resumable(self, checkpoint: dict[str, Any], path: Path) -> None:
+        """What every resume verifies before it writes anything: the checkpoint's
+        algorithm, α, env and networks are the config's (:func:`check_compatible`) and
+        the run directory's own record's (:func:`check_run_config`: a checkpoint copied
+        under another run), and the config changes only what may change on resume."""
+        self._resumed_from = path
+        check_compatible(checkpoint["config"], self.cfg, path)
+        check_run_config(checkpoint["config"], self.run_dir, path)
+        # keys the run was saved with are its own (an option since removed included)
+        check_known_keys(self.cfg, extra=key_paths(checkpoint["config"]))
+        check_resume_changes(checkpoint["config"], self.cfg, path)
 
     # ---------------------------------------------------------- algorithm
     def _build_learner(self) -> None:
@@ -325,6 +368,7 @@ class Trainer:
         try:
             with StopSignals() as stop:  # SIGTERM / SIGUSR1 / SIGUSR2: checkpoint, then stop
                 self._train(pbar, stop)
+                self.save()  # the final checkpoint (a stop signal now finds the run complete)
         except KeyboardInterrupt:
             self._save_interrupted()  # with the epoch in progress: the resumed session completes its row
             pbar.close()
@@ -341,7 +385,12 @@ class Trainer:
         finally:
             pbar.close()
             self.collector.shutdown()
-        self.save()
+        if stop.received is not None:  # in the last batch or the final checkpoint
+            print(
+                f"{signal.Signals(stop.received).name}: the run is complete "
+                f"({self.tracker.frames} frames); checkpoint written to {self.checkpoint_path}",
+                flush=True,
+            )
         return self.run_dir
 
     def _save_interrupted(self) -> None:
@@ -361,7 +410,7 @@ class Trainer:
         collector_iter = iter(self.collector)
         while True:
             with timeit("collect"):
-                batch = next(collector_iter, None)
+                batch = self._next_batch(collector_iter)
             if batch is None:
                 break
             self.tracker.add(batch)
@@ -403,7 +452,42 @@ class Trainer:
                     flush=True,
                 )
                 stop.forward()  # a scheduler's handler (submitit: requeue) may exit here
-                raise Preempted(stop.received, self.checkpoint_path, self.tracker.frames)
+                raise Preempted(
+                    stop.received,
+                    self.checkpoint_path,
+                    self.tracker.frames,
+                    resume_auto=cfg.resume == AUTO_RESUME,
+                )
+
+    def _kept_checkpoint(self) -> str:
+        if self.checkpoint_path.is_file():
+            return f"the last checkpoint {self.checkpoint_path} is kept"
+        return "no checkpoint had been written yet"
+
+    def _next_batch(self, batches) -> TensorDictBase | None:
+        """The next collected batch (``None``: the run is done), refused with one line
+        naming the entry and the frames when a reward, cost or observation in it is not
+        finite: it never reaches the replay buffer, and the last checkpoint stays."""
+        start = self.tracker.frames
+        try:
+            batch = next(batches, None)
+        except NonFiniteStepError as err:  # an env under RejectNonFinite: the env's own words
+            raise NonFiniteStepError(
+                f"{err}; training stopped while collecting the frames after {start} "
+                f"({self._kept_checkpoint()})"
+            ) from None
+        if batch is None:
+            return None
+        found = nonfinite_entry(batch, COLLECTED_ENTRIES)
+        if found is not None:
+            key, count, total, first = found
+            raise TrainingError(
+                f"the batch collected at frames {start}-{start + batch.numel()} holds a "
+                f"non-finite {key!r} ({count} of {total} values, e.g. {first}); training "
+                f"stopped before it reached the replay buffer ({self._kept_checkpoint()}). "
+                "Check the env's rewards, costs and observations"
+            )
+        return batch
 
     def _epoch_row(
         self, loss_means: LossMeans, seconds: float, frames: int, updates: int

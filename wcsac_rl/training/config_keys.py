@@ -1,0 +1,227 @@
+"""Which config keys exist: a key the chosen algorithm's defaults do not have is a typo.
+
+Hydra merges an added key (``+risk_levl=0.1``, ``+algo.batchsize=64``) into the config
+without a word, and a run would then silently train with the defaults. The reference
+is the default config of the run's own algorithm, env and logger, composed from
+``conf/`` by Hydra (the algorithm groups have different keys: ``cpo`` has ``max_kl``,
+``wcsac`` has ``kappa_init``): :func:`check_known_keys` refuses any other key in one
+line naming the closest known one (``difflib``), and :func:`check_override_keys` does
+the same for ``train.py``'s command line before Hydra composes it (Hydra's own refusal
+of ``algo.batchsize=64`` names no alternative).
+"""
+
+from __future__ import annotations
+
+import difflib
+import functools
+import itertools
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from wcsac_rl.training.errors import ConfigError
+
+__all__ = [
+    "CONF_DIR",
+    "FREE_FORM_KEYS",
+    "check_known_keys",
+    "check_override_keys",
+    "key_paths",
+    "known_keys",
+    "unknown_keys",
+]
+
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+"""The config groups ``train.py`` composes (``conf/`` beside the package in a checkout)."""
+
+FREE_FORM_KEYS = ("env.kwargs",)
+"""Entries whose own keys are the user's (forwarded to the gymnasium env's constructor)."""
+
+IGNORED_ROOTS = ("hydra",)
+"""Hydra's own node: its keys are Hydra's to check."""
+
+GROUPS = {"algo": ("algo", "name"), "env": ("env", "name"), "logger": ("logger", "backend")}
+"""Config group -> the config node and its entry naming the chosen option (its file's name)."""
+
+
+def _option(group: str, choice: Any) -> str | None:
+    """``group=choice`` if ``conf/<group>/<choice>.yaml`` exists (else the default stays)."""
+    name = str(choice)
+    return f"{group}={name}" if (CONF_DIR / group / f"{name}.yaml").is_file() else None
+
+
+@functools.lru_cache(maxsize=64)
+def _reference(overrides: tuple[str, ...]) -> DictConfig | None:
+    """The default config with the given group choices (``algo=cpo``, ``+row=sac``),
+    composed by Hydra without touching its global state (``None``: no ``conf/`` beside
+    the package, e.g. an installed wheel, or choices Hydra refuses: it says why itself)."""
+    if not (CONF_DIR / "config.yaml").is_file():
+        return None
+    from hydra._internal.config_loader_impl import ConfigLoaderImpl
+    from hydra._internal.utils import create_config_search_path
+    from hydra.errors import HydraException
+    from hydra.types import RunMode
+
+    loader = ConfigLoaderImpl(config_search_path=create_config_search_path(f"file://{CONF_DIR}"))
+    try:
+        cfg = loader.load_configuration(
+            config_name="config", overrides=list(overrides), run_mode=RunMode.RUN, from_shell=False
+        )
+    except (HydraException, ValueError):  # (omegaconf's errors are ValueErrors too)
+        return None
+    container = OmegaConf.to_container(cfg, resolve=False)
+    container.pop("hydra", None)
+    return OmegaConf.create(container)
+
+
+def _paths(node: Any, prefix: str = "") -> Iterator[str]:
+    """Every key path below ``node`` (nodes and leaves), not entering free-form entries."""
+    if not isinstance(node, dict):
+        return
+    for key, value in node.items():
+        path = f"{prefix}{key}"
+        yield path
+        if path not in FREE_FORM_KEYS:
+            yield from _paths(value, f"{path}.")
+
+
+def key_paths(cfg: DictConfig | dict) -> frozenset[str]:
+    """Every key path of ``cfg`` (nodes and leaves, not entering free-form entries)."""
+    return frozenset(_paths(_container(cfg)))
+
+
+def _container(cfg: DictConfig | dict) -> dict:
+    if isinstance(cfg, DictConfig):
+        return OmegaConf.to_container(cfg, resolve=False)
+    return dict(cfg)
+
+
+def known_keys(*overrides: str) -> frozenset[str] | None:
+    """Every key path of the default config composed with the group choices
+    ``overrides`` (``"algo=cpo"``, ``"env=tiny"``), or ``None`` (see :func:`_reference`)."""
+    reference = _reference(tuple(overrides))
+    return None if reference is None else frozenset(_paths(_container(reference)))
+
+
+def _choices(cfg: DictConfig | dict) -> dict[str, Any]:
+    """The options ``cfg`` chose in the config groups (``{"algo": "wcsac", ...}``)."""
+    cfg = cfg if isinstance(cfg, DictConfig) else OmegaConf.create(cfg)
+    return {
+        group: OmegaConf.select(cfg, f"{node}.{entry}", default=None)
+        for group, (node, entry) in GROUPS.items()
+    }
+
+
+def _choice_overrides(choices: dict[str, Any]) -> tuple[str, ...]:
+    return tuple(o for g, c in choices.items() if c is not None and (o := _option(g, c)))
+
+
+def unknown_keys(cfg: DictConfig | dict, extra: Iterable[str] = ()) -> list[str] | None:
+    """The keys of ``cfg`` that the default config of its own algorithm, env and logger
+    does not have (nor ``extra``: e.g. a resumed run's saved keys); ``None`` without
+    ``conf/``. A key under an unknown one is not listed again."""
+    known = known_keys(*_choice_overrides(_choices(cfg)))
+    if known is None:
+        return None
+    allowed = known | set(extra)
+    unknown: list[str] = []
+    for path in _paths(_container(cfg)):
+        if path.split(".")[0] in IGNORED_ROOTS or path in allowed:
+            continue
+        if not any(path.startswith(f"{u}.") for u in unknown):
+            unknown.append(path)
+    return unknown
+
+
+def _suggestion(key: str, known: Iterable[str]) -> str:
+    """`` (did you mean <the closest known setting>?)``, or nothing if none is close."""
+    known = set(known)
+    settings = sorted(k for k in known if not any(o.startswith(f"{k}.") for o in known))
+    close = difflib.get_close_matches(key, settings, n=1, cutoff=0.6)
+    return f" (did you mean {close[0]}?)" if close else ""
+
+
+def _unknown_message(key: str, known: Iterable[str], where: str) -> str:
+    return (
+        f"unknown config key {key}{_suggestion(key, known)}: not a key of the {where} config "
+        f"(see {CONF_DIR.name}/ for the keys)"
+    )
+
+
+def check_known_keys(cfg: DictConfig | dict, extra: Iterable[str] = ()) -> None:
+    """Raise :class:`~wcsac_rl.training.ConfigError` (one line naming the closest known
+    key) if ``cfg`` has a key its algorithm's, env's and logger's defaults lack."""
+    unknown = unknown_keys(cfg, extra)
+    if unknown:
+        choices = _choices(cfg)
+        known = known_keys(*_choice_overrides(choices)) | set(extra)
+        where = " ".join(f"{g}={c}" for g, c in choices.items() if c is not None)
+        raise ConfigError(_unknown_message(unknown[0], known, where))
+
+
+MAX_SWEEP_REFERENCES = 64
+"""A sweep over more group combinations than this is checked once composed only."""
+
+
+def _group_overrides(parsed: list) -> list[list[str]]:
+    """Per config-group override on a command line, its choices as override strings
+    (``["algo=wcsac", "algo=cpo"]`` for a sweep ``algo=wcsac,cpo``)."""
+    groups = []
+    for override in parsed:
+        key = override.key_or_group
+        if override.is_delete() or not (CONF_DIR / key).is_dir() or key in IGNORED_ROOTS:
+            continue
+        prefix = "++" if override.is_force_add() else "+" if override.is_add() else ""
+        values = (
+            list(override.sweep_string_iterator())
+            if override.is_sweep_override()
+            else [override.get_value_element_as_str()]
+        )
+        groups.append([f"{prefix}{key}={value}" for value in values])
+    return groups
+
+
+def _passes(override: Any, known: frozenset[str]) -> bool:
+    """An override :func:`check_override_keys` leaves alone."""
+    key = override.key_or_group
+    return (
+        override.package is not None
+        or override.is_add()
+        or override.is_force_add()
+        or override.is_delete()
+        or "/" in key
+        or key.split(".")[0] in IGNORED_ROOTS
+        or (CONF_DIR / key).is_dir()  # a config group (experiment=..., algo=...)
+        or key in known
+        or any(key.startswith(f"{free}.") for free in FREE_FORM_KEYS)
+    )
+
+
+def check_override_keys(overrides: list[str]) -> None:
+    """Refuse a command-line override of a key that the config composed with the line's
+    own group choices does not have (``algo.batchsize=64``), in one line naming the
+    closest known key, before Hydra composes the config. Group choices (``algo=cpo``,
+    ``+row=sac``), Hydra's keys, deletions and added keys (``+key``: checked once
+    composed, by :func:`check_known_keys`) pass; what Hydra cannot parse or compose is
+    left to Hydra's own message."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(list(overrides))
+    except HydraException:
+        return
+    groups = _group_overrides(parsed)
+    combos = list(itertools.islice(itertools.product(*groups), MAX_SWEEP_REFERENCES + 1))
+    if len(combos) > MAX_SWEEP_REFERENCES:
+        return
+    references = [known_keys(*combo) for combo in combos]
+    if any(ref is None for ref in references):
+        return
+    known = frozenset().union(*references)
+    for override in parsed:
+        if not _passes(override, known):
+            where = " ".join(",".join(g) for g in groups) or "default"
+            raise ConfigError(_unknown_message(override.key_or_group, known, where))
