@@ -24,7 +24,6 @@ WCSAC_COLUMNS = {
     "loss/loss_alpha",
     "loss/loss_cost_value",
     "loss/loss_cost_variance",
-    "loss/loss_kappa",
     "loss/alpha",
     "loss/kappa",
     "loss/entropy",
@@ -32,6 +31,10 @@ WCSAC_COLUMNS = {
     "loss/cost_variance",
     "loss/cvar",
     "loss/cost_threshold",
+    # the default constraint: κ by a PID controller (no loss_kappa) on the larger of
+    # the critic's Γ and the recent episodes' cost
+    "loss/episode_cvar",
+    "loss/constraint_cvar",
 }
 
 
@@ -52,11 +55,11 @@ def _train(tmp_path: Path, *overrides: str, name: str = "run"):
 @pytest.mark.parametrize(
     ("algo", "extra_columns", "absent"),
     [
-        ("wcsac", WCSAC_COLUMNS, set()),
+        ("wcsac", WCSAC_COLUMNS, {"loss/loss_kappa"}),
         (
             "sac_lag",
             WCSAC_COLUMNS - {"loss/loss_cost_variance", "loss/cost_variance"},
-            {"loss/cost_variance"},
+            {"loss/cost_variance", "loss/loss_kappa"},
         ),
         ("sac", {"loss/loss_actor", "loss/loss_qvalue", "loss/alpha"}, {"loss/kappa"}),
         ("random", set(), {"loss/loss_actor"}),
@@ -180,7 +183,7 @@ def test_start_states_and_nstep_cost_entries_reach_the_loss_through_the_trainer(
     steps = stored["nstep", "steps"]
     assert 1 <= int(steps.min()) and int(steps.max()) == 4
     out = trainer.update(batch)
-    assert torch.isfinite(out["loss_kappa"]) and torch.isfinite(out["loss_cost_value"])
+    assert torch.isfinite(out["constraint_cvar"]) and torch.isfinite(out["loss_cost_value"])
     # both buffers come back on resume
     resumed, _ = _train(tmp_path, *options, "save_replay_buffer=true", f"resume={run_dir}")
     assert len(resumed.initial_state_buffer) == len(starts)
@@ -368,7 +371,8 @@ def test_compile_option_trains_with_the_compiled_loss(tmp_path):
 def test_actor_lr_sets_the_actors_rate_only(tmp_path):
     from wcsac_rl.training.builders import make_optimizers
 
-    trainer = make_trainer(compose_config("env=tiny", "algo.actor_lr=3e-4"), tmp_path / "run")
+    overrides = ("env=tiny", "algo.actor_lr=3e-4", "algo.kappa_rule=gradient")  # (κ's Adam too)
+    trainer = make_trainer(compose_config(*overrides), tmp_path / "run")
     try:
         rates = {
             k: o.param_groups[0]["lr"]
