@@ -162,10 +162,10 @@ def test_loss_refuses_bad_signals_and_a_missing_entry_with_a_clear_error():
     loss = make_loss(kappa_states="initial", kappa_signal="max")
     with pytest.raises(KeyError, match="EpisodeCostWindow"):
         loss(make_batch(8, initial=True))
-    window = EpisodeCostWindow.for_loss(loss)  # the mean episode cost by default
-    assert window.risk_level == 1.0 and window.out_key == "episode_cvar"
-    window = EpisodeCostWindow.for_loss(loss, statistic="cvar")
-    assert window.risk_level == loss.risk_level
+    window = EpisodeCostWindow.for_loss(loss)  # the empirical CVaR_α by default
+    assert window.risk_level == loss.risk_level and window.out_key == "episode_cvar"
+    window = EpisodeCostWindow.for_loss(loss, statistic="mean")
+    assert window.risk_level == 1.0
     with pytest.raises(ValueError, match="statistic must be one of"):
         EpisodeCostWindow.for_loss(loss, statistic="median")
 

@@ -24,6 +24,7 @@ WCSAC_COLUMNS = {
     "loss/loss_alpha",
     "loss/loss_cost_value",
     "loss/loss_cost_variance",
+    "loss/loss_kappa",
     "loss/alpha",
     "loss/kappa",
     "loss/entropy",
@@ -31,10 +32,6 @@ WCSAC_COLUMNS = {
     "loss/cost_variance",
     "loss/cvar",
     "loss/cost_threshold",
-    # the default constraint: κ by a PID controller (no loss_kappa) on the larger of
-    # the critic's Γ and the recent episodes' cost
-    "loss/episode_cvar",
-    "loss/constraint_cvar",
 }
 
 
@@ -55,11 +52,11 @@ def _train(tmp_path: Path, *overrides: str, name: str = "run"):
 @pytest.mark.parametrize(
     ("algo", "extra_columns", "absent"),
     [
-        ("wcsac", WCSAC_COLUMNS, {"loss/loss_kappa"}),
+        ("wcsac", WCSAC_COLUMNS, {"loss/constraint_cvar"}),
         (
             "sac_lag",
             WCSAC_COLUMNS - {"loss/loss_cost_variance", "loss/cost_variance"},
-            {"loss/cost_variance", "loss/loss_kappa"},
+            {"loss/cost_variance", "loss/constraint_cvar"},
         ),
         ("sac", {"loss/loss_actor", "loss/loss_qvalue", "loss/alpha"}, {"loss/kappa"}),
         ("random", set(), {"loss/loss_actor"}),
@@ -183,7 +180,7 @@ def test_start_states_and_nstep_cost_entries_reach_the_loss_through_the_trainer(
     steps = stored["nstep", "steps"]
     assert 1 <= int(steps.min()) and int(steps.max()) == 4
     out = trainer.update(batch)
-    assert torch.isfinite(out["constraint_cvar"]) and torch.isfinite(out["loss_cost_value"])
+    assert torch.isfinite(out["loss_kappa"]) and torch.isfinite(out["loss_cost_value"])
     # both buffers come back on resume
     resumed, _ = _train(tmp_path, *options, "save_replay_buffer=true", f"resume={run_dir}")
     assert len(resumed.initial_state_buffer) == len(starts)

@@ -38,8 +38,8 @@ class EpisodeCostWindow:
         risk_level: the α of the CVaR (1: the mean episode cost).
 
     Keyword Args:
-        window: how many of the most recent finished episodes count. Default 10
-            (with 4 envs of 1 000-step episodes, about one 10 k-frame epoch).
+        window: how many of the most recent finished episodes count. Default 30
+            (at α = 0.1 the CVaR is then the mean of the worst 3).
         episode_cost_key: the running episode cost in collected data, read at the
             steps where ``done_key`` is set (the wcsac_rl envs write it; elsewhere
             ``torchrl.envs.RewardSum(in_keys=["cost"], out_keys=["episode_cost"])``).
@@ -67,7 +67,7 @@ class EpisodeCostWindow:
         self,
         risk_level: float,
         *,
-        window: int = 10,
+        window: int = 30,
         episode_cost_key: NestedKey = ("next", "episode_cost"),
         done_key: NestedKey = ("next", "done"),
         out_key: NestedKey = "episode_cvar",
@@ -83,7 +83,7 @@ class EpisodeCostWindow:
         self._value = math.nan
 
     @classmethod
-    def for_loss(cls, loss, *, statistic: str = "mean", **kwargs) -> EpisodeCostWindow:
+    def for_loss(cls, loss, *, statistic: str = "cvar", **kwargs) -> EpisodeCostWindow:
         """The window a loss with ``kappa_signal != "critic"`` reads (its key), at the
         loss's α (``statistic="cvar"``) or at α = 1 (``"mean"``: the mean episode cost,
         which no CVaR is below: with ``kappa_signal="max"`` it floors the critic's Γ

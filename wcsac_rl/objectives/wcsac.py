@@ -191,7 +191,7 @@ class WCSACLoss(SACLoss):
             until the episode's end (for a critic that does not see the time, an
             average over the times the state is met).
         cost_n_steps (int): ``1`` (the paper): one-step safety-critic
-            targets. ``n > 1`` (default ``30``): the safety critic bootstraps from the n-step entries
+            targets. ``n > 1`` (default ``10``): the safety critic bootstraps from the n-step entries
             :class:`~wcsac_rl.objectives.NStepCost` adds to collected data
             (``Σ_{k<m} γ_c^k c_{t+k} + γ_c^m (1−term) Q̄^c(s_{t+m}, a')``, m ≤ n), so
             sparse costs reach the states that lead to them n times faster. The
@@ -228,14 +228,14 @@ class WCSACLoss(SACLoss):
             ``kappa_states`` / ``kappa_statistic`` / ``kappa_actions``. ``"max"``: the
             larger of that and what recent finished episodes cost, read from the batch
             at the ``episode_cvar`` key (:class:`~wcsac_rl.objectives.EpisodeCostWindow`
-            provides it: by default the mean cost of the last 10 episodes, a lower
-            bound of every CVaR_α; or their empirical CVaR_α), so κ rises as soon as
+            provides it: their empirical CVaR_α, or their mean cost, a lower bound of
+            every CVaR_α), so κ rises as soon as
             the collected episodes exceed the limit even while the critic's
             start-state value still lags the policy. ``"episodes"``: that episode
             statistic alone (OmniSafe's SAC-Lag at α = 1). Where no episode has
             finished yet (NaN) both fall back to the critic. Needs
             ``kappa_states="initial"`` (the threshold is then the episodic ``d`` the
-            costs are measured against). Default ``"max"``. The actor's cost term is
+            costs are measured against). Default ``"critic"``. The actor's cost term is
             always the critic's Γ.
         kappa_actions (str): the actions at which the κ loss evaluates Γ: ``"replay"``
             (the stored actions, the authors' code) or ``"policy"`` (``a ~ π``, as the
@@ -250,7 +250,7 @@ class WCSACLoss(SACLoss):
             batch norm's running statistics, the controller steps in :meth:`forward`
             while the loss is in training mode (``loss.train()``, the default), once
             per call, with that batch's signal and after the actor loss has used the
-            current κ; ``loss.eval()`` freezes it. Default ``"pid"``.
+            current κ; ``loss.eval()`` freezes it. Default ``"gradient"``.
         pid (PIDGains or dict, optional): the PID rule's gains
             (:class:`~wcsac_rl.objectives.constraint.PIDGains`: ``kp``, ``ki``, ``kd``,
             ``d_delay``, ``p_ema``, ``d_ema``, ``max_kappa``); ``kappa_rule="pid"`` only.
@@ -335,7 +335,7 @@ class WCSACLoss(SACLoss):
         >>> from torchrl.objectives import SoftUpdate
         >>> from wcsac_rl import WCSACLoss
         >>> from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-        >>> from wcsac_rl.objectives import EpisodeCostWindow, NStepCost, StartStateBuffer
+        >>> from wcsac_rl.objectives import NStepCost, StartStateBuffer
         >>> actor = make_actor(4, Bounded(-1.0, 1.0, shape=(2,)))
         >>> loss = WCSACLoss(
         ...     actor, [make_qvalue(4, 2) for _ in range(2)], make_safety_critic(4, 2),
@@ -346,21 +346,16 @@ class WCSACLoss(SACLoss):
         ...     "step_count": torch.arange(8).reshape(1, 8, 1),
         ...     "next": {"observation": torch.randn(1, 8, 4), "reward": torch.randn(1, 8, 1),
         ...              "cost": torch.bernoulli(torch.full((1, 8, 1), 0.1)),
-        ...              "episode_cost": torch.zeros(1, 8, 1),
         ...              "done": torch.zeros(1, 8, 1, dtype=torch.bool),
         ...              "terminated": torch.zeros(1, 8, 1, dtype=torch.bool)}}, [1, 8])
         >>> traj = NStepCost(loss.cost_n_steps, loss.cost_gamma)(traj)  # n-step cost targets
         >>> starts = StartStateBuffer.for_loss(loss)  # κ looks at episode start states
         >>> starts.add_starts(traj)
         1
-        >>> episodes = EpisodeCostWindow.for_loss(loss)  # ... and at what episodes cost
-        >>> episodes.add_episodes(traj)  # (none has ended yet: κ sees the critic alone)
-        0
-        >>> batch = episodes.attach(starts.attach(traj.reshape(-1)))
-        >>> out = loss(batch)
+        >>> out = loss(starts.attach(traj.reshape(-1)))
         >>> sum(v for k, v in out.items() if k.startswith("loss_")).backward()
-        >>> sorted(k for k in out.keys() if k.startswith("loss_"))  # κ: a PID controller
-        ['loss_actor', 'loss_alpha', 'loss_cost_value', 'loss_cost_variance', 'loss_qvalue']
+        >>> sorted(k for k in out.keys() if k.startswith("loss_"))
+        ['loss_actor', 'loss_alpha', 'loss_cost_value', 'loss_cost_variance', 'loss_kappa', 'loss_qvalue']
     """
 
     @dataclass
@@ -430,16 +425,16 @@ class WCSACLoss(SACLoss):
         cost_threshold: float | None = None,
         cost_gamma: float | None = 1.0,
         cost_bootstrap_truncated: bool | None = None,
-        cost_n_steps: int = 30,
+        cost_n_steps: int = 10,
         nonnegative_cost: bool = True,
         kappa_statistic: str = "tail",
         kappa_init: float = math.log(2.0),
         kappa_parametrization: str = "softplus",
         kappa_actions: str = "policy",
         kappa_states: str = "initial",
-        kappa_signal: str = "max",
+        kappa_signal: str = "critic",
         damp_scale: float = 0.0,
-        kappa_rule: str = "pid",
+        kappa_rule: str = "gradient",
         pid: PIDGains | Mapping[str, Any] | None = None,
         num_quantiles: int = 20,
         num_target_quantiles: int = 20,
