@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
@@ -81,3 +82,13 @@ COMMON_COLUMNS = {
     "time/fps",
     "time/ups",
 }
+
+
+def tree_digests(root: Path, *, skip: tuple[str, ...] = (".lock",)) -> dict[str, str]:
+    """SHA-256 of every file below ``root`` (but those named in ``skip``: a run's lock
+    file is rewritten by every process that takes it), to show a command changed none."""
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file() and p.name not in skip
+    }

@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 import torch
 from _evaluation_helpers import copy_sweep, run_dirs
-from _training_helpers import ROOT, TINY_CPO, compose_config
+from _training_helpers import ROOT, TINY_CPO, compose_config, tree_digests
 
 from wcsac_rl.calibration import main as calibration_main
 from wcsac_rl.evaluate import main as evaluate_main
@@ -74,14 +74,6 @@ def _assert_payload_is_live(data: bytes, marker: Path, load=None) -> None:
         load(data)
     assert marker.exists(), "the test's payload should create the marker when unpickled"
     marker.unlink()
-
-
-def _snapshot(root: Path) -> dict[str, str]:
-    return {
-        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(root.rglob("*"))
-        if p.is_file()
-    }
 
 
 def _refusal_lines(text: str, checkpoint: Path) -> list[str]:
@@ -305,10 +297,10 @@ def test_no_command_runs_a_hostile_checkpoint_or_changes_a_file(hostile, command
     root, sweep, run, checkpoint, marker = hostile
     out = root / "out" / command.replace(" ", "_").replace("=", "-")
     out.mkdir(parents=True)
-    before = _snapshot(sweep)
+    before = tree_digests(sweep, skip=())
     code, stderr = COMMANDS[command](sweep, run, out, capsys)
     assert not marker.exists(), f"{command} ran the checkpoint's code"
-    assert _snapshot(sweep) == before, f"{command} changed the sweep's files"
+    assert tree_digests(sweep, skip=()) == before, f"{command} changed the sweep's files"
     assert "Traceback" not in stderr
     assert code != 0, stderr
     lines = _refusal_lines(stderr, checkpoint)
@@ -332,7 +324,7 @@ def test_report_draws_no_trajectories_from_a_hostile_checkpoint_its_evaluation_v
         (run / "checkpoints" / "last.pt").read_bytes()
     ).hexdigest()
     (run / "evaluation.json").write_text(json.dumps(evaluation))
-    before = _snapshot(sweep)
+    before = tree_digests(sweep, skip=())
     out = root / "out" / "vouched"
     args = [str(sweep), "--trajectory-episodes", "1"]
     assert report_main([*args, "--out", str(out / "tables"), "--no-trajectories"]) == 0
@@ -342,7 +334,7 @@ def test_report_draws_no_trajectories_from_a_hostile_checkpoint_its_evaluation_v
     lines = _refusal_lines(capsys.readouterr().err, run / "checkpoints" / "last.pt")
     assert len(lines) == 1 and NOT_EXECUTED in lines[0]
     assert not marker.exists()
-    assert _snapshot(sweep) == before
+    assert tree_digests(sweep, skip=()) == before
 
 
 # ------------------------------------------------------------ saved buffers
@@ -411,13 +403,13 @@ def test_a_saved_buffer_with_a_pickle_in_it_is_refused_before_torchrl_reads_it(
     marker = tmp_path / "MARKER"
     target = plant(run, marker)
     _assert_payload_is_live(target.read_bytes(), marker, pickle.loads)
-    before = _snapshot(run)
+    before = tree_digests(run, skip=())
     cfg = compose_config(*BUFFER_OPTIONS, "total_frames=1200", f"resume={run}")
     with pytest.raises(ConfigError) as err:
         make_trainer(cfg, run)
     message = str(err.value)
     assert not marker.exists()
-    assert _snapshot(run) == before
+    assert tree_digests(run, skip=()) == before
     assert "\n" not in message
     assert f"{target} is not plain data" in message and "nothing of it was loaded" in message
     assert "to resume without it" in message

@@ -14,7 +14,6 @@ that table in step with this file.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import re
@@ -26,7 +25,7 @@ from pathlib import Path
 import pytest
 import torch
 from _loss_helpers import make_batch, make_loss
-from _training_helpers import ROOT, compose_config
+from _training_helpers import ROOT, compose_config, tree_digests
 
 from wcsac_rl.calibration import main as calibration_main
 from wcsac_rl.evaluate import main as evaluate_main
@@ -47,13 +46,7 @@ def _train(run_dir: Path, *overrides: str) -> Path:
     return run_dir
 
 
-def snapshot(root: Path) -> dict[str, str]:
-    """SHA-256 of every file below ``root`` but lock files."""
-    return {
-        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(root.rglob("*"))
-        if p.is_file() and p.name != ".lock"
-    }
+snapshot = tree_digests
 
 
 @pytest.fixture(scope="module")

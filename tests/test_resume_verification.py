@@ -7,7 +7,6 @@ byte-identical (its ``.lock`` names the process that last held it, and is left o
 
 from __future__ import annotations
 
-import hashlib
 import shutil
 import subprocess
 import sys
@@ -15,7 +14,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from _training_helpers import ROOT, compose_config
+from _training_helpers import ROOT, compose_config, tree_digests
 
 from wcsac_rl.training import ConfigError, make_trainer
 from wcsac_rl.training.checkpoint import load_checkpoint, resume_config
@@ -30,13 +29,7 @@ def _train(cfg, run_dir: Path) -> None:
         trainer.close()
 
 
-def snapshot(root: Path) -> dict[str, str]:
-    """SHA-256 of every file below ``root`` but the lock file."""
-    return {
-        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-        for p in sorted(root.rglob("*"))
-        if p.is_file() and p.name != ".lock"
-    }
+snapshot = tree_digests
 
 
 @pytest.fixture(scope="module")
