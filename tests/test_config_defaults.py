@@ -141,21 +141,8 @@ def test_kappa_advice_is_the_authors_in_the_units_of_each_formulation(env):
         assert (kit.kappa_lr_scale, kit.damp_scale) == pytest.approx(expected, rel=1e-12)
 
 
-# What reproduces the committed StaticEnv laptop rows from today's config on top of
-# their experiment (nothing while the defaults are theirs; a default changed later is
-# pinned back here)
-PINNED_SINCE: tuple[str, ...] = ()
 # options added since those runs, and their value then (absent from their config)
 ADDED_SINCE = {"kappa_rule": "gradient", "kappa_episode_statistic": "cvar", "actor_lr": None}
-
-
-def _leaves(node, prefix=""):
-    if isinstance(node, dict):
-        out = {}
-        for key, value in node.items():
-            out.update(_leaves(value, f"{prefix}{key}."))
-        return out
-    return {prefix[:-1]: node}
 
 
 @pytest.mark.parametrize(
@@ -170,6 +157,8 @@ def test_the_committed_static_rows_are_reachable_with_the_paper_rule(run):
     import yaml
     from omegaconf import OmegaConf
 
+    from wcsac_rl.training.checkpoint import _leaves
+
     saved = yaml.safe_load(
         (CONF.parent / "results" / "static_laptop" / "runs" / run / "config.yaml").read_text()
     )
@@ -181,7 +170,6 @@ def test_the_committed_static_rows_are_reachable_with_the_paper_rule(run):
                 "env=static",
                 f"+row={row}",
                 f"seed={saved['seed']}",
-                *PINNED_SINCE,
             ],
         )
     now = _leaves(OmegaConf.to_container(cfg.algo, resolve=True))

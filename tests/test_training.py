@@ -383,6 +383,6 @@ def test_actor_lr_sets_the_actors_rate_only(tmp_path):
 @pytest.mark.parametrize("value", ["0", "-1e-4", "abc", "true"])
 def test_a_bad_actor_lr_is_one_line(tmp_path, value):
     with pytest.raises(
-        ConfigError, match=re.escape("algo.actor_lr must be null (= algo.lr) or > 0")
+        ConfigError, match=re.escape("algo.actor_lr must be null or > 0 (a number), got ")
     ):
         make_trainer(compose_config("env=tiny", f"algo.actor_lr={value}"), tmp_path / "run")

@@ -219,9 +219,6 @@ class PIDLagrangian(nn.Module):
         """The current κ."""
         return self.kappa_value.clone()
 
-    def multiplier(self) -> Tensor:
-        return self.kappa_value
-
     def penalty_weight(self, signal: Tensor, threshold: Tensor) -> Tensor:
         """κ's weight on Γ in the actor loss: κ itself (the P term does MDMM's job)."""
         return self.kappa

@@ -148,11 +148,7 @@ def _validate_off_policy(cfg: DictConfig) -> None:
     _number(cfg, "algo.tau", low=0.0, high=1.0, low_open=True)
     _number(cfg, "algo.gamma", low=0.0, high=1.0)
     _number(cfg, "algo.lr", low=0.0, low_open=True)
-    actor_lr = cfg.algo.get("actor_lr")
-    if actor_lr is not None and not (
-        isinstance(actor_lr, (int, float)) and not isinstance(actor_lr, bool) and actor_lr > 0
-    ):
-        raise ConfigError(f"algo.actor_lr must be null (= algo.lr) or > 0, got {actor_lr!r}")
+    _number(cfg, "algo.actor_lr", low=0.0, low_open=True, allow_none=True)  # null: algo.lr
     _number(cfg, "algo.alpha_init", low=0.0, low_open=True)
     if cfg.algo.target_entropy != "auto":
         try:
