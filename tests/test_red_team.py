@@ -14,6 +14,7 @@ that table in step with this file.
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import re
@@ -328,11 +329,6 @@ REPORT = [
     ("EMPTY_DIR", [], "nothing to report under"),
     (
         "TWO_LIMITS",
-        ["--cost-limit", "15"],
-        "row wcsac_0.5 would pool runs of different configurations (cost_limit",
-    ),
-    (
-        "TWO_LIMITS",
         [],
         "the runs use several cost limits (15.0, 25.0); choose one with --cost-limit",
     ),
@@ -365,6 +361,41 @@ def test_report(runs, tmp_path, capsys, kind, args, message):
     _one_line(errors[0], message)
     assert snapshot(tmp_path) == before
     assert not out.exists() or not [p for p in out.rglob("*") if p.name.endswith(".tmp")]
+
+
+def test_report_splits_a_label_whose_runs_differ_in_a_setting(runs, tmp_path, capsys):
+    """Runs of one label made with two budgets are two rows, said in one warning line."""
+    target = _two_cost_limits(runs, tmp_path)
+    out = tmp_path / "report"
+    code = report_main([str(target), "--out", str(out), "--no-trajectories", "--cost-limit", "15"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    lines = (captured.out + captured.err).splitlines()
+    warnings = [line for line in lines if "differ in" in line]
+    assert warnings == [
+        "warning: row wcsac_0.5: its runs differ in cost_limit (15.0: 1 run; 25.0: 1 run), "
+        "shown as one row per setting"
+    ]
+    rows = list(csv.DictReader((out / "table1.csv").open(newline="")))
+    assert [(r["label"], r["cost_limit"], r["seeds"]) for r in rows] == [
+        ("wcsac_0.5[cost_limit=15.0]", "15.0", "1"),
+        ("wcsac_0.5[cost_limit=25.0]", "25.0", "1"),
+    ]
+    table = (out / "table1.md").read_text()
+    assert "| WCSAC-0.5 (cost_limit=15.0) | " in table
+    assert "| WCSAC-0.5 (cost_limit=25.0) | " in table
+
+
+def test_report_counts_seeds_not_runs(runs, tmp_path, capsys):
+    """Four runs of seed 0 are never called four seeds."""
+    for i in range(4):
+        shutil.copytree(runs / "wcsac", tmp_path / "sweep" / f"copy{i}")
+    out = tmp_path / "report"
+    code = report_main([str(tmp_path / "sweep"), "--out", str(out), "--no-trajectories"])
+    assert code == 0, capsys.readouterr().err
+    (row,) = csv.DictReader((out / "table1.csv").open(newline=""))
+    assert (row["seeds"], row["runs"], row["seed_list"]) == ("1", "4", "0 0 0 0")
+    assert "(4 runs, 1 seed) |" in (out / "table1.md").read_text()
 
 
 def test_report_does_not_overwrite_without_force(runs, tmp_path, capsys):

@@ -168,19 +168,25 @@ def test_table1_pools_the_seeds_of_each_row_in_the_papers_order(report, sweep):
         expected = aggregate_seeds([e.costs for e in evs], [e.returns for e in evs], 15.0)
         for key, value in expected.items():
             assert float(row[key]) == pytest.approx(value), key
-        assert row["episodes"] == str(2 * EPISODES) and row["seeds"] == "2"
+        assert row["episodes"] == str(2 * EPISODES) and row["seeds"] == row["runs"] == "2"
         assert row["seed_list"] == "0 1" and row["env"] == "tiny" and row["cost_limit"] == "15.0"
     md = (result.out_dir / "table1.md").read_text()
     lines = md.splitlines()
     assert lines[0] == "# Table 1 — TinyHazard, budget d = 15"
     assert lines[2] == (
-        "| Algorithm | EC | C0.9 | C0.5 | C0.1 | ER | over budget | episodes (seeds) |"
+        "| Algorithm | EC | C0.9 | C0.5 | C0.1 | ER | goals | over budget | episodes (seeds) |"
     )
     wcsac, random = lines[4], lines[5]
     assert wcsac.startswith("| WCSAC-0.5 | ") and random.startswith("| Random Policy | ")
     cells = [c.strip() for c in wcsac.strip("|").split("|")]
-    assert cells[3] == f"**{float(rows[0]['C0.5']):.2f}**"  # the constrained column in bold
-    assert cells[-1] == f"{2 * EPISODES} (2)"
+    # the constrained column in bold, each metric with its interval
+    c05 = f"**{float(rows[0]['C0.5']):.2f}** "
+    assert cells[3] == c05 + f"[{float(rows[0]['C0.5_lo']):.2f}, {float(rows[0]['C0.5_hi']):.2f}]"
+    for row in rows:
+        for metric in ("EC", "C0.9", "C0.5", "C0.1", "ER", "goals"):
+            assert float(row[metric + "_lo"]) <= float(row[metric]) + 1e-12, metric
+            assert float(row[metric]) <= float(row[metric + "_hi"]) + 1e-12, metric
+    assert cells[-1] == f"{2 * EPISODES} (2 seeds)"
     assert "strictly above d = 15" in md
 
 

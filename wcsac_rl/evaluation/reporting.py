@@ -45,9 +45,11 @@ is done. A report covers one environment and one budget d (pass ``env`` /
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import math
 import os
+import re
 import shutil
 from collections import defaultdict
 from collections.abc import Callable, Sequence
@@ -64,6 +66,7 @@ from wcsac_rl.evaluation.evaluator import (
     read_evaluation,
     stale_evaluation,
 )
+from wcsac_rl.evaluation.intervals import INTERVAL_METRICS, seed_bootstrap
 from wcsac_rl.evaluation.metrics import RISK_LEVELS, aggregate_seeds, cvar_key
 from wcsac_rl.evaluation.paper import paper_comparison_markdown
 from wcsac_rl.evaluation.runs import (
@@ -74,8 +77,10 @@ from wcsac_rl.evaluation.runs import (
     find_evaluated_dirs,
     find_progress_dirs,
     has_checkpoint,
+    make_row_label,
     row_name,
     row_sort_key,
+    split_row_label,
 )
 from wcsac_rl.evaluation.sweeps import SweepJob, incomplete_jobs
 from wcsac_rl.evaluation.training_safety_table import TRAINING_SAFETY_FILES, training_safety_files
@@ -135,13 +140,20 @@ TABLE_COLUMNS = (
     "EC",
     *(cvar_key(a) for a in RISK_LEVELS),
     "ER",
+    "goals",
     "over_budget",
     "episodes",
     "seeds",
+    "runs",
+    *(f"{metric}_{end}" for metric in INTERVAL_METRICS for end in ("lo", "hi")),
     "EC_seed_std",
     "ER_seed_std",
     "seed_list",
 )
+"""table1.csv's columns: ``cost_limit`` is the budget the row's runs trained with (the
+report's d, for ``over_budget``, is in table1.md's title); ``seeds`` counts distinct
+training seeds, ``runs`` the evaluated runs; ``<metric>_lo`` / ``<metric>_hi`` bound the
+95 % seed-stratified bootstrap interval (:mod:`~wcsac_rl.evaluation.intervals`)."""
 
 
 class ReportError(ConfigError):
@@ -254,21 +266,38 @@ def runs_markdown(runs: Sequence[RunRecord], env: str | None) -> str:
 
 # --------------------------------------------------------------------------- Table 1
 def table1_rows(evaluations: Sequence[Evaluation], cost_limit: float) -> list[dict[str, Any]]:
-    """One Table-1 row per label (seeds pooled, :func:`aggregate_seeds`), in the paper's order."""
+    """One Table-1 row per row label (seeds pooled, :func:`aggregate_seeds`), in the
+    paper's order, with goals per episode and the 95 % seed-stratified bootstrap
+    interval of EC, C_α, ER and goals (:func:`~wcsac_rl.evaluation.intervals.seed_bootstrap`).
+    ``cost_limit`` is the report's d (``over_budget``); the row's ``cost_limit`` column is
+    its runs' own."""
     by_label: dict[str, list[Evaluation]] = defaultdict(list)
     for ev in evaluations:
         by_label[ev.label].append(ev)
     rows = []
     for label in sorted(by_label, key=row_sort_key):
-        evs = sorted(by_label[label], key=lambda e: int(e.meta.get("seed", 0)))
-        metrics = aggregate_seeds([e.costs for e in evs], [e.returns for e in evs], cost_limit)
+        evs = sorted(by_label[label], key=lambda e: (int(e.meta.get("seed", 0)), str(e.directory)))
+        costs = [e.costs for e in evs]
+        returns = [e.returns for e in evs]
+        goals = [[ep.goal_reached for ep in e.episodes] for e in evs]
+        metrics = aggregate_seeds(costs, returns, cost_limit)
+        interval = seed_bootstrap(costs, returns, goals)
+        own_limits = {float(e.meta.get("cost_limit", cost_limit)) for e in evs}
         rows.append(
             {
                 "label": label,
                 "algorithm": row_name(label),
                 "env": evs[0].meta["env"],
-                "cost_limit": cost_limit,
+                "cost_limit": own_limits.pop() if len(own_limits) == 1 else cost_limit,
                 **metrics,
+                "goals": sum(map(sum, goals)) / metrics["episodes"],
+                "seeds": len({e.meta.get("seed") for e in evs}),
+                "runs": len(evs),
+                **{
+                    f"{k}_{end}": v
+                    for k, (lo, hi) in interval.items()
+                    for end, v in (("lo", lo), ("hi", hi))
+                },
                 "seed_list": " ".join(str(e.meta.get("seed", "?")) for e in evs),
             }
         )
@@ -277,6 +306,7 @@ def table1_rows(evaluations: Sequence[Evaluation], cost_limit: float) -> list[di
 
 def _constrained_column(label: str) -> str | None:
     """The column the row's agent constrains (bold in the paper's Table 1)."""
+    label, _ = split_row_label(label)
     if label == "sac_lag":
         return "EC"
     if label.startswith("wcsac_"):
@@ -297,7 +327,7 @@ def table1_markdown(
     """Table 1 as Markdown, with a legend of the columns below it and, when a sweep's
     jobs did not all finish, the list of those jobs (:mod:`~wcsac_rl.evaluation.sweeps`)."""
     cvars = [cvar_key(a) for a in RISK_LEVELS]
-    header = ["Algorithm", "EC", *cvars, "ER", "over budget", "episodes (seeds)"]
+    header = ["Algorithm", "EC", *cvars, "ER", "goals", "over budget", "episodes (seeds)"]
     lines = [
         f"# Table 1 — {env_title(env)}, budget d = {cost_limit:g}",
         "",
@@ -307,20 +337,29 @@ def table1_markdown(
     for row in rows:
         bold = _constrained_column(row["label"])
         cells = [row["algorithm"]]
-        for key in ("EC", *cvars, "ER"):
+        for key in ("EC", *cvars, "ER", "goals"):
             text = f"{row[key]:.2f}"
-            cells.append(f"**{text}**" if key == bold else text)
+            text = f"**{text}**" if key == bold else text
+            if not math.isnan(row[key + "_lo"]):  # (one episode of one seed: none)
+                text += f" [{row[key + '_lo']:.2f}, {row[key + '_hi']:.2f}]"
+            cells.append(text)
         cells.append(f"{100 * row['over_budget']:.1f}%")
-        cells.append(f"{row['episodes']} ({row['seeds']})")
+        seeds = f"{row['seeds']} seed{'s' if row['seeds'] != 1 else ''}"
+        if row["runs"] != row["seeds"]:
+            seeds = f"{row['runs']} runs, {seeds}"
+        cells.append(f"{row['episodes']} ({seeds})")
         lines.append("| " + " | ".join(cells) + " |")
     lines += [
         "",
         "EC: mean episodic cost; C_α: empirical CVaR, the mean cost of the worst ⌈n·α⌉ of "
-        "the n test episodes; ER: mean episodic return; over budget: share of episodes "
-        f"with cost strictly above d = {cost_limit:g}. Deterministic (mean-action) test "
-        "episodes of each seed's final policy, seeds pooled. In bold: the quantity the "
-        "agent constrains (SAC-Lag: EC, WCSAC-α: C_α). Per-seed spread: table1.csv "
-        "(EC_seed_std, ER_seed_std).",
+        "the n test episodes; ER: mean episodic return; goals: goals reached per episode; "
+        f"over budget: share of episodes with cost strictly above d = {cost_limit:g}. "
+        "Deterministic (mean-action) test episodes of each seed's final policy, seeds "
+        "pooled; [lo, hi]: 95 % bootstrap interval resampling the seeds, then the episodes "
+        "within each seed (one seed: the episodes only). In bold: the quantity the agent "
+        "constrains (SAC-Lag: EC, WCSAC-α: C_α). A row label with settings in brackets: "
+        "runs of that algorithm with another setting than the rest. Per-seed spread: "
+        "table1.csv (EC_seed_std, ER_seed_std).",
         "",
     ]
     if incomplete:
@@ -413,23 +452,57 @@ def _identity(directory: Path, meta: dict[str, Any] | None = None) -> dict[str, 
     return identity
 
 
-def _check_rows_pool_one_configuration(members: dict[str, list[tuple[str, dict[str, str]]]]):
-    """Refuse a row whose runs differ in a :data:`POOLED_KEYS` setting (keys a run's
-    records lack are not compared): seeds of one configuration only are pooled."""
+def _setting_text(value: str) -> str:
+    """A setting's value as a row label shows it (``"'pid'"`` → ``pid``)."""
+    return value[1:-1] if len(value) > 1 and value[0] == value[-1] == "'" else value
+
+
+def row_labels(
+    members: dict[str, list[tuple[str, dict[str, str]]]],
+) -> tuple[dict[str, str], list[str]]:
+    """Split each label's runs by every :data:`POOLED_KEYS` setting that differs between
+    them (keys a run's records lack are not compared): a row pools the seeds of one
+    configuration only.
+
+    Args:
+        members: per ``algo.label``, its runs as ``(name, identity)``
+            (:func:`_identity`).
+
+    Returns:
+        ``({name: row label}, warnings)``: the row label is the label itself when its
+        runs agree, else :func:`~wcsac_rl.evaluation.runs.make_row_label` of the
+        settings that tell them apart; one warning line per label split.
+
+    >>> labels, warnings = row_labels({"sac_lag": [("a", {"cost_limit": "15.0"}),
+    ...     ("b", {"cost_limit": "1.5"}), ("c", {"cost_limit": "15.0"})]})
+    >>> labels
+    {'a': 'sac_lag[cost_limit=15.0]', 'b': 'sac_lag[cost_limit=1.5]', 'c': 'sac_lag[cost_limit=15.0]'}
+    >>> warnings
+    ['row sac_lag: its runs differ in cost_limit (15.0: 2 runs; 1.5: 1 run), shown as one row per setting']
+    """
+    labels: dict[str, str] = {}
+    warnings: list[str] = []
     for label, runs in members.items():
-        keys = set().union(*(identity for _, identity in runs))
-        for key in sorted(keys):
-            values: dict[str, list[str]] = defaultdict(list)
-            for name, identity in runs:
-                if key in identity:
-                    values[identity[key]].append(name)
-            if len(values) > 1:
-                listing = "; ".join(f"{v}: {', '.join(names)}" for v, names in values.items())
-                raise ReportError(
-                    f"row {label} would pool runs of different configurations ({key} {listing}); "
-                    "a row pools the seeds of one configuration: report each configuration "
-                    "on its own (pass its directories)"
+        keys = sorted(set().union(*(identity for _, identity in runs)))
+        differing = [key for key in keys if len({i[key] for _, i in runs if key in i}) > 1]
+        for name, identity in runs:
+            settings = {key: _setting_text(identity[key]) for key in differing if key in identity}
+            labels[name] = make_row_label(label, settings)
+        if differing:
+            parts = []
+            for key in differing:
+                counts: dict[str, int] = defaultdict(int)
+                for _, identity in runs:
+                    if key in identity:
+                        counts[_setting_text(identity[key])] += 1
+                listing = "; ".join(
+                    f"{value}: {n} run{'s' if n > 1 else ''}" for value, n in counts.items()
                 )
+                parts.append(f"{key} ({listing})")
+            warnings.append(
+                f"row {label}: its runs differ in {', '.join(parts)}, shown as one row per setting"
+            )
+    return labels, warnings
 
 
 @dataclass
@@ -440,7 +513,8 @@ class _TrajectorySource:
 
     @property
     def stem(self) -> str:
-        return f"fig5_{self.label}_seed{self.seed}"
+        name = re.sub(r"[^A-Za-z0-9._=-]+", "_", self.label).strip("_")
+        return f"fig5_{name}_seed{self.seed}"
 
 
 def _trajectory_sources(
@@ -635,14 +709,23 @@ def build_report(
     cost_limit = float(cost_limit)
     if not math.isfinite(cost_limit) or cost_limit < 0:
         raise ReportError(f"cost limit must be a number >= 0, got {cost_limit!r}")
+    # one row per label and configuration: runs of a label that differ in a setting
+    # are shown as separate rows (one warning line per label)
     by_row: dict[str, list[tuple[str, dict[str, str]]]] = defaultdict(list)
     for ev in evaluations:
-        by_row[ev.label].append((Path(ev.directory).name, _identity(ev.directory, ev.meta)))
-    _check_rows_pool_one_configuration(by_row)
+        by_row[ev.label].append((str(ev.directory), _identity(ev.directory, ev.meta)))
+    labels, split = row_labels(by_row)
+    evaluations = [
+        dataclasses.replace(ev, meta={**ev.meta, "label": labels[str(ev.directory)]})
+        for ev in evaluations
+    ]
     by_row = defaultdict(list)
     for run in runs:
-        by_row[run.label].append((run.directory.name, _identity(run.directory)))
-    _check_rows_pool_one_configuration(by_row)
+        by_row[run.label].append((str(run.directory), _identity(run.directory)))
+    run_labels, run_split = row_labels(by_row)
+    runs = [dataclasses.replace(r, label=run_labels[str(r.directory)]) for r in runs]
+    for message in dict.fromkeys(split + run_split):
+        warn(message)
 
     # every job of the sweeps below paths (any launcher): those not finished are named
     report.incomplete = incomplete_jobs(paths)

@@ -29,8 +29,10 @@ __all__ = [
     "find_run_dirs",
     "has_checkpoint",
     "looks_like_run_dir",
+    "make_row_label",
     "row_name",
     "row_sort_key",
+    "split_row_label",
 ]
 
 EVALUATION_CSV = "evaluation.csv"
@@ -70,6 +72,9 @@ def row_name(label: str) -> str:
     >>> row_name("wcsac_paper_0.1"), row_name("sac_lag_paper")
     ('WCSAC-paper-0.1', 'SAC-Lag-paper')
     """
+    base, settings = split_row_label(label)
+    if settings:  # a row of a label split by a differing setting (make_row_label)
+        return f"{row_name(base)} ({settings})"
     if label in ROW_NAMES:
         return ROW_NAMES[label]
     match = _WCSAC_LABEL.fullmatch(label)
@@ -77,6 +82,28 @@ def row_name(label: str) -> str:
         variant = {"iqn_": "IQN-", "paper_": "paper-"}.get(match.group(1) or "", "")
         return f"WCSAC-{variant}{match.group(2)}"
     return label
+
+
+def make_row_label(label: str, settings: dict[str, str]) -> str:
+    """The row label of runs of ``label`` made with ``settings`` that other runs of the
+    same label do not share: ``"sac_lag[cost_limit=1.5]"`` (no settings: ``label``).
+
+    >>> make_row_label("sac_lag", {"cost_limit": "1.5"}), make_row_label("sac", {})
+    ('sac_lag[cost_limit=1.5]', 'sac')
+    >>> row_name("sac_lag[cost_limit=1.5]"), split_row_label("sac_lag[cost_limit=1.5]")
+    ('SAC-Lag (cost_limit=1.5)', ('sac_lag', 'cost_limit=1.5'))
+    """
+    if not settings:
+        return label
+    return f"{label}[{', '.join(f'{key}={value}' for key, value in settings.items())}]"
+
+
+def split_row_label(label: str) -> tuple[str, str]:
+    """``(algo.label, settings)`` of a row label of :func:`make_row_label`."""
+    if label.endswith("]") and "[" in label:
+        base, settings = label[:-1].split("[", 1)
+        return base, settings
+    return label, ""
 
 
 def env_title(name: str) -> str:
@@ -100,6 +127,10 @@ def row_sort_key(label: str) -> tuple[int, float, str]:
     >>> sorted(["wcsac_0.5", "sac_lag_paper", "sac_lag"], key=row_sort_key)
     ['sac_lag', 'sac_lag_paper', 'wcsac_0.5']
     """
+    base, settings = split_row_label(label)
+    if settings:  # right after the row of its label's other settings
+        order, value, _ = row_sort_key(base)
+        return (order, value, label)
     match = _WCSAC_LABEL.fullmatch(label)
     if match:
         try:
