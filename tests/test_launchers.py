@@ -55,6 +55,7 @@ SWEEP_EXPERIMENTS = (
     "table1_dynamic_laptop",
     "training_safety_static",
     "training_safety_dynamic",
+    "evidence_static",
 )
 
 
@@ -292,6 +293,20 @@ def test_training_safety_sweeps_hold_the_studys_rows_seeds_and_budgets():
         assert cfg.threads == 1 and cfg.hydra.launcher.n_jobs == 2 and cfg.resume == "auto"
     # a job longer than a working session continues with its replay buffer
     assert _hydra_config("experiment=training_safety_dynamic").save_replay_buffer is True
+
+
+def test_the_evidence_sweep_holds_every_learning_row_on_three_seeds_and_the_control():
+    cfg = _hydra_config("experiment=evidence_static")
+    params = cfg.hydra.sweeper.params
+    rows = params["+row"].split(",")
+    assert {"sac", "sac_lag", "wcsac_0.9", "wcsac_0.5", "wcsac_0.1", "random"} <= set(rows)
+    assert params.seed == "0,10,20" and cfg.total_frames == 200_000 and cfg.resume == "auto"
+    for alpha, row in ((0.9, "sac_lag_d13.5"), (0.5, "sac_lag_d7.5"), (0.1, "sac_lag_d1.5")):
+        assert row in rows
+        job = _hydra_config("experiment=evidence_static", f"+row={row}", "seed=0")
+        # the matched-mean control: SAC-Lag holding EC at α·d of the env's d = 15
+        assert job.algo.name == "sac_lag" and job.cost_limit == pytest.approx(alpha * 15)
+        assert job.algo.label == row and job.run_name == f"{row}_static_seed0"
 
 
 @needs_ray

@@ -50,6 +50,8 @@ ROW_ORDER: tuple[str, ...] = (
 """Table 1's rows (``algo.label`` values) in the paper's order."""
 
 _WCSAC_LABEL = re.compile(r"wcsac_(iqn_|paper_)?([0-9.]+)")
+_SAC_LAG_AT = re.compile(r"sac_lag_d([0-9.]+)")
+"""SAC-Lag with its own limit (conf/row/sac_lag_d<d>.yaml: the matched-mean control)."""
 """``algo.label`` of a WCSAC row: ``wcsac_<α>``, with the IQN critic ``wcsac_iqn_<α>``, with
 the paper's safety critic and κ (``algo=wcsac_paper``) ``wcsac_paper_<α>``."""
 
@@ -69,14 +71,17 @@ def row_name(label: str) -> str:
 
     >>> row_name("wcsac_0.1"), row_name("wcsac_iqn_0.1"), row_name("random"), row_name("my_algo")
     ('WCSAC-0.1', 'WCSAC-IQN-0.1', 'Random Policy', 'my_algo')
-    >>> row_name("wcsac_paper_0.1"), row_name("sac_lag_paper")
-    ('WCSAC-paper-0.1', 'SAC-Lag-paper')
+    >>> row_name("wcsac_paper_0.1"), row_name("sac_lag_paper"), row_name("sac_lag_d1.5")
+    ('WCSAC-paper-0.1', 'SAC-Lag-paper', 'SAC-Lag (d=1.5)')
     """
     base, settings = split_row_label(label)
     if settings:  # a row of a label split by a differing setting (make_row_label)
         return f"{row_name(base)} ({settings})"
     if label in ROW_NAMES:
         return ROW_NAMES[label]
+    at = _SAC_LAG_AT.fullmatch(label)
+    if at:
+        return f"SAC-Lag (d={at.group(1)})"
     match = _WCSAC_LABEL.fullmatch(label)
     if match:
         variant = {"iqn_": "IQN-", "paper_": "paper-"}.get(match.group(1) or "", "")
@@ -126,6 +131,8 @@ def row_sort_key(label: str) -> tuple[int, float, str]:
     ['sac', 'wcsac_0.9', 'wcsac_0.1', 'wcsac_iqn_0.1', 'random']
     >>> sorted(["wcsac_0.5", "sac_lag_paper", "sac_lag"], key=row_sort_key)
     ['sac_lag', 'sac_lag_paper', 'wcsac_0.5']
+    >>> sorted(["wcsac_0.9", "sac_lag_d1.5", "sac_lag_d13.5", "sac_lag"], key=row_sort_key)
+    ['sac_lag', 'sac_lag_d13.5', 'sac_lag_d1.5', 'wcsac_0.9']
     """
     base, settings = split_row_label(label)
     if settings:  # right after the row of its label's other settings
@@ -142,6 +149,12 @@ def row_sort_key(label: str) -> tuple[int, float, str]:
         return (ROW_ORDER.index(label), 0.0, label)
     if label == "sac_lag_paper":
         return (ROW_ORDER.index("sac_lag"), 1.0, label)
+    at = _SAC_LAG_AT.fullmatch(label)
+    if at:  # after SAC-Lag-paper, the largest limit first
+        try:
+            return (ROW_ORDER.index("sac_lag"), 2.0 + 1.0 / (1.0 + float(at.group(1))), label)
+        except ValueError:
+            return (ROW_ORDER.index("sac_lag"), 2.0, label)
     return (len(ROW_ORDER), 0.0, label)
 
 
