@@ -656,6 +656,66 @@ def build_report(
         if not Path(raw).expanduser().is_dir():
             raise ReportError(f"{raw}: no such directory")
     archive_dir = (out_dir / ARCHIVE_DIR).resolve()
+    evaluations, runs, env, cost_limit = _read_records(paths, archive_dir, env, cost_limit, warn)
+    evaluations, runs = _split_rows(evaluations, runs, warn)
+    _account_for_runs(paths, evaluations, runs, report, warn)
+
+    sources: list[_TrajectorySource] = []
+    if trajectories:
+        sources = _trajectory_sources(trajectory_runs, runs, evaluations)
+        if not sources and trajectory_runs is None:
+            warn("no run with a checkpoint: Figure 5 (trajectories) skipped")
+    rows, comparison, copies = _plan_outputs(
+        out_dir, env, cost_limit, evaluations, runs, sources, archive_dir, archive, video,
+        video_format, stage_rows, trajectory_runs, force, warn,
+    )  # fmt: skip
+    out_dir.mkdir(parents=True, exist_ok=True)
+    title_env = env_title(env) if env else "?"
+    if evaluations:
+        report.rows = rows
+        report.files += _write_table1(
+            out_dir, rows, env, cost_limit, comparison, evaluations, report.incomplete,
+            fig6_rows, fig6_ymax, title_env, warn,
+        )  # fmt: skip
+    else:
+        warn("no evaluated runs: Table 1 and Figure 6 skipped")
+    runs_with_progress = [r for r in runs if r.progress]
+    if runs_with_progress:
+        report.files += _write_training(
+            out_dir, runs_with_progress, env, cost_limit, title_env, warn
+        )
+    else:
+        warn("no training runs with progress.csv: Figure 4 skipped")
+    if sources:
+        report.files += _figure5(
+            sources,
+            out_dir,
+            episodes=trajectory_episodes,
+            max_steps=trajectory_max_steps,
+            env_seed=trajectory_seed,
+            video_format=video_format if video else None,
+            stage_rows=stage_rows,
+            title_env=title_env,
+            log=log,
+        )
+    for source, target in copies:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(source, target)
+        report.files.append(target)
+    for path in report.files:
+        log(f"wrote {path}")
+    return report
+
+
+def _read_records(
+    paths: Sequence[str | os.PathLike],
+    archive_dir: Path,
+    env: str | None,
+    cost_limit: float | None,
+    warn: Callable[[str], None],
+) -> tuple[list[Evaluation], list[RunRecord], str | None, float]:
+    """The evaluations and training runs below ``paths`` (not those of an earlier
+    report's archive at ``archive_dir``) of ``env``, and the report's env and budget d."""
     if any(_within(Path(raw).expanduser().resolve(), archive_dir) for raw in paths):
         previous_archive = None  # reporting on an archive itself
     else:
@@ -709,8 +769,14 @@ def build_report(
     cost_limit = float(cost_limit)
     if not math.isfinite(cost_limit) or cost_limit < 0:
         raise ReportError(f"cost limit must be a number >= 0, got {cost_limit!r}")
-    # one row per label and configuration: runs of a label that differ in a setting
-    # are shown as separate rows (one warning line per label)
+    return evaluations, runs, env, cost_limit
+
+
+def _split_rows(
+    evaluations: list[Evaluation], runs: list[RunRecord], warn: Callable[[str], None]
+) -> tuple[list[Evaluation], list[RunRecord]]:
+    """The evaluations and runs with their row labels (:func:`row_labels`): runs of a
+    label that differ in a setting are separate rows, said in one warning line per label."""
     by_row: dict[str, list[tuple[str, dict[str, str]]]] = defaultdict(list)
     for ev in evaluations:
         by_row[ev.label].append((str(ev.directory), _identity(ev.directory, ev.meta)))
@@ -726,7 +792,18 @@ def build_report(
     runs = [dataclasses.replace(r, label=run_labels[str(r.directory)]) for r in runs]
     for message in dict.fromkeys(split + run_split):
         warn(message)
+    return evaluations, runs
 
+
+def _account_for_runs(
+    paths: Sequence[str | os.PathLike],
+    evaluations: list[Evaluation],
+    runs: list[RunRecord],
+    report: Report,
+    warn: Callable[[str], None],
+) -> None:
+    """Warn about every sweep job not finished, every run not evaluated and every seed
+    evaluated twice in a row."""
     # every job of the sweeps below paths (any launcher): those not finished are named
     report.incomplete = incomplete_jobs(paths)
     for job in report.incomplete:
@@ -747,7 +824,26 @@ def build_report(
         if count > 1:
             warn(f"row {label}: {count} evaluations with seed {seed} (all are pooled)")
 
-    # ---- plan every output file, refuse to overwrite, check the video encoder
+
+def _plan_outputs(
+    out_dir: Path,
+    env: str | None,
+    cost_limit: float,
+    evaluations: list[Evaluation],
+    runs: list[RunRecord],
+    sources: list[_TrajectorySource],
+    archive_dir: Path,
+    archive: bool,
+    video: bool,
+    video_format: str,
+    stage_rows: Sequence[str] | None,
+    trajectory_runs: Sequence[str | os.PathLike] | None,
+    force: bool,
+    warn: Callable[[str], None],
+) -> tuple[list[dict[str, Any]], str | None, list[tuple[Path, Path]]]:
+    """Table 1's rows, the paper comparison and the archive copies; every output file
+    planned, refused if it exists without ``force``, and the video encoder checked —
+    before anything is written."""
     planned: list[Path] = []
     rows: list[dict[str, Any]] = []
     comparison = None
@@ -767,107 +863,96 @@ def build_report(
     if runs_with_progress:
         planned += [out_dir / FIG4, out_dir / RUNS_MD]
         planned += [out_dir / name for name in TRAINING_SAFETY_FILES]
-    sources: list[_TrajectorySource] = []
-    if trajectories:
-        sources = _trajectory_sources(trajectory_runs, runs, evaluations)
-        if sources:
-            planned.append(out_dir / FIG5)
-            if stage_rows is not None:
-                unknown = sorted(set(stage_rows) - {s.label for s in sources})
-                if unknown:
-                    warn(f"Figure 5 stages: no drawn run of row(s) {', '.join(unknown)}")
-            if any(
-                kept_checkpoints(s.directory)
-                for s in sources
-                if stage_rows is None or s.label in stage_rows
-            ):
-                planned.append(out_dir / FIG5_STAGES)
-            planned += [out_dir / f"{s.stem}.png" for s in sources]
-            if video:
-                planned += [out_dir / f"{s.stem}.{video_format}" for s in sources]
-        elif trajectory_runs is None:
-            warn("no run with a checkpoint: Figure 5 (trajectories) skipped")
+    if sources:
+        planned.append(out_dir / FIG5)
+        if stage_rows is not None:
+            unknown = sorted(set(stage_rows) - {s.label for s in sources})
+            if unknown:
+                warn(f"Figure 5 stages: no drawn run of row(s) {', '.join(unknown)}")
+        if any(
+            kept_checkpoints(s.directory)
+            for s in sources
+            if stage_rows is None or s.label in stage_rows
+        ):
+            planned.append(out_dir / FIG5_STAGES)
+        planned += [out_dir / f"{s.stem}.png" for s in sources]
+        if video:
+            planned += [out_dir / f"{s.stem}.{video_format}" for s in sources]
     if video:
         _check_video(video_format, env)
     existing = [p for p in planned if p.exists()]
     if existing and not force:
         listing = ", ".join(p.name for p in existing)
         raise ReportError(f"{out_dir} already has {listing}; pass --force to overwrite")
-    out_dir.mkdir(parents=True, exist_ok=True)
-    title_env = env_title(env) if env else "?"
+    return rows, comparison, copies
 
-    # ---- Table 1 and Figure 6
-    if evaluations:
-        report.rows = rows
-        report.files.append(
-            _write_text(
-                out_dir / TABLE_MD, table1_markdown(rows, env, cost_limit, report.incomplete)
-            )
-        )
-        report.files.append(_write_text(out_dir / TABLE_CSV, _table_csv(rows)))
-        if comparison is not None:
-            report.files.append(_write_text(out_dir / TABLE_VS_PAPER, comparison))
-        costs: dict[str, list[float]] = defaultdict(list)
-        for ev in sorted(evaluations, key=lambda e: row_sort_key(e.label)):
-            costs[ev.label].extend(ev.costs)
-        if fig6_rows is None:
-            chosen = [label for label in costs if label != "random"] or list(costs)
-        else:
-            unknown = sorted(set(fig6_rows) - set(costs))
-            if unknown:
-                warn(f"Figure 6: no evaluated row(s) {', '.join(unknown)}")
-            chosen = [label for label in fig6_rows if label in costs]
-        report.files.append(
-            plots.plot_cost_distribution(
-                {label: costs[label] for label in chosen},
-                out_dir / FIG6,
-                cost_limit=cost_limit,
-                title=f"Evaluation after training ({title_env})",
-                ymax=fig6_ymax,
-            )
-        )
+
+def _write_table1(
+    out_dir: Path,
+    rows: list[dict[str, Any]],
+    env: str | None,
+    cost_limit: float,
+    comparison: str | None,
+    evaluations: list[Evaluation],
+    incomplete: list[SweepJob],
+    fig6_rows: Sequence[str] | None,
+    fig6_ymax: float | None,
+    title_env: str,
+    warn: Callable[[str], None],
+) -> list[Path]:
+    """Table 1 (markdown, csv, beside the paper's) and Figure 6."""
+    files = [
+        _write_text(out_dir / TABLE_MD, table1_markdown(rows, env, cost_limit, incomplete)),
+        _write_text(out_dir / TABLE_CSV, _table_csv(rows)),
+    ]
+    if comparison is not None:
+        files.append(_write_text(out_dir / TABLE_VS_PAPER, comparison))
+    costs: dict[str, list[float]] = defaultdict(list)
+    for ev in sorted(evaluations, key=lambda e: row_sort_key(e.label)):
+        costs[ev.label].extend(ev.costs)
+    if fig6_rows is None:
+        chosen = [label for label in costs if label != "random"] or list(costs)
     else:
-        warn("no evaluated runs: Table 1 and Figure 6 skipped")
-
-    # ---- Figure 4 and the list of runs
-    if runs_with_progress:
-        report.files.append(_write_text(out_dir / RUNS_MD, runs_markdown(runs_with_progress, env)))
-        for name, text in training_safety_files(runs_with_progress, env, cost_limit, warn).items():
-            report.files.append(_write_text(out_dir / name, text))
-        by_label: dict[str, list[dict[str, list[float]]]] = defaultdict(list)
-        for run in sorted(runs_with_progress, key=lambda r: (row_sort_key(r.label), r.seed)):
-            by_label[run.label].append(run.progress)
-        report.files.append(
-            plots.plot_training_curves(
-                dict(by_label),
-                out_dir / FIG4,
-                cost_limit=cost_limit,
-                title=f"Training on {title_env}",
-            )
+        unknown = sorted(set(fig6_rows) - set(costs))
+        if unknown:
+            warn(f"Figure 6: no evaluated row(s) {', '.join(unknown)}")
+        chosen = [label for label in fig6_rows if label in costs]
+    files.append(
+        plots.plot_cost_distribution(
+            {label: costs[label] for label in chosen},
+            out_dir / FIG6,
+            cost_limit=cost_limit,
+            title=f"Evaluation after training ({title_env})",
+            ymax=fig6_ymax,
         )
-    else:
-        warn("no training runs with progress.csv: Figure 4 skipped")
+    )
+    return files
 
-    # ---- Figure 5 (and videos)
-    if sources:
-        report.files += _figure5(
-            sources,
-            out_dir,
-            episodes=trajectory_episodes,
-            max_steps=trajectory_max_steps,
-            env_seed=trajectory_seed,
-            video_format=video_format if video else None,
-            stage_rows=stage_rows,
-            title_env=title_env,
-            log=log,
+
+def _write_training(
+    out_dir: Path,
+    runs: list[RunRecord],
+    env: str | None,
+    cost_limit: float,
+    title_env: str,
+    warn: Callable[[str], None],
+) -> list[Path]:
+    """runs.md, the training-safety table and Figure 4 of the runs with progress."""
+    files = [_write_text(out_dir / RUNS_MD, runs_markdown(runs, env))]
+    for name, text in training_safety_files(runs, env, cost_limit, warn).items():
+        files.append(_write_text(out_dir / name, text))
+    by_label: dict[str, list[dict[str, list[float]]]] = defaultdict(list)
+    for run in sorted(runs, key=lambda r: (row_sort_key(r.label), r.seed)):
+        by_label[run.label].append(run.progress)
+    files.append(
+        plots.plot_training_curves(
+            dict(by_label),
+            out_dir / FIG4,
+            cost_limit=cost_limit,
+            title=f"Training on {title_env}",
         )
-    for source, target in copies:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(source, target)
-        report.files.append(target)
-    for path in report.files:
-        log(f"wrote {path}")
-    return report
+    )
+    return files
 
 
 def _within(path: Path, directory: Path) -> bool:
