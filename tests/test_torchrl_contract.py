@@ -1,0 +1,763 @@
+"""TorchRL's own SACLoss / LossModule test cases, ported to WCSACLoss and SACLagLoss (issue 28).
+
+Ported from pytorch/rl at the 0.14.0 release commit 373c31a85 (``prepare-0.14``; the
+installed 0.14.1 has the same ``torchrl/objectives/sac.py``):
+``test/objectives/test_sac.py::TestSAC`` (losses independent, list of q-value nets and
+``SoftUpdate``, state dict, ``separate_losses`` with a shared trunk, the ``MultiStep``
+batcher, tensordict keys, no-tensordict calls, ``skip_done_states``, target entropy,
+reduction, prioritized weights, ``deactivate_vmap``) and
+``test/objectives/test_loss_module.py`` (``TestLossMaskReduction``, ``TestBuffer`` casts,
+``test_loss_exploration``, ``TestMakeValueEstimator``, value-estimator key forwarding),
+plus ``test/compile`` (``fullgraph=True``).
+
+Every case runs on a grid of *variants*: loss class (``WCSACLoss`` at α = 0.5,
+``SACLagLoss``) × safety critic (``kit``: the kit's actor and critics, taking the loss's
+fast paths; ``user``: TorchRL-style ``ProbabilisticActor`` / ``ValueOperator`` and a plain
+``TensorDictModule`` with mean and variance heads) × options (``paper``:
+``PAPER_OPTIONS``; ``default``: the loss's defaults, fed by the kit's ``NStepCost`` and
+``StartStateBuffer`` as a TorchRL user's pipeline would). Where a case's assertion is
+not obvious for a safe loss, TorchRL's ``SACLoss`` runs the same assertion first
+(``reference``), so the ported test is shown to pass on the loss it was written for.
+
+Cases that fail only because of defects inside ``objectives/wcsac.py`` are skipped
+with the defect and the fix pending there (issue 28); nothing is marked xfail.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import warnings
+from copy import deepcopy
+
+import pytest
+import torch
+from _tolerance import assert_close_f32
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import (
+    CompositeDistribution,
+    NormalParamExtractor,
+    set_composite_lp_aggregate,
+)
+from tensordict.nn import ProbabilisticTensorDictModule as ProbMod
+from tensordict.nn import ProbabilisticTensorDictSequential as ProbSeq
+from tensordict.nn import TensorDictModule as Mod
+from tensordict.nn import TensorDictSequential as Seq
+from tensordict.nn.utils import Buffer
+from torch import nn
+from torchrl.data import (
+    Bounded,
+    Composite,
+    LazyTensorStorage,
+    TensorDictPrioritizedReplayBuffer,
+    Unbounded,
+)
+from torchrl.data.postprocs.postprocs import MultiStep
+from torchrl.envs.utils import ExplorationType, exploration_type, set_exploration_type
+from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.objectives import SACLoss, SoftUpdate, ValueEstimators
+from torchrl.objectives.value import TD0Estimator
+
+from wcsac_rl import SACLagLoss, WCSACLoss, make_actor, make_qvalue, make_safety_critic
+from wcsac_rl.objectives import PAPER_OPTIONS, NStepCost, StartStateBuffer
+
+OBS, ACT = 3, 4
+BATCH, TIME = 4, 6  # [envs, time] as a collector hands them over
+
+PENDING = "issue 28: {} — fix pending in objectives/wcsac.py"
+
+
+def pending(defect: str):
+    """Skip a case that fails only by ``defect`` inside ``objectives/wcsac.py``;
+    ``WCSAC_RUN_PENDING=1`` runs it anyway (to check a fix, or that it still fails)."""
+    run_anyway = os.environ.get("WCSAC_RUN_PENDING") == "1"
+    return pytest.mark.skipif(not run_anyway, reason=PENDING.format(defect))
+
+
+@pytest.fixture(autouse=True)
+def _composite_log_prob():
+    # TorchRL's LossModuleTestBase runs every SAC case under this setting
+    setter = set_composite_lp_aggregate(False)
+    setter.set()
+    yield
+    setter.unset()
+
+
+# ----------------------------------------------------------------------- builders
+class UserSafetyCritic(nn.Module):
+    """A user's own Gaussian safety critic: a mean head and a softplus variance head."""
+
+    def __init__(self, in_features: int = OBS + ACT, hidden: int | None = None) -> None:
+        super().__init__()
+        self.mean = nn.Linear(in_features, 1)
+        self.variance = nn.Linear(in_features, 1)
+
+    def forward(self, observation, action):
+        if isinstance(action, TensorDictBase):
+            action = action.get("action1")
+        x = torch.cat([observation, action], -1)
+        return self.mean(x), nn.functional.softplus(self.variance(x)) + 1e-3
+
+
+class UserQValue(nn.Module):
+    """TorchRL's ``_create_mock_qvalue`` module."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.linear = nn.Linear(OBS + ACT, 1)
+
+    def forward(self, obs, act):
+        if isinstance(act, TensorDictBase):
+            act = act.get("action1")
+        return self.linear(torch.cat([obs, act], -1))
+
+
+def user_actor(observation_key="observation", action_key="action", composite=False):
+    """TorchRL's ``_create_mock_actor``: a ``ProbabilisticActor`` with a ``TanhNormal``."""
+    spec = Bounded(-torch.ones(ACT), torch.ones(ACT), (ACT,))
+    if composite:
+        spec = Composite({action_key: {"action1": spec}})
+        dist = functools.partial(CompositeDistribution, distribution_map={"action1": TanhNormal})
+        module_out = [("params", "action1", "loc"), ("params", "action1", "scale")]
+        actor_in = ["params"]
+    else:
+        dist, module_out = TanhNormal, ["loc", "scale"]
+        actor_in = module_out
+    net = nn.Sequential(nn.Linear(OBS, 2 * ACT), NormalParamExtractor())
+    module = Mod(net, in_keys=[observation_key], out_keys=module_out)
+    actor = ProbabilisticActor(
+        module=module, distribution_class=dist, in_keys=actor_in, out_keys=[action_key], spec=spec
+    )
+    return actor, spec
+
+
+def user_qvalue(observation_key="observation", action_key="action"):
+    return ValueOperator(
+        UserQValue(), in_keys=[observation_key, action_key], out_keys=["state_action_value"]
+    )
+
+
+def user_safety(observation_key="observation", action_key="action", out_keys=None):
+    return Mod(
+        UserSafetyCritic(),
+        in_keys=[observation_key, action_key],
+        out_keys=out_keys or ["cost_value", "cost_variance"],
+    )
+
+
+VARIANTS = [
+    pytest.param((cls, critic, options), id=f"{cls}-{critic}-{options}")
+    for cls in ("WCSAC", "SACLag")
+    for critic in ("kit", "user")
+    for options in ("paper", "default")
+]
+
+
+def options_of(name: str) -> dict:
+    return dict(PAPER_OPTIONS) if name == "paper" else {}
+
+
+def make_variant(variant, seed: int = 0, **kwargs):
+    """The loss of ``variant`` = (class, critic, options), with ``kwargs`` on top."""
+    cls_name, critic, options = variant
+    torch.manual_seed(seed)
+    kwargs = {**options_of(options), **kwargs}
+    cls = WCSACLoss if cls_name == "WCSAC" else SACLagLoss
+    if cls is WCSACLoss:
+        kwargs.setdefault("risk_level", 0.5)
+    if critic == "kit":
+        actor = make_actor(OBS, Bounded(-1.0, 1.0, shape=(ACT,)), width=8)
+        n = kwargs.pop("num_qvalue_nets", 2)
+        qvalues = [make_qvalue(OBS, ACT, width=8) for _ in range(n)]
+        safety = make_safety_critic(OBS, ACT, width=8, variance=cls is WCSACLoss)
+        return cls(actor, qvalues, safety, num_qvalue_nets=n, **kwargs)
+    actor, spec = user_actor()
+    return cls(actor, user_qvalue(), user_safety(), action_spec=spec, **kwargs)
+
+
+def make_sac(seed: int = 0, **kwargs) -> SACLoss:
+    """TorchRL's SACLoss on the user-built actor and critic: the reference."""
+    torch.manual_seed(seed)
+    actor, spec = user_actor()
+    return SACLoss(actor, user_qvalue(), action_spec=spec, **kwargs)
+
+
+def trajectories(seed: int = 0, batch: int = BATCH, time: int = TIME, composite=False):
+    """``[batch, time]`` collected steps: episodes of 3 steps (``step_count``), a cost and a
+    termination at each episode's last step in the even envs, a truncation in the odd."""
+    g = torch.Generator().manual_seed(seed)
+    obs = torch.randn(batch, time + 1, OBS, generator=g)
+    step = (torch.arange(time) % 3).expand(batch, time).unsqueeze(-1).clone()
+    done = step == 2
+    terminated = done.clone()
+    terminated[1::2] = False
+    action = torch.rand(batch, time, ACT, generator=g) * 2 - 1
+    td = TensorDict(
+        {
+            "observation": obs[:, :time],
+            "action": TensorDict({"action1": action}, [batch, time]) if composite else action,
+            "step_count": step,
+            "next": {
+                "observation": obs[:, 1:],
+                "reward": torch.randn(batch, time, 1, generator=g),
+                "cost": torch.bernoulli(torch.full((batch, time, 1), 0.4), generator=g),
+                "done": done,
+                "terminated": terminated,
+            },
+        },
+        [batch, time],
+        names=[None, "time"],
+    )
+    return td
+
+
+def prepare(loss, traj: TensorDictBase, seed: int = 0) -> TensorDictBase:
+    """A flat replay batch for ``loss``, through the kit's transforms its options need
+    (a TorchRL user's pipeline: collector postproc, start-state buffer)."""
+    traj = traj.clone()
+    if loss.cost_n_steps > 1:
+        keys = [k for k in loss.initial_state_keys]
+        traj = NStepCost(loss.cost_n_steps, loss.cost_gamma, observation_keys=keys)(traj)
+    flat = traj.reshape(-1)
+    if loss.kappa_states == "initial":
+        starts = StartStateBuffer.for_loss(loss)
+        starts.add_starts(traj)
+        torch.manual_seed(seed)
+        flat = starts.attach(flat)
+    return flat
+
+
+def batch_for(loss, seed: int = 0, **kwargs) -> TensorDictBase:
+    return prepare(loss, trajectories(seed, **kwargs), seed)
+
+
+def loss_terms(out: TensorDictBase) -> list[str]:
+    return [k for k in out.keys() if k.startswith("loss_")]
+
+
+def total(out: TensorDictBase) -> torch.Tensor:
+    return sum(out[k].sum() for k in loss_terms(out))
+
+
+def groups_of(loss) -> dict[str, list[torch.nn.Parameter]]:
+    """The loss's trainable parameters by owner."""
+    groups = {
+        "actor": list(loss.actor_network_params.values(True, True)),
+        "qvalue": list(loss.qvalue_network_params.values(True, True)),
+        "alpha": [loss.log_alpha],
+    }
+    if isinstance(loss, WCSACLoss):
+        safety = loss.safety_network_params.flatten_keys(".")
+        # the mean and the variance heads: each has its own TD loss
+        groups["safety_mean"] = [p for k, p in safety.items() if "variance" not in k]
+        groups["safety_variance"] = [p for k, p in safety.items() if "variance" in k]
+        if loss.kappa_rule == "gradient":
+            groups["kappa"] = [loss.kappa_raw]
+    return groups
+
+
+def no_grad(params) -> bool:
+    return all(p.grad is None or (p.grad == 0).all() for p in params)
+
+
+def all_grad(params) -> bool:
+    return not any(p.grad is None or (p.grad == 0).all() for p in params)
+
+
+class check_td_steady:
+    """TorchRL's ``_check_td_steady``: the loss modifies no entry it was given."""
+
+    def __init__(self, td):
+        self.td, self.clone = td, td.clone()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        if exc[0] is None:
+            for key in self.clone.keys(True, True):
+                torch.testing.assert_close(self.td.get(key), self.clone.get(key), msg=str(key))
+
+
+# which parameter groups each loss term may reach (TestSAC's "losses are independent")
+OWNERS = {
+    "loss_actor": "actor",
+    "loss_qvalue": "qvalue",
+    "loss_alpha": "alpha",
+    "loss_cost_value": "safety_mean",
+    "loss_cost_variance": "safety_variance",
+    "loss_kappa": "kappa",
+}
+
+
+# --------------------------------------------------------------- TestSAC: test_sac
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("delay_qvalue", [True, False])
+def test_losses_are_independent_and_reach_every_parameter(variant, delay_qvalue):
+    loss = make_variant(variant, delay_qvalue=delay_qvalue)
+    td = batch_for(loss)
+    with check_td_steady(td):
+        out = loss(td)
+    assert loss.tensor_keys.priority in td.keys()
+    groups = groups_of(loss)
+    for key in loss_terms(out):
+        out[key].sum().backward(retain_graph=True)
+        for name, params in groups.items():
+            if name == OWNERS[key]:
+                assert all_grad(params), f"{key} does not reach {name}"
+            else:
+                assert no_grad(params), f"{key} reaches {name}"
+        loss.zero_grad()
+    total(out).backward()
+    named = list(loss.named_parameters())
+    assert len({p for _, p in named}) == len(named)
+    buffers = list(loss.named_buffers())
+    assert len({b for _, b in buffers}) == len(buffers)
+    for name, p in named:
+        if name.startswith("target_"):
+            assert p.grad is None or p.grad.norm() == 0.0, name
+        else:
+            assert p.grad is not None and p.grad.norm() > 0.0, name
+
+
+# ------------------------------------------- TestSAC: test_sac_list_qvalue_networks
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_soft_update_moves_every_target_including_the_safety_critics(variant):
+    loss = make_variant(variant)
+    loss(batch_for(loss))
+    updater = SoftUpdate(loss, eps=0.5)
+    targets_before = updater._targets.clone()
+    assert any("safety" in str(k) for k in updater._targets.keys(True, True))
+    with torch.no_grad():
+        for source in updater._sources.values(True, True):
+            source.add_(1)
+    updater.step()
+    for key, target in updater._targets.items(True, True):
+        torch.testing.assert_close(target, targets_before.get(key) + 0.5)
+
+
+# ---------------------------------------- TestSAC: test_sac_state_dict / test_state_dict
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_state_dict_loads_into_a_fresh_loss(variant):
+    loss = make_variant(variant)
+    loss.target_entropy  # noqa: B018  (TorchRL's "with an access in between")
+    with torch.no_grad():
+        for p in loss.parameters():
+            p.add_(0.25)
+    state = loss.state_dict()
+    fresh = make_variant(variant, seed=1)
+    fresh.load_state_dict(state)
+    for key, value in fresh.state_dict().items():
+        torch.testing.assert_close(value, state[key], msg=key)
+
+
+# ---------------------------------------------- test_reset_parameters_recursive
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_reset_parameters_recursive(variant):
+    loss = make_variant(variant)
+    names = ["actor_network_params", "qvalue_network_params", "safety_network_params"]
+    old = {}
+    for name in names:
+        params = getattr(loss, name)
+        with torch.no_grad():
+            params.apply_(lambda p: p.add_(1000))
+        old[name] = params.clone()
+    loss.reset_parameters_recursive()
+    for name in names:
+        for key, value in getattr(loss, name).items(True, True):
+            assert (value != old[name].get(key)).any(), (name, key)
+
+
+# ------------------------------------------------- TestSAC: test_sac_separate_losses
+def shared_trunk_setup(composite=False, n_hidden=2):
+    """TorchRL's ``_create_mock_common_layer_setup``, with a safety head on the trunk too."""
+
+    class Head(nn.Module):
+        def __init__(self, outputs: int = 1) -> None:
+            super().__init__()
+            self.linear1 = nn.Linear(n_hidden + ACT, n_hidden)
+            self.linear2 = nn.Linear(n_hidden, outputs)
+
+        def forward(self, hidden, act):
+            if isinstance(act, TensorDictBase):
+                act = act.get("action1")
+            out = self.linear2(torch.relu(self.linear1(torch.cat([hidden, act], -1))))
+            if out.shape[-1] == 1:
+                return out
+            mean, raw = out.chunk(2, -1)
+            return mean, nn.functional.softplus(raw) + 1e-3
+
+    common = Mod(MLP(num_cells=4, in_features=OBS, depth=3, out_features=n_hidden), ["obs"], ["hidden"])
+    actor_net = MLP(num_cells=4, in_features=n_hidden, depth=1, out_features=2 * ACT)
+    if composite:
+        dist = functools.partial(CompositeDistribution, distribution_map={"action1": TanhNormal})
+        module_out, actor_in = [("params", "action1", "loc"), ("params", "action1", "scale")], ["params"]
+    else:
+        dist, module_out = TanhNormal, ["loc", "scale"]
+        actor_in = module_out
+    actor = ProbSeq(
+        common,
+        Mod(actor_net, in_keys=["hidden"], out_keys=["param"]),
+        Mod(NormalParamExtractor(), in_keys=["param"], out_keys=module_out),
+        ProbMod(in_keys=actor_in, out_keys=["action"], distribution_class=dist),
+    )
+    qvalue = Seq(common, Mod(Head(), in_keys=["hidden", "action"], out_keys=["state_action_value"]))
+    safety = Seq(
+        common,
+        Mod(Head(2), in_keys=["hidden", "action"], out_keys=["cost_value", "cost_variance"]),
+    )
+    return actor, qvalue, safety, common
+
+
+def shared_trunk_batch(composite=False, batch=8):
+    g = torch.Generator().manual_seed(3)
+    action = torch.rand(batch, ACT, generator=g) * 2 - 1
+    return TensorDict(
+        {
+            "obs": torch.randn(batch, OBS, generator=g),
+            "action": {"action1": action} if composite else action,
+            "next": {
+                "obs": torch.randn(batch, OBS, generator=g),
+                "reward": torch.randn(batch, 1, generator=g),
+                "cost": torch.bernoulli(torch.full((batch, 1), 0.5), generator=g),
+                "done": torch.zeros(batch, 1, dtype=torch.bool),
+                "terminated": torch.zeros(batch, 1, dtype=torch.bool),
+            },
+        },
+        [batch],
+    )
+
+
+def assert_separate_losses(loss, out, common, separate_losses, critics):
+    trunk = len(list(common.parameters()))
+    for key in loss_terms(out):
+        out[key].sum().backward(retain_graph=True)
+        owner = OWNERS[key].split("_")[0]  # safety_mean -> safety
+        if owner == "actor":
+            for name in critics:
+                assert no_grad(getattr(loss, f"{name}_network_params").values(True, True)), (
+                    key,
+                    name,
+                )
+            assert all_grad(loss.actor_network_params.values(True, True))
+        elif owner in critics:
+            assert no_grad(loss.actor_network_params.values(True, True)), key
+            params = list(getattr(loss, f"{owner}_network_params").values(True, True))
+            if separate_losses:
+                assert no_grad(params[:trunk]), f"{key} trains the shared trunk"
+                assert all_grad(params[trunk:]), f"{key} misses its head"
+            else:
+                assert all_grad(params), key
+        else:
+            assert no_grad(loss.actor_network_params.values(True, True)), key
+            for name in critics:
+                assert no_grad(getattr(loss, f"{name}_network_params").values(True, True)), key
+        loss.zero_grad()
+
+
+@pytest.mark.parametrize("separate_losses", [False, True])
+@pytest.mark.parametrize("composite", [False, True])
+def test_separate_losses_reference(separate_losses, composite):
+    """The assertions below, on TorchRL's SACLoss (without a safety head)."""
+    torch.manual_seed(0)
+    actor, qvalue, _, common = shared_trunk_setup(composite)
+    loss = SACLoss(
+        actor,
+        qvalue,
+        action_spec=Unbounded(shape=(ACT,)),
+        num_qvalue_nets=1,
+        separate_losses=separate_losses,
+    )
+    out = loss(shared_trunk_batch(composite))
+    assert_separate_losses(loss, out, common, separate_losses, ["qvalue"])
+
+
+SEPARATE_LOSSES_CASES = [
+    pytest.param(
+        cls,
+        options,
+        separate,
+        composite,
+        marks=pending(
+            "D3 — the safety critic's params are the actor's own trunk tensors: with "
+            "separate_losses=True loss_cost_* trains the shared trunk; with False loss_cost_* "
+            "trains the actor's trunk (SACLoss gives the critic its own copy)"
+        ),
+        id=f"{cls}-{options}-separate={separate}-composite={composite}",
+    )
+    for cls in ("WCSAC", "SACLag")
+    for options in ("paper", "default")
+    for separate in (False, True)
+    for composite in (False, True)
+]
+
+
+@pytest.mark.parametrize("cls,options,separate_losses,composite", SEPARATE_LOSSES_CASES)
+def test_separate_losses_with_a_shared_trunk(cls, options, separate_losses, composite):
+    torch.manual_seed(0)
+    actor, qvalue, safety, common = shared_trunk_setup(composite)
+    loss_cls = WCSACLoss if cls == "WCSAC" else SACLagLoss
+    kwargs = {**options_of(options), "kappa_states": "replay", "cost_n_steps": 1}
+    if cls == "WCSAC":
+        kwargs["risk_level"] = 0.5
+    loss = loss_cls(
+        actor,
+        qvalue,
+        safety,
+        action_spec=Unbounded(shape=(ACT,)),
+        num_qvalue_nets=1,
+        separate_losses=separate_losses,
+        **kwargs,
+    )
+    out = loss(shared_trunk_batch(composite))
+    assert_separate_losses(loss, out, common, separate_losses, ["qvalue", "safety"])
+
+
+# --------------------------------------------------------- TestSAC: test_sac_batcher
+def nstep_cost_target(loss, traj, n):
+    """The n-step cost target of NStepCost's definition, for a safety critic that ignores
+    the action: ``Σ_{k<m} γ_c^k c_{t+k} + γ_c^m (1 − stop) Q̄^c(s_{t+m})``."""
+    ref = NStepCost(n, loss.cost_gamma)(traj.clone()).get("nstep")
+    with torch.no_grad():
+        td = ref.select("observation").set("action", torch.zeros(*ref.shape, ACT))
+        with loss.target_safety_network_params.to_module(loss.safety_network):
+            q_next = loss.safety_network(td).get(loss.tensor_keys.cost_value).squeeze(-1)
+    if loss.nonnegative_cost:
+        q_next = q_next.clamp(min=0)
+    stop = ref.get("terminated" if loss.cost_bootstrap_truncated else "done").squeeze(-1)
+    gamma = loss.cost_gamma ** ref.get("steps").to(torch.float32)
+    return ref.get("cost").squeeze(-1) + gamma * (~stop).float() * q_next
+
+
+MULTISTEP_CASES = [
+    pytest.param(
+        cls,
+        options,
+        n,
+        marks=pending(
+            "D5 — a MultiStep batch: the reward target is n-step, the cost target is built "
+            "one-step from the shifted next state, silently"
+        )
+        if n > 1 and options == "paper"
+        else (),
+        id=f"{cls}-{options}-n{n}",
+    )
+    for cls in ("WCSAC", "SACLag")
+    for options in ("paper", "default")
+    for n in (1, 2, 3)
+]
+
+
+@pytest.mark.parametrize("cls,options,n", MULTISTEP_CASES)
+def test_multistep_batches_are_correct_or_refused(cls, options, n):
+    """TorchRL's MultiStep postproc in the collector: either the cost target has the same
+    n-step look-ahead as the reward's, or the loss refuses the batch with one clear line."""
+    loss = make_variant((cls, "user", options))
+    loss.make_value_estimator(gamma=0.9)
+    with torch.no_grad():  # a safety critic that ignores the action: exact targets
+        for params in (loss.safety_network_params, loss.target_safety_network_params):
+            params["module", "mean", "weight"][..., OBS:] = 0.0
+    traj = trajectories()
+    if loss.cost_n_steps > 1:  # the kit's n-step cost entries, written before MultiStep
+        traj = NStepCost(loss.cost_n_steps, loss.cost_gamma)(traj)
+    ms = MultiStep(gamma=0.9, n_steps=n)(traj.clone())
+    assert (ms["steps_to_next_obs"] > 1).any() == (n > 1)
+    flat = ms.reshape(-1)
+    if loss.kappa_states == "initial":
+        starts = StartStateBuffer.for_loss(loss)
+        starts.add_starts(traj)
+        flat = starts.attach(flat)
+    try:
+        targets = loss.compute_targets(flat)
+    except (ValueError, KeyError) as err:
+        message = err.args[0]
+        assert "\n" not in message and "MultiStep" in message, message
+        return
+    expected = nstep_cost_target(loss, trajectories(), max(n, loss.cost_n_steps))
+    assert_close_f32(targets["cost_target"], expected.reshape(-1), ops=16)
+    with check_td_steady(flat):
+        out = loss(flat)
+    total(out).backward()
+    for name, p in loss.named_parameters():
+        assert name.startswith("target_") or p.grad is not None, name
+
+
+def test_multistep_reference_changes_the_reward_target():
+    """What the port checks on SACLoss: n = 1 leaves the batch and the loss unchanged,
+    n > 1 changes the loss (TestSAC.test_sac_batcher)."""
+    loss = make_sac()
+    traj = trajectories()
+    for n in (1, 3):
+        ms = MultiStep(gamma=0.9, n_steps=n)(traj.clone())
+        torch.manual_seed(0)
+        with torch.no_grad():
+            a = loss(traj.clone().reshape(-1))
+        torch.manual_seed(0)
+        with torch.no_grad():
+            b = loss(ms.reshape(-1))
+        same = torch.allclose(a["loss_qvalue"], b["loss_qvalue"])
+        assert same == (n == 1)
+
+
+# ------------------------------------------------- TestSAC: test_sac_tensordict_keys
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_tensordict_keys(variant):
+    loss = make_variant(variant)
+    defaults = {
+        "priority": "td_error",
+        "value": "state_value",
+        "state_action_value": "state_action_value",
+        "action": "action",
+        "log_prob": "action_log_prob",
+        "reward": "reward",
+        "done": "done",
+        "terminated": "terminated",
+        "cost": "cost",
+        "cost_value": "cost_value",
+        "cost_variance": "cost_variance",
+        "initial_states": "initial",
+        "nstep": "nstep",
+        "episode_cvar": "episode_cvar",
+    }
+    fn = deepcopy(loss)
+    with pytest.raises(ValueError):
+        fn.set_keys(unknown_key="test2")
+    for key, value in defaults.items():
+        assert getattr(deepcopy(loss).tensor_keys, key) == value, key
+    fn = deepcopy(loss)
+    for key in defaults:
+        fn.set_keys(**{key: "test1"})
+        assert getattr(fn.tensor_keys, key) == "test1"
+    # keys reach the value estimator (set_advantage_keys_through_loss_test)
+    fn = deepcopy(loss)
+    mapping = {
+        "value": "state_value_test",
+        "reward": "reward_test",
+        "done": ("done", "test"),
+        "terminated": ("terminated", "test"),
+    }
+    fn.set_keys(**mapping)
+    fn.make_value_estimator(ValueEstimators.TD0)
+    for key, value in mapping.items():
+        assert getattr(fn.value_estimator.tensor_keys, key) == value
+
+
+# ------------------------------------------- TestSAC: test_sac_notensordict / keys
+KEY_CASES = [
+    ("action", "observation", "reward", "done", "terminated"),
+    ("action2", "observation2", "reward2", "done2", "terminated2"),
+]
+
+
+def renamed_variant(variant, action_key, observation_key):
+    cls_name, critic, options = variant
+    torch.manual_seed(0)
+    cls = WCSACLoss if cls_name == "WCSAC" else SACLagLoss
+    kwargs = {**options_of(options)}
+    if cls is WCSACLoss:
+        kwargs["risk_level"] = 0.5
+    if critic == "kit":
+        actor = make_actor(
+            OBS,
+            Bounded(-1.0, 1.0, shape=(ACT,)),
+            width=8,
+            observation_key=observation_key,
+            action_key=action_key,
+        )
+        qvalues = [
+            make_qvalue(OBS, ACT, width=8, observation_key=observation_key, action_key=action_key)
+            for _ in range(2)
+        ]
+        safety = make_safety_critic(
+            OBS,
+            ACT,
+            width=8,
+            variance=cls is WCSACLoss,
+            observation_key=observation_key,
+            action_key=action_key,
+        )
+        return cls(actor, qvalues, safety, **kwargs)
+    actor, spec = user_actor(observation_key, action_key)
+    return cls(
+        actor,
+        user_qvalue(observation_key, action_key),
+        user_safety(observation_key, action_key),
+        action_spec=spec,
+        **kwargs,
+    )
+
+
+def renamed_batch(loss, keys, seed=0):
+    action_key, observation_key, reward_key, done_key, terminated_key = keys
+    traj = trajectories(seed)
+    renames = {
+        "action": action_key,
+        "observation": observation_key,
+        ("next", "observation"): ("next", observation_key),
+        ("next", "reward"): ("next", reward_key),
+        ("next", "done"): ("next", done_key),
+        ("next", "terminated"): ("next", terminated_key),
+    }
+    traj = traj.rename_key_(("next", "observation"), ("next", "obs_tmp"))
+    traj = traj.rename_key_("observation", "obs_tmp")
+    for old, new in renames.items():
+        old = ("next", "obs_tmp") if old == ("next", "observation") else old
+        old = "obs_tmp" if old == "observation" else old
+        if old != new:
+            traj.rename_key_(old, new)
+    if loss.cost_n_steps > 1:
+        traj = NStepCost(
+            loss.cost_n_steps,
+            loss.cost_gamma,
+            observation_keys=loss.initial_state_keys,
+            done_key=done_key,
+            terminated_key=terminated_key,
+        )(traj)
+    flat = traj.reshape(-1)
+    if loss.kappa_states == "initial":
+        starts = StartStateBuffer.for_loss(loss)
+        starts.add_starts(traj)
+        torch.manual_seed(seed)
+        flat = starts.attach(flat)
+    return flat
+
+
+def _flat_key(key) -> str:
+    return key if isinstance(key, str) else "_".join(key)
+
+
+def with_pending(variants, defect, options="default"):
+    """``variants`` with those of ``options`` skipped for ``defect`` (pending in wcsac.py)."""
+    return [
+        pytest.param(p.values[0], marks=pending(defect), id=p.id)
+        if p.values[0][2] == options
+        else p
+        for p in variants
+    ]
+
+
+D1 = (
+    "D1 — in_keys lack the episode-start-state entries (('initial', obs)) that the "
+    "default kappa_states='initial' reads"
+)
+
+
+@pytest.mark.parametrize("variant", with_pending(VARIANTS, D1))
+@pytest.mark.parametrize("keys", KEY_CASES, ids=["default-keys", "renamed-keys"])
+def test_in_keys_list_every_entry_the_loss_reads(variant, keys):
+    """``loss.in_keys`` is what a TorchRL pipeline keeps (``batch.select(*loss.in_keys)``):
+    the loss must work on that selection, and every in_key must be one the batch has."""
+    loss = renamed_variant(variant, keys[0], keys[1])
+    loss.set_keys(reward=keys[2], done=keys[3], terminated=keys[4])
+    td = renamed_batch(loss, keys)
+    missing = [k for k in loss.in_keys if k not in td.keys(True, True)]
+    assert not missing, f"in_keys the pipeline does not write: {missing}"
+    torch.manual_seed(1)
+    expected = loss(td.clone())
+    torch.manual_seed(1)
+    got = loss(td.select(*loss.in_keys))
+    for key in loss_terms(expected):
+        torch.testing.assert_close(got[key], expected[key], msg=key)
+    assert set(expected.keys()) == set(loss.out_keys)
+
+
