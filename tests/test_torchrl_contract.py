@@ -1021,3 +1021,316 @@ def test_masked_rows_do_not_count(cls, critic, options):
         return loss
 
     assert_masked_rows_do_not_count(masked_pair(factory))
+
+
+# ------------------------------------------- test_loss_exploration (deterministic sampling)
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize(
+    "mode", [ExplorationType.DETERMINISTIC, ExplorationType.MEAN, ExplorationType.MODE]
+)
+def test_the_loss_samples_whatever_the_exploration_type(variant, mode):
+    """SAC's losses draw reparametrised actions: a deterministic exploration type set
+    around the call changes nothing, and is restored after it."""
+    loss = make_variant(variant)
+    td = batch_for(loss)
+    torch.manual_seed(0)
+    with set_exploration_type(ExplorationType.RANDOM):
+        expected = loss(td.clone())
+    torch.manual_seed(0)
+    with set_exploration_type(mode):
+        got = loss(td.clone())
+        assert exploration_type() == mode
+    for key in loss_terms(expected):
+        torch.testing.assert_close(got[key], expected[key], msg=key)
+    torch.manual_seed(1)
+    other = loss(td.clone())
+    assert not torch.equal(other["loss_actor"], expected["loss_actor"])  # it does sample
+
+
+# ----------------------------------------------------- TestBuffer.test_module_cast
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("dest", [torch.float64, torch.device("cpu")], ids=["float64", "cpu"])
+def test_module_cast_moves_every_tensor_and_keeps_the_parameters(variant, dest):
+    loss = make_variant(variant)
+    params_before = set(loss.parameters())
+    leaves_before = {
+        name: set(getattr(loss, f"{name}_network_params").values(True, True))
+        for name in ("actor", "qvalue", "safety")
+    }
+    loss.to(dest)
+    assert set(loss.parameters()) == params_before  # an optimizer built before still works
+    for name, leaves in leaves_before.items():
+        assert set(getattr(loss, f"{name}_network_params").values(True, True)) == leaves
+    for name, p in loss.named_parameters():
+        assert isinstance(p, nn.Parameter), name
+    tensors = [*loss.named_parameters(), *loss.named_buffers()]
+    for prefix in ("target_qvalue_network_params", "target_safety_network_params"):
+        tensors += [(f"{prefix}.{k}", v) for k, v in getattr(loss, prefix).items(True, True)]
+    for name, tensor in tensors:
+        if isinstance(dest, torch.dtype):
+            if tensor.is_floating_point():
+                assert tensor.dtype == dest, name
+        else:
+            assert tensor.device.type == dest.type, name
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_meta_device_as_sacloss(variant):
+    """TorchRL 0.14.1's SACLoss can neither move to nor be built on the meta device
+    (TensorDictParams' ``set_data``; ``.item()`` in its constructor): the safe losses,
+    built on it, fail the same way, in their ``SACLoss`` part, and lose nothing."""
+    for build in (make_sac, lambda: make_variant(variant)):
+        loss = build()
+        before = {k: v.clone() for k, v in loss.state_dict().items()}
+        with pytest.raises(RuntimeError, match="incompatible tensor type"):
+            loss.to("meta")
+        with pytest.raises(RuntimeError, match="meta tensors"):
+            with torch.device("meta"):
+                build()
+        assert {k: v.device.type for k, v in loss.state_dict().items()} == {
+            k: "cpu" for k in before
+        }
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_a_float64_loss_runs_on_a_float64_batch(variant):
+    loss = make_variant(variant).to(torch.float64)
+    td = batch_for(loss).apply(lambda t: t.double() if t.is_floating_point() else t)
+    out = loss(td)
+    for key in loss_terms(out):
+        assert out[key].dtype == torch.float64 and torch.isfinite(out[key]), key
+    total(out).backward()
+
+
+# ---------------------------------------------- TestSAC: target entropy, reduction
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_target_entropy_auto_is_minus_the_action_dim(variant):
+    assert make_variant(variant).target_entropy.item() == -ACT
+    assert make_variant(variant, target_entropy=-2.5).target_entropy.item() == -2.5
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("reduction", [None, "none", "mean", "sum"])
+def test_reduction(variant, reduction):
+    kwargs = {"reduction": reduction} if reduction else {}
+    if reduction == "none":
+        kwargs["scalar_output_mode"] = "exclude"
+    loss = make_variant(variant, **kwargs)
+    td = batch_for(loss)
+    out = loss(td)
+    for key in loss_terms(out):
+        assert out[key].shape == (td.shape if reduction == "none" else torch.Size([])), key
+    if reduction in ("mean", "sum"):  # each term reduced from the per-row ones
+        rows = make_variant(variant, reduction="none", scalar_output_mode="exclude")
+        torch.manual_seed(0)
+        per_row = rows(td.clone())
+        loss = make_variant(variant, **kwargs)
+        torch.manual_seed(0)
+        reduced = loss(td.clone())
+        for key in loss_terms(reduced):
+            value = getattr(per_row[key], reduction)()
+            assert_close_f32(reduced[key], value, ops=64, magnitude=per_row[key].abs().max(), msg=key)
+
+
+# ---------------------------------------- TestSAC: test_sac_prioritized_weights
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_prioritized_replay_weights(variant):
+    """With ``priority_weight`` in the batch (a prioritized buffer's importance weights)
+    every loss term is the weighted mean of its per-row terms; ``td_error`` is written."""
+    loss = make_variant(variant)
+    td = batch_for(loss)
+    weights = torch.rand(td.shape, generator=torch.Generator().manual_seed(4)) + 0.5
+    td.set("priority_weight", weights)
+    torch.manual_seed(0)
+    weighted = loss(td.clone())
+    rows = make_variant(variant, reduction="none", scalar_output_mode="exclude")
+    rows.load_state_dict(loss.state_dict())
+    plain = td.clone().exclude("priority_weight")
+    torch.manual_seed(0)
+    per_row = rows(plain)
+    assert loss.tensor_keys.priority in plain.keys()
+    for key in loss_terms(weighted):
+        expected = (per_row[key] * weights).sum() / weights.sum()  # TorchRL's weighted mean
+        magnitude = (per_row[key] * weights).abs().max()
+        assert_close_f32(weighted[key], expected, ops=64, magnitude=magnitude, msg=key)
+    unweighted = make_variant(variant, use_prioritized_weights=False)
+    unweighted.load_state_dict(loss.state_dict())
+    torch.manual_seed(0)
+    assert_close_f32(
+        unweighted(td.clone())["loss_qvalue"],
+        per_row["loss_qvalue"].mean(),
+        ops=64,
+        magnitude=per_row["loss_qvalue"].abs().max(),
+    )
+
+
+# ------------------------------------------- TestSAC: test_sac_deactivate_vmap
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_deactivate_vmap_gives_the_same_losses(variant):
+    outs = []
+    for deactivate in (False, True):
+        loss = make_variant(variant, deactivate_vmap=deactivate)
+        td = batch_for(loss)
+        torch.manual_seed(0)
+        outs.append(loss(td))
+    for key in loss_terms(outs[0]):
+        assert_close_f32(outs[1][key], outs[0][key], ops=32, msg=key)
+
+
+# -------------------------------------- D8: a composite actor and the kit's transforms
+@pytest.mark.parametrize("cls", ["WCSAC", "SACLag"])
+def test_a_composite_actor_runs_through_the_kit_transforms(cls):
+    actor, spec = user_actor(composite=True)
+    loss_cls = WCSACLoss if cls == "WCSAC" else SACLagLoss
+    kwargs = {"risk_level": 0.5} if cls == "WCSAC" else {}
+    loss = loss_cls(actor, user_qvalue(), user_safety(), action_spec=spec, **kwargs)
+    assert state_keys(loss) == ["observation"]  # not the actor's own "params"
+    traj = trajectories(composite=True)
+    traj = NStepCost.for_loss(loss)(traj)
+    assert set(traj["nstep"].keys()) == {"observation", "cost", "steps", "terminated", "done"}
+    starts = StartStateBuffer.for_loss(loss)
+    assert starts.add_starts(traj) == BATCH * TIME // 3
+    out = loss(starts.attach(traj.reshape(-1)))
+    total(out).backward()
+    for name, p in loss.named_parameters():
+        assert name.startswith("target_") or (p.grad is not None and p.grad.norm() > 0), name
+
+
+# ------------------------------------------------------- the first call: a plain batch
+def plain_batch(terminated=False):
+    """What a TorchRL replay buffer hands over: observation, action, next reward / done
+    / cost (and no more)."""
+    traj = trajectories()
+    keys = ["observation", "action", ("next", "observation"), ("next", "reward")]
+    keys += [("next", "done"), ("next", "cost")] + ([("next", "terminated")] if terminated else [])
+    return traj.select(*keys).reshape(-1)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_missing_inputs_names_the_transforms_in_one_line(variant):
+    loss = make_variant(variant)
+    message = missing_inputs(loss, plain_batch(terminated=True))
+    if variant[2] == "paper":
+        assert message is None
+        return
+    assert "\n" not in message
+    for name in ("NStepCost.for_loss(loss)", "StartStateBuffer.for_loss(loss)", "PAPER_OPTIONS"):
+        assert name in message, name
+    assert missing_inputs(loss, batch_for(loss)) is None
+    signal = make_variant(variant, kappa_signal="max")
+    assert "EpisodeCostWindow.for_loss(loss)" in missing_inputs(signal, batch_for(signal))
+
+
+PLAIN = (
+    "plain batch — the default loss raises a KeyError naming only the n-step entries "
+    "(then, once added, the start states): call inputs.missing_inputs(self, tensordict) at "
+    "the top of forward and raise its one line"
+)
+
+
+@pytest.mark.parametrize("variant", with_pending(VARIANTS, PLAIN))
+def test_a_plain_batch_trains_or_names_the_missing_transforms(variant):
+    loss = make_variant(variant)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            out = loss(plain_batch(terminated=True))
+    except (KeyError, ValueError) as err:
+        message = err.args[0]
+        assert "\n" not in message
+        assert "NStepCost" in message and "StartStateBuffer" in message, message
+        return
+    assert all(torch.isfinite(out[k]) for k in loss_terms(out))
+    if variant[2] == "default":  # a fallback is said in one line
+        lines = [str(w.message) for w in caught]
+        assert any("\n" not in line and "fall" in line for line in lines), lines
+
+
+D9 = (
+    "D9 (new) — a batch without ('next', 'terminated'): compute_targets reads it as None "
+    "(AttributeError 'NoneType'.reshape); SACLoss falls back to done"
+)
+
+
+@pytest.mark.parametrize(
+    "variant", with_pending([p for p in VARIANTS if p.values[0][2] == "paper"], D9, "paper")
+)
+def test_a_batch_without_terminated_falls_back_to_done(variant):
+    """SACLoss trains on a batch whose only end flag is ``done`` (TorchRL's TD(0) reads
+    ``done`` where ``terminated`` is absent); so must the safety critic's target."""
+    sac = make_sac()
+    assert torch.isfinite(sac(plain_batch())["loss_qvalue"])
+    loss = make_variant(variant)
+    torch.manual_seed(0)
+    without = loss(plain_batch())
+    batch = plain_batch()
+    batch["next", "terminated"] = batch["next", "done"].clone()
+    torch.manual_seed(0)
+    with_flag = loss(batch)
+    for key in loss_terms(with_flag):
+        torch.testing.assert_close(without[key], with_flag[key], msg=key)
+
+
+# ------------------------------------------------------------- the optimizer trap
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_param_groups_hold_every_trainable_parameter_once_at_the_kit_rates(variant):
+    loss = make_variant(variant)
+    groups = param_groups(loss, 1e-3, actor_lr=3e-4, kappa_lr_scale=5.0)
+    assert [g["name"] for g in groups] == ["actor", "critic", "alpha", "kappa"]
+    assert [g["lr"] for g in groups] == [3e-4, 1e-3, 1e-3, 5e-3]
+    listed = [p for g in groups for p in g["params"]]
+    assert len({id(p) for p in listed}) == len(listed)
+    trainable = {id(p) for p in loss.parameters() if p.requires_grad}
+    assert {id(p) for p in listed} == trainable
+    assert groups[3]["params"] == [loss.kappa_raw]
+    with pytest.raises(ValueError, match="lr must be a number > 0"):
+        param_groups(loss, 0.0)
+
+
+def test_param_groups_of_a_plain_sacloss():
+    loss = make_sac()
+    groups = param_groups(loss, 1e-3)
+    assert [g["name"] for g in groups] == ["actor", "critic", "alpha"]
+
+
+def _step(optim, loss):
+    out = loss(batch_for(loss))
+    total(out).backward()
+    optim.step()
+    optim.zero_grad()
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_one_group_over_all_parameters_warns_once_in_one_line(variant):
+    loss = make_variant(variant)
+    optim = torch.optim.Adam(loss.parameters(), lr=1e-3)  # the TorchRL way
+    with pytest.warns(SingleGroupWarning) as caught:
+        _step(optim, loss)
+    messages = [str(w.message) for w in caught if w.category is SingleGroupWarning]
+    assert len(messages) == 1 and "\n" not in messages[0]
+    assert "param_groups(loss" in messages[0] and "kappa_raw" in messages[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SingleGroupWarning)
+        _step(optim, loss)  # once per optimizer
+    # a deep copy (e.g. a checkpointed loss) is watched too
+    copy = deepcopy(loss)
+    with pytest.warns(SingleGroupWarning):
+        _step(torch.optim.Adam(copy.parameters(), lr=1e-3), copy)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_the_kit_groups_do_not_warn(variant):
+    loss = make_variant(variant)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", SingleGroupWarning)
+        _step(torch.optim.Adam(param_groups(loss, 1e-3, kappa_lr_scale=5.0)), loss)
+        separate = [torch.optim.Adam([g]) for g in param_groups(loss, 1e-3)]
+        out = loss(batch_for(loss))
+        total(out).backward()
+        for optim in separate:
+            optim.step()
+        # κ alone at the same rate as the rest is a choice, not the trap
+        sac = make_sac()
+        optim = torch.optim.Adam(sac.parameters(), lr=1e-3)
+        total(sac(trajectories().reshape(-1))).backward()
+        optim.step()
