@@ -43,13 +43,10 @@ from tensordict.nn import ProbabilisticTensorDictModule as ProbMod
 from tensordict.nn import ProbabilisticTensorDictSequential as ProbSeq
 from tensordict.nn import TensorDictModule as Mod
 from tensordict.nn import TensorDictSequential as Seq
-from tensordict.nn.utils import Buffer
 from torch import nn
 from torchrl.data import (
     Bounded,
     Composite,
-    LazyTensorStorage,
-    TensorDictPrioritizedReplayBuffer,
     Unbounded,
 )
 from torchrl.data.postprocs.postprocs import MultiStep
@@ -395,11 +392,16 @@ def shared_trunk_setup(composite=False, n_hidden=2):
             mean, raw = out.chunk(2, -1)
             return mean, nn.functional.softplus(raw) + 1e-3
 
-    common = Mod(MLP(num_cells=4, in_features=OBS, depth=3, out_features=n_hidden), ["obs"], ["hidden"])
+    common = Mod(
+        MLP(num_cells=4, in_features=OBS, depth=3, out_features=n_hidden), ["obs"], ["hidden"]
+    )
     actor_net = MLP(num_cells=4, in_features=n_hidden, depth=1, out_features=2 * ACT)
     if composite:
         dist = functools.partial(CompositeDistribution, distribution_map={"action1": TanhNormal})
-        module_out, actor_in = [("params", "action1", "loc"), ("params", "action1", "scale")], ["params"]
+        module_out, actor_in = (
+            [("params", "action1", "loc"), ("params", "action1", "scale")],
+            ["params"],
+        )
     else:
         dist, module_out = TanhNormal, ["loc", "scale"]
         actor_in = module_out
@@ -769,8 +771,6 @@ def test_in_keys_list_every_entry_the_loss_reads(variant, keys):
     assert set(expected.keys()) == set(loss.out_keys)
 
 
-
-
 # ----------------------------------------------- TestSAC: test_sac_notensordict
 @pytest.mark.parametrize("variant", with_pending(VARIANTS, D1))
 def test_keyword_call_equals_the_tensordict_call(variant):
@@ -944,7 +944,9 @@ def test_forward_compiles_with_fullgraph_and_matches_eager(variant):
         # order 1 + |value|
         assert_close_f32(got[key], expected[key], ops=512, magnitude=1.0 + expected[key].abs())
     total(got).backward()
-    assert all(p.grad is not None for n, p in loss.named_parameters() if not n.startswith("target_"))
+    assert all(
+        p.grad is not None for n, p in loss.named_parameters() if not n.startswith("target_")
+    )
 
 
 # ------------------------------------------------------ TestLossMaskReduction (masking)
@@ -967,11 +969,19 @@ def masked_pair(loss_factory):
         mask[:, -2:] = False  # the padded end of each env's piece
         traj.set(("collector", "mask"), mask)
         g = torch.Generator().manual_seed(garbage_seed)
-        for key in ("observation", "action", ("next", "observation"), ("next", "reward"), ("next", "cost")):
+        for key in (
+            "observation",
+            "action",
+            ("next", "observation"),
+            ("next", "reward"),
+            ("next", "cost"),
+        ):
             value = traj.get(key)
             noise = 50.0 * torch.randn(value[~mask].shape, generator=g)
             value[~mask] = noise.clamp(-1, 1) if key == "action" else noise
-        batches.append((loss, prepare(loss, traj) if isinstance(loss, WCSACLoss) else traj.reshape(-1)))
+        batches.append(
+            (loss, prepare(loss, traj) if isinstance(loss, WCSACLoss) else traj.reshape(-1))
+        )
     return batches
 
 
@@ -1129,7 +1139,9 @@ def test_reduction(variant, reduction):
         reduced = loss(td.clone())
         for key in loss_terms(reduced):
             value = getattr(per_row[key], reduction)()
-            assert_close_f32(reduced[key], value, ops=64, magnitude=per_row[key].abs().max(), msg=key)
+            assert_close_f32(
+                reduced[key], value, ops=64, magnitude=per_row[key].abs().max(), msg=key
+            )
 
 
 # ---------------------------------------- TestSAC: test_sac_prioritized_weights
