@@ -1,10 +1,12 @@
 """Loss modules (WCSAC, SAC-Lagrangian, CPO), risk measures, ``PolyakUpdate`` (the
-target networks' fast path), and the data the safety critic's options read (``NStepCost``, ``StartStateBuffer``, ``EpisodeCostWindow``)."""
+target networks' fast path), ``param_groups`` (the optimizer groups with the kit's
+learning rates), and the data the safety critic's options read (``NStepCost``, ``StartStateBuffer``, ``EpisodeCostWindow``)."""
 
 from wcsac_rl.objectives.budget import per_step_cost_threshold
 from wcsac_rl.objectives.cpo import CPOLoss
 from wcsac_rl.objectives.episode_costs import EpisodeCostWindow
 from wcsac_rl.objectives.nstep import NStepCost
+from wcsac_rl.objectives.param_groups import SingleGroupWarning, param_groups
 from wcsac_rl.objectives.risk import (
     empirical_cvar,
     gaussian_cvar,
@@ -28,12 +30,14 @@ __all__ = [
     "NStepCost",
     "PolyakUpdate",
     "SACLagLoss",
+    "SingleGroupWarning",
     "StartStateBuffer",
     "WCSACLoss",
     "empirical_cvar",
     "gaussian_cvar",
     "gaussian_cvar_multiplier",
     "gaussian_mixture_cvar",
+    "param_groups",
     "per_step_cost_threshold",
     "quantile_mixture_cvar",
     "validate_risk_level",

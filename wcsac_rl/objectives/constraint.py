@@ -34,6 +34,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from wcsac_rl.objectives.param_groups import watch_multiplier
+
 __all__ = [
     "CONSTRAINT_RULES",
     "KAPPA_PARAMETRIZATIONS",
@@ -93,6 +95,11 @@ class GradientLagrangian(nn.Module):
             _inverse_softplus(kappa_init) if parametrization == "softplus" else math.log(kappa_init)
         )
         self.kappa_raw = nn.Parameter(torch.tensor(raw))
+        watch_multiplier(self.kappa_raw)  # an optimizer training it at one rate with others warns
+
+    def __setstate__(self, state) -> None:  # (deepcopy, pickle: the copy is watched too)
+        super().__setstate__(state)
+        watch_multiplier(self.kappa_raw)
 
     def multiplier(self) -> Tensor:
         """κ as a differentiable function of ``kappa_raw``."""

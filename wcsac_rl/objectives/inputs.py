@@ -20,7 +20,15 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
-__all__ = ["check_finite_entries", "check_nonempty_batch", "finite_number", "nonfinite_entry"]
+__all__ = [
+    "check_finite_entries",
+    "check_nonempty_batch",
+    "finite_number",
+    "missing_inputs",
+    "nonfinite_entry",
+    "produced_keys",
+    "state_keys",
+]
 
 
 def finite_number(value: object, name: str, *, minimum: float | None = None) -> float:
@@ -74,3 +82,86 @@ def check_finite_entries(tensordict: TensorDictBase, keys: Iterable[NestedKey], 
             "loss term NaN and, after one optimizer step, every parameter. Drop or fix "
             "those transitions before they reach the replay buffer"
         )
+
+
+def produced_keys(*modules) -> set[NestedKey]:
+    """Every key some sub-module of ``modules`` writes (``out_keys`` of each
+    ``TensorDictModule`` inside), as tuples."""
+    out: set[tuple[str, ...]] = set()
+    for module in modules:
+        for sub in module.modules() if isinstance(module, torch.nn.Module) else ():
+            for key in getattr(sub, "out_keys", None) or ():
+                out.add((key,) if isinstance(key, str) else tuple(key))
+    return out
+
+
+def _is_produced(key: NestedKey, produced: set[tuple[str, ...]]) -> bool:
+    key = (key,) if isinstance(key, str) else tuple(key)
+    # a key whose sub-entries a module writes is written too: ``"params"`` for an actor
+    # writing ``("params", "action1", "loc")`` (a TorchRL composite distribution)
+    return any(out[: len(key)] == key for out in produced)
+
+
+def state_keys(loss) -> list[NestedKey]:
+    """The entries an environment state must hold for ``loss``'s networks: its
+    ``initial_state_keys`` without the keys its own networks write in between (a
+    composite actor lists the ``"params"`` its first module writes among its
+    ``in_keys``; a start state or an n-step state holds only what the env wrote)."""
+    networks = [loss.actor_network, loss.qvalue_network, loss.safety_network]
+    produced = produced_keys(*networks)
+    return [key for key in loss.initial_state_keys if not _is_produced(key, produced)]
+
+
+def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
+    """One line naming what ``tensordict`` lacks for ``loss``'s options and the kit's
+    transform that writes it, or ``None`` if nothing is missing. Looks at keys only (no
+    host synchronisation; the same under ``torch.compile``).
+
+    A TorchRL replay batch (observation, action, ``next`` reward / done / cost) lacks
+    the entries the defaults read: the n-step cost entries (``cost_n_steps > 1``:
+    :class:`~wcsac_rl.objectives.NStepCost`), the episode start states
+    (``kappa_states="initial"``: :class:`~wcsac_rl.objectives.StartStateBuffer`) and
+    the recent episodes' cost (``kappa_signal != "critic"``:
+    :class:`~wcsac_rl.objectives.EpisodeCostWindow`).
+    """
+    keys = set(tensordict.keys(True, True))
+    keys |= set(tensordict.keys(True))
+    name = type(loss).__name__
+    wanted = []
+    nstep = loss.tensor_keys.nstep
+    if loss.cost_n_steps > 1 and nstep not in keys:
+        wanted.append(
+            (
+                f"cost_n_steps={loss.cost_n_steps}",
+                nstep,
+                "NStepCost.for_loss(loss) as the collector's postproc (before the replay buffer)",
+            )
+        )
+    initial = loss.tensor_keys.initial_states
+    if loss.kappa_states == "initial" and initial not in keys:
+        wanted.append(
+            (
+                "kappa_states='initial'",
+                initial,
+                "starts = StartStateBuffer.for_loss(loss); starts.add_starts(data) per "
+                "collected batch; loss(starts.attach(sample))",
+            )
+        )
+    signal = loss.tensor_keys.episode_cvar
+    if getattr(loss, "kappa_signal", "critic") != "critic" and signal not in keys:
+        wanted.append(
+            (
+                f"kappa_signal={loss.kappa_signal!r}",
+                signal,
+                "window = EpisodeCostWindow.for_loss(loss); window.add_episodes(data); "
+                "window.attach(sample)",
+            )
+        )
+    if not wanted:
+        return None
+    parts = "; ".join(f"{option} reads {key!r}: add {how}" for option, key, how in wanted)
+    return (
+        f"{name}: the batch lacks entries its options read ({parts}; from "
+        "wcsac_rl.objectives). Or construct the loss with **PAPER_OPTIONS, which reads "
+        "only observation, action and next reward / done / terminated / cost."
+    )

@@ -21,6 +21,8 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torch import nn
 
+from wcsac_rl.objectives.inputs import state_keys
+
 __all__ = ["NStepCost"]
 
 
@@ -77,6 +79,22 @@ class NStepCost(nn.Module):
         self.observation_keys = tuple(observation_keys)
         self.cost_key, self.done_key, self.terminated_key = cost_key, done_key, terminated_key
         self.out_key = out_key
+
+    @classmethod
+    def for_loss(cls, loss) -> NStepCost:
+        """The postproc a loss with ``cost_n_steps > 1`` reads: its ``n`` and γ_c, its
+        cost / done / terminated and n-step keys, and the state entries its networks
+        read from the env (:func:`~wcsac_rl.objectives.inputs.state_keys`)."""
+        keys = loss.tensor_keys
+        return cls(
+            loss.cost_n_steps,
+            loss.cost_gamma,
+            observation_keys=tuple(state_keys(loss)),
+            cost_key=keys.cost,
+            done_key=keys.done,
+            terminated_key=keys.terminated,
+            out_key=keys.nstep,
+        )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if tensordict.ndim == 0:

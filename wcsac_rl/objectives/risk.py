@@ -192,7 +192,9 @@ def _mixture_var(
     mean: torch.Tensor, std: torch.Tensor, alpha: float, rounds: int, points: int
 ) -> torch.Tensor:
     """The VaR of :func:`gaussian_mixture_cvar`'s mixture (float64, no gradient)."""
-    z_alpha = -_STD_NORMAL.inv_cdf(alpha)  # Φ⁻¹(1 − α), exact even where 1 − α rounds to 1
+    # Φ⁻¹(1 − α) = −Φ⁻¹(α), exact even where 1 − α rounds to 1; a tensor op, so that
+    # torch.compile(fullgraph=True) traces it (statistics.NormalDist is not traceable)
+    z_alpha = -torch.special.ndtri(torch.tensor(alpha, dtype=mean.dtype, device=mean.device))
     own = mean + z_alpha * std  # each component's VaR: the mixture's lies among them
     low, high = own.min(), own.max()
     steps = torch.linspace(0.0, 1.0, points, dtype=mean.dtype, device=mean.device)
@@ -202,7 +204,8 @@ def _mixture_var(
         # the tail mass falls along the grid: the VaR lies after the last point with
         # more than α of the mass above it
         last = ((tail > alpha).sum() - 1).clamp(0, points - 2)
-        low, high = grid[last], grid[last + 1]
+        # (a gather, not grid[last]: indexing by a tensor would read it on the host)
+        low, high = grid.gather(0, torch.stack([last, last + 1])).unbind()
     return (low + high) / 2
 
 

@@ -19,6 +19,8 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
+from wcsac_rl.objectives.inputs import state_keys
+
 __all__ = ["StartStateBuffer"]
 
 
@@ -65,8 +67,10 @@ class StartStateBuffer(TensorDictReplayBuffer):
 
     @classmethod
     def for_loss(cls, loss, **kwargs) -> StartStateBuffer:
-        """The buffer a loss with ``kappa_states="initial"`` reads (its keys and out key)."""
-        return cls(loss.initial_state_keys, out_key=loss.tensor_keys.initial_states, **kwargs)
+        """The buffer a loss with ``kappa_states="initial"`` reads (its out key, and the
+        state entries its networks read from the env: not the keys a composite actor
+        writes between its modules, see :func:`~wcsac_rl.objectives.inputs.state_keys`)."""
+        return cls(state_keys(loss), out_key=loss.tensor_keys.initial_states, **kwargs)
 
     @staticmethod
     def start_mask(batch: TensorDictBase) -> torch.Tensor:

@@ -31,6 +31,7 @@ from wcsac_rl.objectives import (
     SACLagLoss,
     StartStateBuffer,
     WCSACLoss,
+    param_groups,
 )
 from wcsac_rl.objectives.constraint import PIDGains
 from wcsac_rl.training.config import algo_option
@@ -237,24 +238,19 @@ def adam(params, lr: float) -> torch.optim.Adam:
 
 
 def make_optimizers(cfg: DictConfig, loss: LossModule) -> dict[str, torch.optim.Optimizer]:
-    """One Adam per parameter group: actor, critics, entropy weight, safety weight κ.
+    """One Adam per parameter group of :func:`~wcsac_rl.objectives.param_groups`: actor,
+    critics, entropy weight, safety weight κ.
 
     κ's learning rate is ``lr × kappa_lr_scale`` (the authors' ``lr_scale``).
     """
-    lr = float(cfg.algo.lr)
     actor_lr = cfg.algo.get("actor_lr")
-    actor_lr = lr if actor_lr is None else float(actor_lr)
-    critics = list(loss.qvalue_network_params.values(True, True))
-    if isinstance(loss, WCSACLoss):
-        critics += list(loss.safety_network_params.values(True, True))
-    optimizers = {
-        "actor": adam(loss.actor_network_params.values(True, True), actor_lr),
-        "critic": adam(critics, lr),
-        "alpha": adam([loss.log_alpha], lr),
-    }
-    if isinstance(loss, WCSACLoss) and loss.kappa_rule == "gradient":
-        optimizers["kappa"] = adam([loss.kappa_raw], lr * float(cfg.algo.kappa_lr_scale))
-    return optimizers
+    groups = param_groups(
+        loss,
+        float(cfg.algo.lr),
+        actor_lr=None if actor_lr is None else float(actor_lr),
+        kappa_lr_scale=float(cfg.algo.get("kappa_lr_scale", 1.0)),
+    )
+    return {group["name"]: adam(group["params"], group["lr"]) for group in groups}
 
 
 def make_collector(
