@@ -1,13 +1,14 @@
 """Every benchmark script runs, at tiny sizes, and reports what it measures.
 
-Each ``benchmarks/bench_*.py`` is run as ``make bench`` runs it (``python
+Each ``benchmarks/bench_*.py`` is run as ``make bench`` runs it, and so is
+``benchmarks/profile_update.py`` (``python
 benchmarks/<script>``, a fresh process; this checkout's package first on the path)
 with options that make it small: tiny networks and batches, one round of one update,
 the tiny env. Its ``--json`` output is then read: every row the script promises is
 there, every figure finite and positive, and the figures that follow from the
 schedule are what it fixes (updates per frame, buffer rows). A benchmark that breaks
 (as ``bench_update.py`` did when the loss's defaults began to read n-step entries)
-fails here; a new ``bench_*.py`` without an entry in ``SMOKE_ARGS`` fails too.
+fails here; a new script in ``benchmarks/`` without an entry in ``SMOKE_ARGS`` fails too.
 
 Nothing here is a timing claim: the rates only have to be measured at all.
 """
@@ -42,8 +43,11 @@ SMOKE_ARGS = {
         "algo.batch_size=8",
         "algo.buffer_size=1500",  # --fill fills it from a 1 000-step rollout
     ],
+    "profile_update.py": [
+        *("--batch", "8", "--width", "16", "--updates", "2", "--warmup", "1", "--repeats", "1")
+    ],
 }
-"""Tiny options for each benchmark script (every ``benchmarks/bench_*.py`` needs one)."""
+"""Tiny options for each script of ``benchmarks/`` (every one with a ``__main__`` needs one)."""
 
 
 def run_benchmark(script: str, tmp_path: Path) -> object:
@@ -72,8 +76,9 @@ def assert_positive(row: dict, *keys: str) -> None:
 
 
 def test_every_benchmark_script_has_smoke_options():
-    scripts = sorted(p.name for p in BENCHMARKS.glob("bench_*.py"))
-    assert scripts == sorted(SMOKE_ARGS)
+    scripts = [p.name for p in BENCHMARKS.glob("*.py") if "__main__" in p.read_text()]
+    assert sorted(scripts) == sorted(SMOKE_ARGS)
+    assert {p.name for p in BENCHMARKS.glob("bench_*.py")} <= set(scripts)  # make bench's
 
 
 def test_bench_envs_runs(tmp_path):
@@ -135,3 +140,30 @@ def test_bench_memory_runs_at_the_defaults_and_the_paper_options(tmp_path):
         assert_positive(r, "peak_rss_mb", "rss_end_mb", "rss_after_build_mb")
         assert r["peak_rss_mb"] >= r["rss_after_build_mb"]
         assert [frames for frames, _ in r["trace"]] == [400, 800]
+
+
+def test_profile_update_gives_each_part_of_the_update_its_share(tmp_path):
+    results = {r["options"]: r for r in run_benchmark("profile_update.py", tmp_path)}
+    assert set(results) == {"defaults", "paper"}
+    extras = {"targets: n-step cost", "kappa: start-state values"}
+    common = {"targets: 1-step", "online critics", "actor loss", "optimizer step"}
+    for options, result in results.items():
+        parts = result["parts"]
+        assert common <= set(parts)
+        assert extras <= set(parts) if options == "defaults" else not extras & set(parts)
+        for entry in parts.values():
+            assert 0 <= entry["share"] <= 1 and 0 <= entry["flop_share"] <= 1
+        # one repeat: the shares are of one profile and add up to it
+        assert sum(e["share"] for e in parts.values()) == pytest.approx(1.0)
+        assert sum(e["flop_share"] for e in parts.values()) == pytest.approx(1.0)
+        assert_positive(result, "gflop_per_update")
+    flops = {part: entry["flop_share"] for part, entry in results["defaults"]["parts"].items()}
+    # matrix products per row, width 16: the actor 44-16-16-4, each critic 46-16-16-1;
+    # the 1-step targets and the start states each run the actor and the four critics,
+    # the n-step targets the actor and the safety critic's two networks (elementwise
+    # FLOPs, also counted by the profiler, are < 1% of these)
+    actor, critic = 2 * (44 * 16 + 16 * 16 + 16 * 4), 2 * (46 * 16 + 16 * 16 + 16)
+    assert flops["kappa: start-state values"] == pytest.approx(flops["targets: 1-step"], rel=0.01)
+    assert flops["targets: n-step cost"] / flops["targets: 1-step"] == pytest.approx(
+        (actor + 2 * critic) / (actor + 4 * critic), rel=0.01
+    )
