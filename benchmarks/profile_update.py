@@ -3,6 +3,7 @@
 Usage::
 
     python benchmarks/profile_update.py [--options defaults paper] [--updates 30]
+                                        [--repeats 3] [--ablation ROUNDS]
                                         [--batch 256] [--width 256] [--json PATH]
 
 One torch thread, glibc's malloc keeping freed memory (as training runs: without
@@ -33,7 +34,10 @@ Cross-cutting, inside those: ``actor sampling`` (every draw of ``a ~ π``), ``st
 critic parameters`` (the fused ensemble's per-update gather) and ``safety module
 call`` (the safety critic called as a module, not fused). The profiler adds a fixed
 cost per operator, so operator-heavy parts are over-counted against the matrix
-products; the shares are relative, not timings.
+products; the shares are relative, not timings. ``--ablation`` cross-checks them
+without the profiler: the update's time with each extra of the defaults switched off
+alone (``cost_n_steps=1``, ``kappa_states="replay"``, ``kappa_statistic="mean"``) and
+with the paper's options, against the defaults' time, in interleaved rounds.
 """
 
 from __future__ import annotations
@@ -45,6 +49,7 @@ import json
 import math
 import statistics
 import sys
+import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -56,7 +61,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_update import OPTION_SETS, Sizes, kit_networks, pipeline_batch
 
 from wcsac_rl import WCSACLoss
-from wcsac_rl.objectives import PolyakUpdate
+from wcsac_rl.objectives import PAPER_OPTIONS, PolyakUpdate
 from wcsac_rl.training.builders import adam
 from wcsac_rl.training.runtime import retain_freed_memory
 
@@ -253,7 +258,42 @@ def combine(options: str, repeats: list[dict], top: int = 12) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> list[dict]:
+ABLATIONS = {
+    "defaults": {},
+    "cost_n_steps=1": {"cost_n_steps": 1},
+    "kappa_states=replay": {"kappa_states": "replay"},
+    "kappa_statistic=mean": {"kappa_statistic": "mean"},
+    "paper options": dict(PAPER_OPTIONS),
+}
+"""The defaults, each extra of theirs switched off alone, and the paper's options."""
+
+
+def ablation(sizes: Sizes, rounds: int, updates: int, warmup: int) -> list[dict]:
+    """Time per update (no profiler) of each :data:`ABLATIONS` variant relative to the
+    defaults': medians of ``rounds`` interleaved rounds of ``updates`` updates."""
+    runs = {}
+    for name, kwargs in ABLATIONS.items():
+        torch.manual_seed(0)
+        loss = WCSACLoss(*kit_networks(sizes), **kwargs)
+        runs[name] = (make_update(loss), pipeline_batch(loss, sizes))
+    for update, batch in runs.values():
+        for _ in range(warmup):
+            update(batch)
+    seconds: dict[str, list[float]] = {name: [] for name in runs}
+    for _ in range(rounds):
+        for name, (update, batch) in runs.items():
+            start = time.perf_counter()
+            for _ in range(updates):
+                update(batch)
+            seconds[name].append((time.perf_counter() - start) / updates)
+    base = statistics.median(seconds["defaults"])
+    return [
+        {"variant": name, "time_vs_defaults": statistics.median(values) / base}
+        for name, values in seconds.items()
+    ]
+
+
+def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -267,6 +307,14 @@ def main(argv: list[str] | None = None) -> list[dict]:
     )
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--width", type=int, default=256, help="hidden units (2 layers)")
+    parser.add_argument(
+        "--ablation",
+        type=int,
+        default=0,
+        metavar="ROUNDS",
+        help="also time the update (no profiler) with each extra of the defaults switched "
+        "off, in this many interleaved rounds of --updates updates",
+    )
     parser.add_argument("--json", type=Path, help="also write the breakdown here as JSON")
     args = parser.parse_args(argv)
     for name in ("updates", "repeats", "batch", "width"):
@@ -300,8 +348,19 @@ def main(argv: list[str] | None = None) -> list[dict]:
         print("  top operators (median self time):")
         for op, share in result["top_operators"].items():
             print(f"    {op:<48} {share:6.1%}")
+    ablation_rows = None
+    if args.ablation:
+        with contextlib.redirect_stdout(sys.stderr):
+            ablation_rows = ablation(sizes, args.ablation, args.updates, args.warmup)
+        print(
+            f"\ntime per update against the defaults' (no profiler; medians of "
+            f"{args.ablation} interleaved rounds of {args.updates} updates):"
+        )
+        for row in ablation_rows:
+            print(f"  {row['variant']:<24} {row['time_vs_defaults']:6.3f}")
+    output = {"profiles": results, "ablation": ablation_rows}
     if args.json:
-        args.json.write_text(json.dumps(results, indent=1))
+        args.json.write_text(json.dumps(output, indent=1))
     for options, runs in raw.items():
         for run in runs:
             shares = [entry["share"] for entry in run["parts"].values()]
@@ -311,7 +370,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
                 and math.isclose(sum(flop_shares), 1.0, rel_tol=1e-6)
             ):
                 raise SystemExit(f"[{options}] the shares do not add up to the profiled total")
-    return results
+    return output
 
 
 if __name__ == "__main__":

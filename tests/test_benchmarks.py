@@ -44,7 +44,8 @@ SMOKE_ARGS = {
         "algo.buffer_size=1500",  # --fill fills it from a 1 000-step rollout
     ],
     "profile_update.py": [
-        *("--batch", "8", "--width", "16", "--updates", "2", "--warmup", "1", "--repeats", "1")
+        *("--batch", "8", "--width", "16", "--updates", "2", "--warmup", "1", "--repeats", "1"),
+        *("--ablation", "1"),
     ],
 }
 """Tiny options for each script of ``benchmarks/`` (every one with a ``__main__`` needs one)."""
@@ -143,7 +144,8 @@ def test_bench_memory_runs_at_the_defaults_and_the_paper_options(tmp_path):
 
 
 def test_profile_update_gives_each_part_of_the_update_its_share(tmp_path):
-    results = {r["options"]: r for r in run_benchmark("profile_update.py", tmp_path)}
+    output = run_benchmark("profile_update.py", tmp_path)
+    results = {r["options"]: r for r in output["profiles"]}
     assert set(results) == {"defaults", "paper"}
     extras = {"targets: n-step cost", "kappa: start-state values"}
     common = {"targets: 1-step", "online critics", "actor loss", "optimizer step"}
@@ -167,3 +169,14 @@ def test_profile_update_gives_each_part_of_the_update_its_share(tmp_path):
     assert flops["targets: n-step cost"] / flops["targets: 1-step"] == pytest.approx(
         (actor + 2 * critic) / (actor + 4 * critic), rel=0.01
     )
+    # the cross-check without the profiler: the defaults, each extra off, the paper's
+    ablation = {row["variant"]: row["time_vs_defaults"] for row in output["ablation"]}
+    assert list(ablation) == [
+        "defaults",
+        "cost_n_steps=1",
+        "kappa_states=replay",
+        "kappa_statistic=mean",
+        "paper options",
+    ]
+    assert ablation["defaults"] == 1.0
+    assert all(math.isfinite(v) and v > 0 for v in ablation.values())
