@@ -33,10 +33,9 @@ lint: $(STAMP)
 train: $(STAMP)
 	$(PY) train.py experiment=quickstart
 
+# every benchmarks/bench_*.py (tests/test_benchmarks.py runs each at tiny sizes)
 bench: $(STAMP)
-	$(PY) benchmarks/bench_envs.py
-	$(PY) benchmarks/bench_update.py
-	$(PY) benchmarks/bench_memory.py
+	for script in benchmarks/bench_*.py; do $(PY) $$script || exit 1; done
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache

@@ -2,21 +2,25 @@
 
 Usage::
 
-    python benchmarks/bench_envs.py [--steps N] [--envs static dynamic ...]
+    python benchmarks/bench_envs.py [--steps N] [--envs static dynamic ...] [--json PATH]
 
 Random actions, one process, resets included in the timing. "raw" steps the
 gymnasium env directly; "torchrl" steps ``make_env(name)`` (GymWrapper + info reader
 + StepCounter/RewardSum/CostSum) through ``env.rollout`` with pre-drawn random
 actions; "batched x4" does the same with ``make_env(name, num_workers=4,
 parallel=False)`` (one ``BatchedGymEnv``, the training default) and counts frames.
+``--json PATH`` also writes the rows as JSON (``tests/test_benchmarks.py`` reads it).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import os
 import platform
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -65,11 +69,17 @@ def torchrl_steps_per_second(name: str, steps: int, seed: int = 0, num_envs: int
     return steps * num_envs / elapsed
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--steps", type=int, default=5000, help="steps per measurement")
     parser.add_argument("--envs", nargs="*", default=list(PRESET_NAMES), help="preset names")
-    args = parser.parse_args()
+    parser.add_argument("--json", type=Path, help="also write the rows here as JSON")
+    args = parser.parse_args(argv)
+    if args.steps < 4:
+        parser.error("--steps must be at least 4 (the batched cell steps 4 envs steps // 4 times)")
+    unknown = [name for name in args.envs if name not in PRESET_NAMES]
+    if unknown:
+        parser.error(f"unknown env presets {unknown}; choose from {list(PRESET_NAMES)}")
     torch.set_num_threads(1)
 
     print(
@@ -82,6 +92,7 @@ def main() -> None:
     )
     print(header)
     print("-" * len(header))
+    rows = []
     for name in args.envs:
         raw = raw_steps_per_second(name, args.steps)
         wrapped = torchrl_steps_per_second(name, args.steps)
@@ -91,6 +102,24 @@ def main() -> None:
             f"{batched:>20,.0f} {raw / batched:>8.1f}x",
             flush=True,
         )
+        rows.append(
+            {
+                "env": name,
+                "raw_steps_per_s": raw,
+                "torchrl_steps_per_s": wrapped,
+                "batched4_frames_per_s": batched,
+            }
+        )
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+    bad = [
+        row["env"]
+        for row in rows
+        if not all(math.isfinite(v) for k, v in row.items() if k != "env")
+    ]
+    if bad:
+        raise SystemExit(f"non-finite rates for {bad}")
+    return rows
 
 
 if __name__ == "__main__":

@@ -6,9 +6,13 @@ optionally fills the replay buffer to capacity first (``--fill``: the steady sta
 a 3 M-frame run after its first 10⁶ frames, reached here in seconds by repeating
 real transitions), trains ``--frames`` frames and reports its peak RSS
 (``ru_maxrss``) and the RSS at the end, with the RSS after each collected batch.
+Each algorithm at the defaults (``wcsac``, ``sac_lag``: their buffer also stores the
+10-step cost entries) and at the paper's options (``wcsac_paper``, ``sac_lag_paper``).
 
-    python benchmarks/bench_memory.py                      # sac_lag and wcsac, 5 000 frames, empty and full buffer
+    python benchmarks/bench_memory.py                      # the four, 5 000 frames, empty and full buffer
     python benchmarks/bench_memory.py --algos wcsac --frames 8000 --no-fill
+    python benchmarks/bench_memory.py --algos wcsac --env tiny --frames 800 --no-fill \
+        --override algo.collector.init_random_frames=400 --json out.json   # a smoke run
 
 The numbers are for this package's defaults (``retain_freed_memory=true``);
 ``--default-malloc`` measures glibc's defaults instead.
@@ -20,6 +24,7 @@ import argparse
 import json
 import os
 import resource
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -37,33 +42,41 @@ def _rss_mb() -> float:
     return float("nan")
 
 
-def _child(algo: str, frames: int, fill: bool, default_malloc: bool) -> dict:
+def _child(
+    algo: str, frames: int, fill: bool, default_malloc: bool, env: str, extra: list[str]
+) -> dict:
     from hydra import compose, initialize_config_dir
 
     from wcsac_rl.training import make_trainer
 
     overrides = [
         f"algo={algo}",
-        "env=static",
+        f"env={env}",
         f"total_frames={frames}",
         f"epoch_frames={frames}",
         "progress_bar=false",
         "logger=none",
         f"retain_freed_memory={'false' if default_malloc else 'true'}",
+        *extra,
     ]
     with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
         cfg = compose("config", overrides=overrides)
-    trainer = make_trainer(cfg, Path(tempfile.mkdtemp(prefix="bench_memory_")) / "run")
+    tmp = tempfile.mkdtemp(prefix="bench_memory_")
+    trainer = make_trainer(cfg, Path(tmp) / "run")
     start = _rss_mb()
     filled_s = 0.0
     if fill:  # real transitions, repeated up to the buffer's capacity
         t0 = time.time()
         from wcsac_rl.training import builders
 
-        env = builders.make_train_env(cfg)  # not the trainer's: its collector starts it
-        rollout = env.rollout(1000, break_when_any_done=False).reshape(-1)
-        env.close()
-        rows = rollout.select(*trainer.replay_keys)
+        train_env = builders.make_train_env(cfg)  # not the trainer's: its collector starts it
+        rollout = train_env.rollout(1000, break_when_any_done=False)  # [envs, time]
+        train_env.close()
+        if trainer.postproc is not None:  # the n-step cost entries, as the trainer adds them
+            rollout = trainer.postproc(rollout)
+        if trainer.initial_state_buffer is not None:
+            trainer.initial_state_buffer.add_starts(rollout)
+        rows = rollout.reshape(-1).select(*trainer.replay_keys)
         capacity = int(cfg.algo.buffer_size)
         while len(trainer.replay_buffer) < capacity:
             trainer.replay_buffer.extend(rows[: capacity - len(trainer.replay_buffer)])
@@ -83,9 +96,12 @@ def _child(algo: str, frames: int, fill: bool, default_malloc: bool) -> dict:
         trainer.run()
     finally:
         trainer.close()
+        shutil.rmtree(tmp, ignore_errors=True)
     return {
         "algo": algo,
+        "env": env,
         "frames": frames,
+        "updates": trainer.updates,
         "full_buffer": fill,
         "buffer_rows": len(trainer.replay_buffer),
         "retain_freed_memory": not default_malloc,
@@ -99,24 +115,39 @@ def _child(algo: str, frames: int, fill: bool, default_malloc: bool) -> dict:
     }
 
 
-def main() -> None:
+ALGOS = ["sac_lag", "wcsac", "sac_lag_paper", "wcsac_paper"]
+
+
+def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--algos", nargs="+", default=["sac_lag", "wcsac"])
+    parser.add_argument("--algos", nargs="+", default=ALGOS)
     parser.add_argument("--frames", type=int, default=5000)
+    parser.add_argument("--env", default="static", help="env preset (default: static)")
+    parser.add_argument(
+        "--override",
+        nargs="*",
+        default=[],
+        help="further Hydra overrides of each run (e.g. algo.collector.init_random_frames=400)",
+    )
+    parser.add_argument("--json", type=Path, help="also write the results here as JSON")
     parser.add_argument("--no-fill", action="store_true", help="only the empty-buffer runs")
     parser.add_argument("--fill-only", action="store_true", help="only the full-buffer runs")
     parser.add_argument("--default-malloc", action="store_true", help="retain_freed_memory=false")
-    parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
-    args = parser.parse_args()
+    parser.add_argument("--child", nargs=5, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
     if args.child:
-        algo, frames, fill, default_malloc = args.child
-        print(json.dumps(_child(algo, int(frames), fill == "1", default_malloc == "1")))
-        return
+        algo, frames, fill, default_malloc, env = args.child
+        result = _child(algo, int(frames), fill == "1", default_malloc == "1", env, args.override)
+        print(json.dumps(result))
+        return [result]
+    if args.frames < 1:
+        parser.error("--frames must be at least 1")
     fills = [False] if args.no_fill else [True] if args.fill_only else [False, True]
     env = {**os.environ, "OMP_NUM_THREADS": os.environ.get("OMP_NUM_THREADS", "1")}
     print(
-        f"{'algo':8s} {'buffer':>12s} {'frames':>7s} {'peak RSS':>9s} {'end RSS':>8s}  RSS by frames"
+        f"{'algo':13s} {'buffer':>12s} {'frames':>7s} {'peak RSS':>9s} {'end RSS':>8s}  RSS by frames"
     )
+    results = []
     for fill in fills:
         for algo in args.algos:  # one process at a time: nothing else competes for memory
             child = [
@@ -124,22 +155,30 @@ def main() -> None:
                 str(args.frames),
                 "1" if fill else "0",
                 "1" if args.default_malloc else "0",
+                args.env,
             ]
-            out = subprocess.run(
-                [sys.executable, __file__, "--child", *child],
+            proc = subprocess.run(
+                [sys.executable, __file__, "--child", *child, "--override", *args.override],
                 capture_output=True,
                 text=True,
                 env=env,
-                check=True,
-            ).stdout
+            )
+            if proc.returncode:
+                sys.stderr.write(proc.stderr)
+                raise SystemExit(f"the {algo} run ({'full' if fill else 'empty'} buffer) failed")
+            out = proc.stdout
             r = json.loads(out.strip().splitlines()[-1])
+            results.append(r)
             buffer = f"{r['buffer_rows']:,} rows" if fill else "filling"
             trace = " ".join(f"{f}:{m}" for f, m in r["trace"][:: max(1, len(r["trace"]) // 6)])
             print(
-                f"{algo:8s} {buffer:>12s} {r['frames']:>7d} {r['peak_rss_mb']:>6d} MB "
+                f"{algo:13s} {buffer:>12s} {r['frames']:>7d} {r['peak_rss_mb']:>6d} MB "
                 f"{r['rss_end_mb']:>5d} MB  {trace}",
                 flush=True,
             )
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+    return results
 
 
 if __name__ == "__main__":

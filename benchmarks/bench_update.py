@@ -3,28 +3,49 @@
 Usage::
 
     python benchmarks/bench_update.py [--threads 1] [--rounds 5] [--updates 20]
-                                      [--compile] [--no-loop] [--default-malloc]
+                                      [--options defaults paper] [--compile]
+                                      [--no-loop] [--default-malloc] [--json PATH]
+    python benchmarks/bench_update.py --batch 8 --width 16 --rounds 1 --updates 1 \\
+        --peak-seconds 0.01 --env tiny --loop-frames 800     # a smoke run (tests)
 
 Prints, with one torch thread by default:
 
 * the machine's single-core fp32 matmul peak (GFLOP/s, measured here);
-* updates/s of (a) TorchRL's ``SACLoss`` with TorchRL's ``SoftUpdate`` (what a
-  TorchRL user runs), (a') the same with the kit's ``PolyakUpdate``, (b) ``WCSACLoss``
-  as the trainer runs it (fused critics, direct sampling, ``PolyakUpdate``),
-  (b-) ``WCSACLoss`` through TorchRL's general paths (module calls, ``TanhNormal``,
-  ``SoftUpdate``), (b') ``WCSACLoss`` under ``torch.compile`` (``--compile``),
-  (c) a plain-PyTorch WCSAC update (``plain_wcsac.py``) and (d) ``WCSACLoss`` with
-  the implicit-quantile safety critic (``algo.safety_critic=iqn``: N = N' = 20
-  fractions, as the trainer runs it), with its time per update against (b)'s, all
-  with the paper's
-  sizes (2 × 256 MLPs, batch 256, obs 44, action 2), timed in interleaved rounds
-  (median reported), each with its FLOPs per update (forward + backward matrix
-  products) and the achieved GFLOP/s as a fraction of the matmul peak;
-* StaticEnv steps/s (raw gymnasium and TorchRL-wrapped), collector frames/s (4
-  envs in one BatchedGymEnv, random policy) and end-to-end training frames/s of
-  WCSAC at the paper's UTD 0.25, against 4 × the update rate (the ceiling when
-  collection, replay and logging cost nothing).
+* updates/s of every variant below, timed in interleaved rounds (median reported),
+  each with its FLOPs per update (forward + backward matrix products) and the
+  achieved GFLOP/s as a fraction of the matmul peak. Each ``WCSACLoss`` variant is
+  timed at each option set of ``--options``: ``defaults`` (the loss's code defaults =
+  ``algo=wcsac``: 10-step cost targets, κ on the tail statistic at episode start
+  states) and ``paper`` (``PAPER_OPTIONS`` = ``algo=wcsac_paper``). Its batch comes
+  through the kit's pipeline, as the trainer builds it: collected trajectories →
+  ``make_postproc(loss)`` (the n-step cost entries) → the replay rows the loss reads
+  → a uniform sample → ``StartStateBuffer.attach`` (a start state per row).
 
+  - ``sac``: TorchRL's ``SACLoss`` + ``SoftUpdate`` with the kit's networks (what a
+    TorchRL user runs); ``sac_polyak``: the same with the kit's ``PolyakUpdate``;
+  - ``wcsac_<options>``: ``WCSACLoss`` as the trainer runs it (fused critics, direct
+    sampling, ``PolyakUpdate``);
+  - ``wcsac_<options>_general``: ``WCSACLoss`` through TorchRL's general paths
+    (module calls, ``TanhNormal``, ``SoftUpdate``);
+  - ``wcsac_<options>_compiled``: under ``torch.compile`` (``--compile``);
+  - ``sac_torchrl_nets`` / ``wcsac_<options>_torchrl_nets``: ``SACLoss`` and
+    ``WCSACLoss`` with TorchRL's generic networks (``torchrl.modules.MLP``,
+    ``ProbabilisticActor`` + ``TanhNormal``, ``ValueOperator``; a user's own
+    networks): ``loss(td)`` + backward + Adam step + ``SoftUpdate``;
+  - ``plain_wcsac_paper``: the plain-PyTorch update of ``plain_wcsac.py`` (the
+    paper's loss with an MSE variance loss, no framework);
+  - ``wcsac_defaults_iqn``: the implicit-quantile safety critic
+    (``algo.safety_critic=iqn``: N = N' = 20) at the defaults.
+
+  "vs SAC" compares with ``sac`` (kit networks) or ``sac_torchrl_nets`` (TorchRL's
+  networks). Sizes: ``--width`` (2 hidden layers), ``--batch``, obs 44, action 2
+  (the paper's: 2 × 256, batch 256);
+* StaticEnv steps/s (raw gymnasium and TorchRL-wrapped), collector frames/s (4
+  envs in one BatchedGymEnv, random policy) and, per option set, end-to-end training
+  frames/s of WCSAC at the paper's UTD 0.25 against 4 × that loss's update rate (the
+  ceiling when collection, replay and logging cost nothing) (``--no-loop`` skips it).
+
+``--json PATH`` also writes every figure as JSON (``tests/test_benchmarks.py`` reads it).
 Like training (``retain_freed_memory: true``), the process first asks glibc's malloc
 to keep freed memory for reuse; ``--default-malloc`` measures without that.
 """
@@ -32,16 +53,24 @@ to keep freed memory for reuse; ``--default-malloc`` measures without that.
 from __future__ import annotations
 
 import argparse
+import csv
+import json
+import math
 import statistics
 import sys
 import tempfile
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
+from torch import nn
 from torch.utils._python_dispatch import TorchDispatchMode
 from torchrl.data import Bounded
+from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SACLoss, SoftUpdate
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -50,11 +79,23 @@ from plain_wcsac import PlainWCSAC, batch_inputs
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import PolyakUpdate
-from wcsac_rl.training.builders import adam
+from wcsac_rl.objectives import PAPER_OPTIONS, PolyakUpdate, StartStateBuffer
+from wcsac_rl.training.builders import adam, make_postproc
 from wcsac_rl.training.runtime import retain_freed_memory
 
-OBS, ACT, BATCH = 44, 2, 256
+OBS, ACT = 44, 2
+OPTION_SETS = {"defaults": {}, "paper": dict(PAPER_OPTIONS)}
+"""The loss options each ``WCSACLoss`` variant is timed at (``--options``)."""
+CONFIG_ALGO = {"defaults": "wcsac", "paper": "wcsac_paper"}
+"""The same option sets as Hydra presets (the end-to-end loop)."""
+
+
+@dataclass(frozen=True)
+class Sizes:
+    batch: int = 256
+    width: int = 256
+    obs: int = OBS
+    act: int = ACT
 
 
 def matmul_peak_gflops(seconds: float = 1.0) -> dict[str, float]:
@@ -69,32 +110,127 @@ def matmul_peak_gflops(seconds: float = 1.0) -> dict[str, float]:
         for _ in range(3):
             torch.mm(a, b)
         count, start = 0, time.perf_counter()
-        while time.perf_counter() - start < seconds:
+        while count == 0 or time.perf_counter() - start < seconds:
             torch.mm(a, b)
             count += 1
         out[name] = 2 * m * k * n * count / (time.perf_counter() - start) / 1e9
     return out
 
 
-def make_batch() -> TensorDict:
+# ------------------------------------------------------------------ batches
+def trajectories(sizes: Sizes, *, envs: int = 4, episode_steps: int = 50) -> TensorDict:
+    """Collector-shaped data ``[envs, T]``: random transitions in ``episode_steps``-step
+    episodes (``step_count`` marks their starts; a few end by termination), cost 1
+    with probability 0.1. ``T`` gives at least twice ``sizes.batch`` rows."""
     g = torch.Generator().manual_seed(0)
+    steps = max(2 * episode_steps, -(-2 * sizes.batch // envs))
+    shape = (envs, steps)
+    step_count = (torch.arange(steps) % episode_steps).expand(shape).clone()
+    truncated = step_count == episode_steps - 1
+    terminated = torch.rand(shape, generator=g) < 0.005
     return TensorDict(
         {
-            "observation": torch.randn(BATCH, OBS, generator=g),
-            "action": torch.rand(BATCH, ACT, generator=g) * 2 - 1,
+            "observation": torch.randn(*shape, sizes.obs, generator=g),
+            "action": torch.rand(*shape, sizes.act, generator=g) * 2 - 1,
+            "step_count": step_count.unsqueeze(-1),
             "next": {
-                "observation": torch.randn(BATCH, OBS, generator=g),
-                "reward": torch.randn(BATCH, 1, generator=g),
-                "cost": torch.bernoulli(torch.full((BATCH, 1), 0.1), generator=g),
-                "done": torch.zeros(BATCH, 1, dtype=torch.bool),
-                "terminated": torch.zeros(BATCH, 1, dtype=torch.bool),
+                "observation": torch.randn(*shape, sizes.obs, generator=g),
+                "reward": torch.randn(*shape, 1, generator=g),
+                "cost": torch.bernoulli(torch.full((*shape, 1), 0.1), generator=g),
+                "done": (terminated | truncated).unsqueeze(-1),
+                "terminated": terminated.unsqueeze(-1),
             },
         },
-        [BATCH],
+        list(shape),
     )
 
 
+def pipeline_batch(loss, sizes: Sizes) -> TensorDictBase:
+    """A replay batch for ``loss`` built as the trainer builds it (``OffPolicyTrainer.learn``
+    and ``.sample``): the collector postproc (n-step cost entries), the rows the loss
+    reads, a uniform sample, and a start state per row for ``kappa_states="initial"``."""
+    traj = trajectories(sizes)
+    postproc = make_postproc(loss)
+    if postproc is not None:
+        traj = postproc(traj)
+    rows = traj.reshape(-1).select(*sorted(loss.in_keys, key=str))
+    index = torch.randint(len(rows), (sizes.batch,), generator=torch.Generator().manual_seed(1))
+    batch = rows[index]
+    if getattr(loss, "kappa_states", "replay") == "initial":
+        starts = StartStateBuffer.for_loss(loss)
+        starts.add_starts(traj)
+        torch.manual_seed(2)
+        batch = starts.attach(batch)
+    if getattr(loss, "kappa_signal", "critic") != "critic":
+        raise ValueError("the benchmark's batches carry no episode-cost window (kappa_signal)")
+    return batch
+
+
+# ------------------------------------------------------------------ networks
+def kit_networks(sizes: Sizes, kind: str = "gaussian"):
+    """The kit's networks (``make_actor`` / ``make_qvalue`` / ``make_safety_critic``)."""
+    spec = Bounded(-1.0, 1.0, shape=(sizes.act,))
+    w = sizes.width
+    actor = make_actor(sizes.obs, spec, width=w)
+    qvalues = [make_qvalue(sizes.obs, sizes.act, width=w) for _ in range(2)]
+    safety = make_safety_critic(sizes.obs, sizes.act, kind=kind, width=w)
+    return actor, qvalues, safety
+
+
+def torchrl_networks(sizes: Sizes):
+    """A TorchRL user's own networks: ``torchrl.modules.MLP``, a ``ProbabilisticActor``
+    with ``TanhNormal``, one ``ValueOperator`` (the loss makes the twins) and a safety
+    critic of two MLPs (mean, softplus variance)."""
+    spec = Bounded(-1.0, 1.0, shape=(sizes.act,))
+    cells = [sizes.width, sizes.width]
+
+    def mlp(in_features: int, out_features: int) -> MLP:
+        return MLP(in_features=in_features, out_features=out_features, num_cells=cells)
+
+    actor = ProbabilisticActor(
+        TensorDictModule(
+            nn.Sequential(mlp(sizes.obs, 2 * sizes.act), NormalParamExtractor()),
+            in_keys=["observation"],
+            out_keys=["loc", "scale"],
+        ),
+        in_keys=["loc", "scale"],
+        spec=spec,
+        distribution_class=TanhNormal,
+    )
+    sa = sizes.obs + sizes.act
+    qvalue = ValueOperator(mlp(sa, 1), in_keys=["observation", "action"])
+    safety = TensorDictSequential(
+        TensorDictModule(mlp(sa, 1), in_keys=["observation", "action"], out_keys=["cost_value"]),
+        TensorDictModule(
+            _Softplus(mlp(sa, 1)), in_keys=["observation", "action"], out_keys=["cost_variance"]
+        ),
+    )
+    return actor, qvalue, safety
+
+
+class _Softplus(nn.Module):
+    """``softplus(net(*inputs))``: a positive output (the variance head)."""
+
+    def __init__(self, net: nn.Module) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        return nn.functional.softplus(self.net(*inputs))
+
+
+# ------------------------------------------------------------------ variants
+@dataclass
+class Variant:
+    label: str
+    update: Callable[[TensorDictBase], None]
+    batch: TensorDictBase
+    options: str | None  # an OPTION_SETS key, or None (SAC)
+    baseline: str  # the SAC variant it is compared with
+
+
 def torchrl_update_fn(loss, *, updater_class=PolyakUpdate, compile_loss: bool = False):
+    """``loss(td)`` + backward of the summed ``loss_*`` terms + Adam step + target update."""
     updater = updater_class(loss, tau=0.005)
     optim = adam(loss.parameters(), lr=1e-3)
     forward = torch.compile(loss) if compile_loss else loss
@@ -109,48 +245,84 @@ def torchrl_update_fn(loss, *, updater_class=PolyakUpdate, compile_loss: bool = 
     return update
 
 
-def build_variants(with_compile: bool) -> dict[str, callable]:
-    torch.manual_seed(0)
-    spec = Bounded(-1.0, 1.0, shape=(ACT,))
-
-    def sac():
-        return SACLoss(
-            make_actor(OBS, spec), [make_qvalue(OBS, ACT) for _ in range(2)], loss_function="l2"
-        )
-
-    variants = {
-        "(a) TorchRL SACLoss": torchrl_update_fn(sac(), updater_class=SoftUpdate),
-        "(a') SACLoss, PolyakUpdate": torchrl_update_fn(sac()),
-    }
-
-    def wcsac(kind: str = "gaussian", **kwargs):
-        return WCSACLoss(
-            make_actor(OBS, spec),
-            [make_qvalue(OBS, ACT) for _ in range(2)],
-            make_safety_critic(OBS, ACT, kind=kind),
-            **kwargs,
-        )
-
-    variants["(b) WCSACLoss"] = torchrl_update_fn(wcsac())
-    variants["(b-) WCSACLoss, general paths"] = torchrl_update_fn(
-        wcsac(fuse_critics=False, direct_sampling=False), updater_class=SoftUpdate
-    )
-    if with_compile:
-        variants["(b') WCSACLoss, compiled"] = torchrl_update_fn(wcsac(), compile_loss=True)
-    plain = PlainWCSAC(OBS, ACT)
-    variants["(c) plain PyTorch WCSAC"] = plain_update_fn(plain)
-    variants[IQN] = torchrl_update_fn(wcsac("iqn"))
-    return variants
-
-
-IQN = "(d) WCSACLoss, IQN critic"
-
-
 def plain_update_fn(plain: PlainWCSAC):
     def update(batch):
         plain.update(*batch_inputs(batch))
 
     return update
+
+
+def build_variants(
+    sizes: Sizes, option_sets: list[str], with_compile: bool = False
+) -> dict[str, Variant]:
+    torch.manual_seed(0)
+    variants: dict[str, Variant] = {}
+
+    def add(name, label, loss, options, baseline, **kwargs):
+        loss_batch = pipeline_batch(loss, sizes)
+        update = torchrl_update_fn(loss, **kwargs)
+        variants[name] = Variant(label, update, loss_batch, options, baseline)
+
+    def sac(networks):
+        actor, qvalues, _ = networks
+        return SACLoss(actor, qvalues, loss_function="l2")
+
+    add("sac", "TorchRL SACLoss", sac(kit_networks(sizes)), None, "sac", updater_class=SoftUpdate)
+    add("sac_polyak", "SACLoss, PolyakUpdate", sac(kit_networks(sizes)), None, "sac")
+    add(
+        "sac_torchrl_nets",
+        "SACLoss, TorchRL networks",
+        SACLoss(*torchrl_networks(sizes)[:2], num_qvalue_nets=2, loss_function="l2"),
+        None,
+        "sac_torchrl_nets",
+        updater_class=SoftUpdate,
+    )
+    for options in option_sets:
+        kwargs = OPTION_SETS[options]
+        name = f"wcsac_{options}"
+        add(
+            name,
+            f"WCSACLoss [{options}]",
+            WCSACLoss(*kit_networks(sizes), **kwargs),
+            options,
+            "sac",
+        )
+        general = WCSACLoss(
+            *kit_networks(sizes), fuse_critics=False, direct_sampling=False, **kwargs
+        )
+        add(
+            f"{name}_general",
+            f"WCSACLoss [{options}], general paths",
+            general,
+            options,
+            "sac",
+            updater_class=SoftUpdate,
+        )
+        if with_compile:
+            compiled = WCSACLoss(*kit_networks(sizes), **kwargs)
+            add(f"{name}_compiled", f"WCSACLoss [{options}], compiled", compiled, options, "sac")
+        actor, qvalue, safety = torchrl_networks(sizes)
+        add(
+            f"{name}_torchrl_nets",
+            f"WCSACLoss [{options}], TorchRL networks",
+            WCSACLoss(actor, qvalue, safety, num_qvalue_nets=2, **kwargs),
+            options,
+            "sac_torchrl_nets",
+            updater_class=SoftUpdate,
+        )
+    if "paper" in option_sets:
+        plain = PlainWCSAC(sizes.obs, sizes.act, width=sizes.width)
+        variants["plain_wcsac_paper"] = Variant(
+            "plain PyTorch WCSAC [paper, mse]",
+            plain_update_fn(plain),
+            pipeline_batch(WCSACLoss(*kit_networks(sizes), **PAPER_OPTIONS), sizes),
+            "paper",
+            "sac",
+        )
+    if "defaults" in option_sets:
+        iqn = WCSACLoss(*kit_networks(sizes, kind="iqn"))
+        add("wcsac_defaults_iqn", "WCSACLoss [defaults], IQN critic", iqn, "defaults", "sac")
+    return variants
 
 
 class _MatmulFlops(TorchDispatchMode):
@@ -180,57 +352,93 @@ def flops_per_update(update, batch) -> float:
     return float(counter.flops)
 
 
-def time_variants(variants, batch, rounds: int, updates: int) -> dict[str, float]:
-    for name, update in variants.items():  # warm-up (and compilation)
+def time_variants(
+    variants: dict[str, Variant], rounds: int, updates: int, warmup: int = 3
+) -> dict[str, float]:
+    """Median updates/s of each variant over ``rounds`` interleaved rounds."""
+    for name, v in variants.items():  # warm-up (and compilation)
         start = time.perf_counter()
-        for _ in range(3):
-            update(batch)
+        for _ in range(warmup):
+            v.update(v.batch)
         print(f"  warm-up {name}: {time.perf_counter() - start:.1f}s", flush=True)
     rates: dict[str, list[float]] = {name: [] for name in variants}
     for _ in range(rounds):
-        for name, update in variants.items():
+        for name, v in variants.items():
             start = time.perf_counter()
             for _ in range(updates):
-                update(batch)
+                v.update(v.batch)
             rates[name].append(updates / (time.perf_counter() - start))
     return {name: statistics.median(r) for name, r in rates.items()}
 
 
-def env_and_loop(update_rate: float, threads: int, retained: bool) -> list[tuple[str, str]]:
-    """StaticEnv raw / wrapped steps/s, collector frames/s, end-to-end training frames/s."""
+# ------------------------------------------------------------------ the loop
+def _last_full_epoch(progress_csv: Path, epoch_frames: int) -> dict[str, str]:
+    """The last ``progress.csv`` row of a whole epoch with updates in it."""
+    with progress_csv.open() as f:
+        rows = [
+            row
+            for row in csv.DictReader(f)
+            if row.get("time/ups")
+            and float(row["time/ups"]) > 0
+            and int(float(row["frames"])) % epoch_frames == 0
+        ]
+    if not rows:
+        raise RuntimeError(f"{progress_csv}: no whole epoch with updates; raise --loop-frames")
+    return rows[-1]
+
+
+def env_rows(env: str, steps: int) -> list[dict]:
+    """Raw / wrapped steps/s of ``env`` and collector frames/s (4 envs, random actions)."""
     from bench_envs import raw_steps_per_second, torchrl_steps_per_second
     from torchrl.collectors import Collector
 
     from wcsac_rl.envs import make_env
-    from wcsac_rl.training import make_trainer
 
     rows = [
-        ("StaticEnv raw gymnasium steps/s", f"{raw_steps_per_second('static', 3000):,.0f}"),
-        ("StaticEnv TorchRL-wrapped steps/s", f"{torchrl_steps_per_second('static', 3000):,.0f}"),
+        {"what": f"{env} raw gymnasium steps/s", "value": raw_steps_per_second(env, steps)},
+        {"what": f"{env} TorchRL-wrapped steps/s", "value": torchrl_steps_per_second(env, steps)},
     ]
-    env = make_env("static", seed=0, num_workers=4, parallel=False)
-    collector = Collector(env, None, frames_per_batch=400, total_frames=4000)
+    frames_per_batch = max(4, steps // 8 * 4)
+    collector = Collector(
+        make_env(env, seed=0, num_workers=4, parallel=False),
+        None,
+        frames_per_batch=frames_per_batch,
+        total_frames=frames_per_batch * 4,
+    )
     start = time.perf_counter()
     frames = sum(batch.numel() for batch in collector)
     rows.append(
-        (
-            "collector frames/s (4 envs, BatchedGymEnv, random policy)",
-            f"{frames / (time.perf_counter() - start):,.0f}",
-        )
+        {
+            "what": "collector frames/s (4 envs, BatchedGymEnv, random policy)",
+            "value": frames / (time.perf_counter() - start),
+        }
     )
     collector.shutdown()
+    return rows
 
+
+def training_loop(
+    options: str, sizes: Sizes, env: str, frames: int, threads: int, retained: bool
+) -> dict:
+    """Frames/s and updates/s of a short training run of ``algo=wcsac`` (defaults) or
+    ``algo=wcsac_paper``, from its last whole epoch (400-frame batches, UTD 0.25)."""
     from hydra import compose, initialize_config_dir
 
+    from wcsac_rl.training import make_trainer
+
+    epoch_frames = max(400, (frames // 2) // 400 * 400)
     conf = Path(__file__).resolve().parents[1] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
         cfg = compose(
             "config",
             overrides=[
-                "env=static",
-                "total_frames=8400",
-                "epoch_frames=4000",
+                f"algo={CONFIG_ALGO[options]}",
+                f"env={env}",
+                f"total_frames={frames}",
+                f"epoch_frames={epoch_frames}",
                 "algo.collector.init_random_frames=400",
+                f"algo.batch_size={sizes.batch}",
+                f"algo.network.width={sizes.width}",
                 "eval_episodes=0",
                 "progress_bar=false",
                 "logger=none",
@@ -240,80 +448,133 @@ def env_and_loop(update_rate: float, threads: int, retained: bool) -> list[tuple
         )
     with tempfile.TemporaryDirectory() as tmp:
         trainer = make_trainer(cfg, Path(tmp) / "run")
-        trainer.run()
-        trainer.close()
-        rows_csv = (Path(tmp) / "run" / "progress.csv").read_text().splitlines()
-    header, last = rows_csv[0].split(","), rows_csv[-2].split(",")  # a full epoch with updates
-    values = dict(zip(header, last))
-    fps, ups = float(values["time/fps"]), float(values["time/ups"])
-    rows.append(
-        ("end-to-end WCSAC training frames/s (UTD 0.25)", f"{fps:,.1f} ({ups:.1f} updates/s)")
-    )
-    rows.append(
-        (
-            "  vs 4 × isolated WCSACLoss updates/s",
-            f"{fps / (4 * update_rate):.0%} of {4 * update_rate:.1f}",
-        )
-    )
-    return rows
+        try:
+            trainer.run()
+        finally:
+            trainer.close()
+        row = _last_full_epoch(Path(tmp) / "run" / "progress.csv", epoch_frames)
+    return {"options": options, "fps": float(row["time/fps"]), "ups": float(row["time/ups"])}
 
 
-def main() -> None:
+# ------------------------------------------------------------------ main
+def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--rounds", type=int, default=5)
-    parser.add_argument("--updates", type=int, default=20)
+    parser.add_argument("--updates", type=int, default=20, help="updates per round")
+    parser.add_argument("--warmup", type=int, default=3, help="untimed updates per variant")
+    parser.add_argument("--batch", type=int, default=256)
+    parser.add_argument("--width", type=int, default=256, help="hidden units (2 layers)")
+    parser.add_argument(
+        "--options", nargs="+", choices=list(OPTION_SETS), default=list(OPTION_SETS)
+    )
+    parser.add_argument("--peak-seconds", type=float, default=1.0, help="per matmul size")
     parser.add_argument(
         "--compile", action="store_true", help="also time WCSACLoss under torch.compile"
     )
     parser.add_argument(
         "--no-loop", action="store_true", help="skip the env / collector / training part"
     )
+    parser.add_argument("--env", default="static", help="env preset of the loop part")
+    parser.add_argument("--env-steps", type=int, default=3000, help="steps per env measurement")
+    parser.add_argument("--loop-frames", type=int, default=8400, help="frames per training run")
     parser.add_argument(
         "--default-malloc",
         action="store_true",
         help="keep glibc's default malloc thresholds (training retains freed memory)",
     )
-    args = parser.parse_args()
+    parser.add_argument("--json", type=Path, help="also write the figures here as JSON")
+    args = parser.parse_args(argv)
+    for name in ("threads", "rounds", "updates", "batch", "width", "env_steps", "loop_frames"):
+        if getattr(args, name) < 1:
+            parser.error(f"--{name.replace('_', '-')} must be at least 1")
     torch.set_num_threads(args.threads)
     retained = not args.default_malloc and retain_freed_memory()
+    sizes = Sizes(batch=args.batch, width=args.width)
     print(
         f"torch {torch.__version__}, {args.threads} thread(s), "
-        f"malloc {'retains freed memory' if retained else 'defaults'}"
+        f"malloc {'retains freed memory' if retained else 'defaults'}, "
+        f"batch {sizes.batch}, 2 x {sizes.width} MLPs, obs {sizes.obs}, action {sizes.act}"
     )
 
-    peaks = matmul_peak_gflops()
+    peaks = matmul_peak_gflops(args.peak_seconds)
     peak = max(peaks.values())
     print("\nfp32 matmul GFLOP/s:")
     for name, value in peaks.items():
         print(f"  {name:<28} {value:8.1f}")
 
-    batch = make_batch()
-    variants = build_variants(args.compile)
-    flops = {name: flops_per_update(update, batch) for name, update in variants.items()}
-    rates = time_variants(variants, batch, args.rounds, args.updates)
-    reference = rates["(a) TorchRL SACLoss"]
+    variants = build_variants(sizes, args.options, args.compile)
+    flops = {name: flops_per_update(v.update, v.batch) for name, v in variants.items()}
+    rates = time_variants(variants, args.rounds, args.updates, args.warmup)
+    print(f"\nupdates/s (median of {args.rounds} interleaved rounds of {args.updates} updates):")
     print(
-        f"\nupdates/s (median of {args.rounds} interleaved rounds of {args.updates} updates, batch {BATCH}):"
+        f"  {'variant':<40} {'updates/s':>10} {'vs SAC':>7} {'GFLOP/upd':>10} "
+        f"{'GFLOP/s':>8} {'of peak':>8}"
     )
-    print(
-        f"  {'variant':<32} {'updates/s':>10} {'vs SACLoss':>10} {'GFLOP/upd':>10} {'GFLOP/s':>8} {'of peak':>8}"
-    )
+    update_rows = []
     for name, rate in rates.items():
+        v = variants[name]
         gflops = flops[name] / 1e9
+        row = {
+            "name": name,
+            "label": v.label,
+            "options": v.options,
+            "updates_per_s": rate,
+            "vs_sac": rate / rates[v.baseline],
+            "baseline": v.baseline,
+            "gflop_per_update": gflops,
+            "gflop_per_s": gflops * rate,
+            "of_peak": gflops * rate / peak,
+        }
+        update_rows.append(row)
         print(
-            f"  {name:<32} {rate:10.1f} {rate / reference:10.2f} {gflops:10.3f} "
-            f"{gflops * rate:8.1f} {gflops * rate / peak:8.0%}"
+            f"  {name:<40} {rate:10.1f} {row['vs_sac']:7.2f} {gflops:10.3f} "
+            f"{row['gflop_per_s']:8.1f} {row['of_peak']:8.0%}"
         )
-    ratio = rates["(b) WCSACLoss"] / rates[IQN]
-    print(f"\nIQN critic: {ratio:.2f}× the time per update of the Gaussian critic (b)")
+    if "wcsac_defaults_iqn" in rates:
+        ratio = rates["wcsac_defaults"] / rates["wcsac_defaults_iqn"]
+        print(f"\nIQN critic: {ratio:.2f}x the time per update of the Gaussian critic (defaults)")
+
+    loop_rows: list[dict] = []
     if not args.no_loop:
-        wcsac_rate = rates["(b) WCSACLoss"]  # the training run below is eager
         print("\nenvironment and loop:")
-        for name, value in env_and_loop(wcsac_rate, args.threads, bool(retained)):
-            print(f"  {name:<52} {value}")
+        for row in env_rows(args.env, args.env_steps):
+            loop_rows.append(row)
+            print(f"  {row['what']:<60} {row['value']:,.0f}")
+        for options in args.options:  # the training runs are eager
+            run = training_loop(
+                options, sizes, args.env, args.loop_frames, args.threads, bool(retained)
+            )
+            ceiling = 4 * rates[f"wcsac_{options}"]
+            run["of_ceiling"] = run["fps"] / ceiling
+            loop_rows.append({"what": f"end-to-end WCSAC [{options}] frames/s", **run})
+            print(
+                f"  {'end-to-end WCSAC [' + options + '] frames/s (UTD 0.25)':<60} "
+                f"{run['fps']:,.1f} ({run['ups']:.1f} updates/s) = "
+                f"{run['of_ceiling']:.0%} of 4 x its isolated updates/s"
+            )
+    result = {
+        "torch": torch.__version__,
+        "threads": args.threads,
+        "sizes": sizes.__dict__,
+        "matmul_peak_gflops": peaks,
+        "updates": update_rows,
+        "loop": loop_rows,
+    }
+    bad = [
+        key
+        for rows in (update_rows, loop_rows)
+        for row in rows
+        for key, value in row.items()
+        if isinstance(value, float) and not math.isfinite(value)
+    ]
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=1))
+    if bad:
+        raise SystemExit(f"non-finite figures: {bad}")
+    return result
 
 
 if __name__ == "__main__":

@@ -1,0 +1,182 @@
+"""Every benchmark script runs, at tiny sizes, and reports what it measures.
+
+Each ``benchmarks/bench_*.py`` is run as ``make bench`` runs it, and so is
+``benchmarks/profile_update.py`` (``python
+benchmarks/<script>``, a fresh process; this checkout's package first on the path)
+with options that make it small: tiny networks and batches, one round of one update,
+the tiny env. Its ``--json`` output is then read: every row the script promises is
+there, every figure finite and positive, and the figures that follow from the
+schedule are what it fixes (updates per frame, buffer rows). A benchmark that breaks
+(as ``bench_update.py`` did when the loss's defaults began to read n-step entries)
+fails here; a new script in ``benchmarks/`` without an entry in ``SMOKE_ARGS`` fails too.
+
+Nothing here is a timing claim: the rates only have to be measured at all.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCHMARKS = ROOT / "benchmarks"
+
+TINY_UPDATE = ["--batch", "8", "--width", "16", "--rounds", "1", "--updates", "1"]
+SMOKE_ARGS = {
+    "bench_envs.py": ["--steps", "40", "--envs", "tiny", "static"],
+    "bench_update.py": [
+        *TINY_UPDATE,
+        *("--warmup", "1", "--peak-seconds", "0.01"),
+        *("--env", "tiny", "--env-steps", "40", "--loop-frames", "1200"),
+    ],
+    "bench_memory.py": [
+        *("--algos", "wcsac", "wcsac_paper", "--env", "tiny", "--frames", "800"),
+        "--override",
+        "algo.collector.init_random_frames=400",
+        "algo.network.width=16",
+        "algo.batch_size=8",
+        "algo.buffer_size=1500",  # --fill fills it from a 1 000-step rollout
+    ],
+    "profile_update.py": [
+        *("--batch", "8", "--width", "16", "--updates", "2", "--warmup", "1", "--repeats", "1"),
+        *("--ablation", "1"),
+    ],
+}
+"""Tiny options for each script of ``benchmarks/`` (every one with a ``__main__`` needs one)."""
+
+
+def run_benchmark(script: str, tmp_path: Path) -> object:
+    out = tmp_path / f"{script}.json"
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+        "OMP_NUM_THREADS": "1",
+    }
+    proc = subprocess.run(
+        [sys.executable, str(BENCHMARKS / script), *SMOKE_ARGS[script], "--json", str(out)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert proc.returncode == 0, f"{script} failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+    return json.loads(out.read_text())
+
+
+def assert_positive(row: dict, *keys: str) -> None:
+    for key in keys:
+        value = row[key]
+        assert isinstance(value, int | float) and math.isfinite(value) and value > 0, (key, row)
+
+
+def test_every_benchmark_script_has_smoke_options():
+    scripts = [p.name for p in BENCHMARKS.glob("*.py") if "__main__" in p.read_text()]
+    assert sorted(scripts) == sorted(SMOKE_ARGS)
+    assert {p.name for p in BENCHMARKS.glob("bench_*.py")} <= set(scripts)  # make bench's
+
+
+def test_bench_envs_runs(tmp_path):
+    rows = run_benchmark("bench_envs.py", tmp_path)
+    assert [row["env"] for row in rows] == ["tiny", "static"]
+    for row in rows:
+        assert_positive(row, "raw_steps_per_s", "torchrl_steps_per_s", "batched4_frames_per_s")
+
+
+def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
+    result = run_benchmark("bench_update.py", tmp_path)
+    assert result["sizes"] == {"batch": 8, "width": 16, "obs": 44, "act": 2}
+    assert result["threads"] == 1
+    assert len(result["matmul_peak_gflops"]) == 3
+    assert all(math.isfinite(v) and v > 0 for v in result["matmul_peak_gflops"].values())
+    rows = {row["name"]: row for row in result["updates"]}
+    expected = {"sac", "sac_polyak", "sac_torchrl_nets", "plain_wcsac_paper", "wcsac_defaults_iqn"}
+    for options in ("defaults", "paper"):
+        for suffix in ("", "_general", "_torchrl_nets"):
+            expected.add(f"wcsac_{options}{suffix}")
+    assert set(rows) == expected
+    for name, row in rows.items():
+        assert_positive(row, "updates_per_s", "vs_sac", "gflop_per_update", "gflop_per_s")
+        assert_positive(row, "of_peak")
+        baseline = rows[row["baseline"]]
+        assert row["vs_sac"] == pytest.approx(row["updates_per_s"] / baseline["updates_per_s"])
+        if name.startswith("wcsac_"):
+            assert row["options"] == name.split("_")[1]
+    flops = {name: row["gflop_per_update"] for name, row in rows.items()}
+    # the same networks and batch: WCSAC's four critics do more matrix work than SAC's
+    # two, and the defaults' extra evaluations (n-step targets, start states) more still
+    assert flops["sac"] == flops["sac_polyak"] < flops["wcsac_paper"] < flops["wcsac_defaults"]
+    # the fused and the general path multiply the same matrices
+    for options in ("defaults", "paper"):
+        assert flops[f"wcsac_{options}_general"] == pytest.approx(flops[f"wcsac_{options}"])
+
+    loop = result["loop"]
+    env_rows = [row for row in loop if "options" not in row]
+    assert len(env_rows) == 3
+    for row in env_rows:
+        assert_positive(row, "value")
+    runs = {row["options"]: row for row in loop if "options" in row}
+    assert set(runs) == {"defaults", "paper"}
+    for row in runs.values():
+        assert_positive(row, "fps", "ups", "of_ceiling")
+        # UTD 0.25 (100 updates per 400-frame batch): over a whole epoch, updates per frame
+        assert row["ups"] / row["fps"] == pytest.approx(0.25)
+
+
+def test_bench_memory_runs_at_the_defaults_and_the_paper_options(tmp_path):
+    results = run_benchmark("bench_memory.py", tmp_path)
+    runs = {(r["algo"], r["full_buffer"]): r for r in results}
+    assert set(runs) == {(a, f) for a in ("wcsac", "wcsac_paper") for f in (False, True)}
+    for (_, full), r in runs.items():
+        assert r["env"] == "tiny" and r["frames"] == 800
+        # batches of 400 frames from frame 400 on (init_random_frames), 100 updates each
+        assert r["updates"] == 200
+        assert r["buffer_rows"] == (1500 if full else 800)
+        assert_positive(r, "peak_rss_mb", "rss_end_mb", "rss_after_build_mb")
+        assert r["peak_rss_mb"] >= r["rss_after_build_mb"]
+        assert [frames for frames, _ in r["trace"]] == [400, 800]
+
+
+def test_profile_update_gives_each_part_of_the_update_its_share(tmp_path):
+    output = run_benchmark("profile_update.py", tmp_path)
+    results = {r["options"]: r for r in output["profiles"]}
+    assert set(results) == {"defaults", "paper"}
+    extras = {"targets: n-step cost", "kappa: start-state values"}
+    common = {"targets: 1-step", "online critics", "actor loss", "optimizer step"}
+    for options, result in results.items():
+        parts = result["parts"]
+        assert common <= set(parts)
+        assert extras <= set(parts) if options == "defaults" else not extras & set(parts)
+        for entry in parts.values():
+            assert 0 <= entry["share"] <= 1 and 0 <= entry["flop_share"] <= 1
+        # one repeat: the shares are of one profile and add up to it
+        assert sum(e["share"] for e in parts.values()) == pytest.approx(1.0)
+        assert sum(e["flop_share"] for e in parts.values()) == pytest.approx(1.0)
+        assert_positive(result, "gflop_per_update")
+    flops = {part: entry["flop_share"] for part, entry in results["defaults"]["parts"].items()}
+    # matrix products per row, width 16: the actor 44-16-16-4, each critic 46-16-16-1;
+    # the 1-step targets and the start states each run the actor and the four critics,
+    # the n-step targets the actor and the safety critic's two networks (elementwise
+    # FLOPs, also counted by the profiler, are < 1% of these)
+    actor, critic = 2 * (44 * 16 + 16 * 16 + 16 * 4), 2 * (46 * 16 + 16 * 16 + 16)
+    assert flops["kappa: start-state values"] == pytest.approx(flops["targets: 1-step"], rel=0.01)
+    assert flops["targets: n-step cost"] / flops["targets: 1-step"] == pytest.approx(
+        (actor + 2 * critic) / (actor + 4 * critic), rel=0.01
+    )
+    # the cross-check without the profiler: the defaults, each extra off, the paper's
+    ablation = {row["variant"]: row["time_vs_defaults"] for row in output["ablation"]}
+    assert list(ablation) == [
+        "defaults",
+        "cost_n_steps=1",
+        "kappa_states=replay",
+        "kappa_statistic=mean",
+        "paper options",
+    ]
+    assert ablation["defaults"] == 1.0
+    assert all(math.isfinite(v) and v > 0 for v in ablation.values())
