@@ -20,7 +20,13 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
-__all__ = ["check_finite_entries", "check_nonempty_batch", "finite_number", "nonfinite_entry"]
+__all__ = [
+    "check_finite_entries",
+    "check_nonempty_batch",
+    "finite_number",
+    "nonfinite_entry",
+    "required_entry",
+]
 
 
 def finite_number(value: object, name: str, *, minimum: float | None = None) -> float:
@@ -32,6 +38,14 @@ def finite_number(value: object, name: str, *, minimum: float | None = None) -> 
         what = "a finite number" if minimum is None else f">= {minimum:g} (a finite number)"
         raise ValueError(f"{name} must be {what}, got {value!r}")
     return float(value)
+
+
+def required_entry(tensordict: TensorDictBase, key: NestedKey, what: str, how: str):
+    """``tensordict[key]``, or a ``KeyError`` saying what it is and how to provide it."""
+    value = tensordict.get(key, None)
+    if value is None:
+        raise KeyError(f"{what} at {key!r} of the batch; the batch has none. {how}")
+    return value
 
 
 def check_nonempty_batch(tensordict: TensorDictBase, what: str) -> None:
