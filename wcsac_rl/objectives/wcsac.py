@@ -198,13 +198,13 @@ class WCSACLoss(SACLoss):
                 fractions τ (the loss writes them) and output quantiles.
             initial_states (NestedKey): with ``kappa_states="initial"``, a sub-tensordict
                 shaped like the batch holding episode start states (the actor's and
-                critics' state entries). Defaults to ``"initial"``.
+                critics' state entries).
             episode_cvar (NestedKey): with ``kappa_signal`` ``"max"`` or ``"episodes"``,
                 the empirical CVaR_α of recent episode costs, ``[*B, 1]`` (NaN: none yet).
             nstep (NestedKey): with ``cost_n_steps > 1``, the sub-tensordict of
                 :class:`~wcsac_rl.objectives.NStepCost`.
 
-            Each defaults to its name, but ``initial_states``.
+            Each defaults to its own name, ``initial_states`` to ``"initial"``.
         """
 
         cost: NestedKey = "cost"
@@ -665,7 +665,7 @@ class WCSACLoss(SACLoss):
         )
         return None if values is None else self.constraint_signal.statistic(values.safety)
 
-    def initial_state_cvar(self, tensordict: TensorDictBase, layers: Layers | None = None):
+    def initial_state_cvar(self, tensordict: TensorDictBase, layers=None) -> Tensor:
         """Γ(s₀, a₀, α) with ``a₀ ~ π(·|s₀)`` at the start states the batch carries
         under the ``initial_states`` key (no gradient)."""
         states = self.constraint_signal.initial_states(tensordict)
