@@ -31,7 +31,7 @@ from torch import nn
 from torchrl.data import Bounded
 from torchrl.objectives import SoftUpdate
 
-import wcsac_rl.objectives.wcsac as wcsac_module
+import wcsac_rl.objectives.safety_head as safety_head_module
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import IQNSafetyCritic, make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives import PolyakUpdate, quantile_mixture_cvar
@@ -50,7 +50,7 @@ def make_loss(**kwargs) -> WCSACLoss:
 @pytest.fixture
 def midpoints(monkeypatch):
     """Make the loss read its critic at the strata's midpoints instead of random draws."""
-    monkeypatch.setattr(wcsac_module, "stratified_fractions", midpoint_fractions)
+    monkeypatch.setattr(safety_head_module, "stratified_fractions", midpoint_fractions)
 
 
 # ------------------------------------------------------------------- module
@@ -648,7 +648,7 @@ def test_learned_quantiles_match_the_chain_return_distribution(n_steps):
         [N * repeats],
     )
     with torch.no_grad():
-        learned = loss._quantile_forward(td, loss.safety_network_params, fractions.float())
+        learned = loss.safety_head.quantiles(td, loss.safety_network_params, fractions.float())
     learned = learned.view(N, repeats, -1).mean(1).double()
     reference = huber_td_fixed_point(n_steps, fractions, kappa=1.0)
     tolerance = {0.1: 0.55, 0.5: 0.15, 1.0: 0.1}

@@ -104,8 +104,8 @@ def test_loss_bootstraps_the_safety_critic_from_the_nstep_state():
     loss._sample_policy(batch["next"])
     action_m, _ = loss._sample_policy(batch["nstep"])
     with torch.no_grad():
-        qc, vc = loss._safety_forward(
-            batch["nstep"].clone().set("action", action_m), loss.target_safety_network_params
+        qc, vc, *_ = loss.safety_head.values(
+            batch["nstep"], loss.target_safety_network_params, action_m
         )
     steps = batch["nstep", "steps"].float()
     alive = (~batch["nstep", "terminated"].squeeze(-1)).float()
@@ -146,7 +146,7 @@ def test_safety_targets_stop_at_time_limits_unless_told_to_bootstrap(n_steps, bo
         action = loss._sample_policy(ahead)[0]
     ahead = ahead.clone().set("action", action)
     with torch.no_grad():
-        qc, _ = loss._safety_forward(ahead, loss.target_safety_network_params)
+        qc = loss.safety_head.values(ahead, loss.target_safety_network_params).mean
     ends = batch["nstep", "terminated" if bootstrap else "done"].squeeze(-1)
     assert (batch["nstep", "done"] & ~batch["nstep", "terminated"]).any()  # truncations
     expected = batch["nstep", "cost"].squeeze(-1) + (~ends).float() * qc

@@ -113,7 +113,7 @@ def _predict(loss: WCSACLoss, obs: torch.Tensor, repeats: int = 64):
     obs = obs.repeat_interleave(repeats, 0)
     td = TensorDict({"observation": obs, "action": torch.rand(len(obs), 1) * 2 - 1}, [len(obs)])
     with torch.no_grad():
-        mean, var = loss._safety_forward(td, loss.safety_network_params)
+        mean, var, *_ = loss.safety_head.values(td, loss.safety_network_params)
     return mean.view(-1, repeats).mean(1).double(), var.view(-1, repeats).mean(1).double()
 
 

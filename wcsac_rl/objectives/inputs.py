@@ -27,6 +27,7 @@ __all__ = [
     "missing_inputs",
     "nonfinite_entry",
     "produced_keys",
+    "required_entry",
     "state_keys",
 ]
 
@@ -40,6 +41,14 @@ def finite_number(value: object, name: str, *, minimum: float | None = None) -> 
         what = "a finite number" if minimum is None else f">= {minimum:g} (a finite number)"
         raise ValueError(f"{name} must be {what}, got {value!r}")
     return float(value)
+
+
+def required_entry(tensordict: TensorDictBase, key: NestedKey, what: str, how: str):
+    """``tensordict[key]``, or a ``KeyError`` saying what it is and how to provide it."""
+    value = tensordict.get(key, None)
+    if value is None:
+        raise KeyError(f"{what} at {key!r} of the batch; the batch has none. {how}")
+    return value
 
 
 def check_nonempty_batch(tensordict: TensorDictBase, what: str) -> None:

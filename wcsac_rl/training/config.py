@@ -364,15 +364,15 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int) -> None:
         KAPPA_PARAMETRIZATIONS,
         PIDGains,
     )
-    from wcsac_rl.objectives.episode_costs import EPISODE_STATISTICS
-    from wcsac_rl.objectives.wcsac import (
+    from wcsac_rl.objectives.constraint_signal import (
         KAPPA_ACTIONS,
         KAPPA_SIGNALS,
         KAPPA_STATES,
         KAPPA_STATISTICS,
-        VARIANCE_LOSSES,
-        VARIANCE_TARGETS,
     )
+    from wcsac_rl.objectives.episode_costs import EPISODE_STATISTICS
+    from wcsac_rl.objectives.safety_head import VARIANCE_TARGETS
+    from wcsac_rl.objectives.variance import VARIANCE_LOSSES
 
     choices = {
         "variance_loss": VARIANCE_LOSSES,

@@ -1,0 +1,103 @@
+"""The loss's critics evaluated together: the twin reward critic and the safety head.
+
+WCSAC reads every critic at the same state-actions three times per update (the target
+networks at ``(s', a')``, the online ones at the replay ``(s, a)``, the detached
+online ones at ``(s, a ~ π)``). :class:`Critics` does each reading in one call: one
+batched ensemble evaluation when the networks allow it
+(:class:`~wcsac_rl.objectives.critic_ensemble.FusedCritics`, which the safety head
+plans), else the reward critics through TorchRL's vmapped call and the safety critic
+through its head (:mod:`wcsac_rl.objectives.safety_head`). Same values and gradients
+either way.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
+from torch import Tensor
+
+from wcsac_rl.objectives.critic_ensemble import Layers
+from wcsac_rl.objectives.safety_head import SafetyHead, SafetyValues
+
+__all__ = ["CriticParams", "CriticValues", "Critics"]
+
+
+class CriticParams(NamedTuple):
+    """The reward critics' and the safety critic's parameters for one evaluation;
+    ``target`` marks the target networks (an IQN critic then draws N' fractions)."""
+
+    qvalue: TensorDictBase
+    safety: TensorDictBase
+    target: bool = False
+
+
+class CriticValues(NamedTuple):
+    """Every critic at one batch of state-actions: the reward critics ``qvalue``
+    ``[num_qvalue_nets, *B]`` and the safety critic's
+    :class:`~wcsac_rl.objectives.safety_head.SafetyValues`."""
+
+    qvalue: Tensor
+    safety: SafetyValues
+
+    def detach(self) -> CriticValues:
+        """The same values without gradient."""
+        return CriticValues(self.qvalue.detach(), self.safety.detach())
+
+
+class Critics:
+    """The reward critics and the safety head, read together.
+
+    Args:
+        qvalue_network (TensorDictModule): the reward critic (the loss's module, called
+            with stacked parameters through ``vmap_qvalue``).
+        head (SafetyHead): the safety critic's head.
+        keys: the loss's ``tensor_keys`` (``action``, ``state_action_value``).
+        num_qvalue_nets (int): how many reward critics are stacked.
+        fuse (bool, optional): ``None``: fuse when possible; ``True``: fuse or raise a
+            ``ValueError`` saying why not; ``False``: never.
+    """
+
+    def __init__(
+        self,
+        qvalue_network: TensorDictModule,
+        head: SafetyHead,
+        keys,
+        *,
+        num_qvalue_nets: int,
+        fuse: bool | None = None,
+    ) -> None:
+        self.qvalue_network, self.head, self.keys = qvalue_network, head, keys
+        self.fused = None if fuse is False else head.fusion_plan(qvalue_network, num_qvalue_nets)
+        if fuse and self.fused is None:
+            raise ValueError(head.unfused_reason())
+
+    def layers(self, params: CriticParams) -> Layers | None:
+        """The fused critics' stacked parameters (``None`` when not fused): gather them
+        once to read the critics several times with the same parameters."""
+        if self.fused is None:
+            return None
+        return self.fused.layers(params.qvalue, params.safety)
+
+    def values(
+        self,
+        tensordict: TensorDictBase,
+        action: Tensor,
+        params: CriticParams,
+        vmap_qvalue: Callable,
+        layers: Layers | None = None,
+    ) -> CriticValues:
+        """Every critic with ``params`` at the state of ``tensordict`` and ``action``
+        (``layers``: already gathered from ``params``)."""
+        if self.fused is not None:
+            observation = tensordict.get(self.qvalue_network.in_keys[0])
+            layers = self.layers(params) if layers is None else layers
+            qvalue, mean, variance = self.fused.values(observation, action, layers)
+            return CriticValues(qvalue, SafetyValues(mean, variance))
+        td_q = tensordict.select(*self.qvalue_network.in_keys, strict=False)
+        td_q.set(self.keys.action, action)
+        qvalue = vmap_qvalue(td_q, params.qvalue).get(self.keys.state_action_value)
+        safety = self.head.values(tensordict, params.safety, action, target=params.target)
+        return CriticValues(qvalue.squeeze(-1), safety)

@@ -1,0 +1,573 @@
+"""The safety critic's head: how a loss reads, trains and takes the CVaR of its safety critic.
+
+:class:`~wcsac_rl.objectives.WCSACLoss` never asks which safety critic it holds; it
+calls the head that :func:`make_safety_head` picked for it (the one place that decides
+the kind) through a small interface:
+
+* :meth:`~SafetyHead.values` — the critic at a batch of state-actions
+  (a :class:`SafetyValues`), with given parameters (online, target or detached);
+* :meth:`~SafetyHead.targets` — its TD targets from the cost, the discount and the
+  target critic's values where the sum is bootstrapped;
+* :meth:`~SafetyHead.loss` — its TD loss terms per batch row (named as the loss
+  reports them);
+* :meth:`~SafetyHead.cvar` — Γ(s, a, α) per row, and :meth:`~SafetyHead.mixture_cvar`,
+  the CVaR_α of the critic's distribution mixed over the rows;
+* :meth:`~SafetyHead.estimates` — its outputs for diagnostics (calibration).
+
+Two heads:
+
+* :class:`GaussianHead` — the paper's ``C(s, a) ~ N(Q^c, V^c)`` (a mean and a variance
+  network; Eq. 7–9), or the mean alone (SAC-Lagrangian, where Γ = Q^c);
+* :class:`IQNHead` — an implicit quantile network (the journal version): quantile
+  Huber TD loss, Γ the mean of its quantiles over ``τ ∈ [1 − α, 1]``.
+
+A head holds no parameters: the loss owns the network's functional parameters (and
+their targets, which ``SoftUpdate`` finds by name) and hands them to every call.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule
+from torch import Tensor
+
+from wcsac_rl.modules.quantile_critic import IQNSafetyCritic
+from wcsac_rl.modules.safety_critic import VARIANCE_MAX, VARIANCE_MIN
+from wcsac_rl.objectives.critic_ensemble import FusedCritics
+from wcsac_rl.objectives.quantile import (
+    midpoint_fractions,
+    quantile_huber_loss,
+    stratified_fractions,
+)
+from wcsac_rl.objectives.risk import (
+    gaussian_cvar_multiplier,
+    gaussian_mixture_cvar,
+    quantile_mixture_cvar,
+)
+from wcsac_rl.objectives.variance import VARIANCE_LOSSES, variance_regression_loss
+
+__all__ = [
+    "VARIANCE_TARGETS",
+    "GaussianHead",
+    "IQNHead",
+    "SafetyHead",
+    "SafetyValues",
+    "make_safety_head",
+]
+
+VARIANCE_TARGETS = ("moment", "td")
+
+
+class SafetyValues(NamedTuple):
+    """The safety critic at a batch of state-actions, squeezed to the batch shape ``*B``.
+
+    ``mean`` is Q^c and ``variance`` V^c (``None`` for a mean-only critic). An IQN
+    critic also gives ``quantiles`` ``[*B, N]`` at ``fractions`` ``[N]`` (one draw
+    over [0, 1], shared by the rows; ``mean`` and ``variance`` are theirs) and
+    ``tail`` ``[*B, N]``, its quantiles over ``[1 − α, 1]`` (whose mean is Γ), or
+    ``None`` where not needed (target values).
+    """
+
+    mean: Tensor | None = None
+    variance: Tensor | None = None
+    quantiles: Tensor | None = None
+    fractions: Tensor | None = None
+    tail: Tensor | None = None
+
+    def detach(self) -> SafetyValues:
+        """The same values without gradient."""
+        return SafetyValues(*(None if v is None else v.detach() for v in self))
+
+
+class SafetyHead:
+    """What every head shares: the network, the loss's key names and the options of Γ.
+
+    Args:
+        network (TensorDictModule): the safety critic (its functional parameters are
+            the loss's; the module is only called with them).
+        keys: the loss's ``tensor_keys`` (read at every call, so ``set_keys`` applies).
+        risk_level (float): α ∈ (0, 1], the tail fraction of Γ.
+        nonnegative_cost (bool): costs are never negative: use ``max(Q^c, 0)`` (each
+            quantile at least 0) wherever the critic's value is *used* (targets, Γ).
+    """
+
+    kind: str
+    loss_names: tuple[str, ...]
+
+    def __init__(
+        self, network: TensorDictModule, keys, *, risk_level: float, nonnegative_cost: bool
+    ) -> None:
+        self.network = network
+        self.keys = keys
+        self.risk_level = float(risk_level)
+        self.nonnegative_cost = bool(nonnegative_cost)
+
+    @property
+    def has_variance(self) -> bool:
+        """Whether the critic has a variance network (only the Gaussian head's)."""
+        return False
+
+    @property
+    def in_keys(self) -> list:
+        """What the critic reads from a batch (the entries the loss does not write)."""
+        return list(self.network.in_keys)
+
+    def _inputs(self, tensordict: TensorDictBase, action: Tensor | None) -> TensorDictBase:
+        td = tensordict.select(*self.in_keys, strict=False)
+        if action is not None:
+            td.set(self.keys.action, action)
+        return td
+
+    def fusion_plan(self, qvalue_network: TensorDictModule, num_qvalue_nets: int):
+        """A :class:`~wcsac_rl.objectives.critic_ensemble.FusedCritics` evaluating the
+        reward critics and this one at once, or ``None`` (call the modules)."""
+        return None
+
+    def unfused_reason(self) -> str:
+        """Why ``fuse_critics=True`` cannot be honoured."""
+        return (
+            "fuse_critics=True needs the reward and safety critics to be MLPs of one "
+            "shape (Linear/activation stacks) reading [observation, action], e.g. "
+            "from wcsac_rl.modules; use fuse_critics=None to fall back automatically"
+        )
+
+    @property
+    def diagnostic_names(self) -> tuple[str, ...]:
+        """What :meth:`diagnostics` reports (the loss's outputs ``cost_value``, ...)."""
+        return ("cost_value", "cost_variance") if self.has_variance else ("cost_value",)
+
+    def diagnostics(self, values: SafetyValues) -> dict[str, Tensor | None]:
+        """The detached ``cost_value`` and ``cost_variance`` (``None`` where there is none)."""
+        variance = None if values.variance is None else values.variance.detach()
+        return {"cost_value": values.mean.detach(), "cost_variance": variance}
+
+
+class GaussianHead(SafetyHead):
+    """The paper's Gaussian safety critic ``C(s, a) ~ N(Q^c, V^c)``, or its mean alone.
+
+    The network writes the cost mean ``Q^c`` at ``keys.cost_value`` and, with a
+    variance network, ``V^c > 0`` at ``keys.cost_variance`` (if its out_keys are
+    named otherwise, the first is taken as the mean and the second as the variance).
+
+    * mean TD loss (Eq. 7): ``½ (c + γ_c(1−term) Q̄^c(s', a') − Q^c(s, a))²``;
+    * variance TD loss (Eq. 8) with ``variance_loss`` (:mod:`wcsac_rl.objectives.variance`:
+      ``"w2"`` the paper's 2-Wasserstein term, ``"mse"``, ``"glm"``) against the
+      target of ``variance_target`` (:meth:`variance_target`: ``"moment"``, Eq. 8's
+      second moment minus the squared mean; ``"td"``, the squared TD error plus the
+      discounted next variance, never negative);
+    * ``Γ = Q^c + α⁻¹ φ(Φ⁻¹(α)) √V^c`` (Eq. 9). A mean-only critic is allowed at α = 1
+      only (SAC-Lagrangian: Γ = Q^c).
+
+    Example:
+        >>> import torch
+        >>> from wcsac_rl.modules import make_safety_critic
+        >>> from wcsac_rl.objectives import WCSACLoss
+        >>> head = GaussianHead(make_safety_critic(3, 1), WCSACLoss.default_keys(),
+        ...                     risk_level=0.5, nonnegative_cost=False)
+        >>> head.cvar(SafetyValues(torch.tensor([1.0]), torch.tensor([4.0])))  # 1 + 0.7979·2
+        tensor([2.5958])
+    """
+
+    def __init__(
+        self,
+        network: TensorDictModule,
+        keys,
+        *,
+        risk_level: float,
+        nonnegative_cost: bool,
+        variance_loss: str = "glm",
+        variance_target: str = "td",
+    ) -> None:
+        super().__init__(network, keys, risk_level=risk_level, nonnegative_cost=nonnegative_cost)
+        self.variance_loss = variance_loss
+        self.variance_target_kind = variance_target
+        self.cvar_multiplier = gaussian_cvar_multiplier(self.risk_level)
+        self._adopt_keys()
+        if self.cvar_multiplier != 0.0 and not self.has_variance:
+            raise ValueError(
+                f"risk_level={self.risk_level} needs a safety critic with a variance head "
+                f"(out_keys {keys.cost_value!r} and {keys.cost_variance!r}); "
+                f"this one writes only {list(network.out_keys)}. A mean-only critic "
+                "is SAC-Lagrangian: use risk_level=1 (or SACLagLoss)."
+            )
+
+    def _adopt_keys(self) -> None:
+        out_keys, keys = list(self.network.out_keys), self.keys
+        if not any(k in out_keys for k in (keys.cost_value, keys.cost_variance)):
+            if len(out_keys) > 2:
+                raise ValueError(
+                    f"cannot tell the cost mean and variance apart among the safety "
+                    f"critic's out_keys {out_keys}; call set_keys(cost_value=..., cost_variance=...)"
+                )
+            keys.cost_value = out_keys[0]
+            if len(out_keys) == 2:
+                keys.cost_variance = out_keys[1]
+        if keys.cost_value not in out_keys:
+            raise ValueError(
+                f"the safety critic writes {out_keys} but the loss reads the cost mean "
+                f"from {keys.cost_value!r}"
+            )
+
+    @property
+    def kind(self) -> str:
+        return "gaussian" if self.has_variance else "mean"
+
+    @property
+    def has_variance(self) -> bool:
+        return self.keys.cost_variance in self.network.out_keys
+
+    @property
+    def loss_names(self) -> tuple[str, ...]:
+        if self.has_variance:
+            return ("loss_cost_value", "loss_cost_variance")
+        return ("loss_cost_value",)
+
+    def fusion_plan(self, qvalue_network: TensorDictModule, num_qvalue_nets: int):
+        return FusedCritics.plan(
+            qvalue_network,
+            self.network,
+            action_key=self.keys.action,
+            num_qvalue_nets=num_qvalue_nets,
+            has_variance=self.has_variance,
+        )
+
+    def values(
+        self,
+        tensordict: TensorDictBase,
+        params: TensorDictBase,
+        action: Tensor | None = None,
+        *,
+        target: bool = False,
+        stratified: bool = True,
+    ) -> SafetyValues:
+        """Q^c and V^c (clamped to [1e-8, 1e8]) at the state and ``action`` (else the
+        batch's own) with the parameters ``params``. ``target`` and ``stratified``
+        are the IQN head's (no effect here)."""
+        td = self._inputs(tensordict, action)
+        with params.to_module(self.network, preserve_module_state=False):
+            td = self.network(td)
+        mean = td.get(self.keys.cost_value).squeeze(-1)
+        if not self.has_variance:
+            return SafetyValues(mean)
+        variance = td.get(self.keys.cost_variance).squeeze(-1)
+        return SafetyValues(mean, variance.clamp(VARIANCE_MIN, VARIANCE_MAX))
+
+    def targets(
+        self, cost: Tensor, gamma: Tensor, alive: Tensor, ahead: SafetyValues
+    ) -> dict[str, Tensor | None]:
+        """``cost_target`` ``c + γ_c·alive·Q̄^c`` (Eq. 7), and with a variance network
+        ``cost_second_moment`` (``c² + alive(2γ_c c Q̄^c + γ_c² Q̄^c²) + γ_c² alive V̄^c``:
+        Eq. 8's target is this minus ``Q^c(s, a)²``) and ``cost_next_variance``
+        (``γ_c² alive V̄^c``); ``None`` otherwise. ``ahead``: the target critic where
+        the sum is bootstrapped; ``alive``: 1 where it is (0 at a termination)."""
+        mean = ahead.mean.clamp(min=0.0) if self.nonnegative_cost else ahead.mean
+        second_moment = next_variance = None
+        if ahead.variance is not None:
+            next_variance = alive * gamma.pow(2) * ahead.variance
+            second_moment = (
+                cost.pow(2)
+                + alive * (2 * gamma * cost * mean + gamma.pow(2) * mean.pow(2))
+                + next_variance
+            )
+        return {
+            "cost_target": cost + gamma * alive * mean,
+            "cost_second_moment": second_moment,
+            "cost_next_variance": next_variance,
+        }
+
+    def variance_target(self, targets: dict[str, Tensor], cost_value: Tensor) -> Tensor:
+        """The TD target of V^c(s, a) from :meth:`targets`' ``targets``.
+
+        ``"moment"`` (Eq. 8): ``y_v = sampled C² − Q^c(s, a)²``; ``"td"``:
+        ``y_v = (y_c − Q^c(s, a))² + γ_c²(1−term) V̄^c(s', a')`` with ``y_c`` the mean
+        target. ``Q^c(s, a)`` is detached in both. For ``"w2"`` the target is clamped
+        to [1e-8, 1e8] (its square root needs it positive, as in the paper); for the
+        regression losses only to [−1e8, 1e8]: a single sampled moment-form target
+        may legitimately be negative, and clamping it at 0 would bias the fit upwards.
+        """
+        cost_value = cost_value.detach()
+        if self.variance_target_kind == "td":
+            target = (targets["cost_target"] - cost_value).pow(2) + targets["cost_next_variance"]
+        else:
+            target = targets["cost_second_moment"] - cost_value.pow(2)
+        if self.variance_loss == "w2":
+            return target.clamp(VARIANCE_MIN, VARIANCE_MAX)
+        return target.clamp(-VARIANCE_MAX, VARIANCE_MAX)
+
+    def loss(self, values: SafetyValues, targets: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Per row: ``loss_cost_value`` (Eq. 7) and, with a variance network,
+        ``loss_cost_variance`` (Eq. 8 with ``variance_loss``)."""
+        out = {"loss_cost_value": 0.5 * (targets["cost_target"] - values.mean).pow(2)}
+        if values.variance is not None:
+            target = self.variance_target(targets, values.mean)
+            out["loss_cost_variance"] = variance_regression_loss(
+                values.variance, target, self.variance_loss
+            )
+        return out
+
+    def cvar(self, values: SafetyValues) -> Tensor:
+        """Γ(s, a, α) = Q^c + α⁻¹ φ(Φ⁻¹(α)) √V^c (Eq. 9), Q^c at least 0 with
+        ``nonnegative_cost``."""
+        if values.mean is None:
+            raise TypeError(
+                "the Gaussian critic's Γ is cvar(cost_value, cost_variance); "
+                "quantile_cvar(tail_quantiles) is an IQN critic's"
+            )
+        mean = values.mean.clamp(min=0.0) if self.nonnegative_cost else values.mean
+        if self.cvar_multiplier == 0.0 or values.variance is None:
+            return mean
+        return mean + self.cvar_multiplier * values.variance.sqrt()
+
+    def mixture_cvar(self, values: SafetyValues) -> Tensor:
+        """The CVaR_α of the Gaussians of every row mixed with equal weights (0-dim;
+        :func:`~wcsac_rl.objectives.risk.gaussian_mixture_cvar`)."""
+        mean = values.mean.clamp(min=0.0) if self.nonnegative_cost else values.mean
+        return gaussian_mixture_cvar(mean, values.variance, self.risk_level)
+
+    def estimates(self, tensordict: TensorDictBase, params: TensorDictBase) -> dict[str, Tensor]:
+        """``cost_value`` (Q^c), ``cvar`` (Γ) and, with a variance network,
+        ``cost_variance`` (V^c) at the state-actions of ``tensordict``."""
+        values = self.values(tensordict, params)
+        out = {"cost_value": values.mean, "cvar": self.cvar(values)}
+        if values.variance is not None:
+            out["cost_variance"] = values.variance
+        return out
+
+
+class IQNHead(SafetyHead):
+    """An implicit quantile network: the τ-quantiles ``Z(s, a, τ)`` of the cost return.
+
+    The network reads state, action and fractions τ ``[*B, N]`` (at
+    ``keys.quantile_fractions``; the head writes them) and writes the quantiles
+    ``[*B, N]`` at ``keys.cost_quantiles`` (or its single out key).
+
+    * each evaluation draws ``num_quantiles`` fractions over [0, 1], one per equal
+      stratum and shared by the rows (:func:`~wcsac_rl.objectives.quantile.stratified_fractions`),
+      and as many over ``[1 − α, 1]`` for Γ; the targets ``num_target_quantiles``;
+    * TD loss: ``Σ_i (1/N') Σ_j ρ^κ_{τ_i}(y_j − Z(s, a, τ_i))`` with
+      ``y_j = c + γ_c(1−term) Z̄(s', a', τ'_j)`` and κ_H = ``huber_kappa``
+      (:func:`~wcsac_rl.objectives.quantile.quantile_huber_loss`), reported as
+      ``loss_cost_quantile``;
+    * Γ = the mean of its quantiles over ``[1 − α, 1]``; the mixture's CVaR is that of
+      the quantiles of every row pooled
+      (:func:`~wcsac_rl.objectives.risk.quantile_mixture_cvar`).
+
+    Example:
+        >>> import torch
+        >>> from wcsac_rl.modules import make_safety_critic
+        >>> from wcsac_rl.objectives import WCSACLoss
+        >>> head = IQNHead(make_safety_critic(3, 1, kind="iqn"), WCSACLoss.default_keys(),
+        ...                risk_level=0.5, nonnegative_cost=False)
+        >>> head.cvar(SafetyValues(tail=torch.tensor([[1.0, 2.0, 6.0]])))  # the tail's mean
+        tensor([3.])
+    """
+
+    kind = "iqn"
+    loss_names = ("loss_cost_quantile",)
+    diagnostic_names = ("cost_value", "cost_variance")  # of the quantiles
+
+    def __init__(
+        self,
+        network: TensorDictModule,
+        keys,
+        *,
+        risk_level: float,
+        nonnegative_cost: bool,
+        num_quantiles: int = 20,
+        num_target_quantiles: int = 20,
+        huber_kappa: float = 1.0,
+    ) -> None:
+        super().__init__(network, keys, risk_level=risk_level, nonnegative_cost=nonnegative_cost)
+        self.num_quantiles = int(num_quantiles)
+        self.num_target_quantiles = int(num_target_quantiles)
+        self.huber_kappa = float(huber_kappa)
+        in_keys, out_keys = list(network.in_keys), list(network.out_keys)
+        if keys.quantile_fractions not in in_keys:
+            # an IQNSafetyCritic reads (observation, action, fractions) in that order
+            keys.quantile_fractions = in_keys[-1]
+        if keys.cost_quantiles not in out_keys:
+            if len(out_keys) != 1:
+                raise ValueError(
+                    f"cannot tell which of the IQN safety critic's out_keys {out_keys} holds "
+                    "the quantiles; call set_keys(cost_quantiles=...)"
+                )
+            keys.cost_quantiles = out_keys[0]
+        # a parameter (or buffer): the fractions are drawn on its device and dtype
+        leaves = list(TensorDict.from_module(network).keys(True, True))
+        if not leaves:
+            raise ValueError("the IQN safety critic has no parameters to learn its quantiles with")
+        self._like_key = leaves[0]
+
+    @property
+    def in_keys(self) -> list:
+        return [k for k in self.network.in_keys if k != self.keys.quantile_fractions]
+
+    def unfused_reason(self) -> str:
+        return (
+            "fuse_critics=True: an IQN safety critic is not fused with the reward "
+            "critics (it also reads quantile fractions); use fuse_critics=None, which "
+            "evaluates it as a module and still fuses nothing else"
+        )
+
+    def fractions(self, count: int, like: Tensor, tail: bool = False, stratified: bool = True):
+        """``count`` fractions over [0, 1] (``tail``: over [1 − α, 1]), one per stratum,
+        drawn (``stratified``) or at the strata's midpoints, on ``like``'s device and dtype."""
+        draw = stratified_fractions if stratified else midpoint_fractions
+        low = 1.0 - self.risk_level if tail else 0.0
+        return draw(count, low, 1.0, device=like.device, dtype=like.dtype)
+
+    def quantiles(
+        self, tensordict: TensorDictBase, params: TensorDictBase, fractions: Tensor
+    ) -> Tensor:
+        """The quantiles ``[*B, N]`` at the state-action in ``tensordict`` and the
+        fractions ``[N]`` (given expanded over the batch: one embedding of τ serves
+        every row)."""
+        td = tensordict.select(*self.in_keys, strict=False)
+        td.set(self.keys.quantile_fractions, fractions.expand(*td.batch_size, fractions.shape[-1]))
+        with params.to_module(self.network, preserve_module_state=False):
+            td = self.network(td)
+        return td.get(self.keys.cost_quantiles)
+
+    def values(
+        self,
+        tensordict: TensorDictBase,
+        params: TensorDictBase,
+        action: Tensor | None = None,
+        *,
+        target: bool = False,
+        stratified: bool = True,
+    ) -> SafetyValues:
+        """The quantiles over [0, 1] (``num_target_quantiles`` of them for the
+        ``target``, else ``num_quantiles``), their mean and variance, and (not for the
+        ``target``) the quantiles over [1 − α, 1], from one call of the network.
+        ``stratified=False`` reads them at the strata's midpoints."""
+        td = self._inputs(tensordict, action)
+        like = params.get(self._like_key)
+        count = self.num_target_quantiles if target else self.num_quantiles
+        fractions = self.fractions(count, like, stratified=stratified)
+        if target:
+            quantiles, tail = self.quantiles(td, params, fractions), None
+        else:
+            tail_fractions = self.fractions(self.num_quantiles, like, True, stratified)
+            both = torch.cat([fractions, tail_fractions])
+            quantiles, tail = self.quantiles(td, params, both).split(
+                [count, self.num_quantiles], dim=-1
+            )
+        mean = quantiles.mean(-1)
+        variance = (quantiles - mean.unsqueeze(-1)).pow(2).mean(-1)
+        return SafetyValues(mean, variance, quantiles, fractions, tail)
+
+    def targets(
+        self, cost: Tensor, gamma: Tensor, alive: Tensor, ahead: SafetyValues
+    ) -> dict[str, Tensor | None]:
+        """``cost_target_quantiles`` ``[*B, N']``: ``c + γ_c·alive·Z̄(τ'_j)`` per target
+        quantile of ``ahead``, and ``cost_target`` their mean."""
+        quantiles = ahead.quantiles.clamp(min=0.0) if self.nonnegative_cost else ahead.quantiles
+        discount = (gamma * alive).unsqueeze(-1)
+        target_quantiles = cost.unsqueeze(-1) + discount * quantiles
+        return {
+            "cost_target": target_quantiles.mean(-1),
+            "cost_target_quantiles": target_quantiles,
+            "cost_second_moment": None,
+            "cost_next_variance": None,
+        }
+
+    def loss(self, values: SafetyValues, targets: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Per row: ``loss_cost_quantile``, the quantile Huber TD loss."""
+        loss = quantile_huber_loss(
+            values.quantiles, values.fractions, targets["cost_target_quantiles"], self.huber_kappa
+        )
+        return {"loss_cost_quantile": loss}
+
+    def cvar(self, values: SafetyValues) -> Tensor:
+        """Γ(s, a, α): the mean of the quantiles ``values.tail`` over [1 − α, 1] (each
+        at least 0 with ``nonnegative_cost``)."""
+        if values.tail is None:
+            raise TypeError(
+                "an IQN critic's Γ is the mean of its tail quantiles: "
+                "quantile_cvar(tail_quantiles) (or safety_estimates()['cvar']); "
+                "cvar(cost_value, cost_variance) is the Gaussian critic's"
+            )
+        tail = values.tail.clamp(min=0.0) if self.nonnegative_cost else values.tail
+        return tail.mean(-1)
+
+    def mixture_cvar(self, values: SafetyValues) -> Tensor:
+        """The CVaR_α of the quantiles of every row pooled (0-dim)."""
+        quantiles = values.quantiles
+        if self.nonnegative_cost:
+            quantiles = quantiles.clamp(min=0.0)
+        return quantile_mixture_cvar(quantiles, self.risk_level)
+
+    def estimates(self, tensordict: TensorDictBase, params: TensorDictBase) -> dict[str, Tensor]:
+        """At deterministic fractions, the midpoints of ``num_quantiles`` equal strata:
+        ``cost_quantiles`` ``[*B, N]`` over [0, 1], ``cost_value`` and ``cost_variance``
+        their mean and variance, and ``cvar`` the mean of the quantiles at the midpoints
+        of [1 − α, 1]."""
+        values = self.values(tensordict, params, stratified=False)
+        return {
+            "cost_value": values.mean,
+            "cost_variance": values.variance,
+            "cvar": self.cvar(values),
+            "cost_quantiles": values.quantiles,
+        }
+
+
+def _check_count(name: str, count) -> None:
+    if int(count) != count or count < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {count}")
+
+
+def make_safety_head(
+    network: TensorDictModule,
+    keys,
+    *,
+    risk_level: float,
+    nonnegative_cost: bool = True,
+    variance_loss: str = "glm",
+    variance_target: str = "td",
+    num_quantiles: int = 20,
+    num_target_quantiles: int = 20,
+    huber_kappa: float = 1.0,
+) -> GaussianHead | IQNHead:
+    """The head for ``network``: the one place that decides the safety critic's kind.
+
+    An implicit quantile network (an :class:`~wcsac_rl.modules.IQNSafetyCritic`, or a
+    module reading ``keys.quantile_fractions``) gets an :class:`IQNHead`, anything
+    else a :class:`GaussianHead`. Every option is checked whichever the kind; the
+    Gaussian head's ``variance_loss`` / ``variance_target`` are refused for an IQN
+    critic unless left at their defaults.
+    """
+    if variance_target not in VARIANCE_TARGETS:
+        raise ValueError(
+            f"variance_target must be one of {VARIANCE_TARGETS}, got {variance_target!r}"
+        )
+    if variance_loss not in VARIANCE_LOSSES:
+        raise ValueError(f"variance_loss must be one of {VARIANCE_LOSSES}, got {variance_loss!r}")
+    _check_count("num_quantiles", num_quantiles)
+    _check_count("num_target_quantiles", num_target_quantiles)
+    if not huber_kappa > 0:
+        raise ValueError(f"huber_kappa must be > 0 (the Huber threshold), got {huber_kappa}")
+    common = {"risk_level": risk_level, "nonnegative_cost": nonnegative_cost}
+    iqn = isinstance(getattr(network, "module", None), IQNSafetyCritic)
+    if not (iqn or keys.quantile_fractions in list(network.in_keys)):
+        return GaussianHead(
+            network, keys, variance_loss=variance_loss, variance_target=variance_target, **common
+        )
+    if (variance_loss, variance_target) != ("glm", "td"):
+        raise ValueError(
+            f"variance_loss={variance_loss!r} and variance_target={variance_target!r} "
+            "configure the Gaussian critic's variance head; an IQN safety critic has "
+            "none (it learns quantiles with the quantile Huber loss): leave them at "
+            "their defaults ('glm', 'td')"
+        )
+    return IQNHead(
+        network,
+        keys,
+        num_quantiles=num_quantiles,
+        num_target_quantiles=num_target_quantiles,
+        huber_kappa=huber_kappa,
+        **common,
+    )
