@@ -134,8 +134,10 @@ def _own_limit(env: gym.Env) -> int | None:
     its ``spec``), else a ``max_episode_steps`` attribute of the unwrapped env."""
     layer: Any = env
     while isinstance(layer, gym.Wrapper):
-        if isinstance(layer, TimeLimit):
-            return int(layer._max_episode_steps)
+        # gymnasium's TimeLimit, or one like it (safety-gymnasium has its own)
+        steps = getattr(layer, "_max_episode_steps", None)
+        if isinstance(layer, TimeLimit) or isinstance(steps, (int, np.integer)):
+            return int(steps)
         layer = layer.env
     spec = getattr(env, "spec", None)
     if spec is not None and spec.max_episode_steps:
