@@ -53,7 +53,7 @@ class ConsoleLog:
     def __init__(self) -> None:
         self._streams: list[tuple[str, TextIO]] = []
         self._pending: list[str] = []  # complete lines before attach()
-        self._partial = ""  # the line being written (redrawn with "\r")
+        self._partial: dict[str, str] = {}  # per stream: the line being written
         self._file: TextIO | None = None
         self._handlers: list[tuple[logging.StreamHandler, Any]] = []
         self.closed = False
@@ -62,7 +62,7 @@ class ConsoleLog:
         tees = {}
         for name in ("stdout", "stderr"):
             stream = getattr(sys, name)
-            tees[id(stream)] = tee = _Tee(stream, self)
+            tees[id(stream)] = tee = _Tee(stream, self, name)
             self._streams.append((name, stream))
             setattr(sys, name, tee)
         # libraries' log handlers that print to the console (TorchRL's), but not the root
@@ -82,9 +82,10 @@ class ConsoleLog:
             setattr(sys, name, stream)
         self._streams.clear()
         self.closed = True
-        if self._partial.strip():
-            self._line(self._partial.rsplit("\r", 1)[-1])
-        self._partial = ""
+        for partial in self._partial.values():
+            if partial.strip():
+                self._line(partial.rsplit("\r", 1)[-1])
+        self._partial.clear()
         if self._file is not None:
             self._file.close()
             self._file = None
@@ -101,11 +102,14 @@ class ConsoleLog:
         self._file.flush()
         self._pending.clear()
 
-    def write(self, text: str) -> None:
-        self._partial += text
-        while "\n" in self._partial:
-            line, self._partial = self._partial.split("\n", 1)
+    def write(self, text: str, stream: str = "stdout") -> None:
+        """Keep ``text`` written to ``stream``: each complete line in its last state (a
+        progress bar redraws its line with ``"\r"``)."""
+        partial = self._partial.get(stream, "") + text
+        while "\n" in partial:
+            line, partial = partial.split("\n", 1)
             self._line(line.rsplit("\r", 1)[-1])
+        self._partial[stream] = partial
 
     def _line(self, line: str) -> None:
         if self._file is None:
@@ -118,13 +122,14 @@ class ConsoleLog:
 class _Tee:
     """A text stream that writes through to ``stream`` and to a :class:`ConsoleLog`."""
 
-    def __init__(self, stream: TextIO, log: ConsoleLog) -> None:
+    def __init__(self, stream: TextIO, log: ConsoleLog, name: str) -> None:
         self._stream = stream
         self._log = log
+        self._name = name
 
     def write(self, text: str) -> int:
         if not self._log.closed:
-            self._log.write(text)
+            self._log.write(text, self._name)
         return self._stream.write(text)
 
     def flush(self) -> None:
