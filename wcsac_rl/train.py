@@ -104,7 +104,7 @@ class ConsoleLog:
 
     def write(self, text: str, stream: str = "stdout") -> None:
         """Keep ``text`` written to ``stream``: each complete line in its last state (a
-        progress bar redraws its line with ``"\r"``)."""
+        progress bar redraws its line after carriage returns)."""
         partial = self._partial.get(stream, "") + text
         while "\n" in partial:
             line, partial = partial.split("\n", 1)
