@@ -22,6 +22,9 @@ Main entry points:
 * :func:`check_cost_key` — a clear error for envs/tensordicts without a cost.
 * :class:`PointGoalEnv`, :class:`TinyHazardEnv` — the gymnasium envs.
 * :func:`make_safety_gymnasium_env` — the same conventions on top of safety-gymnasium.
+* ``make_env("gymnasium", env_id="<registered id | module:callable>", cost_key="cost")``
+  — your own gymnasium env with a cost in ``info`` (or safety-gymnasium's 6-tuple step):
+  :mod:`wcsac_rl.envs.gymnasium_env` (``env=gymnasium env.id=...`` on the command line).
 
 On headless Linux (no ``DISPLAY``) importing this package sets ``MUJOCO_GL=egl``
 unless ``MUJOCO_GL`` is already set, so rendering works on servers.
@@ -29,6 +32,12 @@ unless ``MUJOCO_GL`` is already set, so rendering works on servers.
 
 from wcsac_rl import _headless  # noqa: F401  (before mujoco: headless GL default)
 from wcsac_rl.envs.batched_gym import BatchedGymEnv
+from wcsac_rl.envs.gymnasium_env import (
+    GYMNASIUM,
+    EnvSourceError,
+    make_user_gym_env,
+    user_env_info,
+)
 from wcsac_rl.envs.info import COST_KEY, InfoReader, step_info_spec
 from wcsac_rl.envs.layout import LayoutError
 from wcsac_rl.envs.point_goal import PointGoalConfig, PointGoalEnv
@@ -58,12 +67,14 @@ register_envs()
 
 __all__ = [
     "COST_KEY",
+    "GYMNASIUM",
     "GYM_IDS",
     "PRESETS",
     "PRESET_NAMES",
     "BatchedGymEnv",
     "CostKeyError",
     "CostSum",
+    "EnvSourceError",
     "InfoReader",
     "LayoutError",
     "NonFiniteStepError",
@@ -79,7 +90,9 @@ __all__ = [
     "make_env_creator",
     "make_gym_env",
     "make_safety_gymnasium_env",
+    "make_user_gym_env",
     "register_envs",
     "step_info_spec",
+    "user_env_info",
     "wrap_safety_gymnasium",
 ]

@@ -20,10 +20,14 @@ from tensordict import TensorDictBase
 from torchrl.data import Composite, Unbounded
 from torchrl.envs.gym_like import BaseInfoDictReader
 
-__all__ = ["COST_KEY", "InfoReader", "info_array", "numpy_dtype", "step_info_spec"]
+__all__ = ["COST_KEY", "CostKeyError", "InfoReader", "info_array", "numpy_dtype", "step_info_spec"]
 
 COST_KEY = "cost"
 """Name of the per-step cost entry (``("next", "cost")`` after a step)."""
+
+
+class CostKeyError(ValueError):
+    """An env or a tensordict lacks a usable per-step cost entry."""
 
 
 def numpy_dtype(dtype: torch.dtype) -> np.dtype | None:

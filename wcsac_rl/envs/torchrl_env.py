@@ -60,7 +60,8 @@ from torchrl.envs import (
 from torchrl.envs.libs.gym import GymWrapper
 
 from wcsac_rl.envs.batched_gym import BatchedGymEnv
-from wcsac_rl.envs.info import COST_KEY, InfoReader, step_info_spec
+from wcsac_rl.envs.gymnasium_env import GYMNASIUM, make_user_gym_env, user_env_info
+from wcsac_rl.envs.info import COST_KEY, CostKeyError, InfoReader, step_info_spec
 from wcsac_rl.envs.presets import get_preset, make_gym_env
 
 __all__ = [
@@ -79,10 +80,6 @@ __all__ = [
     "make_env_creator",
     "step_info_spec",
 ]
-
-
-class CostKeyError(ValueError):
-    """An env or a tensordict lacks a usable per-step cost entry."""
 
 
 class NonFiniteStepError(ValueError):
@@ -285,7 +282,10 @@ def make_env(
 
     Args:
         name: preset short name (``"static"``, ``"dynamic"``, ``"point_goal1"``,
-            ``"point_goal2"``, ``"tiny"``) or its gymnasium id.
+            ``"point_goal2"``, ``"tiny"``) or its gymnasium id; or ``"gymnasium"`` for
+            your own env, named by ``env_id="<registered id | module:callable>"``
+            (with ``cost_key=``: the ``info`` entry of its cost; see
+            :mod:`wcsac_rl.envs.gymnasium_env`).
         seed: seeds the env(s) (workers get ``seed``, ``seed + 1``, ...).
         num_workers: ``1`` for a single in-process env; more for a batch of
             ``num_workers`` envs (batch size ``[num_workers]``).
@@ -312,7 +312,7 @@ def make_env(
         >>> td["next", "cost"].shape
         torch.Size([5, 1])
     """
-    get_preset(name)  # fail fast, in this process, on an unknown name
+    _check_name(name)  # fail fast, in this process, on an unknown name
     if not isinstance(num_workers, int) or num_workers < 1:
         raise ValueError(f"num_workers must be a positive int, got {num_workers!r}")
     base_fn = functools.partial(
@@ -339,8 +339,19 @@ def make_env(
     return env
 
 
+def _check_name(name: str) -> None:
+    """Refuse an unknown env name (``"gymnasium"``: your own env, named by ``env_id``)."""
+    if name != GYMNASIUM:
+        get_preset(name)
+
+
 def _checked_gym_env(name: str, **kwargs: Any) -> RejectNonFinite:
-    """The preset's gymnasium env in :class:`RejectNonFinite`, named ``short (gym id)``."""
+    """The preset's gymnasium env in :class:`RejectNonFinite`, named ``short (gym id)``;
+    for ``name="gymnasium"``, your env (``env_id=...``, ``cost_key=...``: see
+    :func:`~wcsac_rl.envs.gymnasium_env.make_user_gym_env`)."""
+    if name == GYMNASIUM:
+        env = make_user_gym_env(**kwargs)
+        return RejectNonFinite(env, name=f"{GYMNASIUM} ({kwargs.get('env_id')})")
     preset = get_preset(name)
     env = make_gym_env(name, **kwargs)
     return RejectNonFinite(env, name=f"{preset.name} ({preset.gym_id})")
@@ -352,7 +363,7 @@ def make_env_creator(name: str, **kwargs: Any) -> Callable[[], TransformedEnv]:
     Pass it as ``create_env_fn`` to TorchRL collectors, including the multi-process
     ones (``MultiSyncCollector([creator] * n, ...)``).
     """
-    get_preset(name)
+    _check_name(name)
     return functools.partial(make_env, name, **kwargs)
 
 
@@ -369,6 +380,8 @@ def env_info(name: str, **kwargs: Any) -> dict[str, Any]:
         **kwargs: the same overrides ``make_env`` would receive (e.g.
             ``max_episode_steps``).
     """
+    if name == GYMNASIUM:  # your own env: built and probed with one step
+        return user_env_info(**kwargs)
     preset = get_preset(name)
     env = make_gym_env(preset.name, **kwargs)
     try:

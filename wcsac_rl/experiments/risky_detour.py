@@ -91,6 +91,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
+from wcsac_rl.config_dir import CONF_DIR as _CONF_DIR
 from wcsac_rl.envs import make_env
 from wcsac_rl.rollouts.episodes import run_episodes
 
@@ -107,7 +108,7 @@ __all__ = [
     "train_on_risky_detour",
 ]
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+CONF_DIR = _CONF_DIR
 COST_LIMIT = 3.0
 RISKY_HAZARD = {"hazard_cost": 5.0, "hazard_cost_prob": 0.02}
 """The tiny env's hazard made a risky shortcut (see the module docstring)."""

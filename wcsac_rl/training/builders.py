@@ -58,11 +58,15 @@ __all__ = [
 
 
 def env_kwargs(cfg: DictConfig) -> dict:
-    """Keyword arguments for ``make_env`` from ``cfg.env`` (constructor kwargs, episode length)."""
+    """Keyword arguments for ``make_env`` from ``cfg.env`` (constructor kwargs, episode
+    length; for ``env=gymnasium`` also ``env_id`` and ``cost_key``)."""
     extra = cfg.env.get("kwargs")
     kwargs = {} if extra is None else OmegaConf.to_container(extra, resolve=True)
     if cfg.env.get("max_episode_steps") is not None:
         kwargs["max_episode_steps"] = int(cfg.env.max_episode_steps)
+    if cfg.env.name == "gymnasium":  # your own env: its id and the info entry of its cost
+        kwargs["env_id"] = str(cfg.env.id)
+        kwargs["cost_key"] = str(cfg.env.get("cost_key", "cost"))
     return kwargs
 
 

@@ -63,6 +63,8 @@ IDENTITY_KEYS = (
     "algo.kappa_parametrization",
     "algo.kappa_rule",
     "env.name",
+    "env.id",
+    "env.cost_key",
     "env.max_episode_steps",
     "env.kwargs",
     "cost_limit",

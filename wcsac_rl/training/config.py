@@ -183,9 +183,27 @@ def _validate_choices(cfg: DictConfig) -> str:
     if algo not in ALGOS:
         raise ConfigError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}")
     env = cfg.env.get("name")
-    if env not in PRESET_NAMES:
-        raise ConfigError(f"unknown env {env!r}; choose one of {', '.join(PRESET_NAMES)}")
+    if env == "gymnasium":
+        _validate_user_env(cfg)
+    elif env not in PRESET_NAMES:
+        raise ConfigError(
+            f"unknown env {env!r}; choose one of {', '.join(PRESET_NAMES)}, or gymnasium "
+            "(your own: env=gymnasium env.id=<registered id | module:callable>)"
+        )
     return algo
+
+
+def _validate_user_env(cfg: DictConfig) -> None:
+    """``env=gymnasium``: ``env.id`` names the env, ``env.cost_key`` its cost's info entry."""
+    env_id = cfg.env.get("id")
+    if not isinstance(env_id, str) or not env_id.strip():
+        raise ConfigError(
+            f"env=gymnasium needs env.id=<registered gymnasium id | module:callable>, got "
+            f"{env_id!r} (docs/own_environment.md)"
+        )
+    cost_key = cfg.env.get("cost_key")
+    if not isinstance(cost_key, str) or not cost_key:
+        raise ConfigError(f"env.cost_key must name the info entry of the cost, got {cost_key!r}")
 
 
 def _validate_risk(cfg: DictConfig, algo: str) -> None:

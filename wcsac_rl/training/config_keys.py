@@ -7,7 +7,9 @@ is the default config of the run's own algorithm, env and logger, composed from
 ``wcsac`` has ``kappa_init``): :func:`check_known_keys` refuses any other key in one
 line naming the closest known one (``difflib``), and :func:`check_override_keys` does
 the same for ``train.py``'s command line before Hydra composes it (Hydra's own refusal
-of ``algo.batchsize=64`` names no alternative).
+of ``algo.batchsize=64`` names no alternative). The configs are read from
+:data:`~wcsac_rl.config_dir.CONF_DIR`: ``conf/`` of a checkout, or the copy a
+(non-editable) install ships inside the package.
 """
 
 from __future__ import annotations
@@ -16,11 +18,11 @@ import difflib
 import functools
 import itertools
 from collections.abc import Iterable, Iterator
-from pathlib import Path
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from wcsac_rl.config_dir import CONF_DIR as _CONF_DIR
 from wcsac_rl.training.errors import ConfigError
 
 __all__ = [
@@ -33,8 +35,8 @@ __all__ = [
     "unknown_keys",
 ]
 
-CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
-"""The config groups ``train.py`` composes (``conf/`` beside the package in a checkout)."""
+CONF_DIR = _CONF_DIR
+"""The config groups ``train.py`` composes (``conf/`` of a checkout, or the installed copy)."""
 
 FREE_FORM_KEYS = ("env.kwargs",)
 """Entries whose own keys are the user's (forwarded to the gymnasium env's constructor)."""
@@ -55,8 +57,8 @@ def _option(group: str, choice: Any) -> str | None:
 @functools.lru_cache(maxsize=64)
 def _reference(overrides: tuple[str, ...]) -> DictConfig | None:
     """The default config with the given group choices (``algo=cpo``, ``+row=sac``),
-    composed by Hydra without touching its global state (``None``: no ``conf/`` beside
-    the package, e.g. an installed wheel, or choices Hydra refuses: it says why itself)."""
+    composed by Hydra without touching its global state (``None``: no config directory,
+    or choices Hydra refuses: it says why itself)."""
     if not (CONF_DIR / "config.yaml").is_file():
         return None
     from hydra._internal.config_loader_impl import ConfigLoaderImpl

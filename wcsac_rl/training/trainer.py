@@ -29,7 +29,7 @@ from torchrl import timeit
 from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
-from wcsac_rl.envs import NonFiniteStepError
+from wcsac_rl.envs import CostKeyError, EnvSourceError, NonFiniteStepError
 from wcsac_rl.objectives.inputs import nonfinite_entry
 from wcsac_rl.rollouts import calibration
 from wcsac_rl.rollouts.episodes import run_episodes, summarize_episodes
@@ -97,10 +97,16 @@ def _logger_state(checkpoint: dict[str, Any] | None, backend: str) -> dict | Non
 
 
 def env_max_episode_steps(cfg: DictConfig) -> int:
-    """Episode length of the run's environment (config override or the preset's)."""
+    """Episode length of the run's environment (config override or the preset's); for
+    ``env=gymnasium`` the user's env is built and stepped once here, so that an id that
+    does not resolve, an env that raises or reports no cost is refused (one line) before
+    a run starts."""
     from wcsac_rl.envs import env_info
 
-    return int(env_info(cfg.env.name, **builders.env_kwargs(cfg))["max_episode_steps"])
+    try:
+        return int(env_info(cfg.env.name, **builders.env_kwargs(cfg))["max_episode_steps"])
+    except (EnvSourceError, CostKeyError) as err:
+        raise ConfigError(str(err)) from None
 
 
 def _postfix(row: dict[str, float]) -> str:
@@ -473,6 +479,11 @@ class Trainer:
             batch = next(batches, None)
         except NonFiniteStepError as err:  # an env under RejectNonFinite: the env's own words
             raise NonFiniteStepError(
+                f"{err}; training stopped while collecting the frames after {start} "
+                f"({self._kept_checkpoint()})"
+            ) from None
+        except (CostKeyError, EnvSourceError) as err:  # your env: a step without a cost
+            raise TrainingError(
                 f"{err}; training stopped while collecting the frames after {start} "
                 f"({self._kept_checkpoint()})"
             ) from None

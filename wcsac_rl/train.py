@@ -1,0 +1,374 @@
+"""Train WCSAC or a baseline: ``wcsac-train algo=wcsac risk_level=0.5 env=dynamic``.
+
+The same command three ways: the installed console script ``wcsac-train``,
+``python -m wcsac_rl.train`` and, in a checkout, ``python train.py`` (the card's entry
+point, which calls :func:`cli`). Hydra composes ``conf/config.yaml`` (in a regular
+install, the copy shipped inside the package: :mod:`wcsac_rl.config_dir`); with no
+overrides this is the paper's full run. Sweeps: ``wcsac-train -m algo=wcsac
+risk_level=0.1,0.5,0.9 seed=0,10,20``; your own env: ``wcsac-train env=gymnasium
+env.id=my_module:make`` (docs/own_environment.md). A run stopped by ``SIGTERM`` /
+``SIGUSR1`` / ``SIGUSR2`` checkpoints first and exits with 128 + the signal's number.
+
+In a notebook (or any Python program), the same run without a command line::
+
+    from wcsac_rl import compose_config, run_training
+    cfg = compose_config("env=gymnasium", "env.id=my_module:make", "total_frames=20000")
+    run_dir = run_training(cfg)          # progress.csv, checkpoints/, curves.png there
+
+The console's lines of a run (its messages, the progress bar's final state, the paths
+it prints, an error that stopped it) are kept in the run directory's ``train.log``.
+This module imports only Hydra at first, so that ``--help`` answers at once.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, TextIO
+
+import hydra
+from omegaconf import DictConfig
+
+from wcsac_rl.config_dir import CONF_DIR
+
+if TYPE_CHECKING:
+    from wcsac_rl.training.trainer import Trainer
+
+__all__ = ["check_command_line", "cli", "compose_config", "main", "run_training"]
+
+LOG_FILE = "train.log"
+"""The console's lines of a run, in its run directory."""
+
+
+class ConsoleLog:
+    """Copy what is written to ``sys.stdout`` / ``sys.stderr`` into a run's ``train.log``.
+
+    Until :meth:`attach` names the file, lines are held in memory (a command refused
+    before its run directory is kept writes no file). A progress bar redraws its line
+    with carriage returns; the log keeps each line's last state.
+    """
+
+    def __init__(self) -> None:
+        self._streams: list[tuple[str, TextIO]] = []
+        self._pending: list[str] = []  # complete lines before attach()
+        self._partial: dict[str, str] = {}  # per stream: the line being written
+        self._file: TextIO | None = None
+        self._handlers: list[tuple[logging.StreamHandler, Any]] = []
+        self.closed = False
+
+    def __enter__(self) -> ConsoleLog:
+        tees = {}
+        for name in ("stdout", "stderr"):
+            stream = getattr(sys, name)
+            tees[id(stream)] = tee = _Tee(stream, self, name)
+            self._streams.append((name, stream))
+            setattr(sys, name, tee)
+        # libraries' log handlers that print to the console (TorchRL's), but not the root
+        # logger's: Hydra's own handlers, one of which already writes train.log
+        self._handlers = []
+        for logger in list(logging.Logger.manager.loggerDict.values()):
+            for handler in getattr(logger, "handlers", ()):
+                stream = getattr(handler, "stream", None)
+                if isinstance(handler, logging.StreamHandler) and id(stream) in tees:
+                    self._handlers.append((handler, handler.setStream(tees[id(stream)])))
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        for handler, stream in self._handlers:
+            handler.setStream(stream)
+        for name, stream in reversed(self._streams):
+            setattr(sys, name, stream)
+        self._streams.clear()
+        self.closed = True
+        for partial in self._partial.values():
+            if partial.strip():
+                self._line(partial.rsplit("\r", 1)[-1])
+        self._partial.clear()
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def attach(self, path: Path) -> None:
+        """Append to ``path`` from now on, starting with the lines held so far."""
+        if self._file is not None:
+            return
+        try:
+            self._file = path.open("a", encoding="utf-8", errors="replace")
+        except OSError:  # an unwritable run directory: the trainer says so itself
+            return
+        self._file.writelines(self._pending)
+        self._file.flush()
+        self._pending.clear()
+
+    def write(self, text: str, stream: str = "stdout") -> None:
+        """Keep ``text`` written to ``stream``: each complete line in its last state (a
+        progress bar redraws its line after carriage returns)."""
+        partial = self._partial.get(stream, "") + text
+        while "\n" in partial:
+            line, partial = partial.split("\n", 1)
+            self._line(line.rsplit("\r", 1)[-1])
+        self._partial[stream] = partial
+
+    def _line(self, line: str) -> None:
+        if self._file is None:
+            self._pending.append(line + "\n")
+        else:
+            self._file.write(line + "\n")
+            self._file.flush()
+
+
+class _Tee:
+    """A text stream that writes through to ``stream`` and to a :class:`ConsoleLog`."""
+
+    def __init__(self, stream: TextIO, log: ConsoleLog, name: str) -> None:
+        self._stream = stream
+        self._log = log
+        self._name = name
+
+    def write(self, text: str) -> int:
+        if not self._log.closed:
+            self._log.write(text, self._name)
+        return self._stream.write(text)
+
+    def flush(self) -> None:
+        self._stream.flush()
+
+    def __getattr__(self, name: str) -> Any:  # isatty, encoding, fileno, ...
+        return getattr(self._stream, name)
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    """Errors a user can cause or fix: one line (exit code 1), never a traceback."""
+    from wcsac_rl.envs import NonFiniteStepError
+    from wcsac_rl.training import ConfigError, TrainingError
+
+    return (ConfigError, TrainingError, NonFiniteStepError)
+
+
+def _build(cfg: DictConfig, run_dir: Path, overrides: Sequence[str] | None) -> Trainer:
+    """The trainer for ``cfg`` (resume=RUN_DIR: the run's own config with only the
+    explicit overrides applied; resume=auto: the composed config, checked against the
+    run directory's checkpoint); an option of the command line that the chosen
+    algorithm does not read is said in one warning line."""
+    from wcsac_rl.training import make_trainer
+    from wcsac_rl.training.applicability import warn_inapplicable
+    from wcsac_rl.training.checkpoint import resume_config
+    from wcsac_rl.training.run_dir import AUTO_RESUME
+
+    overrides = list(overrides or ())
+    if cfg.get("resume") and cfg.resume != AUTO_RESUME:
+        cfg = resume_config(cfg, overrides)
+    warn_inapplicable(cfg, overrides)
+    return make_trainer(cfg, run_dir, overrides=overrides)
+
+
+def _finish(trainer: Trainer) -> tuple[Path, Path | None]:
+    """Train, then draw the curves (while the run still holds its directory's lock)."""
+    from wcsac_rl.evaluation.plots import plot_run_curves
+
+    run_dir = trainer.run()
+    curves = plot_run_curves(
+        run_dir / "progress.csv",
+        run_dir / "curves.png",
+        cost_limit=float(trainer.cfg.cost_limit),
+    )
+    return run_dir, curves
+
+
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
+def main(cfg: DictConfig) -> None:
+    """The Hydra task: one run (a job of a sweep) in Hydra's output directory."""
+    from hydra.core.hydra_config import HydraConfig
+
+    from wcsac_rl.training.preemption import Preempted
+
+    user_errors = _user_errors()
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    with ConsoleLog() as log:
+        try:
+            trainer = _build(cfg, run_dir, HydraConfig.get().overrides.task)
+        except user_errors as err:
+            _discard(run_dir)  # a refused command leaves no directory behind
+            _exit_with(f"error: {err}")
+        log.attach(trainer.run_dir / LOG_FILE)
+        try:
+            run_dir, curves = _finish(trainer)
+        except KeyboardInterrupt:
+            sys.exit(130)
+        except Preempted as stop:
+            print(f"{stop}", file=sys.stderr, flush=True)
+            sys.exit(stop.exit_code)
+        except user_errors as err:
+            _exit_with(f"error: {err}")
+        finally:
+            trainer.close()
+        print(f"run directory: {run_dir}")
+        print(f"  metrics (one row per epoch): {run_dir / 'progress.csv'}")
+        print(f"  logger output:               {run_dir / 'logs'}")
+        print(f"  checkpoint:                  {trainer.checkpoint_path}")
+        print(f"  training curves:             {curves}")
+        print(f"  console log:                 {run_dir / LOG_FILE}")
+
+
+DEFAULT_ROOTS = ("outputs", "multirun")
+"""Where Hydra puts runs by default (``conf/config.yaml``), below the current directory."""
+
+
+def _discard(run_dir: Path) -> None:
+    """Remove a refused command's run directory, and the date directory above it that
+    Hydra made for it (``outputs/<date>/``) if that is now empty."""
+    from wcsac_rl.training.run_dir import discard_unused_run_dir
+
+    if not discard_unused_run_dir(run_dir):
+        return
+    cwd = Path.cwd().resolve()
+    parent = run_dir.resolve().parent
+    while parent != cwd and parent.is_relative_to(cwd):
+        relative = parent.relative_to(cwd)
+        if relative.parts[0] not in DEFAULT_ROOTS:
+            return
+        try:
+            parent.rmdir()  # only an empty directory
+        except OSError:
+            return
+        parent = parent.parent
+
+
+def _exit_with(message: str) -> None:
+    print(message, file=sys.stderr, flush=True)
+    sys.exit(1)
+
+
+def check_command_line(argv: list[str]) -> None:
+    """Refuse an override of a key no chosen config has (``algo.batchsize=64``) in one
+    line naming the closest key, before Hydra composes the config (Hydra's own refusal
+    names none); ``--help`` and Hydra's other flags pass untouched (and fast)."""
+    from hydra._internal.utils import get_args_parser
+
+    try:
+        args, _ = get_args_parser().parse_known_args(argv)
+    except SystemExit:  # a malformed flag: Hydra answers it
+        return
+    if args.help or args.hydra_help or args.info or args.cfg or args.shell_completion:
+        return
+    from wcsac_rl.training.config_keys import check_override_keys
+    from wcsac_rl.training.errors import ConfigError
+
+    try:
+        check_override_keys(list(args.overrides))
+        check_output_dirs(list(args.overrides))
+    except ConfigError as err:
+        sys.exit(f"error: {err}")
+
+
+def check_output_dirs(overrides: list[str]) -> None:
+    """Refuse, in one line, a run or sweep directory that cannot be written (a read-only
+    file system, another user's directory) before Hydra tries to create it (its own
+    failure is a stack of lines). Directories given with interpolations are checked up
+    to their first one; without ``hydra.run.dir`` / ``hydra.sweep.dir``, Hydra writes
+    below the current directory."""
+    from wcsac_rl.training.errors import ConfigError
+    from wcsac_rl.training.run_dir import unwritable_reason
+
+    given = {}
+    for override in overrides:
+        key, sep, value = override.lstrip("+").partition("=")
+        if sep and key in ("hydra.run.dir", "hydra.sweep.dir"):
+            given[key] = value.strip("'\"")
+    for key, value in (given or {"the current directory": "."}).items():
+        literal = value.split("${", 1)[0] or "."
+        reason = unwritable_reason(literal)
+        if reason is not None:
+            where = f"{key}={value}" if key != "the current directory" else key
+            raise ConfigError(
+                f"cannot write the run's directory ({where}): {reason}; choose a directory "
+                "you can write (hydra.run.dir=..., or hydra.sweep.dir=... for a sweep)"
+            )
+
+
+def cli(argv: Sequence[str] | None = None) -> None:
+    """The ``wcsac-train`` console script (and ``python -m wcsac_rl.train``, ``train.py``)."""
+    if argv is not None:
+        sys.argv = [sys.argv[0], *argv]
+    check_command_line(sys.argv[1:])
+    main()
+
+
+def compose_config(*overrides: str) -> DictConfig:
+    """The config the command line ``wcsac-train <overrides>`` would train, for
+    :func:`run_training` (an unknown key is refused in one line naming the closest).
+
+    >>> cfg = compose_config("algo=sac_lag", "env=tiny", "seed=3")
+    >>> cfg.algo.name, cfg.env.name, cfg.seed, cfg.run_name
+    ('sac_lag', 'tiny', 3, 'sac_lag_tiny_seed3')
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from wcsac_rl.training.config_keys import check_override_keys
+
+    check_override_keys(list(overrides))
+    was_initialized = GlobalHydra.instance().is_initialized()
+    previous = GlobalHydra.instance().config_loader() if was_initialized else None
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            return compose("config", overrides=list(overrides))
+    finally:
+        if previous is not None:  # (a Hydra app calling this keeps its own state)
+            GlobalHydra.instance().clear()
+            GlobalHydra.instance().initialize(previous)
+
+
+def run_training(
+    cfg: DictConfig,
+    run_dir: str | Path | None = None,
+    *,
+    overrides: Sequence[str] | None = None,
+) -> Path:
+    """Train the run ``cfg`` describes (:func:`compose_config`, or a saved
+    ``config.yaml`` loaded with OmegaConf) and return its run directory.
+
+    The same code as ``wcsac-train``: the config is validated first (one
+    :class:`~wcsac_rl.training.ConfigError` naming the key), the run writes
+    ``progress.csv``, ``checkpoints/``, ``logs/``, ``curves.png`` and ``train.log`` into
+    ``run_dir`` (default: ``outputs/<date>/<time>_<run_name>`` below the current
+    directory, as the command line's). A refused config leaves no directory behind.
+
+    Args:
+        cfg: the composed config.
+        run_dir: the run's directory (new or empty; ``cfg.resume`` continues another).
+        overrides: the overrides ``cfg`` was composed with, recorded in the run's
+            ``provenance.json`` (and the resume rules of the command line apply to them).
+
+    Raises:
+        ConfigError: a config the run cannot start from; TrainingError: a run that could
+        not go on (its last checkpoint is kept).
+    """
+    import datetime
+
+    if run_dir is None:
+        now = datetime.datetime.now()
+        run_dir = Path("outputs") / f"{now:%Y-%m-%d}" / f"{now:%H-%M-%S}_{cfg.run_name}"
+    run_dir = Path(run_dir).absolute()
+    existed = run_dir.exists()
+    with ConsoleLog() as log:
+        try:
+            trainer = _build(cfg, run_dir, overrides)
+        except BaseException:
+            if not existed:
+                _discard(run_dir)
+            raise
+        log.attach(trainer.run_dir / LOG_FILE)
+        try:
+            done, curves = _finish(trainer)
+        finally:
+            trainer.close()
+        print(f"run directory: {done} (training curves: {curves})")
+    return done
+
+
+if __name__ == "__main__":
+    cli()

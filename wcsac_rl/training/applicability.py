@@ -1,0 +1,75 @@
+"""Options that only some algorithms read: given for another one, they get a warning.
+
+``wcsac-train algo=sac risk_level=0.1`` trains SAC, which has no risk level: the run is
+what the user asked for minus an option they may believe took effect. Each such
+top-level option given on the command line is said in one warning line on stderr (the
+run goes on: a sweep ``algo=sac,wcsac risk_level=0.1`` is a sensible command). The
+``algo.*`` options need no table: each algorithm's config group has only its own, and
+any other key is refused (:mod:`~wcsac_rl.training.config_keys`).
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+from types import MappingProxyType
+
+from omegaconf import DictConfig
+
+from wcsac_rl.training.config import OFF_POLICY_ALGOS
+
+__all__ = ["APPLIES_TO", "inapplicable", "warn_inapplicable"]
+
+APPLIES_TO = MappingProxyType(
+    {
+        "risk_level": ("wcsac",),  # sac_lag is α = 1; sac, cpo, random have no CVaR
+        "compile": OFF_POLICY_ALGOS,  # the SAC family's update
+        "save_replay_buffer": OFF_POLICY_ALGOS,  # cpo and random keep no replay buffer
+    }
+)
+"""Top-level option → the algorithms (``algo.name``) that read it."""
+
+
+def _given(overrides: Sequence[str]) -> list[str]:
+    """The top-level keys the overrides set (``risk_level=0.1``, ``++compile=true``)."""
+    keys = []
+    for override in overrides:
+        key, sep, _ = override.lstrip("+~").partition("=")
+        if sep and key in APPLIES_TO and key not in keys:
+            keys.append(key)
+    return keys
+
+
+def inapplicable(cfg: DictConfig, overrides: Sequence[str]) -> list[str]:
+    """One warning line per option of ``overrides`` that ``cfg``'s algorithm does not read.
+
+    >>> from omegaconf import OmegaConf
+    >>> cfg = OmegaConf.create({"algo": {"name": "sac"}})
+    >>> inapplicable(cfg, ["risk_level=0.1", "seed=3"])
+    ['warning: risk_level=0.1 does not apply to algo=sac (only algo=wcsac reads it); ignored']
+    >>> inapplicable(OmegaConf.create({"algo": {"name": "wcsac"}}), ["risk_level=0.1"])
+    []
+    """
+    algo = str(cfg.algo.name)
+    lines = []
+    for key in _given(overrides):
+        readers = APPLIES_TO[key]
+        if algo not in readers:
+            value = next(
+                o.lstrip("+~").partition("=")[2]
+                for o in overrides
+                if o.lstrip("+~").partition("=")[0] == key
+            )
+            who = " / ".join(f"algo={a}" for a in readers)
+            verb = "reads" if len(readers) == 1 else "read"
+            lines.append(
+                f"warning: {key}={value} does not apply to algo={algo} (only {who} {verb} it); "
+                "ignored"
+            )
+    return lines
+
+
+def warn_inapplicable(cfg: DictConfig, overrides: Sequence[str]) -> None:
+    """Print :func:`inapplicable`'s lines on stderr."""
+    for line in inapplicable(cfg, overrides):
+        print(line, file=sys.stderr, flush=True)
