@@ -60,7 +60,7 @@ def compose_config(*overrides: str, small: bool = True) -> DictConfig:
         return compose("config", overrides=[*base, *overrides])
 
 
-# Columns every algorithm's progress.csv has (README, "Logged columns").
+# Columns every algorithm's progress.csv has (docs/training.md, "Logged columns").
 COMMON_COLUMNS = {
     "epoch",
     "frames",

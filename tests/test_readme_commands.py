@@ -19,8 +19,10 @@ doing its work:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import importlib.util
+import io
 import re
 import runpy
 import shlex
@@ -85,9 +87,9 @@ def shell_commands(text: str) -> list[tuple[int, str]]:
                     line = line[2:]
                 if not pending:
                     start = number
-                pending += line.rstrip()
+                pending += line.strip() if pending else line.rstrip()
                 if pending.endswith("\\"):
-                    pending = pending[:-1] + " "
+                    pending = pending[:-1].rstrip() + " "
                     continue
                 if pending.strip() and not pending.lstrip().startswith("#"):
                     found.append((start, pending.strip()))
@@ -103,8 +105,19 @@ def shell_commands(text: str) -> list[tuple[int, str]]:
     return sorted(found)
 
 
+# pages whose commands run what the reader writes first (their links are checked)
+WRITE_FIRST = {
+    "docs/own_algorithm.md": "trains conf/algo/wcsac_iqn_pid.yaml, which it shows how to write"
+}
+
+
 def _all_commands() -> list[tuple[Path, int, str]]:
-    return [(page, n, cmd) for page in PAGES for n, cmd in shell_commands(page.read_text())]
+    return [
+        (page, n, cmd)
+        for page in PAGES
+        if str(page.relative_to(ROOT)) not in WRITE_FIRST
+        for n, cmd in shell_commands(page.read_text())
+    ]
 
 
 def _id(item: tuple[Path, int, str]) -> str:
@@ -125,8 +138,10 @@ class _Parsed(Exception):
 
 
 def _optional_brackets(words: list[str]) -> list[str]:
-    """A usage line's ``[--episodes 30]`` is given as ``--episodes 30``."""
-    return [w.strip("[]") for w in words if w.strip("[]")]
+    """A usage line's ``[--episodes 30]`` is given as ``--episodes 30`` (an extra's
+    ``.[video]`` is left as it is)."""
+    words = [w[1:] if w.startswith("[") else w for w in words]
+    return [w[:-1] if w.endswith("]") and "[" not in w else w for w in words if w]
 
 
 def check_command(command: str, *, docs_page: bool = False) -> None:
@@ -191,6 +206,9 @@ def _check_python(args: list[str]) -> None:
             _check_train(rest, via=f"python -m {module}")
         elif not module.startswith("wcsac_rl"):
             raise CommandRefused(f"python -m {module}: not one of the kit's modules")
+        elif not rest:  # (a bare module in the prose names the tool)
+            if importlib.util.find_spec(module) is None:
+                raise CommandRefused(f"no module {module}")
         else:
             _check_module(module, rest)
     elif args and args[0] == "train.py":
@@ -230,11 +248,14 @@ def _check_script(path: Path, args: list[str]) -> None:
 
 
 def _parse(call, name: str) -> None:
+    said = io.StringIO()
     try:
-        call()
+        with contextlib.redirect_stderr(said):
+            call()
     except SystemExit as stop:
         if stop.code not in (0, None):
-            raise CommandRefused(f"{name} refuses its arguments (exit code {stop.code})") from None
+            last = (said.getvalue().strip().splitlines() or [f"exit code {stop.code}"])[-1]
+            raise CommandRefused(f"{name} refuses its arguments: {last}") from None
 
 
 def _parse_stopped(call, name: str) -> None:
@@ -270,6 +291,10 @@ def _check_train(args: list[str], *, via: str) -> None:
     except ConfigError as err:
         raise CommandRefused(f"error: {err}") from None
     for job in _jobs(overrides, multirun=multirun):
+        # (Hydra's own keys do not change a job's config: _jobs composed them once)
+        job = [o for o in job if not o.lstrip("+~").startswith("hydra")]
+        if tuple(job) in _VALID_JOBS:
+            continue
         try:
             cfg = _compose(job)
             with open_dict(cfg):
@@ -277,6 +302,10 @@ def _check_train(args: list[str], *, via: str) -> None:
             validate_config(cfg)
         except ConfigError as err:
             raise CommandRefused(f"job {' '.join(job)}: error: {err}") from None
+        _VALID_JOBS.add(tuple(job))
+
+
+_VALID_JOBS: set[tuple[str, ...]] = set()  # jobs already composed and validated
 
 
 def _compose(overrides: list[str]):
@@ -350,8 +379,9 @@ def test_the_readme_shows_its_quickstart_commands():
         "python train.py algo=wcsca",  # a misspelt group option
         "python train.py -m algo=wcsac risk_level=0.1,1.5",  # a job out of range
         "python train.py algo=wcsac seed=0,10",  # a sweep without -m
-        "python -m wcsac_rl.evaluate multirun/alpha --episode 100",
-        "python -m wcsac_rl.calibration",  # a missing argument
+        "python -m wcsac_rl.evaluate multirun/alpha --episdes 100",
+        "python -m wcsac_rl.calibration --episodes 30",  # no run directory
+        "python -m wcsac_rl.evalute multirun/alpha",
         "python -m wcsac_rl.experiments.compare --outt x runs/a",
         "python benchmarks/bench_update.py --compiled",
         "wcsac-report multirun/alpha --forse",
@@ -380,7 +410,7 @@ def test_the_checker_finds_block_and_inline_commands():
     assert shell_commands(text) == [
         (1, "make train"),
         (1, "python train.py seed=1"),
-        (3, "python -m wcsac_rl.report   multirun/x --force   # comment"),
+        (3, "python -m wcsac_rl.report multirun/x --force   # comment"),
         (8, "make test"),
     ]
 

@@ -1,4 +1,4 @@
-"""What a resume restores, exactly (README "What a resume restores").
+"""What a resume restores, exactly (docs/training.md, "What a resume restores").
 
 Restored bit for bit: networks, targets, β, κ, every optimizer's state, the replay and
 start-state buffers (with ``save_replay_buffer``), the counters, the epoch in progress

@@ -11,7 +11,7 @@ the realised mean, the share of visited states with Q^c < 0, √V^c(s0) vs the s
 of realised costs). Then one row per label: the mean over its seeds.
 
 ``python -m wcsac_rl.experiments.compare RUN_DIR ... [--out table.md]`` prints (and
-writes) the markdown table that the README's "Defaults chosen on evidence" quotes.
+writes) the markdown table that docs/defaults.md quotes.
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ differ in how the error reaches the head's pre-softplus output ``z``
   ``(V − y)·sigmoid(z)``: where V is small the factor ``sigmoid(z) ≈ V`` silences the
   error, so a network that fits the large variances near a hazard drives the rest of
   the state space to the floor and cannot climb back (measured: a two-level target of
-  30 and 2 is fitted as 28 and 0.000; see README, "Defaults chosen on evidence").
+  30 and 2 is fitted as 28 and 0.000; see docs/defaults.md).
 * ``"glm"`` — the same fixed point ``V = E y``, with the gradient ``V − y`` in ``z``:
   the update a generalised linear model gets from its canonical link, so a small V
   with a larger target is pulled up as hard as a large one. The reported value is the

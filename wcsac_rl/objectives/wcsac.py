@@ -75,8 +75,8 @@ PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(
 )
 """The safety critic and κ as the paper writes them (Eq. 7–8, one-step targets with the
 reward's γ, κ on the mean Γ over replay states against the per-step threshold):
-``WCSACLoss(..., **PAPER_OPTIONS)``. The defaults differ, on StaticEnv evidence (README,
-"Defaults chosen on evidence"); ``algo=wcsac_paper`` is the same in the config."""
+``WCSACLoss(..., **PAPER_OPTIONS)``. The defaults differ, on StaticEnv evidence
+(docs/defaults.md); ``algo=wcsac_paper`` is the same in the config."""
 
 
 class WCSACLoss(SACLoss):

@@ -101,7 +101,7 @@ class LossMeans:
     summed into the running total and dropped at once. Keeping them for the whole epoch
     instead (7 500 per epoch at the paper's settings) cost gigabytes: their thousands
     of tiny tensors, allocated between the update's ~1 MB activations, pinned the
-    heap so the freed activations could not be reused (measured, README "Memory").
+    heap so the freed activations could not be reused (measured, docs/performance.md, "Memory per run").
     """
 
     def __init__(self, keys: list[str]) -> None:
