@@ -53,15 +53,7 @@ MAX_JOBS = 64  # jobs of one sweep checked (the paper's Table 1 is 21)
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
 SCRIPTS = PYPROJECT["project"].get("scripts", {})
 EXTRAS = set(PYPROJECT["project"].get("optional-dependencies", {}))
-TRAIN_MODULE = "wcsac_rl.train"  # the installable entry point (wcsac-train)
-# links to pages other branches add (the own-environment and structure issues)
-PENDING_TARGETS = {
-    "docs/architecture.md",
-    "docs/own_environment.md",
-    "docs/own_algorithm.md",
-    "CITATION.cff",
-    "LICENSE",
-}
+TRAIN_MODULE = "wcsac_rl.train"  # train.py installed: wcsac-train
 
 
 # --- finding the commands -------------------------------------------------------------
@@ -145,8 +137,7 @@ def _optional_brackets(words: list[str]) -> list[str]:
 
 
 def check_command(command: str, *, docs_page: bool = False) -> None:
-    """Raise :class:`CommandRefused` if ``command`` would not run as written;
-    ``pytest.skip`` if it needs an entry point this checkout does not have yet."""
+    """Raise :class:`CommandRefused` if ``command`` would not run as written."""
     try:
         words = shlex.split(command, comments=True)
     except ValueError as err:
@@ -161,7 +152,7 @@ def check_command(command: str, *, docs_page: bool = False) -> None:
     elif tool in ("python", "python3"):
         _check_python(args)
     elif tool == "wcsac-train":
-        _check_train(args, via=tool)  # (before the scripts: it may not be one yet)
+        _check_train(args, via=tool)
     elif tool.startswith("wcsac-"):
         if tool not in SCRIPTS:
             raise CommandRefused(f"{tool} is not a console script of pyproject.toml")
@@ -276,11 +267,6 @@ def _parse_stopped(call, name: str) -> None:
 
 
 def _check_train(args: list[str], *, via: str) -> None:
-    if via != "python train.py" and importlib.util.find_spec(TRAIN_MODULE) is None:
-        pytest.skip(
-            f"{via} is the installable entry point of the own-environment issue "
-            f"(branch issue29): {TRAIN_MODULE} is not importable in this checkout"
-        )
     multirun = any(a in ("-m", "--multirun") for a in args)
     overrides = [a for a in args if a not in ("-m", "--multirun")]
     flags = [a for a in overrides if a.startswith("-")]
@@ -438,8 +424,7 @@ def test_every_relative_link_leads_to_a_file_and_heading(page):
         path, _, anchor = target.partition("#")
         resolved = (page.parent / path).resolve() if path else page
         if path and not resolved.exists():
-            if str(resolved.relative_to(ROOT)) not in PENDING_TARGETS:
-                broken.append(target)
+            broken.append(target)
             continue
         if anchor and resolved.suffix == ".md" and anchor not in _anchors(resolved):
             broken.append(target)
