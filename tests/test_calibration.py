@@ -21,7 +21,13 @@ from tensordict import TensorDict
 
 from wcsac_rl.calibration import main as calibration_main
 from wcsac_rl.envs import make_env
-from wcsac_rl.evaluation.calibration import (
+from wcsac_rl.evaluation.plots import (
+    CALIBRATION_PANEL,
+    SLACK_PANEL,
+    plot_run_curves,
+    run_curves_figure,
+)
+from wcsac_rl.evaluation.run_calibration import (
     CALIBRATION_KEYS,
     calibration_keys,
     calibration_metrics,
@@ -29,13 +35,7 @@ from wcsac_rl.evaluation.calibration import (
     discounted_cost_to_go,
     supports_calibration,
 )
-from wcsac_rl.evaluation.plots import (
-    CALIBRATION_PANEL,
-    SLACK_PANEL,
-    plot_run_curves,
-    run_curves_figure,
-)
-from wcsac_rl.rollouts import calibration as rollout_calibration
+from wcsac_rl.rollouts import critic_calibration as rollout_calibration
 from wcsac_rl.rollouts.episodes import (
     EpisodeResult,
     RecordedEpisode,
@@ -157,7 +157,7 @@ def test_metrics_of_hand_made_episodes_match_closed_form_values():
 
 @pytest.mark.parametrize("nonnegative", [False, True])
 def test_start_tail_of_an_iqn_critic_pools_the_start_state_quantiles(nonnegative):
-    from wcsac_rl.evaluation.calibration import EpisodeCalibration, summarize_calibration
+    from wcsac_rl.evaluation.run_calibration import EpisodeCalibration, summarize_calibration
 
     def episode(start_quantiles):
         quantiles = np.array([start_quantiles, [0.0, 0.0, 0.0, 0.0]])

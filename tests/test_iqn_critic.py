@@ -701,7 +701,7 @@ def test_trainer_runs_resumes_and_calibrates_an_iqn_critic(tmp_path, capsys):
     import json
 
     from wcsac_rl.calibration import main as calibration_main
-    from wcsac_rl.evaluation.calibration import CALIBRATION_KEYS
+    from wcsac_rl.evaluation.run_calibration import CALIBRATION_KEYS
     from wcsac_rl.training import ConfigError
     from wcsac_rl.training.checkpoint import load_checkpoint
 

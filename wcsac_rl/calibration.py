@@ -3,7 +3,7 @@
 Loads the run's final checkpoint (the whole loss: actor and safety critic), runs
 deterministic test episodes of the policy, compares the critic's predictions Q^c,
 Γ_α and √V^c with the realised discounted cost-to-go
-(:mod:`wcsac_rl.evaluation.calibration`), prints a small table and writes
+(:mod:`wcsac_rl.evaluation.run_calibration`), prints a small table and writes
 ``calibration.json`` beside the run. The test env is seeded as by
 ``python -m wcsac_rl.evaluate`` (training seed + ``--seed``), so the episodes are the
 first ``--episodes`` of that evaluation.
@@ -86,7 +86,7 @@ def _number(value: float | None) -> str:
 
 def format_table(result: dict[str, Any]) -> str:
     """A few readable lines from the result of
-    :func:`~wcsac_rl.evaluation.calibration.calibrate_run`."""
+    :func:`~wcsac_rl.evaluation.run_calibration.calibrate_run`."""
     m = result["metrics"]
     alpha = result["risk_level"]
     iqn = result.get("safety_critic") == "iqn"
@@ -137,8 +137,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     import torch
 
-    from wcsac_rl.evaluation.calibration import calibrate_run
     from wcsac_rl.evaluation.evaluator import _progress
+    from wcsac_rl.evaluation.run_calibration import calibrate_run
     from wcsac_rl.training.config import ConfigError
 
     torch.set_num_threads(max(1, args.threads))

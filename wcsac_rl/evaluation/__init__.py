@@ -7,9 +7,9 @@
 * :mod:`~wcsac_rl.evaluation.runs` — finding run / sweep / evaluated directories; row names.
 * :mod:`~wcsac_rl.evaluation.evaluator` — a run's final evaluation →
   ``evaluation.csv`` + ``evaluation.json`` (``python -m wcsac_rl.evaluate``).
-* :mod:`~wcsac_rl.evaluation.calibration` — a finished run's safety critic against the
+* :mod:`~wcsac_rl.evaluation.run_calibration` — a finished run's safety critic against the
   realised cost-to-go of its test episodes (``python -m wcsac_rl.calibration``; the
-  measurement is :mod:`wcsac_rl.rollouts.calibration`, logged each epoch as ``calib/*``).
+  measurement is :mod:`wcsac_rl.rollouts.critic_calibration`, logged each epoch as ``calib/*``).
 * :mod:`~wcsac_rl.evaluation.trajectories` — robot paths and MuJoCo videos of test episodes.
 * :mod:`~wcsac_rl.evaluation.plots` — per-run curves and the paper's Figures 4, 5, 6.
 * :mod:`~wcsac_rl.evaluation.reporting` — Table 1 + figures for a set of runs

@@ -543,7 +543,7 @@ class WCSACLoss(SACLoss):
         no gradient), shaped like the batch: ``cost_value`` (Q^c), ``cvar`` (Γ_α) and,
         with a variance network, ``cost_variance`` (V^c); an IQN critic is read at the
         midpoints of its strata and adds ``cost_quantiles`` ``[*B, N]``. For
-        diagnostics such as :mod:`wcsac_rl.evaluation.calibration`."""
+        diagnostics such as :mod:`wcsac_rl.evaluation.run_calibration`."""
         with torch.no_grad():
             out = self.safety_head.estimates(tensordict, self.safety_network_params)
         return TensorDict(out, batch_size=tensordict.batch_size)

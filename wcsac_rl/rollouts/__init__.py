@@ -2,7 +2,7 @@
 
 * :mod:`~wcsac_rl.rollouts.episodes` — run test episodes (return, cost, length) and,
   optionally, record chosen entries of every step.
-* :mod:`~wcsac_rl.rollouts.calibration` — the safety critic's predictions at the
+* :mod:`~wcsac_rl.rollouts.critic_calibration` — the safety critic's predictions at the
   states of recorded episodes against the realised cost-to-go.
 
 The trainer logs both every epoch; :mod:`wcsac_rl.evaluation` uses them on finished runs

@@ -31,7 +31,7 @@ from tqdm.auto import tqdm
 
 from wcsac_rl.envs import CostKeyError, EnvSourceError, NonFiniteStepError
 from wcsac_rl.objectives.inputs import nonfinite_entry
-from wcsac_rl.rollouts import calibration
+from wcsac_rl.rollouts import critic_calibration as calibration
 from wcsac_rl.rollouts.episodes import run_episodes, summarize_episodes
 from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import (
@@ -539,7 +539,7 @@ class Trainer:
     def _evaluate(self) -> dict[str, float]:
         """The epoch's deterministic test episodes: ``eval/*`` means and, when the
         learner's loss has a safety critic, its calibration on those very episodes
-        (``calib/*``, :mod:`wcsac_rl.rollouts.calibration`)."""
+        (``calib/*``, :mod:`wcsac_rl.rollouts.critic_calibration`)."""
         if self.eval_env is None:
             return {}
         loss = getattr(self, "loss", None)

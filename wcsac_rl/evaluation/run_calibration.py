@@ -1,7 +1,7 @@
 """Calibrate a finished run's safety critic: ``calibration.json`` beside the run.
 
 The measurement itself (Q^c, Γ_α and √V^c at the states the policy visits against the
-realised cost-to-go) is :mod:`wcsac_rl.rollouts.calibration`, which the trainer also
+realised cost-to-go) is :mod:`wcsac_rl.rollouts.critic_calibration`, which the trainer also
 logs every epoch (``calib/*``); this module loads a run's checkpoint, runs its
 deterministic test episodes and writes the result (``python -m wcsac_rl.calibration``).
 Its names are re-exported here.
@@ -19,7 +19,7 @@ from typing import Any
 
 import torch
 
-from wcsac_rl.rollouts.calibration import (
+from wcsac_rl.rollouts.critic_calibration import (
     CALIBRATION_KEYS,
     PREFIX,
     EpisodeCalibration,

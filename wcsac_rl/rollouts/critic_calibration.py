@@ -15,7 +15,7 @@ deterministic test episodes of the current policy:
   cost-to-go (:func:`discounted_cost_to_go`, γ_c = ``loss.cost_gamma``).
 * :func:`summarize_calibration` / :func:`calibration_metrics` reduce that to a flat
   dict of floats, :data:`CALIBRATION_KEYS` (logged per epoch as ``calib/*`` columns by
-  the trainer, and written to ``calibration.json`` by :mod:`wcsac_rl.evaluation.calibration`).
+  the trainer, and written to ``calibration.json`` by :mod:`wcsac_rl.evaluation.run_calibration`).
 
 **Truncation.** The realised cost-to-go is the sum of the costs actually seen until
 the episode ends. An undiscounted critic (γ_c = 1, ``cost_bootstrap_truncated``
