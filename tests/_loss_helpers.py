@@ -5,6 +5,8 @@ from __future__ import annotations
 import torch
 from _tolerance import assert_close_f32
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
+from torch import nn
 from torchrl.data import Bounded
 
 from wcsac_rl import WCSACLoss
@@ -98,3 +100,23 @@ def assert_same_losses_and_gradients(first: WCSACLoss, second: WCSACLoss, batch)
     assert grad_a.keys() == grad_b.keys()
     for name in grad_b:
         assert_close_f32(grad_a[name], grad_b[name], ops=GRADIENT_OPS, msg=name)
+
+
+class LinearQuantiles(nn.Module):
+    """Z(s, a, τ) = obs[0] + obs[1]·τ: an IQN 'critic' whose quantiles the batch sets."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.scale = nn.Parameter(torch.ones(()))
+
+    def forward(self, observation, action, quantile_fractions):
+        return self.scale * (observation[..., :1] + observation[..., 1:2] * quantile_fractions)
+
+
+def linear_quantile_critic() -> TensorDictModule:
+    """:class:`LinearQuantiles` reading (observation, action, quantile_fractions)."""
+    return TensorDictModule(
+        LinearQuantiles(),
+        in_keys=["observation", "action", "quantile_fractions"],
+        out_keys=["cost_quantiles"],
+    )

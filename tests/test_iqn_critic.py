@@ -20,6 +20,7 @@ from _loss_helpers import (
     ACT_DIM,
     OBS_DIM,
     assert_same_losses_and_gradients,
+    linear_quantile_critic,
     make_batch,
     paper_options,
 )
@@ -27,7 +28,6 @@ from _loss_helpers import make_loss as _make_loss
 from _tolerance import assert_close_f32
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
-from torch import nn
 from torchrl.data import Bounded
 from torchrl.objectives import SoftUpdate
 
@@ -314,23 +314,10 @@ def test_bad_iqn_arguments_are_refused(kwargs, message):
 
 
 # ---------------------------------------------------------- analytic targets
-class _LinearQuantiles(nn.Module):
-    """Z(s, a, τ) = obs[0] + obs[1]·τ: a 'critic' whose quantiles the batch sets."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.scale = nn.Parameter(torch.ones(()))
-
-    def forward(self, observation, action, quantile_fractions):
-        return self.scale * (observation[..., :1] + observation[..., 1:2] * quantile_fractions)
 
 
 def _linear_critic() -> TensorDictModule:
-    return TensorDictModule(
-        _LinearQuantiles(),
-        in_keys=["observation", "action", "quantile_fractions"],
-        out_keys=["cost_quantiles"],
-    )
+    return linear_quantile_critic()
 
 
 def _linear_loss(gamma: float = 0.9, **kwargs) -> WCSACLoss:

@@ -11,10 +11,9 @@ from statistics import NormalDist
 
 import pytest
 import torch
+from _loss_helpers import linear_quantile_critic
 from _tolerance import assert_close_f32
 from tensordict import TensorDict
-from tensordict.nn import TensorDictModule
-from torch import nn
 
 from wcsac_rl.modules import make_safety_critic
 from wcsac_rl.objectives import WCSACLoss
@@ -39,23 +38,8 @@ def _gaussian(risk_level=0.1, *, variance=True, nonnegative=False, **kwargs) -> 
     )
 
 
-class _LinearQuantiles(nn.Module):
-    """Z(s, a, τ) = obs[0] + obs[1]·τ: quantiles the batch sets."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.scale = nn.Parameter(torch.ones(()))
-
-    def forward(self, observation, action, quantile_fractions):
-        return self.scale * (observation[..., :1] + observation[..., 1:2] * quantile_fractions)
-
-
 def _linear_iqn(risk_level=0.2, *, nonnegative=False, **kwargs) -> tuple[IQNHead, TensorDict]:
-    module = TensorDictModule(
-        _LinearQuantiles(),
-        in_keys=["observation", "action", "quantile_fractions"],
-        out_keys=["cost_quantiles"],
-    )
+    module = linear_quantile_critic()
     head = make_safety_head(
         module, _keys(), risk_level=risk_level, nonnegative_cost=nonnegative, **kwargs
     )
