@@ -66,21 +66,21 @@ from wcsac_rl.training.builders import adam
 from wcsac_rl.training.runtime import retain_freed_memory
 
 PREFIX = "wcsac_profile::"
-PARTS = {  # loss method -> the part it is
-    "compute_targets": "targets: 1-step",
-    "_initial_state_values": "kappa: start-state values",
-    "_constraint_statistic": "kappa: statistic",
-    "_online_values": "online critics",
-    "qvalue_loss": "critic losses",
-    "safety_loss": "critic losses",
-    "_actor_loss": "actor loss",
+PARTS = {  # (owner, method) -> the part it is; owner "" is the loss, else its attribute
+    ("", "compute_targets"): "targets: 1-step",
+    ("", "_target_safety_at_policy"): "targets: n-step cost",
+    ("", "_policy_values"): "kappa: start-state values",
+    ("constraint_signal", "statistic"): "kappa: statistic",
+    ("", "_online_values"): "online critics",
+    ("", "qvalue_loss"): "critic losses",
+    ("", "safety_loss"): "critic losses",
+    ("", "_actor_loss"): "actor loss",
 }
-DETAILS = {  # loss method -> a cross-cutting detail inside the parts
-    "_sample_policy": "actor sampling",
-    "_fused_layers": "stack critic parameters",
-    "_safety_forward": "safety module call",
+DETAILS = {  # (owner, method) -> a cross-cutting detail inside the parts
+    ("", "_sample_policy"): "actor sampling",
+    ("critics", "layers"): "stack critic parameters",
+    ("safety_head", "values"): "safety module call",
 }
-NSTEP = "targets: n-step cost"
 STEPS = ("forward", "finite checks", "backward", "optimizer step", "target update")
 
 
@@ -89,30 +89,22 @@ def _label(name: str) -> str:
 
 
 def instrument(loss: WCSACLoss) -> None:
-    """Wrap the loss's methods (on the instance) in profiler labels."""
-    state = {"nstep": None}
-    for method, name in {**PARTS, **DETAILS}.items():
-        original = getattr(loss, method)
+    """Wrap the methods of the loss and of its parts (on the instances: their code is
+    not changed) in profiler labels. A method this script names but the loss does
+    not have is an error: the breakdown would silently lose a part."""
+    for (owner, method), name in {**PARTS, **DETAILS}.items():
+        target = getattr(loss, owner) if owner else loss
+        original = getattr(target, method, None)
+        if original is None:
+            where = f"loss.{owner}" if owner else type(loss).__name__
+            raise SystemExit(f"profile_update.py instruments {where}.{method}, which is gone")
 
         @functools.wraps(original)
-        def wrapped(*args, _original=original, _name=name, _method=method, **kwargs):
+        def wrapped(*args, _original=original, _name=name, **kwargs):
             with record_function(_label(_name)):
-                out = _original(*args, **kwargs)
-                if _method == "compute_targets" and state["nstep"] is not None:
-                    state["nstep"].__exit__(None, None, None)  # the n-step part ends here
-                    state["nstep"] = None
-                return out
+                return _original(*args, **kwargs)
 
-        setattr(loss, method, wrapped)
-    get_nstep = loss._get_nstep
-
-    def nstep_begins(*args, **kwargs):
-        # everything compute_targets does from reading the n-step entries on
-        state["nstep"] = record_function(_label(NSTEP))
-        state["nstep"].__enter__()
-        return get_nstep(*args, **kwargs)
-
-    loss._get_nstep = nstep_begins
+        setattr(target, method, wrapped)
 
 
 def make_update(loss: WCSACLoss):
@@ -151,7 +143,7 @@ def _labels_of(event) -> tuple[str, ...]:
 
 
 def _part_and_detail(labels: tuple[str, ...]) -> tuple[str, str | None]:
-    parts = [name for name in labels if name in set(PARTS.values()) | {NSTEP}]
+    parts = [name for name in labels if name in set(PARTS.values())]
     details = [name for name in labels if name in set(DETAILS.values())]
     step = labels[0] if labels else "outside"
     if parts:
