@@ -17,10 +17,11 @@ innermost label around it; backward operators are given to the label of the forw
 operator they differentiate (the autograd sequence number). So each part's share
 counts its forward, its backward and the Python between its operators:
 
-* ``targets: 1-step`` — ``a' ~ π(s')`` and the four target critics at ``(s', a')``;
-* ``targets: n-step cost`` — ``a ~ π(s_{t+m})`` and the target safety critic's mean
-  and variance networks there (``cost_n_steps > 1``);
-* ``kappa: start-state values`` — ``a₀ ~ π(s₀)`` and the critics at the start
+* ``targets`` — ``a' ~ π(s')``, the target reward critics at ``(s', a')`` and the
+  target safety critic where its target bootstraps (at ``(s', a')``, or with
+  ``cost_n_steps > 1`` at ``s_{t+m}``, in the same batched products);
+* ``targets: n-step draw`` — ``a ~ π(s_{t+m})`` (``cost_n_steps > 1``);
+* ``kappa: start-state values`` — ``a₀ ~ π(s₀)`` and the safety critic at the start
   states (``kappa_states="initial"``);
 * ``kappa: statistic`` — the per-state Γ or the CVaR of the Gaussian mixture
   (``kappa_statistic="tail"``);
@@ -67,8 +68,8 @@ from wcsac_rl.training.runtime import retain_freed_memory
 
 PREFIX = "wcsac_profile::"
 PARTS = {  # (owner, method) -> the part it is; owner "" is the loss, else its attribute
-    ("", "compute_targets"): "targets: 1-step",
-    ("", "_target_safety_at_policy"): "targets: n-step cost",
+    ("", "compute_targets"): "targets",
+    ("", "_sample_action"): "targets: n-step draw",
     ("", "_policy_values"): "kappa: start-state values",
     ("constraint_signal", "statistic"): "kappa: statistic",
     ("", "_online_values"): "online critics",
