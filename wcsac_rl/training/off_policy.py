@@ -8,7 +8,9 @@ collected. The actor collects and plays the test episodes as a
 :class:`~wcsac_rl.modules.tanh_normal.TanhNormalPolicy`.
 
 With ``algo.cost_n_steps > 1`` each collected batch gets the n-step cost entries
-(:class:`~wcsac_rl.objectives.NStepCost`) before it enters the buffer. With
+(:class:`~wcsac_rl.objectives.NStepCost`) before it enters the buffer, all but the state
+``s_{t+m}``, which the buffer reads at sampling from the row that holds it
+(:class:`~wcsac_rl.training.replay.NStepReplayBuffer`). With
 ``algo.kappa_states=initial`` the trainer also keeps the episode start states
 it collects (``step_count == 0``) in a :class:`~wcsac_rl.objectives.StartStateBuffer`
 and attaches one, drawn uniformly, to every row of each sampled batch
