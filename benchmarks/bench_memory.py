@@ -7,7 +7,8 @@ a 3 M-frame run after its first 10⁶ frames, reached here in seconds by repeati
 real transitions), trains ``--frames`` frames and reports its peak RSS
 (``ru_maxrss``) and the RSS at the end, with the RSS after each collected batch.
 Each algorithm at the defaults (``wcsac``, ``sac_lag``: their buffer also stores the
-10-step cost entries) and at the paper's options (``wcsac_paper``, ``sac_lag_paper``).
+10-step cost entries, but not their state s_{t+m}, which the buffer reads from the row
+that holds it: ``wcsac_rl/training/replay.py``) and at the paper's options (``wcsac_paper``, ``sac_lag_paper``).
 
     python benchmarks/bench_memory.py                      # the four, 5 000 frames, empty and full buffer
     python benchmarks/bench_memory.py --algos wcsac --frames 8000 --no-fill
@@ -72,14 +73,22 @@ def _child(
         train_env = builders.make_train_env(cfg)  # not the trainer's: its collector starts it
         rollout = train_env.rollout(1000, break_when_any_done=False)  # [envs, time]
         train_env.close()
-        if trainer.postproc is not None:  # the n-step cost entries, as the trainer adds them
-            rollout = trainer.postproc(rollout)
         if trainer.initial_state_buffer is not None:
             trainer.initial_state_buffer.add_starts(rollout)
-        rows = rollout.reshape(-1).select(*trainer.replay_keys)
+        # written as the trainer writes collected pieces: whole, each with its own n-step
+        # entries (the buffer reads a row's n-step state from a later row of its piece)
+        if rollout.ndim == 1:  # one env without a batch dimension
+            rollout = rollout.unsqueeze(0)
+        envs, steps = rollout.shape[0], rollout.shape[-1]
         capacity = int(cfg.algo.buffer_size)
+        piece = 0
         while len(trainer.replay_buffer) < capacity:
-            trainer.replay_buffer.extend(rows[: capacity - len(trainer.replay_buffer)])
+            env_rows = rollout[piece % envs : piece % envs + 1]  # one env's steps: a piece
+            env_rows = env_rows[:, : min(steps, capacity - len(trainer.replay_buffer))]
+            if trainer.postproc is not None:  # the n-step cost entries the trainer adds
+                env_rows = trainer.postproc(env_rows)
+            trainer.replay_buffer.extend(env_rows.reshape(-1).select(*trainer.stored_keys))
+            piece += 1
         filled_s = time.time() - t0
     after_fill = _rss_mb()
     trace = []

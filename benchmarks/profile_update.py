@@ -17,10 +17,11 @@ innermost label around it; backward operators are given to the label of the forw
 operator they differentiate (the autograd sequence number). So each part's share
 counts its forward, its backward and the Python between its operators:
 
-* ``targets: 1-step`` — ``a' ~ π(s')`` and the four target critics at ``(s', a')``;
-* ``targets: n-step cost`` — ``a ~ π(s_{t+m})`` and the target safety critic's mean
-  and variance networks there (``cost_n_steps > 1``);
-* ``kappa: start-state values`` — ``a₀ ~ π(s₀)`` and the critics at the start
+* ``targets`` — ``a' ~ π(s')``, the target reward critics at ``(s', a')`` and the
+  target safety critic where its target bootstraps (at ``(s', a')``, or with
+  ``cost_n_steps > 1`` at ``s_{t+m}``, in the same batched products);
+* ``targets: n-step draw`` — ``a ~ π(s_{t+m})`` (``cost_n_steps > 1``);
+* ``kappa: start-state values`` — ``a₀ ~ π(s₀)`` and the safety critic at the start
   states (``kappa_states="initial"``);
 * ``kappa: statistic`` — the per-state Γ or the CVaR of the Gaussian mixture
   (``kappa_statistic="tail"``);
@@ -66,21 +67,21 @@ from wcsac_rl.training.builders import adam
 from wcsac_rl.training.runtime import retain_freed_memory
 
 PREFIX = "wcsac_profile::"
-PARTS = {  # loss method -> the part it is
-    "compute_targets": "targets: 1-step",
-    "_initial_state_values": "kappa: start-state values",
-    "_constraint_statistic": "kappa: statistic",
-    "_online_values": "online critics",
-    "qvalue_loss": "critic losses",
-    "safety_loss": "critic losses",
-    "_actor_loss": "actor loss",
+PARTS = {  # (owner, method) -> the part it is; owner "" is the loss, else its attribute
+    ("", "compute_targets"): "targets",
+    ("", "_sample_action"): "targets: n-step draw",
+    ("", "_policy_values"): "kappa: start-state values",
+    ("constraint_signal", "statistic"): "kappa: statistic",
+    ("", "_online_values"): "online critics",
+    ("", "qvalue_loss"): "critic losses",
+    ("", "safety_loss"): "critic losses",
+    ("", "_actor_loss"): "actor loss",
 }
-DETAILS = {  # loss method -> a cross-cutting detail inside the parts
-    "_sample_policy": "actor sampling",
-    "_fused_layers": "stack critic parameters",
-    "_safety_forward": "safety module call",
+DETAILS = {  # (owner, method) -> a cross-cutting detail inside the parts
+    ("", "_sample_policy"): "actor sampling",
+    ("critics", "layers"): "stack critic parameters",
+    ("safety_head", "values"): "safety module call",
 }
-NSTEP = "targets: n-step cost"
 STEPS = ("forward", "finite checks", "backward", "optimizer step", "target update")
 
 
@@ -89,30 +90,22 @@ def _label(name: str) -> str:
 
 
 def instrument(loss: WCSACLoss) -> None:
-    """Wrap the loss's methods (on the instance) in profiler labels."""
-    state = {"nstep": None}
-    for method, name in {**PARTS, **DETAILS}.items():
-        original = getattr(loss, method)
+    """Wrap the methods of the loss and of its parts (on the instances: their code is
+    not changed) in profiler labels. A method this script names but the loss does
+    not have is an error: the breakdown would silently lose a part."""
+    for (owner, method), name in {**PARTS, **DETAILS}.items():
+        target = getattr(loss, owner) if owner else loss
+        original = getattr(target, method, None)
+        if original is None:
+            where = f"loss.{owner}" if owner else type(loss).__name__
+            raise SystemExit(f"profile_update.py instruments {where}.{method}, which is gone")
 
         @functools.wraps(original)
-        def wrapped(*args, _original=original, _name=name, _method=method, **kwargs):
+        def wrapped(*args, _original=original, _name=name, **kwargs):
             with record_function(_label(_name)):
-                out = _original(*args, **kwargs)
-                if _method == "compute_targets" and state["nstep"] is not None:
-                    state["nstep"].__exit__(None, None, None)  # the n-step part ends here
-                    state["nstep"] = None
-                return out
+                return _original(*args, **kwargs)
 
-        setattr(loss, method, wrapped)
-    get_nstep = loss._get_nstep
-
-    def nstep_begins(*args, **kwargs):
-        # everything compute_targets does from reading the n-step entries on
-        state["nstep"] = record_function(_label(NSTEP))
-        state["nstep"].__enter__()
-        return get_nstep(*args, **kwargs)
-
-    loss._get_nstep = nstep_begins
+        setattr(target, method, wrapped)
 
 
 def make_update(loss: WCSACLoss):
@@ -151,7 +144,7 @@ def _labels_of(event) -> tuple[str, ...]:
 
 
 def _part_and_detail(labels: tuple[str, ...]) -> tuple[str, str | None]:
-    parts = [name for name in labels if name in set(PARTS.values()) | {NSTEP}]
+    parts = [name for name in labels if name in set(PARTS.values())]
     details = [name for name in labels if name in set(DETAILS.values())]
     step = labels[0] if labels else "outside"
     if parts:

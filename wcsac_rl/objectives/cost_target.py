@@ -123,11 +123,30 @@ class CostTarget:
             )
         return cost.to(dtype)
 
-    def bootstrap(self, tensordict: TensorDictBase, discount: Tensor, at_next, ahead: Callable):
+    def bootstrap_states(self, tensordict: TensorDictBase) -> TensorDictBase | None:
+        """The states where the target bootstraps when they are not ``s_{t+1}``: the
+        n-step entries (a ``KeyError`` saying how to add them if the batch has none),
+        or ``None`` for one step."""
+        if self.n_steps == 1:
+            return None
+        return required_entry(
+            tensordict,
+            self.keys.nstep,
+            f"cost_n_steps={self.n_steps} needs the n-step cost entries (cost, steps, "
+            f"terminated and the state after them)",
+            f"Add them to collected data with "
+            f"wcsac_rl.objectives.NStepCost({self.n_steps}, gamma=loss.cost_gamma).",
+        )
+
+    def bootstrap(
+        self, tensordict: TensorDictBase, discount: Tensor, at_next, ahead: Callable | object = None
+    ):
         """``(C, γ_c^m, alive, values)``, each ``[*B]`` but the last: the target
         critic's values where the sum is bootstrapped — ``at_next`` (at ``s_{t+1}``)
-        for one step, else ``ahead(state)`` at the n-step entries' ``s_{t+m}``.
-        ``discount`` is γ_c as a tensor."""
+        for one step, else at the n-step entries' ``s_{t+m}``: ``ahead(states)`` for a
+        callable ``ahead``, or ``ahead`` itself when the values there were read
+        already (:meth:`bootstrap_states` names those states). ``discount`` is γ_c as
+        a tensor."""
         cost = self.cost(tensordict, discount.dtype)
         gamma = discount.to(cost.dtype)
         if self.n_steps == 1:
@@ -138,15 +157,8 @@ class CostTarget:
                 if terminated is None:
                     terminated = tensordict.get(("next", self.keys.terminated))
             return cost, gamma, self._alive(terminated, cost), at_next
-        nstep = required_entry(
-            tensordict,
-            self.keys.nstep,
-            f"cost_n_steps={self.n_steps} needs the n-step cost entries (cost, steps, "
-            f"terminated and the state after them)",
-            f"Add them to collected data with "
-            f"wcsac_rl.objectives.NStepCost({self.n_steps}, gamma=loss.cost_gamma).",
-        )
-        values = ahead(nstep)
+        nstep = self.bootstrap_states(tensordict)
+        values = ahead(nstep) if callable(ahead) else ahead
         cost = nstep.get("cost").reshape(cost.shape).to(cost.dtype)
         gamma = gamma.pow(nstep.get("steps").reshape(cost.shape).to(cost.dtype))
         if self.bootstrap_truncated:

@@ -36,15 +36,16 @@ class CriticParams(NamedTuple):
 
 class CriticValues(NamedTuple):
     """Every critic at one batch of state-actions: the reward critics ``qvalue``
-    ``[num_qvalue_nets, *B]`` and the safety critic's
-    :class:`~wcsac_rl.objectives.safety_head.SafetyValues`."""
+    ``[num_qvalue_nets, *B]`` (``None`` where they were not read) and the safety
+    critic's :class:`~wcsac_rl.objectives.safety_head.SafetyValues`."""
 
-    qvalue: Tensor
+    qvalue: Tensor | None
     safety: SafetyValues
 
     def detach(self) -> CriticValues:
         """The same values without gradient."""
-        return CriticValues(self.qvalue.detach(), self.safety.detach())
+        qvalue = None if self.qvalue is None else self.qvalue.detach()
+        return CriticValues(qvalue, self.safety.detach())
 
 
 class Critics:
@@ -88,16 +89,62 @@ class Critics:
         params: CriticParams,
         vmap_qvalue: Callable,
         layers: Layers | None = None,
+        *,
+        qvalue: bool = True,
     ) -> CriticValues:
         """Every critic with ``params`` at the state of ``tensordict`` and ``action``
-        (``layers``: already gathered from ``params``)."""
+        (``layers``: already gathered from ``params``); ``qvalue=False`` reads the
+        safety critic alone (``qvalue`` is then ``None``: nothing is evaluated for it)."""
         if self.fused is not None:
             observation = tensordict.get(self.qvalue_network.in_keys[0])
             layers = self.layers(params) if layers is None else layers
-            qvalue, mean, variance = self.fused.values(observation, action, layers)
-            return CriticValues(qvalue, SafetyValues(mean, variance))
+            q, mean, variance = self.fused.values(observation, action, layers, qvalue=qvalue)
+            return CriticValues(q, SafetyValues(mean, variance))
+        q = self._qvalue(tensordict, action, params, vmap_qvalue) if qvalue else None
+        safety = self.head.values(tensordict, params.safety, action, target=params.target)
+        return CriticValues(q, safety)
+
+    def target_values(
+        self,
+        next_states: TensorDictBase,
+        next_action: Tensor,
+        params: CriticParams,
+        vmap_qvalue: Callable,
+        ahead: TensorDictBase | None,
+        sample: Callable[[TensorDictBase], Tensor],
+    ) -> CriticValues:
+        """The target critics for the TD targets: the reward critics at ``(s', a')``
+        and the safety critic where its target bootstraps — at ``(s', a')`` when
+        ``ahead`` is ``None``, else at the n-step states ``ahead`` and the action
+        ``sample(ahead)`` (``a ~ π``).
+
+        Nothing is evaluated that is not read: with ``ahead`` the safety critic is not
+        read at ``(s', a')`` (except by a head whose readings draw random numbers, the
+        IQN's: its draws there keep the random stream, and so the results, those of
+        the reading it has always made), and the fused critics evaluate the reward
+        critics at ``(s', a')`` and the safety critic at ``ahead`` in the same batched
+        products. ``sample`` is called after ``a'`` was drawn and, for an unfused
+        critic, after the reward critics (in the order the targets always drew)."""
+        if ahead is None:
+            return self.values(next_states, next_action, params, vmap_qvalue)
+        if self.fused is not None:
+            ahead_action = sample(ahead)
+            observation_key = self.qvalue_network.in_keys[0]
+            q, mean, variance = self.fused.values(
+                next_states.get(observation_key),
+                next_action,
+                self.layers(params),
+                safety_at=(ahead.get(observation_key), ahead_action),
+            )
+            return CriticValues(q, SafetyValues(mean, variance))
+        q = self._qvalue(next_states, next_action, params, vmap_qvalue)
+        if self.head.random_readings:
+            self.head.values(next_states, params.safety, next_action, target=params.target)
+        safety = self.head.values(ahead, params.safety, sample(ahead), target=params.target)
+        return CriticValues(q, safety)
+
+    def _qvalue(self, tensordict, action, params: CriticParams, vmap_qvalue) -> Tensor:
+        """The reward critics through TorchRL's vmapped call, ``[num_qvalue_nets, *B]``."""
         td_q = tensordict.select(*self.qvalue_network.in_keys, strict=False)
         td_q.set(self.keys.action, action)
-        qvalue = vmap_qvalue(td_q, params.qvalue).get(self.keys.state_action_value)
-        safety = self.head.values(tensordict, params.safety, action, target=params.target)
-        return CriticValues(qvalue.squeeze(-1), safety)
+        return vmap_qvalue(td_q, params.qvalue).get(self.keys.state_action_value).squeeze(-1)

@@ -110,6 +110,9 @@ class SafetyHead:
         """Whether the critic has a variance network (only the Gaussian head's)."""
         return False
 
+    random_readings = False
+    """Whether :meth:`values` draws random numbers (an IQN head's fractions)."""
+
     @property
     def in_keys(self) -> list:
         """What the critic reads from a batch (the entries the loss does not write)."""
@@ -366,6 +369,7 @@ class IQNHead(SafetyHead):
     """
 
     kind = "iqn"
+    random_readings = True  # each reading draws its fractions
     loss_names = ("loss_cost_quantile",)
     diagnostic_names = ("cost_value", "cost_variance")  # of the quantiles
 

@@ -494,9 +494,11 @@ class WCSACLoss(SACLoss):
         return self.critics.fused
 
     def _critic_values(
-        self, tensordict, action, critics: CriticParams, layers=None
+        self, tensordict, action, critics: CriticParams, layers=None, qvalue=True
     ) -> CriticValues:
-        return self.critics.values(tensordict, action, critics, self._vmap_qnetworkN0, layers)
+        return self.critics.values(
+            tensordict, action, critics, self._vmap_qnetworkN0, layers, qvalue=qvalue
+        )
 
     def _online_values(
         self, tensordict: TensorDictBase, layers: Layers | None = None
@@ -505,10 +507,13 @@ class WCSACLoss(SACLoss):
         return self._critic_values(tensordict, action, self._online_critics(), layers)
 
     def _policy_values(self, states: TensorDictBase, layers: Layers | None = None) -> CriticValues:
-        """The critics (detached) at ``a ~ π(·|s)`` for the ``states``, no gradient."""
+        """The safety critic (detached) at ``a ~ π(·|s)`` for the ``states``, no gradient
+        (the reward critics are not read: ``qvalue`` is ``None``)."""
         with torch.no_grad():
             action, _ = self._sample_policy(states)
-            return self._critic_values(states, action, self._detached_critics(), layers).detach()
+            critics = self._detached_critics()  # (κ reads the safety critic alone)
+            values = self._critic_values(states, action, critics, layers, qvalue=False)
+            return values.detach()
 
     def _sample_policy(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor]:
         """A reparametrised action ``a ~ π(·|s)`` and its log-probability."""
@@ -558,21 +563,28 @@ class WCSACLoss(SACLoss):
         with torch.no_grad():
             next_td = tensordict.get("next")
             next_action, next_log_prob = self._sample_policy(next_td)
-            next_values = self._critic_values(next_td, next_action, self._target_critics())
+            # the target critics read once: the reward critics at (s', a'), the safety
+            # critic where its target bootstraps (s' or the n-step states, a ~ π there)
+            ahead = self.cost_target.bootstrap_states(tensordict)
+            next_values = self.critics.target_values(
+                next_td,
+                next_action,
+                self._target_critics(),
+                self._vmap_qnetworkN0,
+                ahead,
+                self._sample_action,
+            )
             next_value = (next_values.qvalue - self._alpha * next_log_prob).min(0)[0]
             reward_target = self._reward_target(tensordict, next_value.unsqueeze(-1)).squeeze(-1)
             bootstrap = self.cost_target.bootstrap(
-                tensordict, self.cost_discount, next_values.safety, self._target_safety_at_policy
+                tensordict, self.cost_discount, next_values.safety, next_values.safety
             )
             targets = self.safety_head.targets(*bootstrap)
         return {"reward_target": reward_target, **targets}
 
-    def _target_safety_at_policy(self, states: TensorDictBase) -> SafetyValues:
-        """The target safety critic at ``a ~ π(·|states)`` (the n-step bootstrap)."""
-        action, _ = self._sample_policy(states)
-        return self.safety_head.values(
-            states, self.target_safety_network_params, action, target=True
-        )
+    def _sample_action(self, states: TensorDictBase) -> Tensor:
+        """``a ~ π(·|states)`` (the n-step bootstrap's action)."""
+        return self._sample_policy(states)[0]
 
     def _reward_target(self, tensordict: TensorDictBase, next_value: Tensor) -> Tensor:
         """TorchRL's TD(0) estimate ``r + γ (1 − term) V(s')`` (:func:`td0_target`)."""

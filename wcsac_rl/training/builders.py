@@ -8,6 +8,7 @@ replay buffer → update → logger.
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -15,6 +16,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.envs import EnvBase
@@ -36,6 +38,7 @@ from wcsac_rl.objectives import (
 from wcsac_rl.objectives.constraint import PIDGains
 from wcsac_rl.training.config import algo_option
 from wcsac_rl.training.devices import RunDevices, run_devices
+from wcsac_rl.training.replay import NStepReplayBuffer, nested_key
 
 __all__ = [
     "Agent",
@@ -299,12 +302,30 @@ def make_collector(
     return collector
 
 
-def make_replay_buffer(cfg: DictConfig) -> TensorDictReplayBuffer:
-    """Uniform replay on a ``LazyTensorStorage`` (the paper: 10⁶ transitions, batch 256)."""
-    return TensorDictReplayBuffer(
-        storage=LazyTensorStorage(int(cfg.algo.buffer_size), device=run_devices(cfg).learner),
-        batch_size=int(cfg.algo.batch_size),
-    )
+def make_replay_buffer(
+    cfg: DictConfig, postproc: NStepCost | None = None, stored_keys: Sequence[NestedKey] = ()
+) -> TensorDictReplayBuffer:
+    """Uniform replay on a ``LazyTensorStorage`` (the paper: 10⁶ transitions, batch 256).
+
+    With n-step cost entries (``postproc``) whose states are among the ``stored_keys``
+    under ``"next"`` and collected pieces that fit the buffer, an
+    :class:`~wcsac_rl.training.replay.NStepReplayBuffer`, which reads the n-step state
+    from the row holding it instead of storing it twice (its ``gathered_keys``)."""
+    storage = LazyTensorStorage(int(cfg.algo.buffer_size), device=run_devices(cfg).learner)
+    batch_size = int(cfg.algo.batch_size)
+    stored = {nested_key(key) for key in stored_keys}
+    if (
+        postproc is not None
+        and int(cfg.algo.collector.frames_per_batch) <= int(cfg.algo.buffer_size)
+        and all(nested_key("next", key) in stored for key in postproc.observation_keys)
+    ):
+        return NStepReplayBuffer(
+            storage=storage,
+            batch_size=batch_size,
+            nstep_key=postproc.out_key,
+            state_keys=postproc.observation_keys,
+        )
+    return TensorDictReplayBuffer(storage=storage, batch_size=batch_size)
 
 
 def make_postproc(loss: LossModule) -> NStepCost | None:

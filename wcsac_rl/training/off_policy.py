@@ -8,7 +8,9 @@ collected. The actor collects and plays the test episodes as a
 :class:`~wcsac_rl.modules.tanh_normal.TanhNormalPolicy`.
 
 With ``algo.cost_n_steps > 1`` each collected batch gets the n-step cost entries
-(:class:`~wcsac_rl.objectives.NStepCost`) before it enters the buffer. With
+(:class:`~wcsac_rl.objectives.NStepCost`) before it enters the buffer, all but the state
+``s_{t+m}``, which the buffer reads at sampling from the row that holds it
+(:class:`~wcsac_rl.training.replay.NStepReplayBuffer`). With
 ``algo.kappa_states=initial`` the trainer also keeps the episode start states
 it collects (``step_count == 0``) in a :class:`~wcsac_rl.objectives.StartStateBuffer`
 and attaches one, drawn uniformly, to every row of each sampled batch
@@ -40,6 +42,7 @@ from wcsac_rl.training.checkpoint import (
     save_buffers,
     verify_buffers,
 )
+from wcsac_rl.training.replay import nested_key
 from wcsac_rl.training.trainer import Trainer, env_max_episode_steps
 
 __all__ = ["OffPolicyTrainer"]
@@ -55,11 +58,15 @@ class OffPolicyTrainer(Trainer):
         self.loss = builders.make_loss(cfg, self.agent, self.max_episode_steps)
         self.target_updater = builders.make_target_updater(cfg, self.loss)
         self.optimizers = builders.make_optimizers(cfg, self.loss)
-        self.replay_buffer = builders.make_replay_buffer(cfg)
-        # only what the loss reads is stored: smaller buffer, faster sampling
-        self.replay_keys = sorted(self.loss.in_keys, key=str)
         # n-step cost entries (cost_n_steps > 1), added to each collected batch
         self.postproc = builders.make_postproc(self.loss)
+        self.replay_buffer = builders.make_replay_buffer(cfg, self.postproc, self.loss.in_keys)
+        # what a replay batch holds: what the loss reads (smaller buffer, faster
+        # sampling); stored: all of it but the n-step state, which the buffer reads
+        # from the row that holds it
+        self.replay_keys = sorted(self.loss.in_keys, key=str)
+        gathered = set(getattr(self.replay_buffer, "gathered_keys", ()))
+        self.stored_keys = [key for key in self.replay_keys if nested_key(key) not in gathered]
         self.initial_state_buffer = None
         if getattr(self.loss, "kappa_states", "replay") == "initial":
             self.initial_state_buffer = builders.make_initial_state_buffer(cfg, self.loss)
@@ -135,7 +142,7 @@ class OffPolicyTrainer(Trainer):
         with timeit("replay_extend"):
             if self.postproc is not None:
                 batch = self.postproc(batch)
-            self.replay_buffer.extend(batch.reshape(-1).select(*self.replay_keys))
+            self.replay_buffer.extend(batch.reshape(-1).select(*self.stored_keys))
             if self.initial_state_buffer is not None:
                 self.initial_state_buffer.add_starts(batch)
             if self.episode_window is not None:
