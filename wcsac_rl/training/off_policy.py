@@ -28,6 +28,7 @@ from tensordict import TensorDictBase
 from torchrl import timeit
 
 from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
+from wcsac_rl.objectives.inputs import collected_keys
 from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import (
     CHECKPOINT_DIR,
@@ -56,8 +57,9 @@ class OffPolicyTrainer(Trainer):
         self.target_updater = builders.make_target_updater(cfg, self.loss)
         self.optimizers = builders.make_optimizers(cfg, self.loss)
         self.replay_buffer = builders.make_replay_buffer(cfg)
-        # only what the loss reads is stored: smaller buffer, faster sampling
-        self.replay_keys = sorted(self.loss.in_keys, key=str)
+        # only what the loss reads is stored (not what is attached to each sample):
+        # smaller buffer, faster sampling
+        self.replay_keys = sorted(collected_keys(self.loss), key=str)
         # n-step cost entries (cost_n_steps > 1), added to each collected batch
         self.postproc = builders.make_postproc(self.loss)
         self.initial_state_buffer = None
