@@ -30,6 +30,7 @@ from __future__ import annotations
 import functools
 import warnings
 from copy import deepcopy
+from pathlib import Path
 
 import pytest
 import torch
@@ -1372,3 +1373,29 @@ def test_the_kit_groups_do_not_warn(variant):
         optim = torch.optim.Adam(sac.parameters(), lr=1e-3)
         total(sac(trajectories().reshape(-1))).backward()
         optim.step()
+
+
+# ------------------------------------------ docs/torchrl_contract.md: the example's diff
+def test_the_doc_diff_is_the_example():
+    """The diff docs/torchrl_contract.md shows (the SACLoss loop -> examples/pendulum_wcsac.py):
+    each hunk's new side is a run of the example's lines, and no removed line is in it."""
+    root = Path(__file__).resolve().parents[1]
+    doc = (root / "docs" / "torchrl_contract.md").read_text()
+    block = doc.split("```diff\n", 1)[1].split("```", 1)[0].splitlines()
+    example = (root / "examples" / "pendulum_wcsac.py").read_text().splitlines()
+    assert block[0].startswith("--- ") and block[1] == "+++ examples/pendulum_wcsac.py"
+    hunks, removed = [], []
+    for line in block[2:]:
+        if line.startswith("@@"):
+            hunks.append([])
+        elif line.startswith("-"):
+            removed.append(line[1:])
+        else:  # (a blank context line may have lost its space)
+            assert line[:1] in ("", " ", "+"), line
+            hunks[-1].append(line[1:])
+    assert len(hunks) >= 3 and removed
+    for hunk in hunks:
+        n = len(hunk)
+        assert any(example[i : i + n] == hunk for i in range(len(example) - n + 1)), hunk[:3]
+    for line in removed:
+        assert line.strip() == "" or line not in example, line
