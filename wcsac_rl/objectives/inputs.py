@@ -160,6 +160,17 @@ def nested_key(*keys: NestedKey) -> tuple[str, ...]:
     return tuple(part for key in keys for part in ((key,) if isinstance(key, str) else key))
 
 
+class _Present:
+    """``key in _Present(td)``: whether ``td`` has an entry (a tensor or a
+    sub-tensordict) at the nested ``key``, without listing its keys."""
+
+    def __init__(self, tensordict: TensorDictBase) -> None:
+        self.tensordict = tensordict
+
+    def __contains__(self, key: NestedKey) -> bool:
+        return self.tensordict.get(key, None) is not None
+
+
 def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
     """One line naming what ``tensordict`` lacks for ``loss``'s options and the kit's
     transform that writes it, or ``None`` if nothing is missing. Looks at keys only (no
@@ -172,8 +183,7 @@ def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
     the recent episodes' cost (``kappa_signal != "critic"``:
     :class:`~wcsac_rl.objectives.EpisodeCostWindow`).
     """
-    keys = set(tensordict.keys(True, True))
-    keys |= set(tensordict.keys(True))
+    keys = _Present(tensordict)
     name = type(loss).__name__
     wanted = []
     nstep = loss.tensor_keys.nstep

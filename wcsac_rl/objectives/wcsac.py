@@ -613,7 +613,7 @@ class WCSACLoss(SACLoss):
         """A one-step cost target on a batch from TorchRL's ``MultiStep`` would pair one
         step's cost with the state n steps on: refused in one line (keys only)."""
         key = self.value_estimator.tensor_keys.steps_to_next_obs
-        if key in tensordict.keys():
+        if tensordict.get(key, None) is not None:
             raise ValueError(
                 f"{type(self).__name__}: the batch has {key!r}, written by TorchRL's "
                 "MultiStep: its reward target is n-step but the cost target with "
