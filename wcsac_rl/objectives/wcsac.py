@@ -153,8 +153,12 @@ class WCSACLoss(SACLoss):
         reduction, skip_done_states, deactivate_vmap, scalar_output_mode: as in
         :class:`~torchrl.objectives.SACLoss`; ``loss_function`` defaults to ``"l2"``.
 
-    γ comes from the value estimator (``loss.make_value_estimator(gamma=0.99)``, TD(0)
-    only; default 0.99). ``forward`` returns ``loss_actor``, ``loss_qvalue``,
+    γ comes from the value estimator (``loss.make_value_estimator(gamma=0.99)``, any
+    TD(0) form :class:`~torchrl.objectives.SACLoss` takes; default 0.99). A batch that
+    lacks what the options read (a plain replay batch under the defaults) is refused
+    with a ``KeyError`` naming, in one line, the transforms to add
+    (:func:`~wcsac_rl.objectives.inputs.missing_inputs`); ``docs/torchrl_contract.md``
+    lists the rest of the TorchRL contract the loss keeps. ``forward`` returns ``loss_actor``, ``loss_qvalue``,
     ``loss_alpha``, the head's terms (``loss_cost_value`` and ``loss_cost_variance``,
     or ``loss_cost_quantile``) and, under the gradient rule, ``loss_kappa``; and the
     detached ``alpha``, ``kappa``, ``entropy``, ``cost_value``, ``cost_variance``,
