@@ -80,6 +80,7 @@ from plain_wcsac import PlainWCSAC, batch_inputs
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives import PAPER_OPTIONS, PolyakUpdate, StartStateBuffer
+from wcsac_rl.objectives.inputs import collected_keys
 from wcsac_rl.training.builders import adam, make_postproc
 from wcsac_rl.training.runtime import retain_freed_memory
 
@@ -153,7 +154,7 @@ def pipeline_batch(loss, sizes: Sizes) -> TensorDictBase:
     postproc = make_postproc(loss)
     if postproc is not None:
         traj = postproc(traj)
-    rows = traj.reshape(-1).select(*sorted(loss.in_keys, key=str))
+    rows = traj.reshape(-1).select(*sorted(collected_keys(loss), key=str))
     index = torch.randint(len(rows), (sizes.batch,), generator=torch.Generator().manual_seed(1))
     batch = rows[index]
     if getattr(loss, "kappa_states", "replay") == "initial":

@@ -19,16 +19,18 @@ fast paths; ``user``: TorchRL-style ``ProbabilisticActor`` / ``ValueOperator`` a
 not obvious for a safe loss, TorchRL's ``SACLoss`` runs the same assertion first
 (``reference``), so the ported test is shown to pass on the loss it was written for.
 
-Cases that fail only because of defects inside ``objectives/wcsac.py`` are skipped
-with the defect and the fix pending there (issue 28); nothing is marked xfail.
+Every case runs; nothing is skipped or marked xfail. The defects issue 28 found are
+named where their cases are (D1 in_keys, D2 ``skip_done_states``, D3 ``separate_losses``,
+D4 value estimators, D5 ``MultiStep``, D7 masking, D9 a batch without ``terminated``,
+the plain first batch).
 """
 
 from __future__ import annotations
 
 import functools
-import os
 import warnings
 from copy import deepcopy
+from pathlib import Path
 
 import pytest
 import torch
@@ -64,19 +66,11 @@ from wcsac_rl.objectives import (
     param_groups,
     per_step_cost_threshold,
 )
-from wcsac_rl.objectives.inputs import missing_inputs, state_keys
+from wcsac_rl.objectives.inputs import collected_keys, missing_inputs, state_keys
+from wcsac_rl.objectives.risk import gaussian_mixture_cvar, quantile_mixture_cvar
 
 OBS, ACT = 3, 4
 BATCH, TIME = 4, 6  # [envs, time] as a collector hands them over
-
-PENDING = "issue 28: {} — fix pending in objectives/wcsac.py"
-
-
-def pending(defect: str):
-    """Skip a case that fails only by ``defect`` inside ``objectives/wcsac.py``;
-    ``WCSAC_RUN_PENDING=1`` runs it anyway (to check a fix, or that it still fails)."""
-    run_anyway = os.environ.get("WCSAC_RUN_PENDING") == "1"
-    return pytest.mark.skipif(not run_anyway, reason=PENDING.format(defect))
 
 
 @pytest.fixture(autouse=True)
@@ -482,17 +476,14 @@ def test_separate_losses_reference(separate_losses, composite):
     assert_separate_losses(loss, out, common, separate_losses, ["qvalue"])
 
 
+# D3: the safety critic shares the actor's trunk as SACLoss's reward critic does (with
+# separate_losses it reads the actor's tensors untrained; without, it trains its own copy)
 SEPARATE_LOSSES_CASES = [
     pytest.param(
         cls,
         options,
         separate,
         composite,
-        marks=pending(
-            "D3 — the safety critic's params are the actor's own trunk tensors: with "
-            "separate_losses=True loss_cost_* trains the shared trunk; with False loss_cost_* "
-            "trains the actor's trunk (SACLoss gives the critic its own copy)"
-        ),
         id=f"{cls}-{options}-separate={separate}-composite={composite}",
     )
     for cls in ("WCSAC", "SACLag")
@@ -519,6 +510,17 @@ def test_separate_losses_with_a_shared_trunk(cls, options, separate_losses, comp
         separate_losses=separate_losses,
         **kwargs,
     )
+    trunk = {id(p) for p in common.parameters()}
+    own = [p for p in loss.safety_network_params.values(True, True)]
+    registered = {id(p) for p in loss.parameters()}
+    if separate_losses:  # the actor's own tensors, read (not trained) by the safety critic
+        shared = [p for p in own if any(p.data_ptr() == q.data_ptr() for q in common.parameters())]
+        assert len(shared) == len(trunk) and not any(isinstance(p, nn.Parameter) for p in shared)
+    else:  # its own trainable copy, equal to the trunk at the start
+        assert not trunk & {id(p) for p in own}
+        assert all(isinstance(p, nn.Parameter) and id(p) in registered for p in own)
+        for p, q in zip(own, common.parameters(), strict=False):
+            torch.testing.assert_close(p, q)
     out = loss(shared_trunk_batch(composite))
     assert_separate_losses(loss, out, common, separate_losses, ["qvalue", "safety"])
 
@@ -539,19 +541,11 @@ def nstep_cost_target(loss, traj, n):
     return ref.get("cost").squeeze(-1) + gamma * (~stop).float() * q_next
 
 
+# D5: MultiStep with a one-step cost target is refused in one line (the cost of one
+# step would be bootstrapped from the state n steps on); the n-step cost entries
+# (NStepCost, written before MultiStep) give the correct target
 MULTISTEP_CASES = [
-    pytest.param(
-        cls,
-        options,
-        n,
-        marks=pending(
-            "D5 — a MultiStep batch: the reward target is n-step, the cost target is built "
-            "one-step from the shifted next state, silently"
-        )
-        if n > 1 and options == "paper"
-        else (),
-        id=f"{cls}-{options}-n{n}",
-    )
+    pytest.param(cls, options, n, id=f"{cls}-{options}-n{n}")
     for cls in ("WCSAC", "SACLag")
     for options in ("paper", "default")
     for n in (1, 2, 3)
@@ -577,12 +571,14 @@ def test_multistep_batches_are_correct_or_refused(cls, options, n):
         starts = StartStateBuffer.for_loss(loss)
         starts.add_starts(traj)
         flat = starts.attach(flat)
-    try:
-        targets = loss.compute_targets(flat)
-    except (ValueError, KeyError) as err:
-        message = err.args[0]
-        assert "\n" not in message and "MultiStep" in message, message
+    if loss.cost_n_steps == 1:  # refused whatever n: the loss sees keys, not values
+        for call in (loss.compute_targets, loss):
+            with check_td_steady(flat), pytest.raises(ValueError) as err:
+                call(flat)
+            message = err.value.args[0]
+            assert "\n" not in message and "MultiStep" in message and "NStepCost" in message
         return
+    targets = loss.compute_targets(flat)
     expected = nstep_cost_target(loss, trajectories(), max(n, loss.cost_n_steps))
     assert_close_f32(targets["cost_target"], expected.reshape(-1), ops=16)
     with check_td_steady(flat):
@@ -590,6 +586,15 @@ def test_multistep_batches_are_correct_or_refused(cls, options, n):
     total(out).backward()
     for name, p in loss.named_parameters():
         assert name.startswith("target_") or p.grad is not None, name
+
+
+def test_nstep_cost_refuses_a_batch_multistep_has_seen():
+    """NStepCost reads each step's own cost and flags, which MultiStep replaces by those
+    n steps on: after MultiStep it refuses in one line (before it, the case above)."""
+    ms = MultiStep(gamma=0.9, n_steps=2)(trajectories())
+    with pytest.raises(ValueError) as err:
+        NStepCost(3, 1.0)(ms)
+    assert "\n" not in err.value.args[0] and "before MultiStep" in err.value.args[0]
 
 
 def test_multistep_reference_changes_the_reward_target():
@@ -736,23 +741,8 @@ def _flat_key(key) -> str:
     return key if isinstance(key, str) else "_".join(key)
 
 
-def with_pending(variants, defect, options="default"):
-    """``variants`` with those of ``options`` skipped for ``defect`` (pending in wcsac.py)."""
-    return [
-        pytest.param(p.values[0], marks=pending(defect), id=p.id)
-        if p.values[0][2] == options
-        else p
-        for p in variants
-    ]
-
-
-D1 = (
-    "D1 — in_keys lack the episode-start-state entries (('initial', obs)) that the "
-    "default kappa_states='initial' reads"
-)
-
-
-@pytest.mark.parametrize("variant", with_pending(VARIANTS, D1))
+# D1: in_keys list the start-state entries (("initial", obs)) kappa_states="initial" reads
+@pytest.mark.parametrize("variant", VARIANTS)
 @pytest.mark.parametrize("keys", KEY_CASES, ids=["default-keys", "renamed-keys"])
 def test_in_keys_list_every_entry_the_loss_reads(variant, keys):
     """``loss.in_keys`` is what a TorchRL pipeline keeps (``batch.select(*loss.in_keys)``):
@@ -771,8 +761,29 @@ def test_in_keys_list_every_entry_the_loss_reads(variant, keys):
     assert set(expected.keys()) == set(loss.out_keys)
 
 
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("signal", ["critic", "max"])
+def test_collected_keys_are_the_in_keys_a_replay_buffer_stores(variant, signal):
+    """``in_keys`` list what the forward reads, the start states and the episodes' cost
+    attached to each sample included; ``collected_keys`` is what collected data holds
+    (a replay buffer stores ``data.select(*collected_keys(loss))``)."""
+    kwargs = {"kappa_signal": signal} if variant[2] == "default" else {}
+    loss = make_variant(variant, **kwargs)
+    attached = {k for k in loss.in_keys if isinstance(k, tuple) and k[0] == "initial"}
+    starts = {(k,) for k in state_keys(loss)} if loss.kappa_states == "initial" else set()
+    assert {k[1:] for k in attached} == starts
+    assert ("episode_cvar" in loss.in_keys) == (signal == "max" and variant[2] == "default")
+    kept = collected_keys(loss)
+    assert set(kept) == set(loss.in_keys) - attached - {"episode_cvar"}
+    traj = trajectories()
+    if loss.cost_n_steps > 1:
+        traj = NStepCost.for_loss(loss)(traj)
+    traj.reshape(-1).select(*kept)  # (strict: every one is there)
+    assert collected_keys(make_sac()) == make_sac().in_keys
+
+
 # ----------------------------------------------- TestSAC: test_sac_notensordict
-@pytest.mark.parametrize("variant", with_pending(VARIANTS, D1))
+@pytest.mark.parametrize("variant", VARIANTS)
 def test_keyword_call_equals_the_tensordict_call(variant):
     """``loss(**{flat in_key: tensor})`` (TorchRL's ``dispatch``) gives ``loss(td)``'s
     out_keys, and ``select_out_keys`` narrows it."""
@@ -827,28 +838,29 @@ def test_skip_done_states_reference():
     assert_actor_never_saw_done_states(seen)
 
 
-D2 = "D2 — skip_done_states=True is accepted and ignored (the actor sees done next states)"
-
-
 @pytest.mark.parametrize("cls", ["WCSAC", "SACLag"])
 @pytest.mark.parametrize("options", ["paper", "default"])
-@pending(D2)
-def test_skip_done_states_is_honoured_or_refused(cls, options):
+def test_skip_done_states_is_honoured(cls, options):
+    """D2: the actor is never run on a done next state (nor, with n-step cost entries,
+    on an n-step state after an episode's end), as SACLoss's ``skip_done_states``."""
     actor, spec, seen = recording_actor()
     loss_cls = WCSACLoss if cls == "WCSAC" else SACLagLoss
     kwargs = {**options_of(options), "skip_done_states": True}
     if cls == "WCSAC":
         kwargs["risk_level"] = 0.5
-    try:
-        loss = loss_cls(actor, user_qvalue(), user_safety(), action_spec=spec, **kwargs)
-    except ValueError as err:
-        assert "skip_done_states" in err.args[0] and "\n" not in err.args[0]
-        return
+    loss = loss_cls(actor, user_qvalue(), user_safety(), action_spec=spec, **kwargs)
     batch = done_sentinel_batch(loss)
     seen.clear()
     out = loss(batch)
     assert all(torch.isfinite(out[k]) for k in loss_terms(out))
+    total(out).backward()
     assert_actor_never_saw_done_states(seen)
+    # without the option the actor does see them (the case above is not vacuous)
+    kwargs["skip_done_states"] = False
+    actor, spec, seen = recording_actor()
+    loss = loss_cls(actor, user_qvalue(), user_safety(), action_spec=spec, **kwargs)
+    loss(done_sentinel_batch(loss))
+    assert any((obs == SENTINEL).any() for obs in seen)
 
 
 # ------------------------------------------ value estimators (TestMakeValueEstimator)
@@ -870,18 +882,10 @@ def test_td0_forms_reference(form):
     assert float(loss.value_estimator.gamma) == pytest.approx(0.9)
 
 
-D4 = "D4 — make_value_estimator refuses the TD0 forms SACLoss accepts ('td0', TD0Estimator class / instance)"
-
-
 @pytest.mark.parametrize("variant", VARIANTS)
-@pytest.mark.parametrize(
-    "form",
-    [
-        pytest.param(form, marks=() if form == "enum" else pending(D4), id=form)
-        for form in sorted(TD0_FORMS)
-    ],
-)
+@pytest.mark.parametrize("form", sorted(TD0_FORMS))
 def test_td0_forms_are_accepted_and_set_gamma(variant, form):
+    """D4: every TD(0) form SACLoss takes; γ (and γ_c, the threshold) follow it."""
     loss = make_variant(variant)
     args, kwargs = TD0_FORMS[form]()
     assert loss.make_value_estimator(*args, **kwargs) is loss
@@ -897,7 +901,7 @@ def test_td0_forms_are_accepted_and_set_gamma(variant, form):
 
 @pytest.mark.parametrize("variant", VARIANTS)
 @pytest.mark.parametrize(
-    "value_type", [ValueEstimators.TD1, ValueEstimators.TDLambda, ValueEstimators.GAE]
+    "value_type", [ValueEstimators.TD1, ValueEstimators.TDLambda, ValueEstimators.GAE, "gae"]
 )
 def test_other_value_estimators_are_refused_in_one_line(variant, value_type):
     loss = make_variant(variant)
@@ -1005,19 +1009,46 @@ def test_masking_reference():
     assert_masked_rows_do_not_count(masked_pair(lambda: make_sac()))
 
 
-D7 = (
-    "D7 — ('collector', 'mask'): masked rows enter the κ statistic (kappa_statistic='tail' "
-    "mixes every row's Gaussian)"
-)
-
-MASK_CASES = [
-    pytest.param(
-        cls,
-        critic,
-        options,
-        marks=pending(D7) if options in ("tail-replay", "default-replay") else (),
-        id=f"{cls}-{critic}-{options}",
+@pytest.mark.parametrize("risk_level", [0.05, 0.5, 1.0])
+def test_a_weighted_mixture_is_the_mixture_of_the_rows_kept(risk_level):
+    """The mixtures κ reads with ``kappa_statistic="tail"``: rows of weight 0 (masked)
+    count for nothing, whatever they hold (NaN, inf), and send no gradient; weights all
+    one give the equal-weight mixture."""
+    g = torch.Generator().manual_seed(0)
+    keep = torch.tensor([True, False, True, True, False, True, True, False])
+    mean = torch.randn(8, generator=g, dtype=torch.float64).requires_grad_()
+    variance = torch.rand(8, generator=g, dtype=torch.float64) + 0.1
+    garbage = torch.tensor([0.0, float("nan"), 0.0, 0.0, float("inf"), 0.0, 0.0, -1e30])
+    bad_mean = torch.where(keep, mean, garbage.double())
+    got = gaussian_mixture_cvar(bad_mean, variance, risk_level, weights=keep)
+    expected = gaussian_mixture_cvar(mean[keep], variance[keep], risk_level)
+    # (both brackets shrink 32^5-fold from the kept rows' own VaRs: the same search)
+    torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12)
+    got.backward()
+    assert torch.isfinite(mean.grad).all() and (mean.grad[~keep] == 0).all()
+    everyone = torch.ones(8, dtype=torch.bool)
+    torch.testing.assert_close(
+        gaussian_mixture_cvar(mean, variance, risk_level, weights=everyone),
+        gaussian_mixture_cvar(mean, variance, risk_level),
+        rtol=1e-12,
+        atol=1e-12,
     )
+    quantiles = torch.randn(8, 5, generator=g)
+    bad = torch.where(keep.unsqueeze(-1), quantiles, garbage.unsqueeze(-1))
+    got = quantile_mixture_cvar(bad, risk_level, weights=keep)
+    expected = quantile_mixture_cvar(quantiles[keep], risk_level)
+    assert_close_f32(got, expected, ops=40, magnitude=quantiles.abs().max())
+    assert_close_f32(
+        quantile_mixture_cvar(quantiles, risk_level, weights=everyone),
+        quantile_mixture_cvar(quantiles, risk_level),
+        ops=40,
+        magnitude=quantiles.abs().max(),
+    )
+
+
+# D7: masked rows stay out of the κ statistic too (kappa_statistic="tail" mixes the rows)
+MASK_CASES = [
+    pytest.param(cls, critic, options, id=f"{cls}-{critic}-{options}")
     for cls in ("WCSAC", "SACLag")
     for critic in ("kit", "user")
     for options in MASK_OPTIONS
@@ -1233,52 +1264,48 @@ def test_missing_inputs_names_the_transforms_in_one_line(variant):
     assert "EpisodeCostWindow.for_loss(loss)" in missing_inputs(signal, batch_for(signal))
 
 
-PLAIN = (
-    "plain batch — the default loss raises a KeyError naming only the n-step entries "
-    "(then, once added, the start states): call inputs.missing_inputs(self, tensordict) at "
-    "the top of forward and raise its one line"
-)
-
-
-@pytest.mark.parametrize("variant", with_pending(VARIANTS, PLAIN))
+@pytest.mark.parametrize("variant", VARIANTS)
 def test_a_plain_batch_trains_or_names_the_missing_transforms(variant):
+    """The first call a TorchRL user makes, on what a replay buffer hands over: under
+    PAPER_OPTIONS it trains; under the defaults a ``KeyError`` names in one line every
+    transform to add (not the first missing entry only) and PAPER_OPTIONS."""
     loss = make_variant(variant)
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            out = loss(plain_batch(terminated=True))
-    except (KeyError, ValueError) as err:
-        message = err.args[0]
-        assert "\n" not in message
-        assert "NStepCost" in message and "StartStateBuffer" in message, message
+    batch = plain_batch(terminated=True)
+    before = {k: v.clone() for k, v in loss.state_dict().items()}
+    if variant[2] == "paper":
+        out = loss(batch)
+        assert all(torch.isfinite(out[k]) for k in loss_terms(out))
+        total(out).backward()
         return
-    assert all(torch.isfinite(out[k]) for k in loss_terms(out))
-    if variant[2] == "default":  # a fallback is said in one line
-        lines = [str(w.message) for w in caught]
-        assert any("\n" not in line and "fall" in line for line in lines), lines
+    with check_td_steady(batch), pytest.raises(KeyError) as err:
+        loss(batch)
+    message = err.value.args[0]
+    assert "\n" not in message
+    for name in ("NStepCost.for_loss(loss)", "StartStateBuffer.for_loss(loss)", "PAPER_OPTIONS"):
+        assert name in message, name
+    for key, value in loss.state_dict().items():  # nothing lost
+        torch.testing.assert_close(value, before[key], msg=key)
 
 
-D9 = (
-    "D9 (new) — a batch without ('next', 'terminated'): compute_targets reads it as None "
-    "(AttributeError 'NoneType'.reshape); SACLoss falls back to done"
-)
-
-
-@pytest.mark.parametrize(
-    "variant", with_pending([p for p in VARIANTS if p.values[0][2] == "paper"], D9, "paper")
-)
+@pytest.mark.parametrize("variant", VARIANTS)
 def test_a_batch_without_terminated_falls_back_to_done(variant):
-    """SACLoss trains on a batch whose only end flag is ``done`` (TorchRL's TD(0) reads
-    ``done`` where ``terminated`` is absent); so must the safety critic's target."""
+    """D9: SACLoss trains on a batch whose only end flag is ``done`` (TorchRL's TD(0)
+    reads ``done`` where ``terminated`` is absent); so must the safety critic's target,
+    one-step or through NStepCost."""
     sac = make_sac()
     assert torch.isfinite(sac(plain_batch())["loss_qvalue"])
     loss = make_variant(variant)
+
+    def batch(with_flag: bool):
+        traj = trajectories().exclude(("next", "terminated"))
+        if with_flag:
+            traj["next", "terminated"] = traj["next", "done"].clone()
+        return prepare(loss, traj)
+
     torch.manual_seed(0)
-    without = loss(plain_batch())
-    batch = plain_batch()
-    batch["next", "terminated"] = batch["next", "done"].clone()
+    without = loss(batch(False))
     torch.manual_seed(0)
-    with_flag = loss(batch)
+    with_flag = loss(batch(True))
     for key in loss_terms(with_flag):
         torch.testing.assert_close(without[key], with_flag[key], msg=key)
 
@@ -1346,3 +1373,29 @@ def test_the_kit_groups_do_not_warn(variant):
         optim = torch.optim.Adam(sac.parameters(), lr=1e-3)
         total(sac(trajectories().reshape(-1))).backward()
         optim.step()
+
+
+# ------------------------------------------ docs/torchrl_contract.md: the example's diff
+def test_the_doc_diff_is_the_example():
+    """The diff docs/torchrl_contract.md shows (the SACLoss loop -> examples/pendulum_wcsac.py):
+    each hunk's new side is a run of the example's lines, and no removed line is in it."""
+    root = Path(__file__).resolve().parents[1]
+    doc = (root / "docs" / "torchrl_contract.md").read_text()
+    block = doc.split("```diff\n", 1)[1].split("```", 1)[0].splitlines()
+    example = (root / "examples" / "pendulum_wcsac.py").read_text().splitlines()
+    assert block[0].startswith("--- ") and block[1] == "+++ examples/pendulum_wcsac.py"
+    hunks, removed = [], []
+    for line in block[2:]:
+        if line.startswith("@@"):
+            hunks.append([])
+        elif line.startswith("-"):
+            removed.append(line[1:])
+        else:  # (a blank context line may have lost its space)
+            assert line[:1] in ("", " ", "+"), line
+            hunks[-1].append(line[1:])
+    assert len(hunks) >= 3 and removed
+    for hunk in hunks:
+        n = len(hunk)
+        assert any(example[i : i + n] == hunk for i in range(len(example) - n + 1)), hunk[:3]
+    for line in removed:
+        assert line.strip() == "" or line not in example, line

@@ -122,9 +122,9 @@ class ConstraintSignal:
         return per_step_cost_threshold(cost_limit, cost_gamma, max_episode_steps)
 
     def initial_states(self, tensordict: TensorDictBase) -> TensorDictBase:
-        """The start states the batch carries (one per row)."""
+        """The start states the batch carries (one per row), shaped like the batch."""
         key = self.keys.initial_states
-        return required_entry(
+        states = required_entry(
             tensordict,
             key,
             "kappa_states='initial' needs episode start states (a sub-tensordict shaped like "
@@ -132,6 +132,12 @@ class ConstraintSignal:
             f"The wcsac_rl trainer attaches them; in your own loop sample start states and "
             f"set batch[{key!r}] = them.",
         )
+        if states.batch_dims > tensordict.batch_dims:
+            # (rebuilt from flat entries, e.g. TorchRL's keyword call, a sub-tensordict
+            # takes every leading dimension its entries share: the observation's too)
+            states = states.copy()
+            states.batch_size = tensordict.batch_size
+        return states
 
     def critic_values(self, tensordict: TensorDictBase, replay_values, at_policy: Callable):
         """The critics' values where the statistic is taken: ``at_policy(states)`` (the
@@ -144,12 +150,15 @@ class ConstraintSignal:
             return replay_values
         return None
 
-    def statistic(self, values) -> Tensor:
+    def statistic(self, values, mask: Tensor | None = None) -> Tensor:
         """Per row: Γ (``"mean"``: the κ loss averages it), or for ``"tail"`` the CVaR_α
-        of the critic's distribution mixed over the rows, repeated per row (detached)."""
+        of the critic's distribution mixed over the rows, repeated per row (detached).
+        ``mask`` (per row, ``False``: a padded or invalid row, TorchRL's loss masks)
+        keeps those rows out of the mixture; the κ loss's reduction drops them from the
+        mean."""
         if self.statistic_kind == "mean":
             return self.head.cvar(values)
-        return self.head.mixture_cvar(values).detach().expand(values.mean.shape)
+        return self.head.mixture_cvar(values, mask).detach().expand(values.mean.shape)
 
     def episode_cvar(self, tensordict: TensorDictBase) -> Tensor:
         """The recent episodes' empirical CVaR_α from the batch (NaN: none finished)."""

@@ -150,12 +150,14 @@ class CostTarget:
         cost = self.cost(tensordict, discount.dtype)
         gamma = discount.to(cost.dtype)
         if self.n_steps == 1:
-            if self.bootstrap_truncated:
-                terminated = tensordict.get(("next", self.keys.terminated))
-            else:  # a batch without done flags has no truncations to tell apart
-                terminated = tensordict.get(("next", self.keys.done), None)
-                if terminated is None:
-                    terminated = tensordict.get(("next", self.keys.terminated))
+            first, second = self.keys.terminated, self.keys.done
+            if not self.bootstrap_truncated:
+                first, second = second, first
+            # a batch with one of the flags has no truncations to tell apart (TorchRL's
+            # TD(0) reads done where terminated is absent)
+            terminated = tensordict.get(("next", first), None)
+            if terminated is None:
+                terminated = tensordict.get(("next", second))
             return cost, gamma, self._alive(terminated, cost), at_next
         nstep = self.bootstrap_states(tensordict)
         values = ahead(nstep) if callable(ahead) else ahead

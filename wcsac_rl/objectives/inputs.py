@@ -23,8 +23,11 @@ from tensordict.utils import NestedKey
 __all__ = [
     "check_finite_entries",
     "check_nonempty_batch",
+    "collected_keys",
     "finite_number",
     "missing_inputs",
+    "nested_key",
+    "network_state_keys",
     "nonfinite_entry",
     "produced_keys",
     "required_entry",
@@ -111,14 +114,61 @@ def _is_produced(key: NestedKey, produced: set[tuple[str, ...]]) -> bool:
     return any(out[: len(key)] == key for out in produced)
 
 
+def network_state_keys(loss) -> list[NestedKey]:
+    """Every entry ``loss``'s networks read other than the action: the actor's
+    ``in_keys``, then the reward critic's and the safety head's (in that order, once
+    each). Includes the keys its own networks write in between (see :func:`state_keys`)."""
+    keys = list(loss.actor_network.in_keys)
+    for key in (*loss.qvalue_network.in_keys, *loss.safety_head.in_keys):
+        if key != loss.tensor_keys.action and key not in keys:
+            keys.append(key)
+    return keys
+
+
 def state_keys(loss) -> list[NestedKey]:
-    """The entries an environment state must hold for ``loss``'s networks: its
-    ``initial_state_keys`` without the keys its own networks write in between (a
+    """The entries an environment state must hold for ``loss``'s networks (its
+    ``initial_state_keys``): what they read other than the action
+    (:func:`network_state_keys`), without the keys its own networks write in between (a
     composite actor lists the ``"params"`` its first module writes among its
     ``in_keys``; a start state or an n-step state holds only what the env wrote)."""
     networks = [loss.actor_network, loss.qvalue_network, loss.safety_network]
     produced = produced_keys(*networks)
-    return [key for key in loss.initial_state_keys if not _is_produced(key, produced)]
+    return [key for key in network_state_keys(loss) if not _is_produced(key, produced)]
+
+
+def collected_keys(loss) -> list[NestedKey]:
+    """``loss.in_keys`` without the entries attached to each *sampled* batch (the start
+    states under ``initial_states``, the episodes' ``episode_cvar``): what collected
+    data holds, and what a replay buffer stores (``data.select(*collected_keys(loss))``).
+    Any TorchRL loss: a loss without those keys gives its ``in_keys``."""
+    keys = getattr(loss, "tensor_keys", None)
+    attached = [
+        nested_key(getattr(keys, name))
+        for name in ("initial_states", "episode_cvar")
+        if getattr(keys, name, None) is not None
+    ]
+    return [
+        key
+        for key in loss.in_keys
+        if not any(nested_key(key)[: len(prefix)] == prefix for prefix in attached)
+    ]
+
+
+def nested_key(*keys: NestedKey) -> tuple[str, ...]:
+    """One nested key from several: ``nested_key("initial", ("a", "b"))`` is
+    ``("initial", "a", "b")``."""
+    return tuple(part for key in keys for part in ((key,) if isinstance(key, str) else key))
+
+
+class _Present:
+    """``key in _Present(td)``: whether ``td`` has an entry (a tensor or a
+    sub-tensordict) at the nested ``key``, without listing its keys."""
+
+    def __init__(self, tensordict: TensorDictBase) -> None:
+        self.tensordict = tensordict
+
+    def __contains__(self, key: NestedKey) -> bool:
+        return self.tensordict.get(key, None) is not None
 
 
 def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
@@ -133,8 +183,7 @@ def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
     the recent episodes' cost (``kappa_signal != "critic"``:
     :class:`~wcsac_rl.objectives.EpisodeCostWindow`).
     """
-    keys = set(tensordict.keys(True, True))
-    keys |= set(tensordict.keys(True))
+    keys = _Present(tensordict)
     name = type(loss).__name__
     wanted = []
     nstep = loss.tensor_keys.nstep
@@ -142,6 +191,7 @@ def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
         wanted.append(
             (
                 f"cost_n_steps={loss.cost_n_steps}",
+                "the n-step cost entries",
                 nstep,
                 "NStepCost.for_loss(loss) as the collector's postproc (before the replay buffer)",
             )
@@ -151,6 +201,7 @@ def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
         wanted.append(
             (
                 "kappa_states='initial'",
+                "episode start states",
                 initial,
                 "starts = StartStateBuffer.for_loss(loss); starts.add_starts(data) per "
                 "collected batch; loss(starts.attach(sample))",
@@ -161,6 +212,7 @@ def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
         wanted.append(
             (
                 f"kappa_signal={loss.kappa_signal!r}",
+                "the recent episodes' cost",
                 signal,
                 "window = EpisodeCostWindow.for_loss(loss); window.add_episodes(data); "
                 "window.attach(sample)",
@@ -168,7 +220,9 @@ def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
         )
     if not wanted:
         return None
-    parts = "; ".join(f"{option} reads {key!r}: add {how}" for option, key, how in wanted)
+    parts = "; ".join(
+        f"{option} reads {what} at {key!r}: add {how}" for option, what, key, how in wanted
+    )
     return (
         f"{name}: the batch lacks entries its options read ({parts}; from "
         "wcsac_rl.objectives). Or construct the loss with **PAPER_OPTIONS, which reads "

@@ -36,14 +36,17 @@ class NStepCost(nn.Module):
     Keyword Args:
         observation_keys: the state entries to carry from ``s_{t+m}`` (read under
             ``"next"``). Default ``("observation",)``.
-        cost_key, done_key, terminated_key: read under ``"next"``.
+        cost_key, done_key, terminated_key: read under ``"next"`` (without a terminated
+            entry, done is read in its place, as TorchRL does).
         out_key: where the sub-tensordict goes. It holds the state entries of
             ``s_{t+m}``, ``"cost"`` (the discounted sum, shaped like the cost),
             ``"steps"`` (``m``, int64), and ``"terminated"`` and ``"done"`` (at step
             ``t+m−1``; ``done`` also marks a time-limit truncation there).
 
     The batch's last dimension must be time (TorchRL collectors' layout, e.g.
-    ``[num_envs, frames_per_env]``).
+    ``[num_envs, frames_per_env]``). With TorchRL's ``MultiStep`` postproc too, put
+    ``NStepCost`` first: it reads each step's own cost and flags, which ``MultiStep``
+    replaces by those n steps on (a batch it has seen is refused).
 
     Example:
         >>> import torch
@@ -99,6 +102,11 @@ class NStepCost(nn.Module):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if tensordict.ndim == 0:
             raise ValueError("NStepCost needs a batch whose last dimension is time")
+        if "steps_to_next_obs" in tensordict.keys():
+            raise ValueError(
+                "NStepCost got a batch from TorchRL's MultiStep (it has 'steps_to_next_obs'), "
+                "whose 'next' entries are n steps on; put NStepCost before MultiStep"
+            )
         nxt = tensordict.get("next")
         shape = tensordict.shape
         cost = nxt.get(self.cost_key)
@@ -128,7 +136,8 @@ class NStepCost(nn.Module):
         out = {key: at_last(nxt.get(key)) for key in self.observation_keys}
         out["cost"] = total.to(cost.dtype).reshape(cost.shape)
         out["steps"] = steps
-        out["terminated"] = at_last(nxt.get(self.terminated_key))
+        terminated = nxt.get(self.terminated_key, None)  # (TorchRL: done where absent)
+        out["terminated"] = at_last(nxt.get(self.done_key) if terminated is None else terminated)
         out["done"] = at_last(nxt.get(self.done_key))
         tensordict.set(self.out_key, TensorDict(out, batch_size=shape))
         return tensordict

@@ -135,6 +135,7 @@ def gaussian_mixture_cvar(
     variance: torch.Tensor | None,
     risk_level: float,
     *,
+    weights: torch.Tensor | None = None,
     rounds: int = 5,
     points: int = 33,
     min_std: float = 1e-6,
@@ -165,6 +166,10 @@ def gaussian_mixture_cvar(
     fractional atom at the VaR counted in part (so with ``n·α`` an integer it is the
     mean of the worst ``n·α`` means). No gradient flows through the VaR.
 
+    ``weights`` (shaped like ``mean``, ≥ 0, e.g. a bool mask of valid rows) mixes the
+    components with those weights instead; a component of weight 0 does not count at
+    all, whatever its values (NaN and ±inf too; see :func:`_weighted`).
+
     >>> means = torch.arange(10.0)
     >>> float(gaussian_mixture_cvar(means, None, 0.2))  # mean of the worst 2 means
     8.5
@@ -177,30 +182,63 @@ def gaussian_mixture_cvar(
         raise ValueError(f"need rounds >= 1 and points >= 3, got {rounds} and {points}")
     dtype = mean.dtype
     mean = mean.reshape(-1)
+    if weights is not None:
+        weights, (mean, variance) = _weighted(weights, mean, variance)
     if alpha == 1.0:
-        return mean.mean()
+        return mean.mean() if weights is None else (weights.to(dtype) * mean).sum()
     mean = mean.double()
     std = torch.zeros_like(mean) if variance is None else variance.reshape(-1).double().sqrt()
     std = std.clamp(min=min_std)
-    var = _mixture_var(mean.detach(), std.detach(), alpha, int(rounds), int(points))
+    if weights is not None:
+        weights = weights.double()
+    var = _mixture_var(mean.detach(), std.detach(), alpha, int(rounds), int(points), weights)
     z = (var - mean) / std
     excess = std * _normal_pdf(z) + (mean - var) * _normal_sf(z)
-    return (var + excess.mean() / alpha).to(dtype)
+    excess = excess.mean() if weights is None else (weights * excess).sum()
+    return (var + excess / alpha).to(dtype)
+
+
+def _weighted(weights: torch.Tensor, *values: torch.Tensor | None):
+    """``weights`` flattened and normalised to sum 1 in float64 (all zero: left 0), and each of
+    ``values`` flattened with its weight-0 entries replaced by 0 (a selection, so that
+    a NaN or ±inf there reaches neither the result nor any gradient)."""
+    weights = weights.reshape(-1)
+    keep = weights > 0
+    weights = weights.to(torch.float64)  # (the normalisation exact to float64 rounding)
+    weights = weights / weights.sum().clamp(min=torch.finfo(weights.dtype).tiny)
+    kept = [
+        None if v is None else torch.where(keep, v.reshape(-1), torch.zeros_like(v.reshape(-1)))
+        for v in values
+    ]
+    return weights, kept
 
 
 def _mixture_var(
-    mean: torch.Tensor, std: torch.Tensor, alpha: float, rounds: int, points: int
+    mean: torch.Tensor,
+    std: torch.Tensor,
+    alpha: float,
+    rounds: int,
+    points: int,
+    weights: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The VaR of :func:`gaussian_mixture_cvar`'s mixture (float64, no gradient)."""
     # Φ⁻¹(1 − α) = −Φ⁻¹(α), exact even where 1 − α rounds to 1; a tensor op, so that
     # torch.compile(fullgraph=True) traces it (statistics.NormalDist is not traceable)
     z_alpha = -torch.special.ndtri(torch.tensor(alpha, dtype=mean.dtype, device=mean.device))
     own = mean + z_alpha * std  # each component's VaR: the mixture's lies among them
-    low, high = own.min(), own.max()
+    if weights is None:
+        low, high = own.min(), own.max()
+    else:  # among the components that count
+        keep = weights > 0
+        some = keep.any()  # (none counts: the result is then a plain 0-weight sum)
+        low = torch.where(keep, own, torch.full_like(own, math.inf)).min()
+        high = torch.where(keep, own, torch.full_like(own, -math.inf)).max()
+        low, high = torch.where(some, low, own.min()), torch.where(some, high, own.max())
     steps = torch.linspace(0.0, 1.0, points, dtype=mean.dtype, device=mean.device)
     for _ in range(rounds):
         grid = low + (high - low) * steps
-        tail = _normal_sf((grid.unsqueeze(-1) - mean) / std).mean(-1)
+        sf = _normal_sf((grid.unsqueeze(-1) - mean) / std)
+        tail = sf.mean(-1) if weights is None else (sf * weights).sum(-1)
         # the tail mass falls along the grid: the VaR lies after the last point with
         # more than α of the mass above it
         last = ((tail > alpha).sum() - 1).clamp(0, points - 2)
@@ -209,7 +247,9 @@ def _mixture_var(
     return (low + high) / 2
 
 
-def quantile_mixture_cvar(quantiles: torch.Tensor, risk_level: float) -> torch.Tensor:
+def quantile_mixture_cvar(
+    quantiles: torch.Tensor, risk_level: float, *, weights: torch.Tensor | None = None
+) -> torch.Tensor:
     """CVaR_α of the equal-weight pool of every entry of ``quantiles`` (a 0-dim tensor).
 
     ``quantiles`` ``[*S, N]`` holds, per state, ``N`` quantiles of its cost
@@ -222,6 +262,9 @@ def quantile_mixture_cvar(quantiles: torch.Tensor, risk_level: float) -> torch.T
     pool: with ``M·α`` an integer it is the mean of the largest ``M·α`` values).
     Shapes are static, so there is no host synchronisation.
 
+    ``weights`` ``[*S]`` (≥ 0, e.g. a bool mask of valid states) weighs each state's
+    atoms instead; a state of weight 0 does not count at all, whatever its quantiles.
+
     >>> quantile_mixture_cvar(torch.arange(10.0).reshape(2, 5), 0.2)  # the worst 2 of 10
     tensor(8.5000)
     >>> round(float(quantile_mixture_cvar(torch.tensor([[0.0, 1.0, 2.0, 3.0]]), 0.3)), 4)
@@ -232,6 +275,8 @@ def quantile_mixture_cvar(quantiles: torch.Tensor, risk_level: float) -> torch.T
     count = pooled.numel()
     if count == 0:
         raise ValueError("quantile_mixture_cvar needs at least one quantile")
+    if weights is not None:
+        return _weighted_pool_cvar(quantiles, weights, alpha)
     if alpha == 1.0:
         return pooled.mean()
     # M·α in floating point can land just above an integer: round that noise away
@@ -245,3 +290,22 @@ def quantile_mixture_cvar(quantiles: torch.Tensor, risk_level: float) -> torch.T
     if top.shape[0] > whole:
         weights[whole] = mass - whole
     return (top * weights).sum() / mass
+
+
+def _weighted_pool_cvar(quantiles: torch.Tensor, weights: torch.Tensor, alpha: float):
+    """:func:`quantile_mixture_cvar` with per-state weights: the pooled atoms sorted
+    from the largest, each taking its weight's share of the upper α until α is used up
+    (static shapes: no host synchronisation)."""
+    atoms = quantiles.shape[-1]
+    states = quantiles.reshape(-1, atoms)
+    state_weights, (_,) = _weighted(weights, states[:, 0])
+    mass = state_weights.to(quantiles.dtype).unsqueeze(-1).expand_as(states).reshape(-1) / atoms
+    keep = mass > 0
+    pooled = states.reshape(-1)
+    lowest = torch.full_like(pooled, -math.inf)
+    order = torch.where(keep, pooled, lowest).argsort(descending=True)
+    values = torch.where(keep, pooled, torch.zeros_like(pooled)).gather(0, order)
+    mass = mass.gather(0, order)
+    before = mass.cumsum(0) - mass
+    share = (alpha - before).clamp(min=0).minimum(mass)
+    return (share * values).sum() / share.sum().clamp(min=torch.finfo(share.dtype).tiny)

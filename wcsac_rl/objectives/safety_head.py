@@ -324,11 +324,12 @@ class GaussianHead(SafetyHead):
             return mean
         return mean + self.cvar_multiplier * values.variance.sqrt()
 
-    def mixture_cvar(self, values: SafetyValues) -> Tensor:
+    def mixture_cvar(self, values: SafetyValues, weights: Tensor | None = None) -> Tensor:
         """The CVaR_α of the Gaussians of every row mixed with equal weights (0-dim;
-        :func:`~wcsac_rl.objectives.risk.gaussian_mixture_cvar`)."""
+        :func:`~wcsac_rl.objectives.risk.gaussian_mixture_cvar`; ``weights``: per row,
+        0 for a row that does not count)."""
         mean = values.mean.clamp(min=0.0) if self.nonnegative_cost else values.mean
-        return gaussian_mixture_cvar(mean, values.variance, self.risk_level)
+        return gaussian_mixture_cvar(mean, values.variance, self.risk_level, weights=weights)
 
     def estimates(self, tensordict: TensorDictBase, params: TensorDictBase) -> dict[str, Tensor]:
         """``cost_value`` (Q^c), ``cvar`` (Γ) and, with a variance network,
@@ -498,12 +499,13 @@ class IQNHead(SafetyHead):
         tail = values.tail.clamp(min=0.0) if self.nonnegative_cost else values.tail
         return tail.mean(-1)
 
-    def mixture_cvar(self, values: SafetyValues) -> Tensor:
-        """The CVaR_α of the quantiles of every row pooled (0-dim)."""
+    def mixture_cvar(self, values: SafetyValues, weights: Tensor | None = None) -> Tensor:
+        """The CVaR_α of the quantiles of every row pooled (0-dim; ``weights``: per row,
+        0 for a row that does not count)."""
         quantiles = values.quantiles
         if self.nonnegative_cost:
             quantiles = quantiles.clamp(min=0.0)
-        return quantile_mixture_cvar(quantiles, self.risk_level)
+        return quantile_mixture_cvar(quantiles, self.risk_level, weights=weights)
 
     def estimates(self, tensordict: TensorDictBase, params: TensorDictBase) -> dict[str, Tensor]:
         """At deterministic fractions, the midpoints of ``num_quantiles`` equal strata:

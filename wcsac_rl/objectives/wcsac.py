@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from types import MappingProxyType
 from typing import Any
 
+import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule, dispatch
@@ -39,9 +40,10 @@ from torchrl.objectives.sac import compute_rsample_log_prob
 from torchrl.objectives.utils import (
     ValueEstimators,
     _cache_values,
-    default_value_kwargs,
+    _coerce_value_type,
     distance_loss,
 )
+from torchrl.objectives.value import TD0Estimator, ValueEstimatorBase
 
 from wcsac_rl.modules.tanh_normal import sample_tanh_normal, tanh_normal_actor_plan
 from wcsac_rl.objectives.budget import (
@@ -54,7 +56,14 @@ from wcsac_rl.objectives.constraint_signal import ConstraintSignal
 from wcsac_rl.objectives.cost_target import CostTarget
 from wcsac_rl.objectives.critic_ensemble import Layers
 from wcsac_rl.objectives.critics import CriticParams, Critics, CriticValues
-from wcsac_rl.objectives.inputs import check_finite_entries, check_nonempty_batch, finite_number
+from wcsac_rl.objectives.inputs import (
+    check_finite_entries,
+    check_nonempty_batch,
+    finite_number,
+    missing_inputs,
+    nested_key,
+    state_keys,
+)
 from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
 from wcsac_rl.objectives.safety_head import SafetyValues, make_safety_head
 from wcsac_rl.objectives.td0 import td0_target
@@ -144,8 +153,12 @@ class WCSACLoss(SACLoss):
         reduction, skip_done_states, deactivate_vmap, scalar_output_mode: as in
         :class:`~torchrl.objectives.SACLoss`; ``loss_function`` defaults to ``"l2"``.
 
-    γ comes from the value estimator (``loss.make_value_estimator(gamma=0.99)``, TD(0)
-    only; default 0.99). ``forward`` returns ``loss_actor``, ``loss_qvalue``,
+    γ comes from the value estimator (``loss.make_value_estimator(gamma=0.99)``, any
+    TD(0) form :class:`~torchrl.objectives.SACLoss` takes; default 0.99). A batch that
+    lacks what the options read (a plain replay batch under the defaults) is refused
+    with a ``KeyError`` naming, in one line, the transforms to add
+    (:func:`~wcsac_rl.objectives.inputs.missing_inputs`); ``docs/torchrl_contract.md``
+    lists the rest of the TorchRL contract the loss keeps. ``forward`` returns ``loss_actor``, ``loss_qvalue``,
     ``loss_alpha``, the head's terms (``loss_cost_value`` and ``loss_cost_variance``,
     or ``loss_cost_quantile``) and, under the gradient rule, ``loss_kappa``; and the
     detached ``alpha``, ``kappa``, ``entropy``, ``cost_value``, ``cost_variance``,
@@ -287,7 +300,7 @@ class WCSACLoss(SACLoss):
             loss_function=loss_function,
             **sac_kwargs,
         )
-        self.convert_to_functional(safety_network, "safety_network", create_target_params=True)
+        self._convert_safety_network(safety_network, sac_kwargs.get("separate_losses", False))
         self.cost_target = CostTarget(
             self.tensor_keys,
             gamma=cost_gamma,
@@ -330,6 +343,27 @@ class WCSACLoss(SACLoss):
         self._set_in_keys()
         self._plan_fast_paths(actor_network, fuse_critics, direct_sampling)
 
+    def _convert_safety_network(self, safety_network, separate_losses: bool) -> None:
+        """The safety critic's functional parameters, as :class:`SACLoss` makes the
+        reward critic's where it shares tensors with the actor (a common trunk): with
+        ``separate_losses`` it reads the actor's tensors without training them (only
+        the actor loss does); without, it gets its own trainable copy of them (its loss
+        trains that copy, never the actor's)."""
+        actor_params = list(self.actor_network_params.values(True, True))
+        self.convert_to_functional(
+            safety_network,
+            "safety_network",
+            create_target_params=True,
+            compare_against=actor_params if separate_losses else None,
+        )
+        if separate_losses:
+            return
+        shared = {id(p) for p in actor_params}
+        for key, value in list(self.safety_network_params.items(True, True)):
+            if id(value) in shared:
+                copy = torch.nn.Parameter(value.detach().clone(), value.requires_grad)
+                self.safety_network_params.set(key, copy)
+
     def _plan_fast_paths(self, actor_network, fuse_critics, direct_sampling) -> None:
         """The critics' reading (fused where possible) and the direct actor sampling."""
         self.critics = Critics(
@@ -367,19 +401,21 @@ class WCSACLoss(SACLoss):
     kappa_statistic = property(lambda self: self.constraint_signal.statistic_kind)
     kappa_signal = property(lambda self: self.constraint_signal.signal_kind)
 
-    def make_value_estimator(self, value_type: ValueEstimators = None, **hyperparams):
-        """Set γ (TD(0) only), and the per-step cost threshold that depends on it."""
-        if value_type not in (None, ValueEstimators.TD0):
-            raise NotImplementedError(
-                f"WCSACLoss supports only the TD(0) value estimator (its cost-variance target "
-                f"is a one-step recursion), got {value_type}"
-            )
+    def make_value_estimator(self, value_type=None, **hyperparams):
+        """Set the reward's TD(0) estimator and γ, and the per-step cost threshold that
+        depends on it. Takes what :class:`~torchrl.objectives.SACLoss` takes for TD(0):
+        ``ValueEstimators.TD0`` or ``"td0"`` with ``gamma=...``, the
+        :class:`~torchrl.objectives.value.TD0Estimator` class with its arguments, or an
+        instance; refuses the others in one line (the cost-variance target is a one-step
+        recursion). Returns the loss."""
+        _check_td0(value_type)
         super().make_value_estimator(value_type, **hyperparams)
-        # γ as given (the estimator stores it in float32: 0.99 → 0.99000001, which
-        # would move the per-step threshold by 1.4e-6)
-        self._gamma = float(
-            hyperparams.get("gamma", default_value_kwargs(ValueEstimators.TD0)["gamma"])
-        )
+        if "gamma" in hyperparams:
+            # γ as given (the estimator stores it in float32: 0.99 → 0.99000001, which
+            # would move the per-step threshold by 1.4e-6)
+            self._gamma = float(hyperparams["gamma"])
+        else:  # the default's, or an instance's (its shortest float32 decimal)
+            self._gamma = _as_given(self.value_estimator.gamma)
         if "cost_threshold" in self._buffers:  # (the parts exist: not in SACLoss.__init__)
             self.cost_target.set_reward_gamma(self._gamma)
             gamma = self.cost_target.gamma
@@ -415,7 +451,13 @@ class WCSACLoss(SACLoss):
             keys = set(self._in_keys)
             keys.update(head.in_keys)
             keys.update(("next", k) for k in head.in_keys if k != self.tensor_keys.action)
-            keys.update(self.cost_target.in_keys(self.initial_state_keys))
+            states = state_keys(self)
+            keys.update(self.cost_target.in_keys(states))
+            if self.kappa_states == "initial":
+                initial = self.tensor_keys.initial_states
+                keys.update(nested_key(initial, key) for key in states)
+            if self.kappa_signal != "critic":
+                keys.add(self.tensor_keys.episode_cvar)
             self._in_keys = list(keys)
 
     @property
@@ -437,13 +479,10 @@ class WCSACLoss(SACLoss):
 
     @property
     def initial_state_keys(self) -> list[NestedKey]:
-        """What a start state must hold for :meth:`initial_state_cvar` (the actor's and
-        critics' inputs other than the action)."""
-        keys = list(self.actor_network.in_keys)
-        for key in (*self.qvalue_network.in_keys, *self.safety_head.in_keys):
-            if key != self.tensor_keys.action and key not in keys:
-                keys.append(key)
-        return keys
+        """What a start state (and an n-step state) must hold for the loss's networks:
+        their inputs other than the action, without what they write in between
+        (:func:`~wcsac_rl.objectives.inputs.state_keys`)."""
+        return state_keys(self)
 
     # --------------------------------------------------------------- κ
     @property
@@ -560,9 +599,13 @@ class WCSACLoss(SACLoss):
         the safety head's (``cost_target``, Eq. 7, and ``cost_second_moment``,
         ``cost_next_variance`` or ``cost_target_quantiles``) on the cost target's
         bootstrap (:mod:`~wcsac_rl.objectives.cost_target`)."""
+        if self.cost_n_steps == 1:
+            self._refuse_multistep(tensordict)
         with torch.no_grad():
             next_td = tensordict.get("next")
-            next_action, next_log_prob = self._sample_policy(next_td)
+            next_action, next_log_prob = self._sample_alive(
+                next_td, self.tensor_keys.done, tensordict
+            )
             # the target critics read once: the reward critics at (s', a'), the safety
             # critic where its target bootstraps (s' or the n-step states, a ~ π there)
             ahead = self.cost_target.bootstrap_states(tensordict)
@@ -572,7 +615,7 @@ class WCSACLoss(SACLoss):
                 self._target_critics(),
                 self._vmap_qnetworkN0,
                 ahead,
-                self._sample_action,
+                lambda states: self._sample_action(states, tensordict),
             )
             next_value = (next_values.qvalue - self._alpha * next_log_prob).min(0)[0]
             reward_target = self._reward_target(tensordict, next_value.unsqueeze(-1)).squeeze(-1)
@@ -582,9 +625,40 @@ class WCSACLoss(SACLoss):
             targets = self.safety_head.targets(*bootstrap)
         return {"reward_target": reward_target, **targets}
 
-    def _sample_action(self, states: TensorDictBase) -> Tensor:
-        """``a ~ π(·|states)`` (the n-step bootstrap's action)."""
-        return self._sample_policy(states)[0]
+    def _refuse_multistep(self, tensordict: TensorDictBase) -> None:
+        """A one-step cost target on a batch from TorchRL's ``MultiStep`` would pair one
+        step's cost with the state n steps on: refused in one line (keys only)."""
+        key = self.value_estimator.tensor_keys.steps_to_next_obs
+        if tensordict.get(key, None) is not None:
+            raise ValueError(
+                f"{type(self).__name__}: the batch has {key!r}, written by TorchRL's "
+                "MultiStep: its reward target is n-step but the cost target with "
+                "cost_n_steps=1 is one step's, which would bootstrap from the state n steps "
+                "on; drop MultiStep, or construct the loss with cost_n_steps=n and add "
+                "NStepCost.for_loss(loss) to the collector's postproc before MultiStep"
+            )
+
+    def _sample_action(self, states: TensorDictBase, batch: TensorDictBase) -> Tensor:
+        """``a ~ π(·|states)`` (the n-step bootstrap's action; ``skip_done_states``
+        as for ``s'``)."""
+        return self._sample_alive(states, "done", batch)[0]
+
+    def _sample_alive(self, states: TensorDictBase, done_key: NestedKey, like: TensorDictBase):
+        """``a ~ π(·|states)`` and its log-probability; with ``skip_done_states`` (as
+        :class:`~torchrl.objectives.SACLoss`) the actor is run only on the states whose
+        ``done_key`` entry is not set, and the others get the action 0 and
+        log-probability 0 (their target is cut by ``done``; TorchRL's rule). ``like``:
+        a batch with actions shaped like those (the replay batch). Eager only: the rows
+        kept are read on the host."""
+        done = states.get(done_key, None) if self.skip_done_states else None
+        if done is None:
+            return self._sample_policy(states)
+        alive = ~done.reshape(states.shape)
+        if not alive.any():  # (nothing to run the actor on)
+            action = torch.zeros_like(like.get(self.tensor_keys.action))  # (a tensordict too)
+            return action, torch.zeros(states.shape, device=done.device)
+        action, log_prob = self._sample_policy(states[alive])
+        return _scatter_rows(action, alive), _scatter_rows(log_prob, alive)
 
     def _reward_target(self, tensordict: TensorDictBase, next_value: Tensor) -> Tensor:
         """TorchRL's TD(0) estimate ``r + γ (1 − term) V(s')`` (:func:`td0_target`)."""
@@ -659,7 +733,8 @@ class WCSACLoss(SACLoss):
         min_q = values.qvalue.min(0)[0]
         cvar_pi = self.safety_head.cvar(values.safety)
         if signal is None:
-            signal = self.constraint_signal.statistic(values.safety.detach())
+            mask = self._row_mask(tensordict)
+            signal = self.constraint_signal.statistic(values.safety.detach(), mask)
         penalty = self.constraint.penalty_weight(signal, self.cost_threshold)
         loss = self._alpha * log_prob - min_q + penalty * cvar_pi
         loss = self._reduce_loss(loss, tensordict=tensordict, weights=weights)
@@ -675,7 +750,21 @@ class WCSACLoss(SACLoss):
         values = self.constraint_signal.critic_values(
             tensordict, replay_values, lambda states: self._policy_values(states, layers)
         )
-        return None if values is None else self.constraint_signal.statistic(values.safety)
+        if values is None:
+            return None
+        return self.constraint_signal.statistic(values.safety, self._row_mask(tensordict))
+
+    def _row_mask(self, tensordict: TensorDictBase) -> Tensor | None:
+        """Which rows count, from the loss masks TorchRL's reduction reads
+        (``("collector", "mask")``, ``"shifted_valid"``, or ``loss_mask_key``), shaped
+        like the batch; ``None`` without any (keys only: no host synchronisation)."""
+        mask = None
+        for key in self._loss_mask_keys():
+            value = tensordict.get(key, None)
+            if value is not None:
+                value = value.reshape(tensordict.shape)
+                mask = value if mask is None else mask & value
+        return mask
 
     def initial_state_cvar(self, tensordict: TensorDictBase, layers=None) -> Tensor:
         """Γ(s₀, a₀, α) with ``a₀ ~ π(·|s₀)`` at the start states the batch carries
@@ -706,6 +795,9 @@ class WCSACLoss(SACLoss):
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         check_nonempty_batch(tensordict, type(self).__name__)  # (shapes only: no sync)
+        missing = missing_inputs(self, tensordict)  # (keys only: no sync)
+        if missing is not None:
+            raise KeyError(missing)
         if self.check_finite:
             self.check_inputs(tensordict)
         targets = self.compute_targets(tensordict)
@@ -766,6 +858,46 @@ class WCSACLoss(SACLoss):
             "target_safety_network_params",
         )
         return td_out
+
+
+def _scatter_rows(rows, keep: Tensor):
+    """``rows`` (one per set entry of ``keep``) back in ``keep``'s shape, zeros elsewhere
+    (a tensor or a tensordict of them: a composite action)."""
+    if isinstance(rows, TensorDictBase):
+        return rows.apply(lambda value: _scatter_rows(value, keep), batch_size=keep.shape)
+    full = rows.new_zeros((*keep.shape, *rows.shape[1:]))
+    full[keep] = rows
+    return full
+
+
+def _check_td0(value_type) -> None:
+    """A ``NotImplementedError`` in one line unless ``value_type`` is a TD(0) estimator
+    (``None``, ``ValueEstimators.TD0``, ``"td0"``, the ``TD0Estimator`` class or an
+    instance)."""
+    if value_type is None:
+        return
+    if isinstance(value_type, ValueEstimatorBase):
+        ok = isinstance(value_type, TD0Estimator)
+    elif isinstance(value_type, type) and issubclass(value_type, ValueEstimatorBase):
+        ok = issubclass(value_type, TD0Estimator)
+    else:
+        try:
+            ok = _coerce_value_type(value_type) == ValueEstimators.TD0
+        except KeyError:
+            ok = False
+    if not ok:
+        raise NotImplementedError(
+            f"WCSACLoss supports only the TD(0) value estimator (ValueEstimators.TD0, 'td0', "
+            f"TD0Estimator; its cost-variance target is a one-step recursion), got {value_type!r}"
+        )
+
+
+def _as_given(gamma) -> float:
+    """γ as a user wrote it: a float32 tensor's shortest decimal (``0.99``, not
+    ``0.9900000095``), any other's value."""
+    if isinstance(gamma, Tensor) and gamma.dtype == torch.float32:
+        return float(str(np.float32(gamma.item())))
+    return float(gamma)
 
 
 def _rename_kappa_raw(module, state_dict, prefix, *args) -> None:

@@ -30,6 +30,7 @@ from tensordict import TensorDictBase
 from torchrl import timeit
 
 from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
+from wcsac_rl.objectives.inputs import collected_keys
 from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import (
     CHECKPOINT_DIR,
@@ -60,11 +61,11 @@ class OffPolicyTrainer(Trainer):
         self.optimizers = builders.make_optimizers(cfg, self.loss)
         # n-step cost entries (cost_n_steps > 1), added to each collected batch
         self.postproc = builders.make_postproc(self.loss)
-        self.replay_buffer = builders.make_replay_buffer(cfg, self.postproc, self.loss.in_keys)
-        # what a replay batch holds: what the loss reads (smaller buffer, faster
-        # sampling); stored: all of it but the n-step state, which the buffer reads
-        # from the row that holds it
-        self.replay_keys = sorted(self.loss.in_keys, key=str)
+        # what a replay batch holds: what the loss reads but is not attached to each
+        # sample (smaller buffer, faster sampling); stored: all of it but the n-step
+        # state, which the buffer reads from the row that holds it
+        self.replay_keys = sorted(collected_keys(self.loss), key=str)
+        self.replay_buffer = builders.make_replay_buffer(cfg, self.postproc, self.replay_keys)
         gathered = set(getattr(self.replay_buffer, "gathered_keys", ()))
         self.stored_keys = [key for key in self.replay_keys if nested_key(key) not in gathered]
         self.initial_state_buffer = None
