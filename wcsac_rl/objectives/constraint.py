@@ -288,3 +288,10 @@ def make_constraint(
         )
     gains = pid if isinstance(pid, PIDGains) else PIDGains(**(pid or {}))
     return PIDLagrangian(kappa_init, gains)
+
+
+def rename_kappa_raw(module, state_dict, prefix, *args) -> None:
+    """Load a state dict saved before κ moved into :attr:`WCSACLoss.constraint`."""
+    old, new = f"{prefix}kappa_raw", f"{prefix}constraint.kappa_raw"
+    if old in state_dict and new not in state_dict:
+        state_dict[new] = state_dict.pop(old)

@@ -1,23 +1,14 @@
 """Worst-Case Soft Actor Critic (Yang et al., AAAI 2021) as a TorchRL ``LossModule``.
 
 ``WCSACLoss`` is TorchRL's :class:`~torchrl.objectives.SACLoss` (v2: twin Q, no value
-network) composed of parts, each in its own module (``docs/architecture.md``):
-
-* the **safety head** (:mod:`~wcsac_rl.objectives.safety_head`): the safety critic's
-  values, TD targets, TD loss and CVaR Γ — the paper's Gaussian ``N(Q^c, V^c)``
-  (Eq. 7–9), its mean-only ablation, or an implicit quantile network (the journal
-  version), chosen once by :func:`~wcsac_rl.objectives.safety_head.make_safety_head`;
-* the **cost target** (:mod:`~wcsac_rl.objectives.cost_target`): the cost summed
-  before the safety critic's bootstrap (1 or n steps), its discount γ_c, where it stops;
-* the **critics** (:mod:`~wcsac_rl.objectives.critics`): reward and safety critics
-  read together, as one fused ensemble where the networks allow;
-* the **constraint signal** (:mod:`~wcsac_rl.objectives.constraint_signal`): which Γ
-  κ holds under which threshold (states, actions, statistic, episodes);
-* the **constraint** (:mod:`~wcsac_rl.objectives.constraint`): κ and its update rule.
-
-The loss itself is one method per term: ``qvalue_loss``, ``safety_loss``,
-``actor_loss`` (``β log π − min Q^r + κ Γ``), ``alpha_loss`` (TorchRL's) and
-``kappa_loss``. ``SACLagLoss`` is the same parts at ``α = 1`` (Γ = Q^c).
+network) composed of parts, each in its own module: the safety head
+(:mod:`~wcsac_rl.objectives.safety_head`), the cost target
+(:mod:`~wcsac_rl.objectives.cost_target`), the critics read together
+(:mod:`~wcsac_rl.objectives.critics`), the constraint signal
+(:mod:`~wcsac_rl.objectives.constraint_signal`) and the constraint
+(:mod:`~wcsac_rl.objectives.constraint`); ``docs/architecture.md`` maps them. The loss
+itself is one method per term: ``qvalue_loss``, ``safety_loss``, ``actor_loss``
+(``β log π − min Q^r + κ Γ``), ``alpha_loss`` (TorchRL's) and ``kappa_loss``.
 """
 
 from __future__ import annotations
@@ -25,10 +16,8 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from types import MappingProxyType
 from typing import Any
 
-import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import ProbabilisticTensorDictSequential, TensorDictModule, dispatch
@@ -40,10 +29,8 @@ from torchrl.objectives.sac import compute_rsample_log_prob
 from torchrl.objectives.utils import (
     ValueEstimators,
     _cache_values,
-    _coerce_value_type,
     distance_loss,
 )
-from torchrl.objectives.value import TD0Estimator, ValueEstimatorBase
 
 from wcsac_rl.modules.tanh_normal import sample_tanh_normal, tanh_normal_actor_plan
 from wcsac_rl.objectives.budget import (
@@ -51,7 +38,7 @@ from wcsac_rl.objectives.budget import (
     validate_cost_limit,
     validate_max_episode_steps,
 )
-from wcsac_rl.objectives.constraint import PIDGains, make_constraint
+from wcsac_rl.objectives.constraint import PIDGains, make_constraint, rename_kappa_raw
 from wcsac_rl.objectives.constraint_signal import ConstraintSignal
 from wcsac_rl.objectives.cost_target import CostTarget
 from wcsac_rl.objectives.critic_ensemble import Layers
@@ -64,28 +51,19 @@ from wcsac_rl.objectives.inputs import (
     nested_key,
     state_keys,
 )
+from wcsac_rl.objectives.options import PAPER_OPTIONS
 from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
 from wcsac_rl.objectives.safety_head import SafetyValues, make_safety_head
 from wcsac_rl.objectives.td0 import td0_target
-
-__all__ = ["PAPER_OPTIONS", "CriticValues", "SACLagLoss", "WCSACLoss", "per_step_cost_threshold"]
-
-PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(
-    {
-        "variance_target": "moment",
-        "cost_gamma": None,
-        "cost_n_steps": 1,
-        "nonnegative_cost": False,
-        "kappa_states": "replay",
-        "kappa_statistic": "mean",
-        "kappa_signal": "critic",
-        "kappa_rule": "gradient",
-    }
+from wcsac_rl.objectives.torchrl_compat import (
+    as_given,
+    check_td0,
+    convert_safety_network,
+    refuse_multistep,
+    sample_alive,
 )
-"""The safety critic and κ as the paper writes them (Eq. 7–8, one-step targets with the
-reward's γ, κ on the mean Γ over replay states against the per-step threshold):
-``WCSACLoss(..., **PAPER_OPTIONS)``. The defaults differ, on StaticEnv evidence
-(docs/defaults.md); ``algo=wcsac_paper`` is the same in the config."""
+
+__all__ = ["PAPER_OPTIONS", "CriticValues", "WCSACLoss", "per_step_cost_threshold"]
 
 
 class WCSACLoss(SACLoss):
@@ -300,7 +278,7 @@ class WCSACLoss(SACLoss):
             loss_function=loss_function,
             **sac_kwargs,
         )
-        self._convert_safety_network(safety_network, sac_kwargs.get("separate_losses", False))
+        convert_safety_network(self, safety_network, sac_kwargs.get("separate_losses", False))
         self.cost_target = CostTarget(
             self.tensor_keys,
             gamma=cost_gamma,
@@ -335,34 +313,13 @@ class WCSACLoss(SACLoss):
         )
         device = self.log_alpha.device
         self.constraint = constraint.to(device)
-        self.register_load_state_dict_pre_hook(_rename_kappa_raw)
+        self.register_load_state_dict_pre_hook(rename_kappa_raw)
         self.register_buffer("cost_threshold", torch.zeros((), device=device))
         # derived from cost_gamma / the value estimator: not part of the state dict
         self.register_buffer("cost_discount", torch.zeros((), device=device), persistent=False)
         self.make_value_estimator(ValueEstimators.TD0)
         self._set_in_keys()
         self._plan_fast_paths(actor_network, fuse_critics, direct_sampling)
-
-    def _convert_safety_network(self, safety_network, separate_losses: bool) -> None:
-        """The safety critic's functional parameters, as :class:`SACLoss` makes the
-        reward critic's where it shares tensors with the actor (a common trunk): with
-        ``separate_losses`` it reads the actor's tensors without training them (only
-        the actor loss does); without, it gets its own trainable copy of them (its loss
-        trains that copy, never the actor's)."""
-        actor_params = list(self.actor_network_params.values(True, True))
-        self.convert_to_functional(
-            safety_network,
-            "safety_network",
-            create_target_params=True,
-            compare_against=actor_params if separate_losses else None,
-        )
-        if separate_losses:
-            return
-        shared = {id(p) for p in actor_params}
-        for key, value in list(self.safety_network_params.items(True, True)):
-            if id(value) in shared:
-                copy = torch.nn.Parameter(value.detach().clone(), value.requires_grad)
-                self.safety_network_params.set(key, copy)
 
     def _plan_fast_paths(self, actor_network, fuse_critics, direct_sampling) -> None:
         """The critics' reading (fused where possible) and the direct actor sampling."""
@@ -408,14 +365,14 @@ class WCSACLoss(SACLoss):
         :class:`~torchrl.objectives.value.TD0Estimator` class with its arguments, or an
         instance; refuses the others in one line (the cost-variance target is a one-step
         recursion). Returns the loss."""
-        _check_td0(value_type)
+        check_td0(value_type, type(self).__name__)
         super().make_value_estimator(value_type, **hyperparams)
         if "gamma" in hyperparams:
             # γ as given (the estimator stores it in float32: 0.99 → 0.99000001, which
             # would move the per-step threshold by 1.4e-6)
             self._gamma = float(hyperparams["gamma"])
         else:  # the default's, or an instance's (its shortest float32 decimal)
-            self._gamma = _as_given(self.value_estimator.gamma)
+            self._gamma = as_given(self.value_estimator.gamma)
         if "cost_threshold" in self._buffers:  # (the parts exist: not in SACLoss.__init__)
             self.cost_target.set_reward_gamma(self._gamma)
             gamma = self.cost_target.gamma
@@ -600,7 +557,9 @@ class WCSACLoss(SACLoss):
         ``cost_next_variance`` or ``cost_target_quantiles``) on the cost target's
         bootstrap (:mod:`~wcsac_rl.objectives.cost_target`)."""
         if self.cost_n_steps == 1:
-            self._refuse_multistep(tensordict)
+            refuse_multistep(
+                type(self).__name__, tensordict, self.value_estimator.tensor_keys.steps_to_next_obs
+            )
         with torch.no_grad():
             next_td = tensordict.get("next")
             next_action, next_log_prob = self._sample_alive(
@@ -625,40 +584,16 @@ class WCSACLoss(SACLoss):
             targets = self.safety_head.targets(*bootstrap)
         return {"reward_target": reward_target, **targets}
 
-    def _refuse_multistep(self, tensordict: TensorDictBase) -> None:
-        """A one-step cost target on a batch from TorchRL's ``MultiStep`` would pair one
-        step's cost with the state n steps on: refused in one line (keys only)."""
-        key = self.value_estimator.tensor_keys.steps_to_next_obs
-        if tensordict.get(key, None) is not None:
-            raise ValueError(
-                f"{type(self).__name__}: the batch has {key!r}, written by TorchRL's "
-                "MultiStep: its reward target is n-step but the cost target with "
-                "cost_n_steps=1 is one step's, which would bootstrap from the state n steps "
-                "on; drop MultiStep, or construct the loss with cost_n_steps=n and add "
-                "NStepCost.for_loss(loss) to the collector's postproc before MultiStep"
-            )
-
     def _sample_action(self, states: TensorDictBase, batch: TensorDictBase) -> Tensor:
         """``a ~ π(·|states)`` (the n-step bootstrap's action; ``skip_done_states``
         as for ``s'``)."""
         return self._sample_alive(states, "done", batch)[0]
 
     def _sample_alive(self, states: TensorDictBase, done_key: NestedKey, like: TensorDictBase):
-        """``a ~ π(·|states)`` and its log-probability; with ``skip_done_states`` (as
-        :class:`~torchrl.objectives.SACLoss`) the actor is run only on the states whose
-        ``done_key`` entry is not set, and the others get the action 0 and
-        log-probability 0 (their target is cut by ``done``; TorchRL's rule). ``like``:
-        a batch with actions shaped like those (the replay batch). Eager only: the rows
-        kept are read on the host."""
+        """:func:`~wcsac_rl.objectives.torchrl_compat.sample_alive` with this loss's
+        actor (``skip_done_states``: the rows whose ``done_key`` is set are skipped)."""
         done = states.get(done_key, None) if self.skip_done_states else None
-        if done is None:
-            return self._sample_policy(states)
-        alive = ~done.reshape(states.shape)
-        if not alive.any():  # (nothing to run the actor on)
-            action = torch.zeros_like(like.get(self.tensor_keys.action))  # (a tensordict too)
-            return action, torch.zeros(states.shape, device=done.device)
-        action, log_prob = self._sample_policy(states[alive])
-        return _scatter_rows(action, alive), _scatter_rows(log_prob, alive)
+        return sample_alive(self._sample_policy, states, done, like.get(self.tensor_keys.action))
 
     def _reward_target(self, tensordict: TensorDictBase, next_value: Tensor) -> Tensor:
         """TorchRL's TD(0) estimate ``r + γ (1 − term) V(s')`` (:func:`td0_target`)."""
@@ -858,82 +793,3 @@ class WCSACLoss(SACLoss):
             "target_safety_network_params",
         )
         return td_out
-
-
-def _scatter_rows(rows, keep: Tensor):
-    """``rows`` (one per set entry of ``keep``) back in ``keep``'s shape, zeros elsewhere
-    (a tensor or a tensordict of them: a composite action)."""
-    if isinstance(rows, TensorDictBase):
-        return rows.apply(lambda value: _scatter_rows(value, keep), batch_size=keep.shape)
-    full = rows.new_zeros((*keep.shape, *rows.shape[1:]))
-    full[keep] = rows
-    return full
-
-
-def _check_td0(value_type) -> None:
-    """A ``NotImplementedError`` in one line unless ``value_type`` is a TD(0) estimator
-    (``None``, ``ValueEstimators.TD0``, ``"td0"``, the ``TD0Estimator`` class or an
-    instance)."""
-    if value_type is None:
-        return
-    if isinstance(value_type, ValueEstimatorBase):
-        ok = isinstance(value_type, TD0Estimator)
-    elif isinstance(value_type, type) and issubclass(value_type, ValueEstimatorBase):
-        ok = issubclass(value_type, TD0Estimator)
-    else:
-        try:
-            ok = _coerce_value_type(value_type) == ValueEstimators.TD0
-        except KeyError:
-            ok = False
-    if not ok:
-        raise NotImplementedError(
-            f"WCSACLoss supports only the TD(0) value estimator (ValueEstimators.TD0, 'td0', "
-            f"TD0Estimator; its cost-variance target is a one-step recursion), got {value_type!r}"
-        )
-
-
-def _as_given(gamma) -> float:
-    """γ as a user wrote it: a float32 tensor's shortest decimal (``0.99``, not
-    ``0.9900000095``), any other's value."""
-    if isinstance(gamma, Tensor) and gamma.dtype == torch.float32:
-        return float(str(np.float32(gamma.item())))
-    return float(gamma)
-
-
-def _rename_kappa_raw(module, state_dict, prefix, *args) -> None:
-    """Load a state dict saved before κ moved into :attr:`WCSACLoss.constraint`."""
-    old, new = f"{prefix}kappa_raw", f"{prefix}constraint.kappa_raw"
-    if old in state_dict and new not in state_dict:
-        state_dict[new] = state_dict.pop(old)
-
-
-class SACLagLoss(WCSACLoss):
-    """SAC-Lagrangian: the parts of :class:`WCSACLoss` configured risk-neutral.
-
-    ``risk_level=1``: Γ = Q^c (the expected cost), so the safety head uses the mean
-    alone and the ``"tail"`` statistic is the mean over the states. Give it a
-    mean-only safety critic (``make_safety_critic(..., variance=False)``): no variance
-    network exists or is trained, which is the paper's ablation. With a Gaussian
-    critic the variance is still learned (a diagnostic) but never used; with an IQN
-    critic (``kind="iqn"``) Γ is the mean of its quantiles over [0, 1]. Every other
-    keyword is :class:`WCSACLoss`'s.
-
-    Example:
-        >>> from torchrl.data import Bounded
-        >>> from wcsac_rl import SACLagLoss
-        >>> from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-        >>> loss = SACLagLoss(make_actor(4, Bounded(-1.0, 1.0, shape=(2,))),
-        ...                   [make_qvalue(4, 2) for _ in range(2)],
-        ...                   make_safety_critic(4, 2, variance=False), cost_limit=25.0)
-        >>> loss.has_variance, loss.risk_level
-        (False, 1.0)
-    """
-
-    def __init__(
-        self, actor_network, qvalue_network, safety_network, *, risk_level=1.0, **kwargs
-    ) -> None:
-        if risk_level != 1.0:
-            raise ValueError(
-                "SACLagLoss is the risk-neutral case (risk_level=1); for risk_level < 1 use WCSACLoss"
-            )
-        super().__init__(actor_network, qvalue_network, safety_network, risk_level=1.0, **kwargs)
