@@ -64,9 +64,11 @@ def test_targets_read_each_target_critic_once(fuse, variance, n_steps):
     safety_nets = 2 if variance else 1
     flops, targets = _flops(loss.compute_targets, batch)
     # a' ~ π(s') and (n-step) a ~ π(s_{t+m}); two reward critics and the safety critic
-    # once (at s_{t+m} with n steps, at s' with one)
+    # once (at s_{t+m} with n steps, at s' with one) — except that fused critics keep
+    # their one product over every member at s' (another grouping rounds differently)
     draws = 2 if n_steps > 1 else 1
-    assert flops == rows * (draws * ACTOR + (2 + safety_nets) * CRITIC)
+    kept = safety_nets if fuse and n_steps > 1 else 0
+    assert flops == rows * (draws * ACTOR + (2 + safety_nets + kept) * CRITIC)
     assert torch.isfinite(targets["cost_target"]).all()
 
 

@@ -73,8 +73,11 @@ def test_report_refuses_stale_evaluations_by_run_name(tmp_path):
     assert not (tmp_path / "report" / "table1.md").exists()
     evaluate_run(runs[0], episodes=2, progress=False)
     # evaluated again, it is no longer stale; but a 1200-frame run and an 800-frame one
-    # are never pooled into one row (issue 33): report it on its own
-    with pytest.raises(ReportError, match=r"row wcsac_0\.5 would pool .*total_frames"):
-        build_report([sweep], tmp_path / "report", trajectories=False, log=lambda m: None)
+    # are never pooled into one row (issue 33): each is a row of its own
+    both = build_report([sweep], tmp_path / "both", trajectories=False, log=lambda m: None)
+    assert [row["label"] for row in both.rows] == [
+        "wcsac_0.5[total_frames=1200]",
+        "wcsac_0.5[total_frames=800]",
+    ]
     report = build_report([runs[0]], tmp_path / "report", trajectories=False, log=lambda m: None)
     assert (report.out_dir / "table1.md").exists()

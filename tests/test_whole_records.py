@@ -15,7 +15,7 @@ import pytest
 from _evaluation_helpers import copy_sweep, run_dirs
 
 from wcsac_rl.evaluation.evaluator import evaluate_run
-from wcsac_rl.evaluation.reporting import ReportError, build_report
+from wcsac_rl.evaluation.reporting import build_report
 from wcsac_rl.training.progress import read_progress
 
 HEADER = "epoch,frames,train/episode_cost\r\n"
@@ -99,29 +99,18 @@ def test_the_report_reads_only_the_whole_rows_of_a_half_written_progress_csv(
 
 
 @pytest.mark.parametrize(
-    ("key", "edit", "message"),
+    ("key", "edit", "settings", "counts"),
     [
-        (
-            "cost_limit",
-            "cost_limit: 25.0",
-            "(cost_limit 15.0: 0_wcsac_0.5_tiny_seed0; 25.0: 1_wcsac_0.5_tiny_seed1)",
-        ),
-        (
-            "total_frames",
-            "total_frames: 1200",
-            "(total_frames 800: 0_wcsac_0.5_tiny_seed0; 1200: 1_wcsac_0.5_tiny_seed1)",
-        ),
-        (
-            "algo.gamma",
-            "  gamma: 0.9",
-            "(algo.gamma 0.99: 0_wcsac_0.5_tiny_seed0; 0.9: 1_wcsac_0.5_tiny_seed1)",
-        ),
+        ("cost_limit", "cost_limit: 25.0", ("cost_limit=15.0", "cost_limit=25.0"), "15.0: 1 run; 25.0: 1 run"),
+        ("total_frames", "total_frames: 1200", ("total_frames=800", "total_frames=1200"), "800: 1 run; 1200: 1 run"),
+        ("algo.gamma", "  gamma: 0.9", ("algo.gamma=0.99", "algo.gamma=0.9"), "0.99: 1 run; 0.9: 1 run"),
     ],
-)
+)  # fmt: skip
 def test_runs_of_different_configurations_are_never_pooled_into_one_row(
-    sweep, tmp_path, key, edit, message
+    sweep, tmp_path, key, edit, settings, counts
 ):
-    """Even under --cost-limit: a row pools the seeds of one configuration."""
+    """Even under --cost-limit: a row pools the seeds of one configuration; runs of one
+    label that differ in a setting are rows of their own, said in one warning line."""
     run = run_dirs(sweep)[1]
     config = run / "config.yaml"
     lines = config.read_text().splitlines()
@@ -133,14 +122,14 @@ def test_runs_of_different_configurations_are_never_pooled_into_one_row(
     if key == "cost_limit":
         meta = json.loads((run / "evaluation.json").read_text())
         (run / "evaluation.json").write_text(json.dumps({**meta, "cost_limit": 25.0}))
-    out = tmp_path / "out"
-    with pytest.raises(ReportError) as err:
-        _report(sweep, out, cost_limit=15.0)
-    text = str(err.value)
-    assert "\n" not in text
-    assert text.startswith("row wcsac_0.5 would pool runs of different configurations")
-    assert message in text
-    assert not out.exists()
+    result, _ = _report(sweep, tmp_path / "out", cost_limit=15.0)
+    split = [w for w in result.warnings if "differ in" in w]
+    assert split == [
+        f"row wcsac_0.5: its runs differ in {key} ({counts}), shown as one row per setting"
+    ]
+    labels = [row["label"] for row in result.rows if row["label"].startswith("wcsac_0.5")]
+    assert sorted(labels) == sorted(f"wcsac_0.5[{setting}]" for setting in settings)
+    assert all(row["seeds"] == 1 for row in result.rows if row["label"] in labels)
 
 
 def test_a_run_directory_whose_name_is_not_utf8_is_reported(sweep, tmp_path):

@@ -118,26 +118,25 @@ class Critics:
         ``ahead`` is ``None``, else at the n-step states ``ahead`` and the action
         ``sample(ahead)`` (``a ~ π``).
 
-        Nothing is evaluated that is not read: with ``ahead`` the safety critic is not
-        read at ``(s', a')`` (except by a head whose readings draw random numbers, the
-        IQN's: its draws there keep the random stream, and so the results, those of
-        the reading it has always made), and the fused critics evaluate the reward
-        critics at ``(s', a')`` and the safety critic at ``ahead`` in the same batched
-        products. ``sample`` is called after ``a'`` was drawn and, for an unfused
-        critic, after the reward critics (in the order the targets always drew)."""
+        With ``ahead`` the safety critic is not read at ``(s', a')`` by an unfused
+        critic (except by a head whose readings draw random numbers, the IQN's: its
+        draws there keep the random stream, and so the results, those of the reading it
+        has always made). Fused critics keep the one batched product over every member
+        at ``(s', a')``: evaluating fewer members, or the safety pair at ``ahead`` in the
+        same product, rounds differently, and the risky-detour learning test showed that
+        training outcomes are not robust to it. ``sample`` is called after ``a'`` was
+        drawn and after the reward critics (the order the targets always drew)."""
         if ahead is None:
             return self.values(next_states, next_action, params, vmap_qvalue)
         if self.fused is not None:
-            ahead_action = sample(ahead)
-            observation_key = self.qvalue_network.in_keys[0]
-            q, mean, variance = self.fused.values(
-                next_states.get(observation_key),
-                next_action,
-                self.layers(params),
-                safety_at=(ahead.get(observation_key), ahead_action),
-            )
-            return CriticValues(q, SafetyValues(mean, variance))
-        q = self._qvalue(next_states, next_action, params, vmap_qvalue)
+            # the reward critics from the same batched product over every member as
+            # always (a product over fewer members, or with the safety pair at s_{t+m},
+            # rounds differently, and training results are not robust to that), the
+            # safety critic at s_{t+m} through its own network
+            observation = next_states.get(self.qvalue_network.in_keys[0])
+            q, _, _ = self.fused.values(observation, next_action, self.layers(params))
+        else:
+            q = self._qvalue(next_states, next_action, params, vmap_qvalue)
         if self.head.random_readings:
             self.head.values(next_states, params.safety, next_action, target=params.target)
         safety = self.head.values(ahead, params.safety, sample(ahead), target=params.target)
