@@ -210,13 +210,16 @@ def trajectories(seed: int = 0, batch: int = BATCH, time: int = TIME, composite=
     return td
 
 
-def prepare(loss, traj: TensorDictBase, seed: int = 0) -> TensorDictBase:
+def prepare(loss, traj: TensorDictBase, seed: int = 0, **nstep_keys) -> TensorDictBase:
     """A flat replay batch for ``loss``, through the kit's transforms its options need
-    (a TorchRL user's pipeline: collector postproc, start-state buffer)."""
+    (a TorchRL user's pipeline: collector postproc, start-state buffer);
+    ``nstep_keys``: ``NStepCost``'s ``done_key`` / ``terminated_key`` if renamed."""
     traj = traj.clone()
     if loss.cost_n_steps > 1:
-        keys = [k for k in loss.initial_state_keys]
-        traj = NStepCost(loss.cost_n_steps, loss.cost_gamma, observation_keys=keys)(traj)
+        keys = list(loss.initial_state_keys)
+        traj = NStepCost(loss.cost_n_steps, loss.cost_gamma, observation_keys=keys, **nstep_keys)(
+            traj
+        )
     flat = traj.reshape(-1)
     if loss.kappa_states == "initial":
         starts = StartStateBuffer.for_loss(loss)
@@ -720,21 +723,7 @@ def renamed_batch(loss, keys, seed=0):
         old = "obs_tmp" if old == "observation" else old
         if old != new:
             traj.rename_key_(old, new)
-    if loss.cost_n_steps > 1:
-        traj = NStepCost(
-            loss.cost_n_steps,
-            loss.cost_gamma,
-            observation_keys=loss.initial_state_keys,
-            done_key=done_key,
-            terminated_key=terminated_key,
-        )(traj)
-    flat = traj.reshape(-1)
-    if loss.kappa_states == "initial":
-        starts = StartStateBuffer.for_loss(loss)
-        starts.add_starts(traj)
-        torch.manual_seed(seed)
-        flat = starts.attach(flat)
-    return flat
+    return prepare(loss, traj, seed, done_key=done_key, terminated_key=terminated_key)
 
 
 def _flat_key(key) -> str:
