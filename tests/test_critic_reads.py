@@ -16,7 +16,6 @@ from __future__ import annotations
 import pytest
 import torch
 from _loss_reference import ACT_DIM, OBS_DIM, WIDTH, make_preset_batch
-from _tolerance import assert_close_f32
 from torch.utils.flop_counter import FlopCounterMode
 from torchrl.data import Bounded
 
@@ -94,23 +93,6 @@ def test_start_state_signal_reads_the_safety_critic_alone(fuse, variance):
     assert torch.equal(values.safety.mean, every.safety.mean)
     if variance:
         assert torch.equal(values.safety.variance, every.safety.variance)
-
-
-def test_fused_targets_read_the_safety_pair_ahead_as_its_own_evaluation():
-    loss = _loss(True, True)
-    fused = loss.critics.fused
-    layers = loss.critics.layers(loss._target_critics())
-    g = torch.Generator().manual_seed(2)
-    s1, s2 = torch.randn(24, OBS_DIM, generator=g), torch.randn(24, OBS_DIM, generator=g)
-    a1, a2 = torch.rand(24, ACT_DIM, generator=g), torch.rand(24, ACT_DIM, generator=g)
-    with torch.no_grad():
-        q, mean, variance = fused.values(s1, a1, layers, safety_at=(s2, a2))
-        q_alone, *_ = fused.values(s1, a1, layers)
-        _, mean_alone, variance_alone = fused.values(s2, a2, layers)
-    # separate products per member: equal up to the rounding of the width-32 sums
-    for now, alone in ((q, q_alone), (mean, mean_alone), (variance, variance_alone)):
-        assert now.shape == alone.shape
-        assert_close_f32(now, alone, ops=2 * WIDTH)
 
 
 def test_the_paper_options_read_no_start_states_and_no_nstep_state():

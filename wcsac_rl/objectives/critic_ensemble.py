@@ -71,23 +71,17 @@ def evaluate_ensemble(
     x: Tensor,
     layers: list[tuple[Tensor, Tensor]],
     activation: type[nn.Module],
-    *,
-    per_member: bool = False,
 ) -> Tensor:
     """Outputs ``[K, *B, out]`` of the K MLPs given by ``layers`` at the shared input
-    ``x [*B, in]`` or, with ``per_member``, at one input per member ``x [K, *B, in]``."""
+    ``x [*B, in]``."""
     act = ACTIVATIONS[activation]
-    if per_member:
-        batch_shape = x.shape[1:-1]
-        h = x.reshape(x.shape[0], -1, x.shape[-1])
-    else:
-        batch_shape = x.shape[:-1]
-        x = x.reshape(-1, x.shape[-1])
-        # the shared input is broadcast (not copied) to the K members, so every layer,
-        # the first included, is one batched product on contiguous [K, B, features]
-        # activations (a first layer against the side-by-side weights would leave
-        # them transposed, and cost a strided copy per layer forward and backward)
-        h = x.expand(layers[0][0].shape[0], *x.shape)
+    batch_shape = x.shape[:-1]
+    x = x.reshape(-1, x.shape[-1])
+    # the shared input is broadcast (not copied) to the K members, so every layer,
+    # the first included, is one batched product on contiguous [K, B, features]
+    # activations (a first layer against the side-by-side weights would leave
+    # them transposed, and cost a strided copy per layer forward and backward)
+    h = x.expand(layers[0][0].shape[0], *x.shape)
     for depth, (weight, bias) in enumerate(layers):
         h = torch.baddbmm(bias.unsqueeze(1), h if depth == 0 else act(h), weight.transpose(1, 2))
     return h.reshape(h.shape[0], *batch_shape, h.shape[-1])
@@ -179,16 +173,12 @@ class FusedCritics:
         layers: Layers,
         *,
         qvalue: bool = True,
-        safety_at: tuple[Tensor, Tensor] | None = None,
     ) -> tuple[Tensor | None, Tensor, Tensor | None]:
         """``(Q^r [num_qvalue_nets, *B], Q^c [*B], V^c [*B] or None)`` at ``(s, a)``.
 
         ``qvalue=False`` evaluates the safety members alone (``Q^r`` is ``None``; a
         mean-only safety critic with the last reward critic, so that its values are
-        those of the whole ensemble's evaluation bit for bit);
-        ``safety_at=(s₂, a₂)`` reads the safety members at ``(s₂, a₂)`` instead, in the
-        same batched products as the reward critics at ``(s, a)`` (each member's
-        values are those of its own evaluation: the members are separate products).
+        those of the whole ensemble's evaluation bit for bit).
         """
         n = self.num_qvalue_nets
         x = torch.cat([observation, action], dim=-1)
@@ -202,13 +192,6 @@ class FusedCritics:
             out = evaluate_ensemble(x, members, self.activation).squeeze(-1)[n - first :]
             variance = softplus_variance(out[1]) if self.has_variance else None
             return None, out[0], variance
-        if safety_at is not None:
-            x_safety = torch.cat(list(safety_at), dim=-1)
-            k = layers[0][0].shape[0]
-            inputs = torch.cat([x.expand(n, *x.shape), x_safety.expand(k - n, *x_safety.shape)])
-            out = evaluate_ensemble(inputs, layers, self.activation, per_member=True)
-        else:
-            out = evaluate_ensemble(x, layers, self.activation)
-        out = out.squeeze(-1)
+        out = evaluate_ensemble(x, layers, self.activation).squeeze(-1)
         variance = softplus_variance(out[n + 1]) if self.has_variance else None
         return out[:n], out[n], variance
