@@ -103,7 +103,7 @@ def test_a_config_saved_before_the_safety_options_validates_and_builds_what_it_r
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("config", overrides=["algo=wcsac", "env=tiny", "risk_level=0.1"])
     with open_dict(cfg):
-        for key in (*SAVED_RUN_OPTIONS, "kappa_episode_window"):
+        for key in {*SAVED_RUN_OPTIONS, "kappa_episode_window"}:
             del cfg.algo[key]
     validate_config(cfg)
     env = make_env("tiny", seed=0)
