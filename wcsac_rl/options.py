@@ -108,6 +108,7 @@ class Option:
     saved_run: Any = NOT_SAVED
     holds: str = ""  # a group: what it holds ("the PID gains")
     unknown_label: str | None = None  # a group: refuse unknown keys as "unknown <label> option"
+    members: str = "options"  # a group: what its fields are called ("the gains are ...")
 
     def requirement(self) -> str:
         """What the value must be, as the messages say it (``"> 0 (a number)"``)."""
@@ -235,11 +236,12 @@ def _refuse_unknown(cls: type, node: Mapping[str, Any], key: str, spec: Option) 
     known = [f.name for f in fields(cls)]
     unknown = sorted(set(node) - set(known))
     if unknown:
-        close = difflib.get_close_matches(str(unknown[0]), known, n=1, cutoff=0.6)
-        hint = f" (did you mean {key}.{close[0]}?)" if close else ""
+        paths = [f"{key}.{name}" for name in known]
+        close = difflib.get_close_matches(f"{key}.{unknown[0]}", paths, n=1, cutoff=0.6)
+        hint = f" (did you mean {close[0]}?)" if close else ""
         raise ValueError(
             f"unknown {spec.unknown_label} option {key}.{unknown[0]}{hint}; the "
-            f"{spec.holds.removeprefix('the ')} are {', '.join(sorted(known))}"
+            f"{spec.members} are {', '.join(sorted(known))}"
         )
 
 
@@ -454,7 +456,10 @@ class SafetyOptions:
     pid: PIDGains = field(
         default_factory=PIDGains,
         metadata=group_spec(
-            "kappa_rule=pid: the controller's gains", holds="the PID gains", unknown_label="PID"
+            "kappa_rule=pid: the controller's gains",
+            holds="the PID gains",
+            unknown_label="PID",
+            members="gains",
         ),
     )
     kappa_init: float = option(

@@ -58,6 +58,7 @@ from wcsac_rl.objectives.torchrl_compat import (
     check_td0,
     convert_safety_network,
     refuse_multistep,
+    refuse_unknown_keywords,
     sample_alive,
 )
 from wcsac_rl.options import PAPER_OPTIONS, IQNOptions, PIDGains, SafetyOptions, check_loss_options
@@ -252,6 +253,7 @@ class WCSACLoss(SACLoss):
         **sac_kwargs,
     ) -> None:
         check_loss_options(locals())  # as the config is: one line naming the option
+        refuse_unknown_keywords(WCSACLoss.__init__, sac_kwargs)
         if sac_kwargs.pop("value_network", None) is not None:
             raise ValueError("WCSACLoss is SAC v2: it takes no value_network")
         self.risk_level = validate_risk_level(risk_level)
