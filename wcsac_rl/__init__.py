@@ -14,6 +14,9 @@ The names below are imported on first use (PEP 562), so that ``import wcsac_rl``
 # (torchrl included) imports mujoco.
 from wcsac_rl import _headless  # noqa: F401  (isort: skip)
 
+# The option schema conf/algo/*.yaml compose from (Hydra's ConfigStore; no torch).
+from wcsac_rl import config_schema  # noqa: F401  (isort: skip)
+
 __version__ = "0.1.0"
 
 __all__ = [

@@ -16,6 +16,7 @@ from torch.nn import functional as F
 
 from wcsac_rl.modules._mlp import make_mlp
 from wcsac_rl.modules.quantile_critic import IQNSafetyCritic
+from wcsac_rl.options import SAFETY_CRITIC_KINDS
 
 __all__ = [
     "SAFETY_CRITIC_KINDS",
@@ -26,8 +27,6 @@ __all__ = [
     "softplus_variance",
 ]
 
-SAFETY_CRITIC_KINDS = ("gaussian", "iqn")
-"""What :func:`make_safety_critic` builds (``kind``)."""
 
 #: V^c is clamped to this range wherever it is produced or used (spec, authors' code).
 VARIANCE_MIN = 1e-8

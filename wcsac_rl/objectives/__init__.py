@@ -1,12 +1,13 @@
 """Loss modules (WCSAC, SAC-Lagrangian, CPO), risk measures, ``PolyakUpdate`` (the
 target networks' fast path), ``param_groups`` (the optimizer groups with the kit's
-learning rates), and the data the safety critic's options read (``NStepCost``, ``StartStateBuffer``, ``EpisodeCostWindow``)."""
+learning rates), the data the safety critic's options read (``NStepCost``, ``StartStateBuffer``, ``EpisodeCostWindow``),
+and the options themselves (``SafetyOptions``, ``PAPER_OPTIONS``: :mod:`wcsac_rl.options`)."""
 
 from wcsac_rl.objectives.budget import per_step_cost_threshold
 from wcsac_rl.objectives.cpo import CPOLoss
 from wcsac_rl.objectives.episode_costs import EpisodeCostWindow
 from wcsac_rl.objectives.nstep import NStepCost
-from wcsac_rl.objectives.options import PAPER_OPTIONS
+from wcsac_rl.objectives.options import PAPER_OPTIONS, SafetyOptions
 from wcsac_rl.objectives.param_groups import SingleGroupWarning, param_groups
 from wcsac_rl.objectives.risk import (
     empirical_cvar,
@@ -28,6 +29,7 @@ __all__ = [
     "NStepCost",
     "PolyakUpdate",
     "SACLagLoss",
+    "SafetyOptions",
     "SingleGroupWarning",
     "StartStateBuffer",
     "WCSACLoss",

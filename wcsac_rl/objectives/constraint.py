@@ -29,12 +29,12 @@ in the state dict, so a resumed run continues where it stopped.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
 from wcsac_rl.objectives.param_groups import watch_multiplier
+from wcsac_rl.options import CONSTRAINT_RULES, KAPPA_PARAMETRIZATIONS, PIDGains
 
 __all__ = [
     "CONSTRAINT_RULES",
@@ -44,9 +44,6 @@ __all__ = [
     "PIDLagrangian",
     "make_constraint",
 ]
-
-CONSTRAINT_RULES = ("gradient", "pid")
-KAPPA_PARAMETRIZATIONS = ("softplus", "log")
 
 
 def _inverse_softplus(x: float) -> float:
@@ -130,53 +127,6 @@ class GradientLagrangian(nn.Module):
 
     def extra_repr(self) -> str:
         return f"parametrization={self.parametrization!r}, damp_scale={self.damp_scale}"
-
-
-@dataclass(frozen=True)
-class PIDGains:
-    """The PID Lagrangian's knobs (Stooke et al. 2020; OmniSafe's ``PIDLagrangian``).
-
-    Units: the error is in cost units (the signal's: an episode's cost at the
-    default ``kappa_states="initial"``) and κ is dimensionless, so a gain is κ per
-    cost unit (``ki``: per cost unit and update).
-
-    Attributes:
-        kp: proportional gain, on an EMA of the error.
-        ki: integral gain: the integral moves by ``ki · e`` per update.
-        kd: derivative gain, on the rise of the signal's EMA over ``d_delay`` updates
-            (only rises count, as in the paper).
-        d_delay: how many updates back the derivative compares with (>= 1).
-        p_ema: EMA factor of the error for the proportional term, in [0, 1)
-            (0: the raw error).
-        d_ema: EMA factor of the signal for the derivative term, in [0, 1).
-        max_kappa: upper bound of κ and of the integral (anti-windup), > 0.
-    """
-
-    kp: float = 0.05
-    ki: float = 1.0e-6
-    kd: float = 0.0
-    d_delay: int = 1
-    p_ema: float = 0.99
-    d_ema: float = 0.0
-    max_kappa: float = 100.0
-
-    def __post_init__(self) -> None:
-        for name in ("kp", "ki", "kd"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"pid.{name} must be a finite number >= 0, got {value!r}")
-        if isinstance(self.d_delay, bool) or int(self.d_delay) != self.d_delay or self.d_delay < 1:
-            raise ValueError(f"pid.d_delay must be an integer >= 1 (updates), got {self.d_delay!r}")
-        for name in ("p_ema", "d_ema"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and 0.0 <= value < 1.0):
-                raise ValueError(f"pid.{name} must be in [0, 1) (an EMA factor), got {value!r}")
-        if not (
-            isinstance(self.max_kappa, (int, float))
-            and math.isfinite(self.max_kappa)
-            and self.max_kappa > 0
-        ):
-            raise ValueError(f"pid.max_kappa must be a finite number > 0, got {self.max_kappa!r}")
 
 
 class PIDLagrangian(nn.Module):

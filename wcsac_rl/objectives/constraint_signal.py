@@ -40,6 +40,12 @@ from torch import Tensor
 
 from wcsac_rl.objectives.budget import per_step_cost_threshold
 from wcsac_rl.objectives.inputs import required_entry
+from wcsac_rl.options import (
+    KAPPA_ACTIONS,
+    KAPPA_SIGNALS,
+    KAPPA_STATES,
+    KAPPA_STATISTICS,
+)
 
 __all__ = [
     "KAPPA_ACTIONS",
@@ -48,11 +54,6 @@ __all__ = [
     "KAPPA_STATISTICS",
     "ConstraintSignal",
 ]
-
-KAPPA_ACTIONS = ("replay", "policy")
-KAPPA_STATES = ("replay", "initial")
-KAPPA_STATISTICS = ("mean", "tail")
-KAPPA_SIGNALS = ("critic", "max", "episodes")
 
 
 class ConstraintSignal:

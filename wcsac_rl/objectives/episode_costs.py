@@ -23,12 +23,9 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
 from wcsac_rl.objectives.risk import empirical_cvar, validate_risk_level
+from wcsac_rl.options import EPISODE_STATISTICS
 
 __all__ = ["EPISODE_STATISTICS", "EpisodeCostWindow"]
-
-EPISODE_STATISTICS = ("cvar", "mean")
-"""What :meth:`EpisodeCostWindow.for_loss` summarises the window by: the empirical
-CVaR at the loss's α, or the mean episode cost (α = 1: a lower bound of every CVaR)."""
 
 
 class EpisodeCostWindow:

@@ -47,7 +47,8 @@ from wcsac_rl.objectives.risk import (
     gaussian_mixture_cvar,
     quantile_mixture_cvar,
 )
-from wcsac_rl.objectives.variance import VARIANCE_LOSSES, variance_regression_loss
+from wcsac_rl.objectives.variance import variance_regression_loss
+from wcsac_rl.options import VARIANCE_LOSSES, VARIANCE_TARGETS
 
 __all__ = [
     "VARIANCE_TARGETS",
@@ -57,8 +58,6 @@ __all__ = [
     "SafetyValues",
     "make_safety_head",
 ]
-
-VARIANCE_TARGETS = ("moment", "td")
 
 
 class SafetyValues(NamedTuple):

@@ -20,6 +20,7 @@ __all__ = [
     "check_td0",
     "convert_safety_network",
     "refuse_multistep",
+    "refuse_unknown_keywords",
     "sample_alive",
     "scatter_rows",
 ]
@@ -128,3 +129,21 @@ def convert_safety_network(loss, safety_network, separate_losses: bool) -> None:
         if id(value) in shared:
             copy = torch.nn.Parameter(value.detach().clone(), value.requires_grad)
             loss.safety_network_params.set(key, copy)
+
+
+def refuse_unknown_keywords(init: Callable, kwargs: dict) -> None:
+    """Refuse a keyword neither ``init`` (the loss's ``__init__``) nor
+    :class:`~torchrl.objectives.SACLoss` takes, in one line naming the closest one
+    (``kapa_init`` → ``kappa_init``), before ``SACLoss`` says only that it is unexpected."""
+    import difflib
+    import inspect
+
+    from torchrl.objectives import SACLoss
+
+    known = {*inspect.signature(init).parameters, *inspect.signature(SACLoss.__init__).parameters}
+    known -= {"self", "sac_kwargs", "kwargs"}
+    for name in kwargs:
+        if name not in known:
+            close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
+            hint = f" (did you mean {close[0]}?)" if close else ""
+            raise TypeError(f"unknown keyword argument {name!r}{hint}")

@@ -24,9 +24,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["VARIANCE_LOSSES", "variance_regression_loss"]
+from wcsac_rl.options import VARIANCE_LOSSES
 
-VARIANCE_LOSSES = ("w2", "mse", "glm")
+__all__ = ["VARIANCE_LOSSES", "variance_regression_loss"]
 
 
 def variance_regression_loss(variance: Tensor, target: Tensor, kind: str) -> Tensor:

@@ -13,7 +13,6 @@ itself is one method per term: ``qvalue_loss``, ``safety_loss``, ``actor_loss``
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -38,7 +37,7 @@ from wcsac_rl.objectives.budget import (
     validate_cost_limit,
     validate_max_episode_steps,
 )
-from wcsac_rl.objectives.constraint import PIDGains, make_constraint, rename_kappa_raw
+from wcsac_rl.objectives.constraint import make_constraint, rename_kappa_raw
 from wcsac_rl.objectives.constraint_signal import ConstraintSignal
 from wcsac_rl.objectives.cost_target import CostTarget
 from wcsac_rl.objectives.critic_ensemble import Layers
@@ -51,7 +50,6 @@ from wcsac_rl.objectives.inputs import (
     nested_key,
     state_keys,
 )
-from wcsac_rl.objectives.options import PAPER_OPTIONS
 from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
 from wcsac_rl.objectives.safety_head import SafetyValues, make_safety_head
 from wcsac_rl.objectives.td0 import td0_target
@@ -60,8 +58,10 @@ from wcsac_rl.objectives.torchrl_compat import (
     check_td0,
     convert_safety_network,
     refuse_multistep,
+    refuse_unknown_keywords,
     sample_alive,
 )
+from wcsac_rl.options import PAPER_OPTIONS, IQNOptions, PIDGains, SafetyOptions, check_loss_options
 
 __all__ = ["PAPER_OPTIONS", "CriticValues", "WCSACLoss", "per_step_cost_threshold"]
 
@@ -87,7 +87,7 @@ class WCSACLoss(SACLoss):
 
     Keyword Args:
         risk_level (float): the paper's α ∈ (0, 1], the tail fraction whose mean cost
-            (CVaR_α) is constrained; 1 is the expected cost (SAC-Lag). Default ``0.5``.
+            (CVaR_α) is constrained; 1 is the expected cost (SAC-Lag).
         cost_limit (float): the episodic cost budget ``d``. Default ``15.0``.
         max_episode_steps (int): ``T`` in the per-step threshold
             ``d·(1−γ_c^T)/((1−γ_c)T)`` (κ at replay states). Default ``1000``.
@@ -95,31 +95,33 @@ class WCSACLoss(SACLoss):
             ``cost_limit`` and ``max_episode_steps`` are not used). By default ``d``
             at start states, the per-step threshold at replay states.
         cost_gamma (float, optional): γ_c of the safety critic; ``None``: the value
-            estimator's γ (the paper). Default ``1.0``: Q^c at a start state is then
-            the expected episode cost the limit ``d`` is about.
+            estimator's γ (the paper). At 1, Q^c at a start state is the expected
+            episode cost the limit ``d`` is about.
         cost_bootstrap_truncated (bool, optional): whether the cost target bootstraps
-            across a time-limit truncation; ``None`` (default): only when γ_c < 1.
-        cost_n_steps (int): ``1`` (the paper) or ``n > 1`` (default ``10``): the cost
-            target bootstraps ``m ≤ n`` steps ahead from the entries
-            :class:`~wcsac_rl.objectives.NStepCost` adds to collected data.
+            across a time-limit truncation; ``None``: only when γ_c < 1.
+        cost_n_steps (int): ``1`` (the paper) or ``n > 1``: the cost target bootstraps
+            ``m ≤ n`` steps ahead from the entries :class:`~wcsac_rl.objectives.NStepCost`
+            adds to collected data.
         nonnegative_cost (bool): ``max(Q^c, 0)`` wherever Q^c is *used* (targets, Γ),
-            not where it is fitted. Default ``True`` (the paper: ``False``).
+            not where it is fitted.
         variance_loss, variance_target (str): the Gaussian head's variance TD loss and
-            target (:class:`~wcsac_rl.objectives.safety_head.GaussianHead`). Defaults
-            ``"glm"``, ``"td"`` (the paper: ``"w2"``, ``"moment"``).
+            target (:class:`~wcsac_rl.objectives.safety_head.GaussianHead`).
         num_quantiles, num_target_quantiles (int), huber_kappa (float): the IQN head's
-            (:class:`~wcsac_rl.objectives.safety_head.IQNHead`). Defaults ``20``,
-            ``20``, ``1.0``.
+            (:class:`~wcsac_rl.objectives.safety_head.IQNHead`).
         kappa_states, kappa_actions, kappa_statistic, kappa_signal (str): what κ holds
-            under the threshold (:mod:`wcsac_rl.objectives.constraint_signal`). Defaults
-            ``"initial"`` (start states: :class:`~wcsac_rl.objectives.StartStateBuffer`),
-            ``"policy"``, ``"tail"``, ``"critic"`` (the paper: ``"replay"``,
-            ``"policy"``, ``"mean"``, ``"critic"``).
+            under the threshold (:mod:`wcsac_rl.objectives.constraint_signal`);
+            ``kappa_states="initial"`` reads start states
+            (:class:`~wcsac_rl.objectives.StartStateBuffer`).
         kappa_init (float), kappa_parametrization (str), damp_scale (float), kappa_rule
             (str), pid (PIDGains or dict): κ and how it moves
-            (:mod:`wcsac_rl.objectives.constraint`). Defaults ``softplus(0) ≈ 0.693``,
-            ``"softplus"``, ``0``, ``"gradient"`` (the paper's), ``None``. The PID rule
-            steps in :meth:`forward` while the loss is in training mode.
+            (:mod:`wcsac_rl.objectives.constraint`); ``pid=None``: the default gains. The
+            PID rule steps in :meth:`forward` while the loss is in training mode.
+
+        Each of these options is defined once, in
+        :class:`~wcsac_rl.options.SafetyOptions` (and ``IQNOptions``,
+        ``PIDGains``): its default (the keyword defaults above are its fields), what it
+        may be (a bad value is refused in one line naming it) and what it does; the
+        paper's choices are ``PAPER_OPTIONS``.
         fuse_critics, direct_sampling (bool, optional): evaluate the critics as one
             batched ensemble (:mod:`~wcsac_rl.objectives.critic_ensemble`), draw the
             actor's actions straight from its parameters; ``None`` (default): when
@@ -221,28 +223,28 @@ class WCSACLoss(SACLoss):
         qvalue_network: TensorDictModule | list[TensorDictModule],
         safety_network: TensorDictModule,
         *,
-        risk_level: float = 0.5,
+        risk_level: float = SafetyOptions.risk_level,
         cost_limit: float = 15.0,
         max_episode_steps: int = 1000,
         cost_threshold: float | None = None,
-        cost_gamma: float | None = 1.0,
-        cost_bootstrap_truncated: bool | None = None,
-        cost_n_steps: int = 10,
-        nonnegative_cost: bool = True,
-        kappa_statistic: str = "tail",
-        kappa_init: float = math.log(2.0),
-        kappa_parametrization: str = "softplus",
-        kappa_actions: str = "policy",
-        kappa_states: str = "initial",
-        kappa_signal: str = "critic",
-        damp_scale: float = 0.0,
-        kappa_rule: str = "gradient",
+        cost_gamma: float | None = SafetyOptions.cost_gamma,
+        cost_bootstrap_truncated: bool | None = SafetyOptions.cost_bootstrap_truncated,
+        cost_n_steps: int = SafetyOptions.cost_n_steps,
+        nonnegative_cost: bool = SafetyOptions.nonnegative_cost,
+        kappa_statistic: str = SafetyOptions.kappa_statistic,
+        kappa_init: float = SafetyOptions.kappa_init,
+        kappa_parametrization: str = SafetyOptions.kappa_parametrization,
+        kappa_actions: str = SafetyOptions.kappa_actions,
+        kappa_states: str = SafetyOptions.kappa_states,
+        kappa_signal: str = SafetyOptions.kappa_signal,
+        damp_scale: float = SafetyOptions.damp_scale,
+        kappa_rule: str = SafetyOptions.kappa_rule,
         pid: PIDGains | Mapping[str, Any] | None = None,
-        num_quantiles: int = 20,
-        num_target_quantiles: int = 20,
-        huber_kappa: float = 1.0,
-        variance_loss: str = "glm",
-        variance_target: str = "td",
+        num_quantiles: int = IQNOptions.num_quantiles,
+        num_target_quantiles: int = IQNOptions.num_target_quantiles,
+        huber_kappa: float = IQNOptions.huber_kappa,
+        variance_loss: str = SafetyOptions.variance_loss,
+        variance_target: str = SafetyOptions.variance_target,
         fuse_critics: bool | None = None,
         direct_sampling: bool | None = None,
         num_qvalue_nets: int = 2,
@@ -250,6 +252,8 @@ class WCSACLoss(SACLoss):
         check_finite: bool = False,
         **sac_kwargs,
     ) -> None:
+        check_loss_options(locals())  # as the config is: one line naming the option
+        refuse_unknown_keywords(WCSACLoss.__init__, sac_kwargs)
         if sac_kwargs.pop("value_network", None) is not None:
             raise ValueError("WCSACLoss is SAC v2: it takes no value_network")
         self.risk_level = validate_risk_level(risk_level)

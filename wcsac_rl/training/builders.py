@@ -35,8 +35,8 @@ from wcsac_rl.objectives import (
     WCSACLoss,
     param_groups,
 )
-from wcsac_rl.objectives.constraint import PIDGains
-from wcsac_rl.training.config import algo_option
+from wcsac_rl.options import SafetyOptions
+from wcsac_rl.training.config import safety_options
 from wcsac_rl.training.devices import RunDevices, run_devices
 from wcsac_rl.training.replay import NStepReplayBuffer, nested_key
 
@@ -156,23 +156,20 @@ def make_agent(cfg: DictConfig, env: EnvBase, devices: RunDevices | None = None)
     qvalues = [make_qvalue(obs_dim, act_dim, **shape) for _ in range(2)]
     safety = None
     if cfg.algo.name in ("wcsac", "sac_lag"):
-        if algo_option(cfg.algo, "safety_critic") == "iqn":
-            num_cosines = int(cfg.algo.iqn.num_cosines)
+        options = safety_options(cfg.algo)
+        if options.safety_critic == "iqn":
+            num_cosines = options.iqn.num_cosines
             safety = make_safety_critic(
                 obs_dim, act_dim, kind="iqn", num_cosines=num_cosines, **shape
             )
         else:
-            safety = make_safety_critic(obs_dim, act_dim, variance=bool(cfg.algo.variance), **shape)
+            safety = make_safety_critic(obs_dim, act_dim, variance=options.variance, **shape)
     device = (devices or run_devices(cfg)).learner
     actor.to(device)
     for module in [*qvalues, safety]:
         if module is not None:
             module.to(device)
     return Agent(actor, qvalues, safety)
-
-
-def _optional(cast, value):
-    return None if value is None else cast(value)
 
 
 def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModule:
@@ -189,40 +186,20 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
         loss = SACLoss(agent.actor, agent.qvalues, num_qvalue_nets=2, **common)
     else:
         cls = SACLagLoss if algo.name == "sac_lag" else WCSACLoss
-        safety_kwargs = {
-            "cost_limit": float(cfg.cost_limit),
-            "max_episode_steps": int(max_episode_steps),
-            "kappa_init": float(algo.kappa_init),
-            "kappa_rule": str(algo_option(algo, "kappa_rule")),
-            "kappa_parametrization": str(algo.kappa_parametrization),
-            "kappa_actions": str(algo.kappa_actions),
-            # (algo_option: what runs saved before an option existed did)
-            "kappa_states": str(algo_option(algo, "kappa_states")),
-            "damp_scale": float(algo.damp_scale),
-            "variance_loss": str(algo.variance_loss),
-            "variance_target": str(algo_option(algo, "variance_target")),
-            "cost_gamma": _optional(float, algo_option(algo, "cost_gamma")),
-            "cost_bootstrap_truncated": _optional(
-                bool, algo_option(algo, "cost_bootstrap_truncated")
-            ),
-            "cost_n_steps": int(algo_option(algo, "cost_n_steps")),
-            "nonnegative_cost": bool(algo_option(algo, "nonnegative_cost")),
-            "kappa_statistic": str(algo_option(algo, "kappa_statistic")),
-            "kappa_signal": str(algo_option(algo, "kappa_signal")),
-        }
-        if safety_kwargs["kappa_rule"] == "pid":
-            # the gradient rule's knobs (kappa_advice sets them per env) do not apply
-            safety_kwargs["damp_scale"] = 0.0
-            safety_kwargs["pid"] = PIDGains(**OmegaConf.to_container(algo.pid, resolve=True))
-        if algo_option(algo, "safety_critic") == "iqn":
-            # the variance options configure the Gaussian critic's variance head
-            del safety_kwargs["variance_loss"], safety_kwargs["variance_target"]
-            safety_kwargs["num_quantiles"] = int(algo.iqn.num_quantiles)
-            safety_kwargs["num_target_quantiles"] = int(algo.iqn.num_target_quantiles)
-            safety_kwargs["huber_kappa"] = float(algo.iqn.huber_kappa)
-        if algo.name == "wcsac":
-            safety_kwargs["risk_level"] = float(algo.risk_level)
-        loss = cls(agent.actor, agent.qvalues, agent.safety, **safety_kwargs, **common)
+        # every option the loss reads, from the one definition (objectives/options.py):
+        # checked, typed, what a run saved before an option existed did where it lacks one
+        options = safety_options(algo).loss_kwargs()
+        if algo.name != "wcsac":
+            del options["risk_level"]  # (SAC-Lag is α = 1)
+        loss = cls(
+            agent.actor,
+            agent.qvalues,
+            agent.safety,
+            cost_limit=float(cfg.cost_limit),
+            max_episode_steps=int(max_episode_steps),
+            **options,
+            **common,
+        )
     # (its γ buffer is made on the default device unless told)
     loss.make_value_estimator(gamma=float(algo.gamma), device=run_devices(cfg).learner)
     return loss
@@ -255,7 +232,7 @@ def make_optimizers(cfg: DictConfig, loss: LossModule) -> dict[str, torch.optim.
         loss,
         float(cfg.algo.lr),
         actor_lr=None if actor_lr is None else float(actor_lr),
-        kappa_lr_scale=float(cfg.algo.get("kappa_lr_scale", 1.0)),
+        kappa_lr_scale=float(cfg.algo.get("kappa_lr_scale", SafetyOptions.kappa_lr_scale)),
     )
     return {group["name"]: adam(group["params"], group["lr"]) for group in groups}
 
@@ -356,10 +333,9 @@ def make_initial_state_buffer(cfg: DictConfig, loss: LossModule) -> StartStateBu
 def make_episode_window(cfg: DictConfig, loss: LossModule) -> EpisodeCostWindow:
     """The recent training episodes whose CVaR κ sees, for ``kappa_signal`` ``max`` /
     ``episodes`` (the last ``algo.kappa_episode_window``)."""
+    options = safety_options(cfg.algo)
     return EpisodeCostWindow.for_loss(
-        loss,
-        window=int(cfg.algo.kappa_episode_window),
-        statistic=str(algo_option(cfg.algo, "kappa_episode_statistic")),
+        loss, window=options.kappa_episode_window, statistic=options.kappa_episode_statistic
     )
 
 

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from types import MappingProxyType
 from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
+from wcsac_rl.options import SAVED_RUN_VALUES, SafetyOptions, read_options
 from wcsac_rl.training.errors import ConfigError, TrainingError
 
 __all__ = [
@@ -21,6 +21,7 @@ __all__ = [
     "ConfigError",
     "TrainingError",
     "algo_option",
+    "safety_options",
     "validate_config",
 ]
 
@@ -346,23 +347,10 @@ def _check_device(device: Any) -> None:
         raise ConfigError("device=mps but MPS is not available on this machine; use device=cpu")
 
 
-SAVED_RUN_OPTIONS = MappingProxyType(
-    {
-        "variance_target": "moment",
-        "kappa_states": "replay",
-        "kappa_statistic": "mean",
-        "kappa_signal": "critic",
-        "cost_gamma": None,
-        "cost_bootstrap_truncated": True,  # (it bootstrapped across time limits)
-        "cost_n_steps": 1,
-        "nonnegative_cost": False,
-        "safety_critic": "gaussian",
-        "kappa_rule": "gradient",
-        "kappa_episode_statistic": "cvar",
-    }
-)
+SAVED_RUN_OPTIONS = SAVED_RUN_VALUES
 """What a run saved before one of these ``algo`` options existed did: its value for it
-(a resumed or evaluated run keeps training as it did)."""
+(a resumed or evaluated run keeps training as it did). Each is its field's ``saved_run``
+in :class:`~wcsac_rl.options.SafetyOptions`."""
 
 
 def algo_option(algo: DictConfig, key: str) -> Any:
@@ -371,104 +359,31 @@ def algo_option(algo: DictConfig, key: str) -> Any:
     return algo.get(key, SAVED_RUN_OPTIONS.get(key))
 
 
+def safety_options(algo: DictConfig) -> SafetyOptions:
+    """The WCSAC / SAC-Lag options of ``algo``, checked and typed
+    (:func:`~wcsac_rl.options.read_options`; an option a saved run lacks is
+    what it did), or one :class:`ConfigError` line naming ``algo.<key>``."""
+    try:
+        return read_options(SafetyOptions, algo, prefix="algo.")
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+
+
 def _validate_safety_keys(algo: DictConfig, *, updates: int) -> None:
-    """The WCSAC / SAC-Lag options of ``conf/algo`` (the loss would refuse them later).
-
-    With ``safety_critic=iqn`` the variance options (``variance``, ``variance_loss``,
-    ``variance_target``) are not used: they configure the Gaussian critic."""
-    from wcsac_rl.modules.safety_critic import SAFETY_CRITIC_KINDS
-    from wcsac_rl.objectives.constraint import (
-        CONSTRAINT_RULES,
-        KAPPA_PARAMETRIZATIONS,
-        PIDGains,
-    )
-    from wcsac_rl.objectives.constraint_signal import (
-        KAPPA_ACTIONS,
-        KAPPA_SIGNALS,
-        KAPPA_STATES,
-        KAPPA_STATISTICS,
-    )
-    from wcsac_rl.objectives.episode_costs import EPISODE_STATISTICS
-    from wcsac_rl.objectives.safety_head import VARIANCE_TARGETS
-    from wcsac_rl.objectives.variance import VARIANCE_LOSSES
-
-    choices = {
-        "variance_loss": VARIANCE_LOSSES,
-        "variance_target": VARIANCE_TARGETS,
-        "kappa_actions": KAPPA_ACTIONS,
-        "kappa_states": KAPPA_STATES,
-        "kappa_statistic": KAPPA_STATISTICS,
-        "kappa_parametrization": KAPPA_PARAMETRIZATIONS,
-        "kappa_signal": KAPPA_SIGNALS,
-        "kappa_rule": CONSTRAINT_RULES,
-        "kappa_episode_statistic": EPISODE_STATISTICS,
-    }
-    for key, allowed in choices.items():
-        if algo_option(algo, key) not in allowed:
-            raise ConfigError(
-                f"algo.{key} must be one of {', '.join(allowed)}, got {algo.get(key)!r}"
-            )
-    if algo_option(algo, "kappa_signal") != "critic":
-        if algo_option(algo, "kappa_states") != "initial":
-            raise ConfigError(
-                f"algo.kappa_signal={algo.kappa_signal} needs algo.kappa_states=initial (episode "
-                f"costs are compared with the episodic limit d), got {algo.kappa_states}"
-            )
-        window = algo.get("kappa_episode_window")
-        if not isinstance(window, int) or isinstance(window, bool) or window < 1:
-            raise ConfigError(
-                f"algo.kappa_episode_window must be an integer >= 1 (episodes), got {window!r}"
-            )
-    pid = algo.get("pid")
-    if pid is not None or algo_option(algo, "kappa_rule") == "pid":
-        # (checked under either rule: a wrong gain is wrong whichever rule runs)
-        if not isinstance(pid, Mapping):
-            raise ConfigError(f"algo.pid must hold the PID gains, got {pid!r}")
-        known = set(PIDGains.__dataclass_fields__)
-        unknown = sorted(set(pid) - known)
-        if unknown:
-            raise ConfigError(
-                f"unknown PID option algo.pid.{unknown[0]}; the gains are "
-                f"{', '.join(sorted(known))}"
-            )
-        try:
-            gains = PIDGains(**OmegaConf.to_container(pid, resolve=True))
-        except (TypeError, ValueError) as err:
-            raise ConfigError(f"algo.{err}") from None
-        if gains.d_delay > updates:
-            raise ConfigError(
-                f"algo.pid.d_delay={gains.d_delay} updates is longer than the run's "
-                f"{updates} updates: the derivative term would never act"
-            )
-    cfg = {"algo": algo}  # (so that messages name the keys as the command line does)
-    _number(cfg, "algo.kappa_init", low=0.0, low_open=True)  # κ is a Lagrange multiplier
-    _number(cfg, "algo.damp_scale", low=0.0)
-    _number(cfg, "algo.cost_gamma", low=0.0, high=1.0, allow_none=True)
-    _boolean(cfg, "algo.variance")
-    if not isinstance(algo_option(algo, "cost_bootstrap_truncated"), (bool, type(None))):
+    """The WCSAC / SAC-Lag options of ``conf/algo``: every field of
+    :class:`~wcsac_rl.options.SafetyOptions` (its type and range, from its
+    metadata: the loss checks with the same function), then what relates two options
+    or an option and the run. The variance options are checked with an IQN critic too
+    and the PID gains under the gradient rule: a wrong value is wrong whichever runs."""
+    options = safety_options(algo)
+    if options.kappa_signal != "critic" and options.kappa_states != "initial":
         raise ConfigError(
-            "algo.cost_bootstrap_truncated must be null, true or false, got "
-            f"{algo.get('cost_bootstrap_truncated')!r}"
+            f"algo.kappa_signal={options.kappa_signal} needs algo.kappa_states=initial "
+            "(episode costs are compared with the episodic limit d), got "
+            f"{options.kappa_states}"
         )
-    if not isinstance(algo_option(algo, "nonnegative_cost"), bool):
+    if ("pid" in algo or options.kappa_rule == "pid") and options.pid.d_delay > updates:
         raise ConfigError(
-            f"algo.nonnegative_cost must be true or false, got {algo.get('nonnegative_cost')!r}"
+            f"algo.pid.d_delay={options.pid.d_delay} updates is longer than the run's "
+            f"{updates} updates: the derivative term would never act"
         )
-    kind = algo_option(algo, "safety_critic")
-    if kind not in SAFETY_CRITIC_KINDS:
-        raise ConfigError(
-            f"algo.safety_critic must be one of {', '.join(SAFETY_CRITIC_KINDS)}, got {kind!r}"
-        )
-    if kind == "iqn" or algo.get("iqn") is not None:  # (wrong whichever critic runs)
-        iqn = algo.get("iqn") or {}
-        if not isinstance(iqn, Mapping):
-            raise ConfigError(f"algo.iqn must hold the IQN critic's options, got {iqn!r}")
-        for key in ("num_quantiles", "num_target_quantiles", "num_cosines"):
-            value = iqn.get(key)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ConfigError(f"algo.iqn.{key} must be an integer >= 1, got {value!r}")
-        _number({"algo": {"iqn": iqn}}, "algo.iqn.huber_kappa", low=0.0, low_open=True)
-    n_steps = algo_option(algo, "cost_n_steps")
-    if not isinstance(n_steps, int) or isinstance(n_steps, bool) or n_steps < 1:
-        raise ConfigError(f"algo.cost_n_steps must be an integer >= 1, got {n_steps!r}")
-    _number(cfg, "algo.kappa_lr_scale", low=0.0, low_open=True)

@@ -1,0 +1,223 @@
+"""Every WCSAC / SAC-Lag option has one definition: a field of ``SafetyOptions``
+(``wcsac_rl/options.py``). The loss's keyword defaults are its fields, the composed
+config starts from it (Hydra's ConfigStore), the YAML files set only what differs, and a
+bad value of any field is one line naming ``algo.<field>`` (the loss: ``<field>``), checked
+by the same function; a misspelt option names the closest one."""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import inspect
+import re
+from pathlib import Path
+
+import pytest
+import yaml
+from _loss_helpers import make_loss
+from _training_helpers import CONF, ROOT, compose_config
+from hydra import compose, initialize_config_dir
+
+from wcsac_rl import WCSACLoss, config_schema
+from wcsac_rl.options import (
+    LOSS_OPTIONS,
+    NOT_SAVED,
+    PAPER_OPTIONS,
+    SAVED_RUN_VALUES,
+    IQNOptions,
+    PIDGains,
+    SafetyOptions,
+    config_defaults,
+    option,
+    option_spec,
+)
+from wcsac_rl.training import ConfigError, validate_config
+from wcsac_rl.training.config import SAVED_RUN_OPTIONS
+from wcsac_rl.training.config_keys import check_override_keys
+
+GROUPS = {"iqn": IQNOptions, "pid": PIDGains}
+
+
+def _leaves() -> list[tuple[str, type, str]]:
+    """``(config key below algo, its dataclass, its field)`` for every option."""
+    out = []
+    for f in dataclasses.fields(SafetyOptions):
+        if f.name in GROUPS:
+            out += [
+                (f"{f.name}.{g.name}", GROUPS[f.name], g.name)
+                for g in dataclasses.fields(GROUPS[f.name])
+            ]
+        else:
+            out.append((f.name, SafetyOptions, f.name))
+    return out
+
+
+LEAVES = _leaves()
+BAD = {"choice": "nope", "flag": "maybe", "number": "abc", "integer": 0, "risk_level": 0}
+
+
+# ------------------------------------------------------------------ the loss
+def test_the_loss_keyword_defaults_are_references_to_the_fields():
+    """``WCSACLoss.__init__`` writes each option's default as ``SafetyOptions.<name>``
+    (or ``IQNOptions.<name>``): no literal a second definition could drift from."""
+    tree = ast.parse((ROOT / "wcsac_rl" / "objectives" / "wcsac.py").read_text())
+    init = next(
+        node
+        for cls in ast.walk(tree)
+        if isinstance(cls, ast.ClassDef) and cls.name == "WCSACLoss"
+        for node in cls.body
+        if isinstance(node, ast.FunctionDef) and node.name == "__init__"
+    )
+    defaults = dict(zip((a.arg for a in init.args.kwonlyargs), init.args.kw_defaults))
+    assert set(LOSS_OPTIONS) <= set(defaults)
+    for name in LOSS_OPTIONS:
+        node = defaults[name]
+        assert isinstance(node, ast.Attribute) and node.attr == name, name
+        assert node.value.id in ("SafetyOptions", "IQNOptions"), name
+    signature = inspect.signature(WCSACLoss.__init__).parameters
+    for name in LOSS_OPTIONS:
+        cls = SafetyOptions if name in SafetyOptions.__dataclass_fields__ else IQNOptions
+        assert signature[name].default == cls.__dataclass_fields__[name].default, name
+
+
+@pytest.mark.parametrize("name", LOSS_OPTIONS)
+def test_the_loss_refuses_a_bad_value_of_each_option_by_name(name):
+    cls = SafetyOptions if name in SafetyOptions.__dataclass_fields__ else IQNOptions
+    spec = option_spec(cls, name)
+    message = (
+        "tail fraction" if spec.kind == "risk_level" else f"{name} must be {spec.requirement()}"
+    )
+    with pytest.raises(ValueError, match=re.escape(message)):
+        make_loss(**{name: BAD[spec.kind]})
+
+
+def test_a_misspelt_loss_keyword_names_the_closest():
+    with pytest.raises(TypeError, match=re.escape("'kapa_init' (did you mean kappa_init?)")):
+        make_loss(kapa_init=1.0)
+
+
+# ------------------------------------------------------------------ the config
+def test_the_composed_config_starts_from_the_dataclass():
+    defaults = config_defaults(SafetyOptions)
+    algo = compose_config("algo=wcsac", small=False).algo
+    for key, value in defaults.items():
+        if key != "risk_level":  # (the run's α: ${risk_level})
+            assert algo[key] == value, key
+
+
+def test_changing_a_default_changes_the_composed_config_and_the_loss_it_builds(monkeypatch):
+    """The schema Hydra composes is the dataclass: a subclass with another default,
+    registered in its place, gives configs (and so losses) with that default."""
+    from wcsac_rl.envs import make_env
+    from wcsac_rl.training import builders
+
+    @dataclasses.dataclass(frozen=True)
+    class Changed(SafetyOptions):
+        kappa_init: float = option(1.5, "another default", "number", low=0.0, low_open=True)
+        cost_n_steps: int = option(3, "another default", "integer", low=1, saved_run=1)
+
+    monkeypatch.setattr(config_schema, "SafetyOptions", Changed)
+    config_schema.register_configs()
+    try:
+        cfg = compose_config("algo=wcsac", "env=tiny")
+        assert (cfg.algo.kappa_init, cfg.algo.cost_n_steps) == (1.5, 3)
+        env = make_env("tiny", seed=0)
+        try:
+            loss = builders.make_loss(cfg, builders.make_agent(cfg, env), 100)
+        finally:
+            env.close()
+        assert float(loss.kappa) == pytest.approx(1.5) and loss.cost_n_steps == 3
+    finally:
+        monkeypatch.undo()
+        config_schema.register_configs()
+    assert compose_config("algo=wcsac").algo.kappa_init == SafetyOptions.kappa_init
+
+
+@pytest.mark.parametrize(("key", "cls", "name"), LEAVES, ids=[k for k, _, _ in LEAVES])
+def test_a_bad_value_of_every_field_is_one_line_naming_it(key, cls, name):
+    spec = option_spec(cls, name)
+    bad = BAD[spec.kind]
+    with pytest.raises(ConfigError) as err:
+        validate_config(compose_config("env=tiny", f"algo.{key}={bad}"))
+    message = str(err.value)
+    assert "\n" not in message
+    if spec.kind == "risk_level":
+        assert message.startswith(f"algo.{key} α must be a number in (0, 1], got {bad!r}")
+    else:
+        assert message == f"algo.{key} must be {spec.requirement()}, got {bad!r}"
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        (
+            "algo.kappa_inti=0.5",
+            "unknown config key algo.kappa_inti (did you mean algo.kappa_init?)",
+        ),
+        ("algo.iqn.num_quantile=5", "(did you mean algo.iqn.num_quantiles?)"),
+        ("algo.pid.kq=1", "(did you mean algo.pid.kp?)"),
+    ],
+)
+def test_a_misspelt_option_on_the_command_line_names_the_closest(override, message):
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        check_override_keys(["algo=wcsac", override])
+
+
+def test_an_added_misspelt_option_names_the_closest_once_composed():
+    with pytest.raises(ConfigError, match=re.escape("(did you mean algo.kappa_init?)")):
+        validate_config(compose_config("env=tiny", "+algo.kappa_inti=0.5"))
+    with pytest.raises(
+        ConfigError, match=re.escape("unknown PID option algo.pid.kq (did you mean algo.pid.kp?)")
+    ):
+        validate_config(compose_config("env=tiny", "+algo.pid.kq=1"))
+
+
+def test_the_yaml_files_set_only_what_differs_from_the_schema():
+    defaults = config_defaults(SafetyOptions)
+    for name in ("wcsac", "sac_lag", "wcsac_paper", "sac_lag_paper"):  # (the schema's users)
+        path = CONF / "algo" / f"{name}.yaml"
+        node = yaml.safe_load(path.read_text()) or {}
+        for key, value in node.items():
+            if key in defaults:
+                assert value != defaults[key], f"{path.name}: {key} repeats the schema's default"
+            assert key not in PAPER_OPTIONS, (
+                f"{path.name}: {key} is PAPER_OPTIONS' (/schema/paper_options)"
+            )
+
+
+def test_the_saved_run_values_are_the_fields_metadata():
+    expected = {
+        f.name: f.metadata["option"].saved_run
+        for f in dataclasses.fields(SafetyOptions)
+        if f.metadata["option"].saved_run is not NOT_SAVED
+    }
+    assert dict(SAVED_RUN_OPTIONS) == dict(SAVED_RUN_VALUES) == expected
+    assert SAVED_RUN_OPTIONS["cost_bootstrap_truncated"] is True  # (it bootstrapped then)
+
+
+def test_the_paper_preset_is_a_valid_replacement_of_the_fields():
+    paper = dataclasses.replace(SafetyOptions(), **PAPER_OPTIONS)
+    assert all(getattr(paper, k) == v for k, v in PAPER_OPTIONS.items())
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        algo = compose("config", overrides=["algo=wcsac_paper"]).algo
+    assert all(algo[k] == v for k, v in PAPER_OPTIONS.items())
+
+
+def test_the_options_load_without_torch():
+    """``wcsac-train --help`` composes the config: the schema must not need torch."""
+    import subprocess
+    import sys
+
+    code = "import sys, wcsac_rl.config_schema; print('torch' in sys.modules)"
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True
+    )
+    assert out.stdout.strip() == "False"
+
+
+def test_nested_options_refuse_a_bad_gain_by_name():
+    with pytest.raises(ValueError, match=re.escape("pid.kp must be a finite number >= 0")):
+        PIDGains(kp=-1.0)
+    with pytest.raises(ValueError, match=re.escape("iqn.num_cosines must be an integer >= 1")):
+        IQNOptions(num_cosines=0)
+    assert Path(inspect.getfile(SafetyOptions)).name == "options.py"

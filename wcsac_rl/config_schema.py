@@ -1,0 +1,48 @@
+"""The option schema Hydra composes ``algo`` from: registered with Hydra's ConfigStore.
+
+``conf/algo/wcsac.yaml`` (and so ``sac_lag``, ``wcsac_paper``, ``sac_lag_paper``) starts
+its defaults list with ``/schema/safety_options``: the defaults of every field of
+:class:`~wcsac_rl.options.SafetyOptions`, stored here under the ``schema``
+group (package ``algo``), as TorchRL registers its ``SACLossConfig``. The paper presets
+add ``/schema/paper_options``: :data:`~wcsac_rl.options.PAPER_OPTIONS`. The
+YAML files then set only the values that differ, with their comments.
+
+The node holds the dataclass's values, not its types: OmegaConf would otherwise refuse
+a mistyped value (``algo.variance=maybe``) while Hydra composes, in its own multi-line
+message and before the kit's validator could name the key and what it may be in one
+line (``algo.variance must be true or false, got 'maybe'``); and a typed node is closed,
+while ``algo`` also holds the SAC family's options (``off_policy.yaml``). The types and
+ranges are checked by :func:`~wcsac_rl.options.read_options`, from the same
+dataclass.
+
+Importing this module registers the schema (once); ``import wcsac_rl`` does it, so
+every way of composing ``conf/`` (``wcsac-train``, ``compose_config``, Hydra's own
+``compose``) finds it. It imports no torch.
+"""
+
+from __future__ import annotations
+
+from hydra.core.config_store import ConfigStore
+
+from wcsac_rl.options import PAPER_OPTIONS, SafetyOptions, config_defaults
+
+__all__ = ["SCHEMA_GROUP", "register_configs"]
+
+SCHEMA_GROUP = "schema"
+"""The ConfigStore group of the nodes below (``/schema/<name>`` in a defaults list)."""
+
+
+def register_configs() -> None:
+    """Store :class:`SafetyOptions`' defaults as ``schema/safety_options`` and
+    :data:`PAPER_OPTIONS` as ``schema/paper_options``, both at package ``algo``."""
+    store = ConfigStore.instance()
+    store.store(
+        group=SCHEMA_GROUP,
+        name="safety_options",
+        node=config_defaults(SafetyOptions),
+        package="algo",
+    )
+    store.store(group=SCHEMA_GROUP, name="paper_options", node=dict(PAPER_OPTIONS), package="algo")
+
+
+register_configs()

@@ -1,0 +1,588 @@
+"""Every option of the safety critic and κ, defined once.
+
+:class:`SafetyOptions` (with :class:`PIDGains` and :class:`IQNOptions` inside) is the one
+definition of each WCSAC / SAC-Lag option: its default, what it may be, a line saying
+what it does, which part reads it, and, where a run saved before the option existed
+did something else, what that run did. Everything else reads these dataclasses:
+
+* the keyword defaults of :class:`~wcsac_rl.objectives.WCSACLoss` are their class
+  attributes (``kappa_init=SafetyOptions.kappa_init``), and the loss checks what it is
+  given with :func:`check_value`;
+* the training config (``conf/algo/wcsac.yaml``) starts from :func:`config_defaults`,
+  registered with Hydra's ConfigStore (:mod:`wcsac_rl.config_schema`); the YAML files
+  set only what differs;
+* the config validator and ``builders.make_loss`` read ``algo`` with
+  :func:`read_options`: one line naming ``algo.<key>`` for a bad value, and a run
+  saved before an option existed gets what it did (:data:`SAVED_RUN_VALUES`).
+
+The allowed values of the choices are defined here too; the parts import them. This
+module imports nothing heavy (no torch), so ``wcsac-train --help`` can compose the
+config.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from types import MappingProxyType
+from typing import Any
+
+__all__ = [
+    "CONSTRAINT_RULES",
+    "EPISODE_STATISTICS",
+    "KAPPA_ACTIONS",
+    "KAPPA_PARAMETRIZATIONS",
+    "KAPPA_SIGNALS",
+    "KAPPA_STATES",
+    "KAPPA_STATISTICS",
+    "LOSS_OPTIONS",
+    "PAPER_OPTIONS",
+    "SAFETY_CRITIC_KINDS",
+    "SAVED_RUN_VALUES",
+    "VARIANCE_LOSSES",
+    "VARIANCE_TARGETS",
+    "IQNOptions",
+    "Option",
+    "PIDGains",
+    "SafetyOptions",
+    "check_fields",
+    "check_loss_options",
+    "check_value",
+    "config_defaults",
+    "option_spec",
+    "read_options",
+]
+
+# ------------------------------------------------------------------ allowed values
+SAFETY_CRITIC_KINDS = ("gaussian", "iqn")
+"""What :func:`~wcsac_rl.modules.make_safety_critic` builds (``kind``)."""
+VARIANCE_LOSSES = ("w2", "mse", "glm")
+"""The Gaussian head's variance TD losses (:mod:`~wcsac_rl.objectives.variance`)."""
+VARIANCE_TARGETS = ("moment", "td")
+"""The Gaussian head's variance TD targets (:mod:`~wcsac_rl.objectives.safety_head`)."""
+KAPPA_ACTIONS = ("replay", "policy")
+KAPPA_STATES = ("replay", "initial")
+KAPPA_STATISTICS = ("mean", "tail")
+KAPPA_SIGNALS = ("critic", "max", "episodes")
+"""What κ reads (:mod:`~wcsac_rl.objectives.constraint_signal`)."""
+EPISODE_STATISTICS = ("cvar", "mean")
+"""What :meth:`~wcsac_rl.objectives.EpisodeCostWindow.for_loss` summarises the window
+by: the empirical CVaR at the loss's α, or the mean episode cost (α = 1: a lower bound
+of every CVaR)."""
+CONSTRAINT_RULES = ("gradient", "pid")
+KAPPA_PARAMETRIZATIONS = ("softplus", "log")
+"""How κ moves and how the gradient rule writes it (:mod:`~wcsac_rl.objectives.constraint`)."""
+
+
+# ------------------------------------------------------------------ field metadata
+NOT_SAVED = object()
+"""No :attr:`Option.saved_run` value: a run saved before the option existed cannot lack it."""
+
+
+@dataclass(frozen=True)
+class Option:
+    """What one field may be (its ``metadata["option"]``), and who reads it.
+
+    ``kind``: ``"number"`` (finite, within ``low``/``high``; ``*_open``: the bound
+    excluded), ``"integer"`` (``>= low``), ``"flag"`` (true or false), ``"choice"`` (one
+    of ``choices``), ``"risk_level"`` (α in (0, 1]) or ``"group"`` (a nested dataclass).
+    ``nullable``: null is allowed too. ``unit``: the note in parentheses of the message
+    (``"episodes"``); ``finite_words``: say "a finite number >= 0" rather than
+    ">= 0 (a number)" (the PID gains' wording). ``reader``: the part that reads it
+    (``"loss"``: a keyword of :class:`~wcsac_rl.objectives.WCSACLoss`).
+    """
+
+    doc: str
+    kind: str
+    reader: str = "loss"
+    choices: tuple[str, ...] = ()
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    nullable: bool = False
+    unit: str = ""
+    finite_words: bool = False
+    saved_run: Any = NOT_SAVED
+    holds: str = ""  # a group: what it holds ("the PID gains")
+    unknown_label: str | None = None  # a group: refuse unknown keys as "unknown <label> option"
+    members: str = "options"  # a group: what its fields are called ("the gains are ...")
+
+    def requirement(self) -> str:
+        """What the value must be, as the messages say it (``"> 0 (a number)"``)."""
+        null = "null or " if self.nullable else ""
+        if self.kind == "choice":
+            return f"{null}one of {', '.join(self.choices)}"
+        if self.kind == "flag":
+            return f"{'null, ' if self.nullable else ''}true or false"
+        unit = f" ({self.unit})" if self.unit else ""
+        if self.kind == "integer":
+            return f"{null}an integer >= {self.low:g}{unit}"
+        bounds = _range_text(self.low, self.high, self.low_open, self.high_open)
+        if self.finite_words:
+            return f"{null}a finite number {bounds}".rstrip()
+        if not bounds:
+            return f"{null}a finite number"
+        return f"{null}{bounds} ({self.unit or 'a number'})"
+
+    def accepts(self, value: Any) -> bool:
+        if value is None and self.nullable:
+            return True
+        if self.kind == "choice":
+            return isinstance(value, str) and value in self.choices
+        if self.kind == "flag":
+            return isinstance(value, bool)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return False
+        if self.kind == "integer":
+            return isinstance(value, int) and value >= self.low
+        return (
+            math.isfinite(value)
+            and (self.low is None or (value > self.low if self.low_open else value >= self.low))
+            and (self.high is None or (value < self.high if self.high_open else value <= self.high))
+        )
+
+    def coerce(self, value: Any) -> Any:
+        """``value`` (accepted) as the type the readers take (a YAML ``1`` as ``1.0``)."""
+        if value is None:
+            return None
+        cast = {"number": float, "risk_level": float, "integer": int, "flag": bool, "choice": str}
+        return cast[self.kind](value)
+
+
+def _range_text(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:
+    if low is not None and high is not None:
+        return f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+    if low is not None:
+        return f"{'>' if low_open else '>='} {low:g}"
+    if high is not None:
+        return f"{'<' if high_open else '<='} {high:g}"
+    return ""
+
+
+def option(default: Any, doc: str, kind: str, **spec: Any) -> Any:
+    """A dataclass field with its default and its :class:`Option` metadata."""
+    return field(default=default, metadata={"option": Option(doc, kind, **spec)})
+
+
+def group_spec(doc: str, **spec: Any) -> dict[str, Option]:
+    """The metadata of a nested options dataclass field (``pid``, ``iqn``)."""
+    return {"option": Option(doc, "group", **spec)}
+
+
+def option_spec(cls: type, name: str) -> Option:
+    """The :class:`Option` of ``cls``'s field ``name``."""
+    return cls.__dataclass_fields__[name].metadata["option"]
+
+
+def check_value(key: str, value: Any, spec: Option) -> None:
+    """Raise ``ValueError("<key> must be <what it may be>, got <value>")`` (one line) if
+    ``value`` is not what ``spec`` allows. The loss, the parts' options dataclasses and
+    the config validator all check with this."""
+    if spec.kind == "risk_level":
+        from wcsac_rl.objectives.risk import validate_risk_level  # (torch: only when checking)
+
+        validate_risk_level(value, name=key)
+    elif spec.kind != "group" and not spec.accepts(value):
+        raise ValueError(f"{key} must be {spec.requirement()}, got {value!r}")
+
+
+def check_fields(instance: Any, prefix: str = "") -> None:
+    """Check every (non-group) field of a dataclass ``instance`` (``prefix``: how the
+    messages name them, ``"pid."``)."""
+    for f in fields(instance):
+        spec = f.metadata["option"]
+        if spec.kind != "group":
+            check_value(f"{prefix}{f.name}", getattr(instance, f.name), spec)
+
+
+def read_options(cls: type, values: Mapping[str, Any], prefix: str = "") -> Any:
+    """``cls`` (an options dataclass) from the entries of ``values`` (a config node), each
+    checked (``ValueError`` naming ``<prefix><key>``) and cast to its type.
+
+    An entry ``values`` lacks is what a run saved before the option existed did
+    (:attr:`Option.saved_run`; a missing group: its defaults). Entries that are not
+    fields of ``cls`` are left alone (``algo`` also holds the SAC family's options),
+    except in a group with an ``unknown_label`` (``algo.pid.kq`` is refused naming the
+    closest gain)."""
+    read = {}
+    for f in fields(cls):
+        spec = f.metadata["option"]
+        key = f"{prefix}{f.name}"
+        if spec.kind == "group":
+            node = values.get(f.name)
+            if node is None:
+                continue  # (its defaults)
+            if not isinstance(node, Mapping):
+                raise ValueError(f"{key} must hold {spec.holds}, got {node!r}")
+            nested = f.default_factory
+            _refuse_unknown(nested, node, key, spec)
+            read[f.name] = read_options(nested, node, f"{key}.")
+            continue
+        if f.name in values:
+            value = values[f.name]
+        else:  # (None where no run could lack it: refused below, naming the key)
+            value = None if spec.saved_run is NOT_SAVED else spec.saved_run
+        check_value(key, value, spec)
+        read[f.name] = spec.coerce(value)
+    return cls(**read)
+
+
+def _refuse_unknown(cls: type, node: Mapping[str, Any], key: str, spec: Option) -> None:
+    if spec.unknown_label is None:
+        return  # (a key no config has is refused by the config's key check)
+    known = [f.name for f in fields(cls)]
+    unknown = sorted(set(node) - set(known))
+    if unknown:
+        paths = [f"{key}.{name}" for name in known]
+        close = difflib.get_close_matches(f"{key}.{unknown[0]}", paths, n=1, cutoff=0.6)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        raise ValueError(
+            f"unknown {spec.unknown_label} option {key}.{unknown[0]}{hint}; the "
+            f"{spec.members} are {', '.join(sorted(known))}"
+        )
+
+
+def config_defaults(cls: type) -> dict[str, Any]:
+    """Every field's default, nested groups as dicts: the node Hydra starts ``algo`` from."""
+    out = {}
+    for f in fields(cls):
+        if f.metadata["option"].kind == "group":
+            out[f.name] = config_defaults(f.default_factory)
+        else:
+            out[f.name] = f.default
+    return out
+
+
+# ------------------------------------------------------------------ the options
+@dataclass(frozen=True)
+class PIDGains:
+    """The PID Lagrangian's knobs (Stooke et al. 2020; OmniSafe's ``PIDLagrangian``),
+    for ``kappa_rule="pid"`` (:class:`~wcsac_rl.objectives.constraint.PIDLagrangian`).
+
+    Units: the error is in cost units (the signal's: an episode's cost at the
+    default ``kappa_states="initial"``) and κ is dimensionless, so a gain is κ per
+    cost unit (``ki``: per cost unit and update). Each field's metadata says what it
+    may be; a bad one is refused by name (``pid.kp must be a finite number >= 0``).
+    """
+
+    kp: float = option(
+        0.05, "proportional gain, on an EMA of the error", "number", low=0.0, finite_words=True
+    )
+    ki: float = option(
+        1.0e-6,
+        "integral gain: the integral moves by ki·e per update "
+        "(clipped to [0, max_kappa]: anti-windup); starts at kappa_init",
+        "number",
+        low=0.0,
+        finite_words=True,
+    )
+    kd: float = option(
+        0.0,
+        "derivative gain, on the rise of the signal's EMA over "
+        "d_delay updates (only rises count, as in the paper)",
+        "number",
+        low=0.0,
+        finite_words=True,
+    )
+    d_delay: int = option(
+        1, "updates back the derivative compares with", "integer", low=1, unit="updates"
+    )
+    p_ema: float = option(
+        0.99,
+        "EMA factor of the error for P (0: the raw error; 0.99: ~100 updates, one collection)",
+        "number",
+        low=0.0,
+        high=1.0,
+        high_open=True,
+        unit="an EMA factor",
+    )
+    d_ema: float = option(
+        0.0,
+        "EMA factor of the signal for D",
+        "number",
+        low=0.0,
+        high=1.0,
+        high_open=True,
+        unit="an EMA factor",
+    )
+    max_kappa: float = option(
+        100.0,
+        "upper bound of κ and of the integral",
+        "number",
+        low=0.0,
+        low_open=True,
+        finite_words=True,
+    )
+
+    def __post_init__(self) -> None:
+        check_fields(self, "pid.")
+
+
+@dataclass(frozen=True)
+class IQNOptions:
+    """The implicit quantile safety critic's options (``safety_critic="iqn"``)."""
+
+    num_quantiles: int = option(
+        20,
+        "N fractions τ per evaluation, one per stratum of [0, 1] ([1 − α, 1] for Γ)",
+        "integer",
+        low=1,
+    )
+    num_target_quantiles: int = option(20, "N' target fractions τ'", "integer", low=1)
+    num_cosines: int = option(
+        64, "cosine embedding of τ (as IQN)", "integer", low=1, reader="network"
+    )
+    huber_kappa: float = option(
+        1.0, "κ_H of the quantile Huber loss (IQN)", "number", low=0.0, low_open=True
+    )
+
+    def __post_init__(self) -> None:
+        check_fields(self, "iqn.")
+
+
+@dataclass(frozen=True)
+class SafetyOptions:
+    """The options of WCSAC's and SAC-Lag's safety critic and κ (``algo.*`` in the config).
+
+    Each field carries its default, what it may be, a line of doc and the part that reads
+    it (``reader``; ``docs/architecture.md`` maps the parts). The defaults are chosen on
+    StaticEnv evidence (docs/defaults.md); :data:`PAPER_OPTIONS` are the paper's.
+    """
+
+    kappa_lr_scale: float = option(
+        1.0,
+        "κ's Adam lr = algo.lr × this (kappa_rule=gradient)",
+        "number",
+        low=0.0,
+        low_open=True,
+        reader="optimizer",
+    )
+    damp_scale: float = option(
+        0.0, "MDMM damping of κ in the actor loss (kappa_rule=gradient)", "number", low=0.0
+    )
+    safety_critic: str = option(
+        "gaussian",
+        "gaussian (mean and variance networks) or iqn (implicit quantile network)",
+        "choice",
+        choices=SAFETY_CRITIC_KINDS,
+        reader="network",
+        saved_run="gaussian",
+    )
+    iqn: IQNOptions = field(
+        default_factory=IQNOptions,
+        metadata=group_spec(
+            "the IQN critic's options (safety_critic=iqn only)",
+            holds="the IQN critic's options",
+            reader="its fields' readers",
+        ),
+    )
+    risk_level: float = option(
+        0.5,
+        "α ∈ (0, 1]: the tail fraction whose mean cost "
+        "(CVaR_α) is constrained; 1 is the expected cost (SAC-Lag)",
+        "risk_level",
+    )
+    variance: bool = option(
+        True,
+        "Gaussian safety critic with a variance network (false: mean only, SAC-Lag)",
+        "flag",
+        reader="network",
+    )
+    variance_loss: str = option(
+        "glm", "the variance head's TD loss", "choice", choices=VARIANCE_LOSSES
+    )
+    variance_target: str = option(
+        "td",
+        "the variance head's TD target: td (squared TD error + γ_c² V̄') or moment (Eq. 8)",
+        "choice",
+        choices=VARIANCE_TARGETS,
+        saved_run="moment",
+    )
+    kappa_actions: str = option(
+        "policy",
+        "the actions κ reads Γ at: policy (a ~ π) or replay",
+        "choice",
+        choices=KAPPA_ACTIONS,
+    )
+    kappa_states: str = option(
+        "initial",
+        "the states κ reads Γ at: initial (episode starts, vs d) or replay (batch states)",
+        "choice",
+        choices=KAPPA_STATES,
+        saved_run="replay",
+    )
+    kappa_statistic: str = option(
+        "tail",
+        "tail (CVaR_α of the critic mixed over the states) or mean (of per-state Γ)",
+        "choice",
+        choices=KAPPA_STATISTICS,
+        saved_run="mean",
+    )
+    kappa_signal: str = option(
+        "critic",
+        "what κ holds under d: critic (Γ), max (of Γ and the recent episodes') or episodes",
+        "choice",
+        choices=KAPPA_SIGNALS,
+        saved_run="critic",
+    )
+    # (saved_run: a run saved before the window existed read the critic, not the window)
+    kappa_episode_window: int = option(
+        30,
+        "kappa_signal max/episodes: the last finished training episodes it reads",
+        "integer",
+        low=1,
+        unit="episodes",
+        reader="episode window",
+        saved_run=30,
+    )
+    kappa_episode_statistic: str = option(
+        "cvar",
+        "kappa_signal max/episodes: their empirical CVaR_α or their mean",
+        "choice",
+        choices=EPISODE_STATISTICS,
+        saved_run="cvar",
+        reader="episode window",
+    )
+    kappa_rule: str = option(
+        "gradient",
+        "how κ moves: gradient (Adam on loss_kappa) or pid (PID Lagrangian)",
+        "choice",
+        choices=CONSTRAINT_RULES,
+        saved_run="gradient",
+    )
+    pid: PIDGains = field(
+        default_factory=PIDGains,
+        metadata=group_spec(
+            "kappa_rule=pid: the controller's gains",
+            holds="the PID gains",
+            unknown_label="PID",
+            members="gains",
+        ),
+    )
+    kappa_init: float = option(
+        math.log(2.0),
+        "κ's initial value: softplus(0), the authors'",
+        "number",
+        low=0.0,
+        low_open=True,
+    )
+    kappa_parametrization: str = option(
+        "softplus",
+        "κ = softplus(raw) (authors) or exp(raw) (log)",
+        "choice",
+        choices=KAPPA_PARAMETRIZATIONS,
+    )
+    cost_gamma: float | None = option(
+        1.0,
+        "γ_c of the safety critic (null: the reward's γ, the paper)",
+        "number",
+        low=0.0,
+        high=1.0,
+        nullable=True,
+        saved_run=None,
+    )
+    cost_bootstrap_truncated: bool | None = option(
+        None,
+        "bootstrap the safety critic across time limits (null: only if γ_c < 1)",
+        "flag",
+        nullable=True,
+        saved_run=True,
+    )
+    cost_n_steps: int = option(
+        10,
+        "the safety critic's TD targets bootstrap n steps ahead (1: the paper)",
+        "integer",
+        low=1,
+        saved_run=1,
+    )
+    nonnegative_cost: bool = option(
+        True, "max(Q^c, 0) in targets and Γ (false: the paper)", "flag", saved_run=False
+    )
+
+    def __post_init__(self) -> None:
+        check_fields(self)
+
+    def loss_kwargs(self) -> dict[str, Any]:
+        """The keywords of :class:`~wcsac_rl.objectives.WCSACLoss` these options give.
+
+        Only the options of the parts they select: the PID gains under
+        ``kappa_rule="pid"`` (then no MDMM damping, the gradient rule's knob), the IQN
+        head's options with ``safety_critic="iqn"``, the variance head's otherwise."""
+        kwargs = {f.name: getattr(self, f.name) for f in _loss_fields(self)}
+        kwargs.update({f.name: getattr(self.iqn, f.name) for f in _loss_fields(self.iqn)})
+        if self.kappa_rule == "pid":
+            kwargs["damp_scale"] = 0.0
+        else:
+            del kwargs["pid"]
+        iqn = self.safety_critic == "iqn"
+        for name in (
+            ("variance_loss", "variance_target")
+            if iqn
+            else ("num_quantiles", "num_target_quantiles", "huber_kappa")
+        ):
+            del kwargs[name]
+        return kwargs
+
+
+def _loss_fields(instance: Any) -> list:
+    return [f for f in fields(instance) if f.metadata["option"].reader == "loss"]
+
+
+LOSS_OPTIONS = tuple(
+    f.name
+    for cls in (SafetyOptions, IQNOptions)
+    for f in fields(cls)
+    if f.metadata["option"].reader == "loss" and f.metadata["option"].kind != "group"
+)
+"""The loss's keywords that are options here (checked by the loss with :func:`check_value`)."""
+
+
+def _saved_run_values(cls: type) -> dict[str, Any]:
+    return {
+        f.name: f.metadata["option"].saved_run
+        for f in fields(cls)
+        if f.metadata["option"].saved_run is not NOT_SAVED
+    }
+
+
+SAVED_RUN_VALUES: Mapping[str, Any] = MappingProxyType(_saved_run_values(SafetyOptions))
+"""What a run saved before one of these ``algo`` options existed did: its value for it
+(a resumed or evaluated run keeps training as it did). From the fields' ``saved_run``."""
+
+
+def check_loss_options(arguments: Mapping[str, Any]) -> None:
+    """Check the loss's arguments that are options (:data:`LOSS_OPTIONS`; the others are
+    left alone) with :func:`check_value`: ``kappa_init must be > 0 (a number), got 0``."""
+    for name in LOSS_OPTIONS:
+        if name not in arguments:
+            continue
+        if name == "kappa_init" and arguments.get("kappa_rule") == "pid":
+            continue  # (a PID controller may start at κ = 0: PIDLagrangian checks it)
+        cls = SafetyOptions if name in SafetyOptions.__dataclass_fields__ else IQNOptions
+        check_value(name, arguments[name], option_spec(cls, name))
+
+
+PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(
+    {
+        "variance_target": "moment",
+        "cost_gamma": None,
+        "cost_n_steps": 1,
+        "nonnegative_cost": False,
+        "kappa_states": "replay",
+        "kappa_statistic": "mean",
+        "kappa_signal": "critic",
+        "kappa_rule": "gradient",
+    }
+)
+"""The safety critic and κ as the paper writes them (Eq. 7–8, one-step targets with the
+reward's γ, κ on the mean Γ over replay states against the per-step threshold):
+``WCSACLoss(..., **PAPER_OPTIONS)``, ``dataclasses.replace(SafetyOptions(),
+**PAPER_OPTIONS)``. The defaults differ, on StaticEnv evidence (docs/defaults.md);
+``algo=wcsac_paper`` is the same in the config."""
+
+for _name, _value in PAPER_OPTIONS.items():  # (a preset of the fields above, checked)
+    check_value(_name, _value, option_spec(SafetyOptions, _name))
+del _name, _value
