@@ -115,10 +115,11 @@ class WCSACLoss(SACLoss):
             ``"initial"`` (start states: :class:`~wcsac_rl.objectives.StartStateBuffer`),
             ``"policy"``, ``"tail"``, ``"critic"`` (the paper: ``"replay"``,
             ``"policy"``, ``"mean"``, ``"critic"``).
-        kappa_init (float), kappa_parametrization (str), damp_scale (float), kappa_rule
-            (str), pid (PIDGains or dict): κ and how it moves
-            (:mod:`wcsac_rl.objectives.constraint`). Defaults ``softplus(0) ≈ 0.693``,
-            ``"softplus"``, ``0``, ``"gradient"`` (the paper's), ``None``. The PID rule
+        kappa_init (float), kappa_parametrization (str), damp_scale (float), kappa_max
+            (float, optional), kappa_rule (str), pid (PIDGains or dict): κ and how it
+            moves (:mod:`wcsac_rl.objectives.constraint`). Defaults ``softplus(0) ≈
+            0.693``, ``"softplus"``, ``0``, ``None`` (unbounded), ``"gradient"`` (the
+            paper's), ``None``. The PID rule
             steps in :meth:`forward` while the loss is in training mode.
         fuse_critics, direct_sampling (bool, optional): evaluate the critics as one
             batched ensemble (:mod:`~wcsac_rl.objectives.critic_ensemble`), draw the
@@ -236,6 +237,7 @@ class WCSACLoss(SACLoss):
         kappa_states: str = "initial",
         kappa_signal: str = "critic",
         damp_scale: float = 0.0,
+        kappa_max: float | None = None,
         kappa_rule: str = "gradient",
         pid: PIDGains | Mapping[str, Any] | None = None,
         num_quantiles: int = 20,
@@ -309,6 +311,7 @@ class WCSACLoss(SACLoss):
             kappa_init=kappa_init,
             parametrization=kappa_parametrization,
             damp_scale=damp_scale,
+            kappa_max=kappa_max,
             pid=pid,
         )
         device = self.log_alpha.device

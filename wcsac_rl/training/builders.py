@@ -199,6 +199,7 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
             # (algo_option: what runs saved before an option existed did)
             "kappa_states": str(algo_option(algo, "kappa_states")),
             "damp_scale": float(algo.damp_scale),
+            "kappa_max": _optional(float, algo_option(algo, "kappa_max")),
             "variance_loss": str(algo.variance_loss),
             "variance_target": str(algo_option(algo, "variance_target")),
             "cost_gamma": _optional(float, algo_option(algo, "cost_gamma")),

@@ -359,6 +359,7 @@ SAVED_RUN_OPTIONS = MappingProxyType(
         "safety_critic": "gaussian",
         "kappa_rule": "gradient",
         "kappa_episode_statistic": "cvar",
+        "kappa_max": None,
     }
 )
 """What a run saved before one of these ``algo`` options existed did: its value for it
@@ -443,6 +444,17 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int) -> None:
     cfg = {"algo": algo}  # (so that messages name the keys as the command line does)
     _number(cfg, "algo.kappa_init", low=0.0, low_open=True)  # κ is a Lagrange multiplier
     _number(cfg, "algo.damp_scale", low=0.0)
+    kappa_max = _number(cfg, "algo.kappa_max", low=0.0, low_open=True, allow_none=True)
+    if kappa_max is not None and kappa_max < float(algo.kappa_init):
+        raise ConfigError(
+            f"algo.kappa_max ({kappa_max:g}) must be >= algo.kappa_init ({float(algo.kappa_init):g}): "
+            "κ starts at kappa_init"
+        )
+    if kappa_max is not None and algo_option(algo, "kappa_rule") == "pid":
+        raise ConfigError(
+            f"algo.kappa_max={kappa_max:g} bounds the gradient rule's κ; with algo.kappa_rule=pid "
+            "the bound is algo.pid.max_kappa"
+        )
     _number(cfg, "algo.cost_gamma", low=0.0, high=1.0, allow_none=True)
     _boolean(cfg, "algo.variance")
     if not isinstance(algo_option(algo, "cost_bootstrap_truncated"), (bool, type(None))):
