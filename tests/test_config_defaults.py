@@ -125,7 +125,12 @@ def test_kappa_advice_is_the_authors_in_the_units_of_each_formulation(env):
 
 
 # options added since those runs, and their value then (absent from their config)
-ADDED_SINCE = {"kappa_rule": "gradient", "kappa_episode_statistic": "cvar", "actor_lr": None}
+ADDED_SINCE = {
+    "kappa_rule": "gradient",
+    "kappa_episode_statistic": "cvar",
+    "actor_lr": None,
+    "kappa_max": None,
+}
 
 
 @pytest.mark.parametrize(

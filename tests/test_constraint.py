@@ -160,6 +160,55 @@ def test_gradient_rule_damping_lowers_the_penalty_while_under():
     assert float(weight) == pytest.approx(0.5 - 0.1 * 5.0, rel=1e-6)
 
 
+@pytest.mark.parametrize("parametrization", ["softplus", "log"])
+def test_kappa_max_bounds_kappa_without_winding_up(parametrization):
+    """A long violation holds κ at the bound; once the signal is under the threshold κ
+    falls at the very next step (``kappa_raw`` was projected, not left to wind up)."""
+    constraint = GradientLagrangian(0.1, parametrization, kappa_max=0.2)
+    optimizer = torch.optim.SGD(constraint.parameters(), lr=0.05)
+
+    def update(signal: float) -> float:
+        optimizer.zero_grad()
+        constraint.loss(torch.tensor([signal]), D).mean().backward()
+        optimizer.step()
+        constraint.step(torch.tensor(signal), D)
+        return float(constraint.kappa)
+
+    kappas = [update(45.0) for _ in range(200)]  # 30 over: the plain rule would reach e^300
+    assert max(kappas) == pytest.approx(0.2, rel=1e-6) and kappas[-1] == pytest.approx(0.2)
+    raw_at_bound = float(constraint.kappa_raw.detach())
+    assert raw_at_bound == pytest.approx(constraint._raw(0.2), rel=1e-6)
+    # 30 under: one plain gradient step down from the bound, whatever the past
+    slope = 0.2 if parametrization == "log" else 1 - math.exp(-float(torch.tensor(0.2)))
+    expected_raw = raw_at_bound - 0.05 * slope * 30.0
+    assert update(-15.0) < 0.2
+    assert float(constraint.kappa_raw.detach()) == pytest.approx(expected_raw, rel=1e-5)
+
+
+def test_kappa_max_reads_the_bound_and_passes_the_gradient_above_it():
+    constraint = GradientLagrangian(0.1, "log", kappa_max=0.2)
+    with torch.no_grad():
+        constraint.kappa_raw.fill_(math.log(0.5))  # as after an optimizer step over it
+    assert float(constraint.kappa) == pytest.approx(0.2, rel=1e-6)
+    constraint.loss(torch.tensor([5.0]), D).mean().backward()  # 10 under
+    # the gradient of the bound's value κ = 0.2 (identity through the bound): 0.2 · 10
+    assert float(constraint.kappa_raw.grad) == pytest.approx(0.2 * 10.0, rel=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"kappa_init": 0.5, "kappa_max": 0.1}, "kappa_max must be a finite number >= kappa_init"),
+        ({"kappa_init": 0.5, "kappa_max": math.inf}, "kappa_max must be a finite number"),
+    ],
+)
+def test_bad_kappa_max_is_refused(kwargs, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        make_constraint("gradient", **kwargs)
+    with pytest.raises(ValueError, match=re.escape("kappa_max=0.1 bounds the gradient rule")):
+        make_constraint("pid", kappa_init=0.05, kappa_max=0.1)
+
+
 # --------------------------------------------------------- wired into the losses
 LOSSES = {
     "wcsac": {"risk_level": 0.1},
@@ -285,6 +334,37 @@ def test_bad_pid_config_is_one_line_naming_the_option(tmp_path, override, messag
     with pytest.raises(ConfigError, match=re.escape(message)):
         make_trainer(compose_config("env=tiny", "algo.kappa_rule=pid", override), tmp_path / "r")
     assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (
+            ["algo.kappa_max=0.1"],
+            "algo.kappa_max (0.1) must be >= algo.kappa_init (0.693147): κ starts at kappa_init",
+        ),
+        (["algo.kappa_max=-1"], "algo.kappa_max must be null or > 0 (a number), got -1"),
+        (
+            ["algo.kappa_rule=pid", "algo.kappa_init=0.1", "algo.kappa_max=0.1"],
+            "algo.kappa_max=0.1 bounds the gradient rule's κ; with algo.kappa_rule=pid the "
+            "bound is algo.pid.max_kappa",
+        ),
+    ],
+)
+def test_bad_kappa_max_config_is_one_line_naming_the_option(tmp_path, overrides, message):
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        make_trainer(compose_config("env=tiny", *overrides), tmp_path / "r")
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("algo", ["wcsac", "sac_lag"])
+def test_kappa_max_reaches_the_loss_constraint(tmp_path, algo):
+    cfg = compose_config("env=tiny", f"algo={algo}", "algo.kappa_init=0.05", "algo.kappa_max=0.25")
+    trainer = make_trainer(cfg, tmp_path / "r")
+    try:
+        assert trainer.loss.constraint.kappa_max == 0.25
+    finally:
+        trainer.close()
 
 
 def test_a_delay_longer_than_the_run_is_refused(tmp_path):

@@ -475,6 +475,16 @@ class SafetyOptions:
         "choice",
         choices=KAPPA_PARAMETRIZATIONS,
     )
+    kappa_max: float | None = option(
+        None,
+        "kappa_rule=gradient: an upper bound of κ, kappa_raw projected under it at every "
+        "update (no windup; OmniSafe's lagrangian_upper_bound); null: none, the paper",
+        "number",
+        low=0.0,
+        low_open=True,
+        nullable=True,
+        saved_run=None,
+    )
     cost_gamma: float | None = option(
         1.0,
         "γ_c of the safety critic (null: the reward's γ, the paper)",

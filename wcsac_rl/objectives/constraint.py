@@ -59,6 +59,12 @@ class GradientLagrangian(nn.Module):
             ``"log"`` (κ = exp(raw)).
         damp_scale (float): MDMM damping: the actor's penalty weight is
             ``κ − damp_scale · mean(threshold − signal)``. ``0``: none.
+        kappa_max (float, optional): an upper bound of κ (``None``: none, the paper).
+            κ never exceeds it, and ``kappa_raw`` is projected back under it at every
+            :meth:`step` (OmniSafe's ``lagrangian_upper_bound``), so a long violation
+            cannot wind it up: κ starts to fall as soon as the signal is under the
+            threshold. While ``kappa_raw`` is above the bound (at most one optimizer
+            step), κ reads the bound and the gradient passes through unchanged.
 
     Example:
         >>> import torch
@@ -72,7 +78,11 @@ class GradientLagrangian(nn.Module):
     rule = "gradient"
 
     def __init__(
-        self, kappa_init: float, parametrization: str = "softplus", damp_scale: float = 0.0
+        self,
+        kappa_init: float,
+        parametrization: str = "softplus",
+        damp_scale: float = 0.0,
+        kappa_max: float | None = None,
     ) -> None:
         super().__init__()
         if not kappa_init > 0:
@@ -86,23 +96,37 @@ class GradientLagrangian(nn.Module):
             )
         if not damp_scale >= 0:
             raise ValueError(f"damp_scale must be >= 0, got {damp_scale}")
+        if kappa_max is not None and not (math.isfinite(kappa_max) and kappa_max >= kappa_init):
+            raise ValueError(
+                f"kappa_max must be a finite number >= kappa_init ({kappa_init:g}), got {kappa_max}"
+            )
         self.parametrization = parametrization
         self.damp_scale = float(damp_scale)
-        raw = (
-            _inverse_softplus(kappa_init) if parametrization == "softplus" else math.log(kappa_init)
+        self.kappa_max = None if kappa_max is None else float(kappa_max)
+        self.kappa_raw = nn.Parameter(torch.tensor(self._raw(kappa_init)))
+        # the largest kappa_raw (+inf: no bound); a buffer so that it moves with the module
+        self.register_buffer(
+            "raw_max",
+            torch.tensor(math.inf if kappa_max is None else self._raw(kappa_max)),
+            persistent=False,
         )
-        self.kappa_raw = nn.Parameter(torch.tensor(raw))
         watch_multiplier(self.kappa_raw)  # an optimizer training it at one rate with others warns
 
     def __setstate__(self, state) -> None:  # (deepcopy, pickle: the copy is watched too)
         super().__setstate__(state)
         watch_multiplier(self.kappa_raw)
 
+    def _raw(self, kappa: float) -> float:
+        return _inverse_softplus(kappa) if self.parametrization == "softplus" else math.log(kappa)
+
     def multiplier(self) -> Tensor:
-        """κ as a differentiable function of ``kappa_raw``."""
+        """κ as a differentiable function of ``kappa_raw`` (at most ``kappa_max``)."""
+        raw = self.kappa_raw
+        if self.kappa_max is not None:  # the bound's value, the identity's gradient
+            raw = raw - (raw - raw.clamp(max=self.raw_max)).detach()
         if self.parametrization == "softplus":
-            return nn.functional.softplus(self.kappa_raw)
-        return self.kappa_raw.exp()
+            return nn.functional.softplus(raw)
+        return raw.exp()
 
     @property
     def kappa(self) -> Tensor:
@@ -122,11 +146,16 @@ class GradientLagrangian(nn.Module):
         while the signal exceeds the threshold and lowers it otherwise."""
         return self.multiplier() * (threshold - signal.detach())
 
+    @torch.no_grad()
     def step(self, signal: Tensor, threshold: Tensor) -> None:
-        """Nothing: κ moves with its optimizer."""
+        """κ moves with its optimizer; with ``kappa_max``, ``kappa_raw`` is projected
+        back under the bound (anti-windup)."""
+        if self.kappa_max is not None:
+            self.kappa_raw.clamp_(max=self.raw_max)
 
     def extra_repr(self) -> str:
-        return f"parametrization={self.parametrization!r}, damp_scale={self.damp_scale}"
+        bound = "" if self.kappa_max is None else f", kappa_max={self.kappa_max}"
+        return f"parametrization={self.parametrization!r}, damp_scale={self.damp_scale}{bound}"
 
 
 class PIDLagrangian(nn.Module):
@@ -218,19 +247,26 @@ def make_constraint(
     kappa_init: float,
     parametrization: str = "softplus",
     damp_scale: float = 0.0,
+    kappa_max: float | None = None,
     pid: PIDGains | dict | None = None,
 ) -> GradientLagrangian | PIDLagrangian:
     """The constraint for ``rule`` (``"gradient"`` or ``"pid"``) with its options.
 
-    ``damp_scale`` and ``parametrization`` are the gradient rule's, ``pid`` the PID
-    rule's gains; an option of the other rule is refused by name.
+    ``damp_scale``, ``parametrization`` and ``kappa_max`` are the gradient rule's,
+    ``pid`` the PID rule's gains (its bound is ``pid.max_kappa``); an option of the
+    other rule is refused by name.
     """
     if rule not in CONSTRAINT_RULES:
         raise ValueError(f"kappa_rule must be one of {CONSTRAINT_RULES}, got {rule!r}")
     if rule == "gradient":
         if pid is not None:
             raise ValueError("pid gains apply to kappa_rule='pid' only (kappa_rule='gradient')")
-        return GradientLagrangian(kappa_init, parametrization, damp_scale)
+        return GradientLagrangian(kappa_init, parametrization, damp_scale, kappa_max)
+    if kappa_max is not None:
+        raise ValueError(
+            f"kappa_max={kappa_max} bounds the gradient rule's κ; with kappa_rule='pid' "
+            "the bound is pid.max_kappa"
+        )
     if damp_scale:
         raise ValueError(
             f"damp_scale={damp_scale} is the gradient rule's MDMM damping; with "

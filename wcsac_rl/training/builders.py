@@ -186,7 +186,7 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
         loss = SACLoss(agent.actor, agent.qvalues, num_qvalue_nets=2, **common)
     else:
         cls = SACLagLoss if algo.name == "sac_lag" else WCSACLoss
-        # every option the loss reads, from the one definition (objectives/options.py):
+        # every option the loss reads, from the one definition (wcsac_rl/options.py):
         # checked, typed, what a run saved before an option existed did where it lacks one
         options = safety_options(algo).loss_kwargs()
         if algo.name != "wcsac":

@@ -382,6 +382,16 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int) -> None:
             "(episode costs are compared with the episodic limit d), got "
             f"{options.kappa_states}"
         )
+    if options.kappa_max is not None and options.kappa_max < options.kappa_init:
+        raise ConfigError(
+            f"algo.kappa_max ({options.kappa_max:g}) must be >= algo.kappa_init "
+            f"({options.kappa_init:g}): κ starts at kappa_init"
+        )
+    if options.kappa_max is not None and options.kappa_rule == "pid":
+        raise ConfigError(
+            f"algo.kappa_max={options.kappa_max:g} bounds the gradient rule's κ; with "
+            "algo.kappa_rule=pid the bound is algo.pid.max_kappa"
+        )
     if ("pid" in algo or options.kappa_rule == "pid") and options.pid.d_delay > updates:
         raise ConfigError(
             f"algo.pid.d_delay={options.pid.d_delay} updates is longer than the run's "
