@@ -266,7 +266,25 @@ def _parse_stopped(call, name: str) -> None:
     raise CommandRefused(f"{name} did not parse a command line")
 
 
+HYDRA_CFG_PARTS = ("job", "hydra", "all")
+"""What Hydra's ``--cfg`` / ``-c`` prints instead of running (the overrides still compose)."""
+
+
+def _without_cfg_flag(args: list[str], via: str) -> list[str]:
+    """``args`` without Hydra's ``--cfg <part>`` (a part it does not know is refused)."""
+    out, rest = [], iter(args)
+    for arg in rest:
+        if arg in ("--cfg", "-c"):
+            part = next(rest, None)
+            if part not in HYDRA_CFG_PARTS:
+                raise CommandRefused(f"{via}: {arg} takes one of {HYDRA_CFG_PARTS}, got {part!r}")
+            continue
+        out.append(arg)
+    return out
+
+
 def _check_train(args: list[str], *, via: str) -> None:
+    args = _without_cfg_flag(args, via)
     multirun = any(a in ("-m", "--multirun") for a in args)
     overrides = [a for a in args if a not in ("-m", "--multirun")]
     flags = [a for a in overrides if a.startswith("-")]
@@ -365,6 +383,8 @@ def test_the_readme_shows_its_quickstart_commands():
         "python train.py algo=wcsca",  # a misspelt group option
         "python train.py -m algo=wcsac risk_level=0.1,1.5",  # a job out of range
         "python train.py algo=wcsac seed=0,10",  # a sweep without -m
+        "python train.py --cfg job algo.kapa_init=1",  # Hydra's --cfg: the rest is checked
+        "python train.py --cfg jobs",  # not a part --cfg prints
         "python -m wcsac_rl.evaluate multirun/alpha --episdes 100",
         "python -m wcsac_rl.calibration --episodes 30",  # no run directory
         "python -m wcsac_rl.evalute multirun/alpha",
