@@ -52,6 +52,7 @@ __all__ = [
     "check_value",
     "config_defaults",
     "option_spec",
+    "range_text",
     "read_options",
 ]
 
@@ -120,7 +121,7 @@ class Option:
         unit = f" ({self.unit})" if self.unit else ""
         if self.kind == "integer":
             return f"{null}an integer >= {self.low:g}{unit}"
-        bounds = _range_text(self.low, self.high, self.low_open, self.high_open)
+        bounds = range_text(self.low, self.high, self.low_open, self.high_open)
         if self.finite_words:
             return f"{null}a finite number {bounds}".rstrip()
         if not bounds:
@@ -152,7 +153,8 @@ class Option:
         return cast[self.kind](value)
 
 
-def _range_text(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:
+def range_text(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:
+    """A range as the messages say it: ``"in [0, 1]"``, ``"> 0"``, ``"<= 1"`` (``""``: none)."""
     if low is not None and high is not None:
         return f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
     if low is not None:

@@ -7,7 +7,6 @@ from wcsac_rl.objectives.budget import per_step_cost_threshold
 from wcsac_rl.objectives.cpo import CPOLoss
 from wcsac_rl.objectives.episode_costs import EpisodeCostWindow
 from wcsac_rl.objectives.nstep import NStepCost
-from wcsac_rl.options import PAPER_OPTIONS, SafetyOptions
 from wcsac_rl.objectives.param_groups import SingleGroupWarning, param_groups
 from wcsac_rl.objectives.risk import (
     empirical_cvar,
@@ -21,6 +20,7 @@ from wcsac_rl.objectives.sac_lag import SACLagLoss
 from wcsac_rl.objectives.start_states import StartStateBuffer
 from wcsac_rl.objectives.target_update import PolyakUpdate
 from wcsac_rl.objectives.wcsac import WCSACLoss
+from wcsac_rl.options import PAPER_OPTIONS, SafetyOptions
 
 __all__ = [
     "PAPER_OPTIONS",

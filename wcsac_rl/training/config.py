@@ -10,7 +10,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
-from wcsac_rl.options import SAVED_RUN_VALUES, SafetyOptions, read_options
+from wcsac_rl.options import SAVED_RUN_VALUES, SafetyOptions, range_text, read_options
 from wcsac_rl.training.errors import ConfigError, TrainingError
 
 __all__ = [
@@ -57,16 +57,6 @@ def _positive_int(cfg: Mapping[str, Any], key: str, *, allow_zero: bool = False)
     return value
 
 
-def _range_text(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:
-    if low is not None and high is not None:
-        return f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
-    if low is not None:
-        return f"{'>' if low_open else '>='} {low:g}"
-    if high is not None:
-        return f"{'<' if high_open else '<='} {high:g}"
-    return ""
-
-
 def _number(
     cfg: Mapping[str, Any],
     key: str,
@@ -88,7 +78,7 @@ def _number(
     ok = ok and (low is None or (value > low if low_open else value >= low))
     ok = ok and (high is None or (value < high if high_open else value <= high))
     if not ok:
-        bounds = _range_text(low, high, low_open, high_open)
+        bounds = range_text(low, high, low_open, high_open)
         what = f"{bounds} (a number)" if bounds else "a finite number"
         raise ConfigError(f"{key} must be {'null or ' if allow_none else ''}{what}, got {value!r}")
     return float(value)
