@@ -76,17 +76,17 @@ def test_saved_configs_without_the_truncation_option_keep_bootstrapping():
 def test_a_config_saved_before_the_safety_options_validates_and_builds_what_it_ran():
     """A run saved before the safety critic's and κ's options existed (resumed with
     ``resume=<run dir>``, which keeps the run's own config) passes validation, and its
-    loss gets what such a run did: the paper's choices (``SAVED_RUN_OPTIONS``)."""
+    loss gets what such a run did: the paper's choices (``SAVED_RUN_VALUES``)."""
     from omegaconf import open_dict
 
     from wcsac_rl.envs import make_env
+    from wcsac_rl.options import SAVED_RUN_VALUES
     from wcsac_rl.training import builders, validate_config
-    from wcsac_rl.training.config import SAVED_RUN_OPTIONS
 
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose("config", overrides=["algo=wcsac", "env=tiny", "risk_level=0.1"])
     with open_dict(cfg):
-        for key in {*SAVED_RUN_OPTIONS, "kappa_episode_window"}:
+        for key in {*SAVED_RUN_VALUES, "kappa_episode_window"}:
             del cfg.algo[key]
     validate_config(cfg)
     env = make_env("tiny", seed=0)

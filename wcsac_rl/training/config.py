@@ -10,17 +10,15 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
-from wcsac_rl.options import SAVED_RUN_VALUES, SafetyOptions, range_text, read_options
+from wcsac_rl.options import SafetyOptions, range_text, read_options
 from wcsac_rl.training.errors import ConfigError, TrainingError
 
 __all__ = [
     "ALGOS",
     "OFF_POLICY_ALGOS",
     "ON_POLICY_ALGOS",
-    "SAVED_RUN_OPTIONS",
     "ConfigError",
     "TrainingError",
-    "algo_option",
     "safety_options",
     "validate_config",
 ]
@@ -335,18 +333,6 @@ def _check_device(device: Any) -> None:
             )
     elif not torch.backends.mps.is_available():
         raise ConfigError("device=mps but MPS is not available on this machine; use device=cpu")
-
-
-SAVED_RUN_OPTIONS = SAVED_RUN_VALUES
-"""What a run saved before one of these ``algo`` options existed did: its value for it
-(a resumed or evaluated run keeps training as it did). Each is its field's ``saved_run``
-in :class:`~wcsac_rl.options.SafetyOptions`."""
-
-
-def algo_option(algo: DictConfig, key: str) -> Any:
-    """``algo[key]``, or what a run saved before the option existed did
-    (:data:`SAVED_RUN_OPTIONS`)."""
-    return algo.get(key, SAVED_RUN_OPTIONS.get(key))
 
 
 def safety_options(algo: DictConfig) -> SafetyOptions:
