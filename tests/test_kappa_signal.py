@@ -71,6 +71,37 @@ def test_window_state_round_trips_and_errors_change_nothing():
         EpisodeCostWindow(0.0)
 
 
+def test_a_test_window_floors_the_value_by_the_test_episodes_cvar():
+    # training episodes by their mean (α = 1), test episodes by their CVaR_0.5
+    window = EpisodeCostWindow(1.0, window=4, test_window=4, test_risk_level=0.5)
+    assert window.test_costs == [] and math.isnan(window.value)
+    window.add_test_costs([0.0, 40.0])  # before any training episode: the test CVaR alone
+    assert window.value == 40.0
+    window.add_episodes(_ends([[60.0, 20.0]], [[True, True]]))  # mean 40 = test CVaR 40
+    assert window.value == 40.0
+    window.add_test_costs([0.0, 0.0, 0.0])  # the test window keeps 40, 0, 0, 0: CVaR_0.5 20
+    assert window.test_costs == [40.0, 0.0, 0.0, 0.0] and window.value == 40.0
+    window.add_episodes(_ends([[0.0, 0.0]], [[True, True]]))  # mean 20 now: ties the test
+    assert window.value == 20.0
+    window.add_test_costs([90.0])  # 0, 0, 0, 90: the test CVaR_0.5 (45) is the larger
+    assert window.value == 45.0
+    restored = EpisodeCostWindow(1.0, window=4, test_window=4, test_risk_level=0.5)
+    restored.load_state_dict(window.state_dict())
+    assert restored.test_costs == [0.0, 0.0, 0.0, 90.0] and restored.value == 45.0
+    with pytest.raises(ValueError, match="non-finite"):
+        window.add_test_costs([1.0, math.inf])
+    assert window.value == 45.0 and window.test_costs == [0.0, 0.0, 0.0, 90.0]
+    with pytest.raises(RuntimeError, match="test_window=0"):
+        EpisodeCostWindow(1.0).add_test_costs([1.0])
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="test_window"):
+            EpisodeCostWindow(1.0, test_window=bad)
+    # a window saved before test windows existed restores with an empty one
+    old = EpisodeCostWindow(1.0, window=4, test_window=4)
+    old.load_state_dict({"costs": [3.0, 5.0], "window": 4, "risk_level": 1.0})
+    assert old.test_costs == [] and old.value == 4.0
+
+
 # -------------------------------------------------------------------- the loss
 def _kappa_grad(signal: str, episode_cvar: float | None, seed: int = 0):
     """∂loss_kappa/∂κ_raw and the loss outputs on a batch with start states."""
@@ -176,6 +207,12 @@ def test_config_validation_names_the_option():
         (("algo.kappa_signal=observed",), "algo.kappa_signal must be one of critic, max"),
         (("algo.kappa_signal=max", "algo.kappa_states=replay"), "needs algo.kappa_states=initial"),
         (("algo.kappa_signal=max", "algo.kappa_episode_window=0"), "kappa_episode_window"),
+        (("algo.kappa_signal=max", "algo.kappa_test_window=-1"), "algo.kappa_test_window must"),
+        (("algo.kappa_test_window=5",), "needs algo.kappa_signal=max"),
+        (
+            ("algo.kappa_signal=max", "algo.kappa_test_window=5", "eval_episodes=0"),
+            "eval_episodes=0 runs none",
+        ),
     ):
         with pytest.raises(ConfigError, match=message):
             validate_config(compose_config("env=tiny", *overrides))
@@ -212,6 +249,38 @@ def test_trainer_feeds_recent_episode_costs_to_kappa_and_resumes_the_window(tmp_
     try:
         assert resumed.episode_window.costs == costs
         assert resumed.episode_window.value == window.value
+    finally:
+        resumed.close()
+
+
+def test_trainer_feeds_the_test_episodes_to_the_test_window_and_resumes_it(tmp_path):
+    options = (
+        "env=tiny",
+        "algo.kappa_signal=max",
+        "algo.kappa_test_window=2",
+        "eval_episodes=1",
+        "epoch_frames=200",
+    )
+    run_dir = tmp_path / "run"
+    first = make_trainer(compose_config(*options), run_dir)
+    try:
+        first.run()
+        window = first.episode_window
+    finally:
+        first.close()
+    progress = read_progress(run_dir / "progress.csv")
+    # one test episode per epoch, the window keeps the last two epochs' costs
+    assert window.test_costs == progress["eval/episode_cost"][-2:]
+    assert window.value == max(
+        empirical_cvar(window.costs, 0.5), empirical_cvar(window.test_costs, 0.5)
+    )
+    saved = load_checkpoint(first.checkpoint_path)["learner"]["episode_window"]
+    assert saved["test_costs"] == window.test_costs
+    resumed = make_trainer(
+        compose_config(*options, "total_frames=1200", f"resume={run_dir}"), run_dir
+    )
+    try:
+        assert resumed.episode_window.test_costs == window.test_costs
     finally:
         resumed.close()
 

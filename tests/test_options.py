@@ -52,7 +52,7 @@ def _leaves() -> list[tuple[str, type, str]]:
 
 
 LEAVES = _leaves()
-BAD = {"choice": "nope", "flag": "maybe", "number": "abc", "integer": 0, "risk_level": 0}
+BAD = {"choice": "nope", "flag": "maybe", "number": "abc", "integer": -1, "risk_level": 0}
 
 
 # ------------------------------------------------------------------ the loss

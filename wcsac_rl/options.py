@@ -448,6 +448,17 @@ class SafetyOptions:
         saved_run="cvar",
         reader="episode window",
     )
+    kappa_test_window: int = option(
+        0,
+        "kappa_signal max/episodes: the last deterministic test episodes (eval_episodes "
+        "per epoch) whose empirical CVaR_α floors κ's signal too (what Table 1 "
+        "measures; 0: none)",
+        "integer",
+        low=0,
+        unit="episodes",
+        reader="episode window",
+        saved_run=0,
+    )
     kappa_rule: str = option(
         "gradient",
         "how κ moves: gradient (Adam on loss_kappa) or pid (PID Lagrangian)",

@@ -44,6 +44,11 @@ class EpisodeCostWindow:
         done_key: Default ``("next", "done")``.
         out_key: where :meth:`attach` puts the CVaR
             (``loss.tensor_keys.episode_cvar``). Default ``"episode_cvar"``.
+        test_window: also keep the costs of the last ``test_window`` deterministic
+            test episodes (:meth:`add_test_costs`); :attr:`value` is then the larger of
+            the two windows' statistics, the test window's always its empirical
+            CVaR at ``test_risk_level`` (what Table 1 measures). Default 0: none.
+        test_risk_level: the α of the test window's CVaR. Default: ``risk_level``.
 
     Example:
         >>> import torch
@@ -68,15 +73,26 @@ class EpisodeCostWindow:
         episode_cost_key: NestedKey = ("next", "episode_cost"),
         done_key: NestedKey = ("next", "done"),
         out_key: NestedKey = "episode_cvar",
+        test_window: int = 0,
+        test_risk_level: float | None = None,
     ) -> None:
         if isinstance(window, bool) or int(window) != window or window < 1:
             raise ValueError(f"window must be an integer >= 1 (episodes), got {window!r}")
+        if isinstance(test_window, bool) or int(test_window) != test_window or test_window < 0:
+            raise ValueError(
+                f"test_window must be an integer >= 0 (episodes), got {test_window!r}"
+            )
         self.risk_level = validate_risk_level(risk_level)
+        self.test_risk_level = validate_risk_level(
+            risk_level if test_risk_level is None else test_risk_level, name="test_risk_level"
+        )
         self.window = int(window)
+        self.test_window = int(test_window)
         self.episode_cost_key = episode_cost_key
         self.done_key = done_key
         self.out_key = out_key
         self._costs: deque[float] = deque(maxlen=self.window)
+        self._test_costs: deque[float] = deque(maxlen=max(self.test_window, 1))
         self._value = math.nan
 
     @classmethod
@@ -88,6 +104,7 @@ class EpisodeCostWindow:
         if statistic not in EPISODE_STATISTICS:
             raise ValueError(f"statistic must be one of {EPISODE_STATISTICS}, got {statistic!r}")
         risk_level = loss.risk_level if statistic == "cvar" else 1.0
+        kwargs.setdefault("test_risk_level", loss.risk_level)
         return cls(risk_level, out_key=loss.tensor_keys.episode_cvar, **kwargs)
 
     def __len__(self) -> int:
@@ -99,9 +116,26 @@ class EpisodeCostWindow:
         return list(self._costs)
 
     @property
+    def test_costs(self) -> list[float]:
+        """The costs in the test window, oldest first (empty with ``test_window=0``)."""
+        return list(self._test_costs) if self.test_window else []
+
+    @property
     def value(self) -> float:
-        """The empirical CVaR_α of the window (NaN before the first episode ends)."""
+        """The empirical CVaR_α of the window, or with a test window the larger of it and
+        the test window's CVaR (NaN before the first episode of either ends)."""
         return self._value
+
+    def _update(self) -> None:
+        values = [
+            empirical_cvar(list(costs), level)
+            for costs, level in (
+                (self._costs, self.risk_level),
+                (self.test_costs, self.test_risk_level),
+            )
+            if costs
+        ]
+        self._value = max(values) if values else math.nan
 
     def add_episodes(self, batch: TensorDictBase) -> int:
         """Add the episodes that end in collected ``batch``; returns how many there were.
@@ -128,8 +162,19 @@ class EpisodeCostWindow:
             if any(not math.isfinite(c) for c in costs):
                 raise ValueError(f"non-finite episode costs in the batch: {costs}")
             self._costs.extend(costs)
-            self._value = empirical_cvar(list(self._costs), self.risk_level)
+            self._update()
         return int(ended.numel())
+
+    def add_test_costs(self, costs) -> None:
+        """Add the costs of finished deterministic test episodes (``test_window > 0``)."""
+        if not self.test_window:
+            raise RuntimeError("this window keeps no test episodes (test_window=0)")
+        costs = [float(c) for c in costs]
+        if any(not math.isfinite(c) for c in costs):
+            raise ValueError(f"non-finite test episode costs: {costs}")
+        if costs:
+            self._test_costs.extend(costs)
+            self._update()
 
     def attach(self, batch: TensorDictBase) -> TensorDictBase:
         """``batch`` with the window's CVaR (``[*B, 1]``, NaN if no episode has ended yet)
@@ -139,13 +184,20 @@ class EpisodeCostWindow:
         return batch
 
     def state_dict(self) -> dict[str, Any]:
-        return {"costs": list(self._costs), "window": self.window, "risk_level": self.risk_level}
+        return {
+            "costs": list(self._costs),
+            "window": self.window,
+            "risk_level": self.risk_level,
+            "test_costs": self.test_costs,
+            "test_window": self.test_window,
+        }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore the window's episodes (a checkpoint's ``state_dict()``)."""
-        costs = [float(c) for c in state["costs"]]
+        """Restore the windows' episodes (a checkpoint's ``state_dict()``; one saved
+        without a test window leaves it empty)."""
         self._costs.clear()
-        self._costs.extend(costs)  # a smaller window keeps the most recent
-        self._value = (
-            empirical_cvar(list(self._costs), self.risk_level) if self._costs else math.nan
-        )
+        self._costs.extend(float(c) for c in state["costs"])  # a smaller window keeps the last
+        self._test_costs.clear()
+        if self.test_window:
+            self._test_costs.extend(float(c) for c in state.get("test_costs", ()))
+        self._update()

@@ -332,10 +332,14 @@ def make_initial_state_buffer(cfg: DictConfig, loss: LossModule) -> StartStateBu
 
 def make_episode_window(cfg: DictConfig, loss: LossModule) -> EpisodeCostWindow:
     """The recent training episodes whose CVaR κ sees, for ``kappa_signal`` ``max`` /
-    ``episodes`` (the last ``algo.kappa_episode_window``)."""
+    ``episodes`` (the last ``algo.kappa_episode_window``), and the last
+    ``algo.kappa_test_window`` test episodes (0: none)."""
     options = safety_options(cfg.algo)
     return EpisodeCostWindow.for_loss(
-        loss, window=options.kappa_episode_window, statistic=options.kappa_episode_statistic
+        loss,
+        window=options.kappa_episode_window,
+        statistic=options.kappa_episode_statistic,
+        test_window=options.kappa_test_window,
     )
 
 

@@ -277,6 +277,11 @@ def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
         collector = cfg.algo.collector
         learning_frames = max(0, cfg.total_frames - collector.init_random_frames)
         _validate_safety_keys(cfg.algo, updates=int(learning_frames * float(collector.utd_ratio)))
+        if safety_options(cfg.algo).kappa_test_window and not cfg.eval_episodes:
+            raise ConfigError(
+                "algo.kappa_test_window reads the test episodes, but eval_episodes=0 runs "
+                "none: set eval_episodes > 0 or algo.kappa_test_window=0"
+            )
     if algo in ON_POLICY_ALGOS:
         _validate_cpo(cfg)
     if cfg.logger.backend not in ("csv", "wandb", "tensorboard", "none"):
@@ -357,6 +362,11 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int) -> None:
             f"algo.kappa_signal={options.kappa_signal} needs algo.kappa_states=initial "
             "(episode costs are compared with the episodic limit d), got "
             f"{options.kappa_states}"
+        )
+    if options.kappa_test_window and options.kappa_signal == "critic":
+        raise ConfigError(
+            f"algo.kappa_test_window={options.kappa_test_window} floors κ's signal by the "
+            "test episodes' cost: it needs algo.kappa_signal=max (or episodes), got critic"
         )
     if options.kappa_max is not None and options.kappa_max < options.kappa_init:
         raise ConfigError(

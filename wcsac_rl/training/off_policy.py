@@ -18,7 +18,9 @@ and attaches one, drawn uniformly, to every row of each sampled batch
 limit. With ``algo.kappa_signal`` ``max`` or ``episodes`` it keeps the costs of the last
 ``algo.kappa_episode_window`` finished training episodes in an
 :class:`~wcsac_rl.objectives.EpisodeCostWindow` (saved with the checkpoint) and attaches
-their empirical CVaR_α to every sampled batch (``batch["episode_cvar"]``).
+their empirical CVaR_α to every sampled batch (``batch["episode_cvar"]``); with
+``algo.kappa_test_window > 0`` the larger of that and the empirical CVaR_α of the last
+test episodes (each epoch's ``eval_episodes``).
 """
 
 from __future__ import annotations
@@ -153,6 +155,10 @@ class OffPolicyTrainer(Trainer):
         with timeit("update"):
             outputs = [self.update(self.sample()) for _ in range(self.updates_per_batch)]
         return [out for out in outputs if out is not None]
+
+    def observe_test_episodes(self, results: list) -> None:
+        if self.episode_window is not None and self.episode_window.test_window:
+            self.episode_window.add_test_costs(result.cost for result in results)
 
     @classmethod
     def restore_policy(cls, cfg, learner_state, env):

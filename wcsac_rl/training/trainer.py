@@ -558,7 +558,11 @@ class Trainer:
                 deterministic=True,
                 max_steps=self.max_episode_steps,
             )
+        self.observe_test_episodes(results)
         return {**{f"eval/{k}": v for k, v in summarize_episodes(results).items()}, **calib}
+
+    def observe_test_episodes(self, results: list) -> None:
+        """The epoch's test episodes (``EpisodeResult``), for a learner that reads them."""
 
     def _log(self, row: dict[str, float]) -> None:
         self.progress.write(row)
