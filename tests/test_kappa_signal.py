@@ -102,6 +102,56 @@ def test_a_test_window_floors_the_value_by_the_test_episodes_cvar():
     assert old.test_costs == [] and old.value == 4.0
 
 
+def _ends_with_lengths(costs: list[float], lengths: list[int]) -> TensorDict:
+    """One env's batch in which each episode ends at its own step: cost and length."""
+    n = len(costs)
+    return TensorDict(
+        {
+            "next": {
+                "episode_cost": torch.tensor(costs).reshape(1, n, 1),
+                "done": torch.ones(1, n, 1, dtype=torch.bool),
+                "step_count": torch.tensor(lengths).reshape(1, n, 1),
+            }
+        },
+        [1, n],
+    )
+
+
+def test_a_rate_window_holds_short_episodes_to_the_rate_of_full_ones():
+    window = EpisodeCostWindow(1.0, window=3, horizon=1000)
+    # 1000 steps costing 30, 100 costing 3, 100 costing 0: 33 over 1200 steps
+    window.add_episodes(_ends_with_lengths([30.0, 3.0, 0.0], [1000, 100, 100]))
+    assert window.lengths == [1000.0, 100.0, 100.0]
+    assert window.value == pytest.approx(1000 * 33 / 1200)  # 27.5; their mean is 11
+    window.add_episodes(_ends_with_lengths([2.0], [50]))  # the first leaves the window
+    assert window.value == pytest.approx(1000 * 5 / 250)  # 20: 2 in 50 steps is 40 per 1000
+    # full-length episodes: the rate is their mean
+    full = EpisodeCostWindow(1.0, window=4, horizon=1000)
+    full.add_episodes(_ends_with_lengths([10.0, 0.0, 50.0], [1000, 1000, 1000]))
+    assert full.value == pytest.approx(20.0)
+    restored = EpisodeCostWindow(1.0, window=3, horizon=1000)
+    restored.load_state_dict(window.state_dict())
+    assert restored.value == window.value and restored.lengths == window.lengths
+    # a window saved without lengths: its episodes count as full ones (their mean)
+    restored.load_state_dict({"costs": [6.0, 0.0], "window": 3, "risk_level": 1.0})
+    assert restored.value == pytest.approx(3.0)
+    with pytest.raises(KeyError, match="step_count"):
+        window.add_episodes(_ends([[1.0]], [[True]]))
+    with pytest.raises(ValueError, match="lengths must be >= 1"):
+        window.add_episodes(_ends_with_lengths([1.0], [0]))
+    assert window.value == pytest.approx(20.0)
+    with pytest.raises(ValueError, match="risk_level must be 1"):
+        EpisodeCostWindow(0.1, horizon=1000)
+    with pytest.raises(ValueError, match="horizon"):
+        EpisodeCostWindow(1.0, horizon=0)
+
+
+def test_for_loss_reads_the_rate_over_the_loss_episode_limit():
+    loss = make_loss(risk_level=0.1, kappa_states="initial", max_episode_steps=200)
+    window = EpisodeCostWindow.for_loss(loss, statistic="rate")
+    assert window.horizon == 200 and window.risk_level == 1.0
+
+
 # -------------------------------------------------------------------- the loss
 def _kappa_grad(signal: str, episode_cvar: float | None, seed: int = 0):
     """∂loss_kappa/∂κ_raw and the loss outputs on a batch with start states."""

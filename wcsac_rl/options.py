@@ -68,10 +68,12 @@ KAPPA_STATES = ("replay", "initial")
 KAPPA_STATISTICS = ("mean", "tail")
 KAPPA_SIGNALS = ("critic", "max", "episodes")
 """What κ reads (:mod:`~wcsac_rl.objectives.constraint_signal`)."""
-EPISODE_STATISTICS = ("cvar", "mean")
+EPISODE_STATISTICS = ("cvar", "mean", "rate")
 """What :meth:`~wcsac_rl.objectives.EpisodeCostWindow.for_loss` summarises the window
-by: the empirical CVaR at the loss's α, or the mean episode cost (α = 1: a lower bound
-of every CVaR)."""
+by: the empirical CVaR at the loss's α, the mean episode cost (α = 1: a lower bound
+of every CVaR), or the cost rate per step times the episode limit (the mean cost of
+full-length episodes at that rate: an episode that ends early at the goal is held to
+the rate of a full one, as the paper's per-step threshold holds every state)."""
 CONSTRAINT_RULES = ("gradient", "pid")
 KAPPA_PARAMETRIZATIONS = ("softplus", "log")
 """How κ moves and how the gradient rule writes it (:mod:`~wcsac_rl.objectives.constraint`)."""
@@ -442,7 +444,8 @@ class SafetyOptions:
     )
     kappa_episode_statistic: str = option(
         "cvar",
-        "kappa_signal max/episodes: their empirical CVaR_α or their mean",
+        "kappa_signal max/episodes: their empirical CVaR_α, their mean, or their cost "
+        "rate (per step, times the episode limit)",
         "choice",
         choices=EPISODE_STATISTICS,
         saved_run="cvar",

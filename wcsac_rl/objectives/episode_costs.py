@@ -49,6 +49,13 @@ class EpisodeCostWindow:
             the two windows' statistics, the test window's always its empirical
             CVaR at ``test_risk_level`` (what Table 1 measures). Default 0: none.
         test_risk_level: the α of the test window's CVaR. Default: ``risk_level``.
+        horizon: summarise the (training) window by its cost *rate* instead: its summed
+            cost over its summed length, times ``horizon`` (the episode cost at that rate
+            over a full ``horizon``-step episode). Episodes that end early, at a goal,
+            are then held to the rate of a full one: a 100-step episode costing 3 counts
+            as 30 at ``horizon=1000``. Needs ``risk_level=1``. Default ``None``: the CVaR.
+        length_key: the episode length in collected data, read where episodes end
+            (TorchRL's ``StepCounter`` writes it). Default ``("next", "step_count")``.
 
     Example:
         >>> import torch
@@ -75,6 +82,8 @@ class EpisodeCostWindow:
         out_key: NestedKey = "episode_cvar",
         test_window: int = 0,
         test_risk_level: float | None = None,
+        horizon: int | None = None,
+        length_key: NestedKey = ("next", "step_count"),
     ) -> None:
         if isinstance(window, bool) or int(window) != window or window < 1:
             raise ValueError(f"window must be an integer >= 1 (episodes), got {window!r}")
@@ -83,6 +92,16 @@ class EpisodeCostWindow:
                 f"test_window must be an integer >= 0 (episodes), got {test_window!r}"
             )
         self.risk_level = validate_risk_level(risk_level)
+        if horizon is not None:
+            if isinstance(horizon, bool) or int(horizon) != horizon or horizon < 1:
+                raise ValueError(f"horizon must be an integer >= 1 (steps), got {horizon!r}")
+            if self.risk_level != 1.0:
+                raise ValueError(
+                    f"a cost rate (horizon={horizon}) is a mean: risk_level must be 1, "
+                    f"got {risk_level!r}"
+                )
+        self.horizon = None if horizon is None else int(horizon)
+        self.length_key = length_key
         self.test_risk_level = validate_risk_level(
             risk_level if test_risk_level is None else test_risk_level, name="test_risk_level"
         )
@@ -92,18 +111,22 @@ class EpisodeCostWindow:
         self.done_key = done_key
         self.out_key = out_key
         self._costs: deque[float] = deque(maxlen=self.window)
+        self._lengths: deque[float] = deque(maxlen=self.window)
         self._test_costs: deque[float] = deque(maxlen=max(self.test_window, 1))
         self._value = math.nan
 
     @classmethod
     def for_loss(cls, loss, *, statistic: str = "cvar", **kwargs) -> EpisodeCostWindow:
         """The window a loss with ``kappa_signal != "critic"`` reads (its key), at the
-        loss's α (``statistic="cvar"``) or at α = 1 (``"mean"``: the mean episode cost,
+        loss's α (``statistic="cvar"``), at α = 1 (``"mean"``: the mean episode cost,
         which no CVaR is below: with ``kappa_signal="max"`` it floors the critic's Γ
-        by what the episodes actually cost, without asking more of the tail)."""
+        by what the episodes actually cost, without asking more of the tail), or as the
+        cost rate over the loss's ``max_episode_steps`` (``"rate"``: ``horizon``)."""
         if statistic not in EPISODE_STATISTICS:
             raise ValueError(f"statistic must be one of {EPISODE_STATISTICS}, got {statistic!r}")
         risk_level = loss.risk_level if statistic == "cvar" else 1.0
+        if statistic == "rate":
+            kwargs["horizon"] = int(loss.max_episode_steps)
         kwargs.setdefault("test_risk_level", loss.risk_level)
         return cls(risk_level, out_key=loss.tensor_keys.episode_cvar, **kwargs)
 
@@ -126,15 +149,20 @@ class EpisodeCostWindow:
         the test window's CVaR (NaN before the first episode of either ends)."""
         return self._value
 
+    @property
+    def lengths(self) -> list[float]:
+        """The lengths (steps) of the episodes in the window, oldest first."""
+        return list(self._lengths)
+
     def _update(self) -> None:
-        values = [
-            empirical_cvar(list(costs), level)
-            for costs, level in (
-                (self._costs, self.risk_level),
-                (self.test_costs, self.test_risk_level),
-            )
-            if costs
-        ]
+        values = []
+        if self._costs:
+            if self.horizon is None:
+                values.append(empirical_cvar(list(self._costs), self.risk_level))
+            else:
+                values.append(self.horizon * math.fsum(self._costs) / math.fsum(self._lengths))
+        if self.test_costs:
+            values.append(empirical_cvar(self.test_costs, self.test_risk_level))
         self._value = max(values) if values else math.nan
 
     def add_episodes(self, batch: TensorDictBase) -> int:
@@ -146,14 +174,16 @@ class EpisodeCostWindow:
         if batch.ndim > 1:  # time last: order the ends by time, then by env
             batch = batch.transpose(0, batch.ndim - 1)
         flat = batch.reshape(-1)
-        missing = [
-            key for key in (self.episode_cost_key, self.done_key) if key not in flat.keys(True)
-        ]
+        keys = (self.episode_cost_key, self.done_key)
+        if self.horizon is not None:
+            keys += (self.length_key,)
+        missing = [key for key in keys if key not in flat.keys(True)]
         if missing:
             raise KeyError(
                 f"the batch has no {missing}: EpisodeCostWindow reads the running episode cost "
                 "where episodes end (add torchrl.envs.RewardSum(in_keys=['cost'], "
-                "out_keys=['episode_cost']) to the env)"
+                "out_keys=['episode_cost']) to the env; a rate also reads the length: "
+                "torchrl.envs.StepCounter())"
             )
         done = flat.get(self.done_key).reshape(-1).bool()
         ended = flat.get(self.episode_cost_key).reshape(-1)[done]
@@ -161,7 +191,13 @@ class EpisodeCostWindow:
             costs = ended.double().tolist()
             if any(not math.isfinite(c) for c in costs):
                 raise ValueError(f"non-finite episode costs in the batch: {costs}")
+            lengths = [0.0] * len(costs)  # (read only by a rate)
+            if self.horizon is not None:
+                lengths = flat.get(self.length_key).reshape(-1)[done].double().tolist()
+                if any(not (math.isfinite(n) and n >= 1) for n in lengths):
+                    raise ValueError(f"episode lengths must be >= 1 steps, got {lengths}")
             self._costs.extend(costs)
+            self._lengths.extend(lengths)
             self._update()
         return int(ended.numel())
 
@@ -186,6 +222,7 @@ class EpisodeCostWindow:
     def state_dict(self) -> dict[str, Any]:
         return {
             "costs": list(self._costs),
+            "lengths": list(self._lengths),
             "window": self.window,
             "risk_level": self.risk_level,
             "test_costs": self.test_costs,
@@ -194,9 +231,16 @@ class EpisodeCostWindow:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore the windows' episodes (a checkpoint's ``state_dict()``; one saved
-        without a test window leaves it empty)."""
+        without a test window leaves it empty, one saved without lengths counts its
+        episodes as full ``horizon``-step ones)."""
+        costs = [float(c) for c in state["costs"]]
+        lengths = state.get("lengths") or [float(self.horizon or 0)] * len(costs)
+        if self.horizon is not None and not all(n >= 1 for n in lengths):
+            lengths = [float(self.horizon)] * len(costs)  # (saved by a window without a rate)
         self._costs.clear()
-        self._costs.extend(float(c) for c in state["costs"])  # a smaller window keeps the last
+        self._costs.extend(costs)  # a smaller window keeps the most recent
+        self._lengths.clear()
+        self._lengths.extend(float(n) for n in lengths)
         self._test_costs.clear()
         if self.test_window:
             self._test_costs.extend(float(c) for c in state.get("test_costs", ()))
