@@ -130,6 +130,7 @@ ADDED_SINCE = {
     "kappa_episode_statistic": "cvar",
     "actor_lr": None,
     "kappa_max": None,
+    "kappa_test_window": 0,
 }
 
 
