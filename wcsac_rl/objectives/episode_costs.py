@@ -234,13 +234,14 @@ class EpisodeCostWindow:
         without a test window leaves it empty, one saved without lengths counts its
         episodes as full ``horizon``-step ones)."""
         costs = [float(c) for c in state["costs"]]
-        lengths = state.get("lengths") or [float(self.horizon or 0)] * len(costs)
-        if self.horizon is not None and not all(n >= 1 for n in lengths):
-            lengths = [float(self.horizon)] * len(costs)  # (saved by a window without a rate)
+        lengths = [float(n) for n in state.get("lengths") or ()]
+        if len(lengths) != len(costs) or not all(n >= 1 for n in lengths):
+            # saved by a window without a rate: its episodes count as full ones
+            lengths = [float(self.horizon or 0)] * len(costs)
         self._costs.clear()
         self._costs.extend(costs)  # a smaller window keeps the most recent
         self._lengths.clear()
-        self._lengths.extend(float(n) for n in lengths)
+        self._lengths.extend(lengths)
         self._test_costs.clear()
         if self.test_window:
             self._test_costs.extend(float(c) for c in state.get("test_costs", ()))
