@@ -88,9 +88,7 @@ class EpisodeCostWindow:
         if isinstance(window, bool) or int(window) != window or window < 1:
             raise ValueError(f"window must be an integer >= 1 (episodes), got {window!r}")
         if isinstance(test_window, bool) or int(test_window) != test_window or test_window < 0:
-            raise ValueError(
-                f"test_window must be an integer >= 0 (episodes), got {test_window!r}"
-            )
+            raise ValueError(f"test_window must be an integer >= 0 (episodes), got {test_window!r}")
         self.risk_level = validate_risk_level(risk_level)
         if horizon is not None:
             if isinstance(horizon, bool) or int(horizon) != horizon or horizon < 1:
@@ -141,7 +139,7 @@ class EpisodeCostWindow:
     @property
     def test_costs(self) -> list[float]:
         """The costs in the test window, oldest first (empty with ``test_window=0``)."""
-        return list(self._test_costs) if self.test_window else []
+        return list(self._test_costs)
 
     @property
     def value(self) -> float:
@@ -151,7 +149,8 @@ class EpisodeCostWindow:
 
     @property
     def lengths(self) -> list[float]:
-        """The lengths (steps) of the episodes in the window, oldest first."""
+        """The lengths (steps) of the episodes in the window, oldest first (kept with a
+        ``horizon`` only: empty otherwise)."""
         return list(self._lengths)
 
     def _update(self) -> None:
@@ -191,7 +190,7 @@ class EpisodeCostWindow:
             costs = ended.double().tolist()
             if any(not math.isfinite(c) for c in costs):
                 raise ValueError(f"non-finite episode costs in the batch: {costs}")
-            lengths = [0.0] * len(costs)  # (read only by a rate)
+            lengths = []  # (kept for a rate only)
             if self.horizon is not None:
                 lengths = flat.get(self.length_key).reshape(-1)[done].double().tolist()
                 if any(not (math.isfinite(n) and n >= 1) for n in lengths):
@@ -235,9 +234,11 @@ class EpisodeCostWindow:
         episodes as full ``horizon``-step ones)."""
         costs = [float(c) for c in state["costs"]]
         lengths = [float(n) for n in state.get("lengths") or ()]
-        if len(lengths) != len(costs) or not all(n >= 1 for n in lengths):
+        if self.horizon is None:
+            lengths = []
+        elif len(lengths) != len(costs) or not all(n >= 1 for n in lengths):
             # saved by a window without a rate: its episodes count as full ones
-            lengths = [float(self.horizon or 0)] * len(costs)
+            lengths = [float(self.horizon)] * len(costs)
         self._costs.clear()
         self._costs.extend(costs)  # a smaller window keeps the most recent
         self._lengths.clear()

@@ -276,12 +276,11 @@ def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
     if algo in ("wcsac", "sac_lag"):
         collector = cfg.algo.collector
         learning_frames = max(0, cfg.total_frames - collector.init_random_frames)
-        _validate_safety_keys(cfg.algo, updates=int(learning_frames * float(collector.utd_ratio)))
-        if safety_options(cfg.algo).kappa_test_window and not cfg.eval_episodes:
-            raise ConfigError(
-                "algo.kappa_test_window reads the test episodes, but eval_episodes=0 runs "
-                "none: set eval_episodes > 0 or algo.kappa_test_window=0"
-            )
+        _validate_safety_keys(
+            cfg.algo,
+            updates=int(learning_frames * float(collector.utd_ratio)),
+            eval_episodes=int(cfg.eval_episodes),
+        )
     if algo in ON_POLICY_ALGOS:
         _validate_cpo(cfg)
     if cfg.logger.backend not in ("csv", "wandb", "tensorboard", "none"):
@@ -350,7 +349,7 @@ def safety_options(algo: DictConfig) -> SafetyOptions:
         raise ConfigError(str(err)) from None
 
 
-def _validate_safety_keys(algo: DictConfig, *, updates: int) -> None:
+def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int) -> None:
     """The WCSAC / SAC-Lag options of ``conf/algo``: every field of
     :class:`~wcsac_rl.options.SafetyOptions` (its type and range, from its
     metadata: the loss checks with the same function), then what relates two options
@@ -367,6 +366,11 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int) -> None:
         raise ConfigError(
             f"algo.kappa_test_window={options.kappa_test_window} floors κ's signal by the "
             "test episodes' cost: it needs algo.kappa_signal=max (or episodes), got critic"
+        )
+    if options.kappa_test_window and not eval_episodes:
+        raise ConfigError(
+            "algo.kappa_test_window reads the test episodes, but eval_episodes=0 runs "
+            "none: set eval_episodes > 0 or algo.kappa_test_window=0"
         )
     if options.kappa_max is not None and options.kappa_max < options.kappa_init:
         raise ConfigError(
