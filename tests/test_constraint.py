@@ -341,7 +341,8 @@ def test_bad_pid_config_is_one_line_naming_the_option(tmp_path, override, messag
     [
         (
             ["algo.kappa_max=0.1"],
-            "algo.kappa_max (0.1) must be >= algo.kappa_init (0.693147): κ starts at kappa_init",
+            "algo.kappa_max must be a finite number >= algo.kappa_init (0.693147, where κ "
+            "starts), got 0.1",
         ),
         (["algo.kappa_max=-1"], "algo.kappa_max must be null or > 0 (a number), got -1"),
         (

@@ -220,3 +220,27 @@ def test_nested_options_refuse_a_bad_gain_by_name():
     with pytest.raises(ValueError, match=re.escape("iqn.num_cosines must be an integer >= 1")):
         IQNOptions(num_cosines=0)
     assert Path(inspect.getfile(SafetyOptions)).name == "options.py"
+
+
+@pytest.mark.parametrize(
+    ("rule", "kappa_init", "kappa_max"),
+    [("gradient", 0.5, 0.1), ("pid", 0.05, 0.1)],
+)
+def test_the_kappa_bound_relations_are_defined_once(tmp_path, rule, kappa_init, kappa_max):
+    """kappa_max beside kappa_init and kappa_rule: the constraint and the config validator
+    refuse the same values in the same words, the config's naming ``algo.<key>``."""
+    from wcsac_rl.objectives.constraint import make_constraint
+    from wcsac_rl.training import make_trainer
+
+    with pytest.raises(ValueError) as loss_error:
+        make_constraint(rule, kappa_init=kappa_init, kappa_max=kappa_max)
+    words = str(loss_error.value)
+    expected = re.sub(r"\b(kappa_max|kappa_init|kappa_rule|pid\.max_kappa)\b", r"algo.\1", words)
+    overrides = [
+        f"algo.kappa_rule={rule}",
+        f"algo.kappa_init={kappa_init}",
+        f"algo.kappa_max={kappa_max}",
+    ]
+    with pytest.raises(ConfigError, match=re.escape(expected)):
+        make_trainer(compose_config("env=tiny", *overrides), tmp_path / "r")
+    assert not (tmp_path / "r").exists()

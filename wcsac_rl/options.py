@@ -48,6 +48,7 @@ __all__ = [
     "PIDGains",
     "SafetyOptions",
     "check_fields",
+    "check_kappa_bound",
     "check_loss_options",
     "check_value",
     "config_defaults",
@@ -589,6 +590,28 @@ def check_loss_options(arguments: Mapping[str, Any]) -> None:
             continue  # (a PID controller may start at κ = 0: PIDLagrangian checks it)
         cls = SafetyOptions if name in SafetyOptions.__dataclass_fields__ else IQNOptions
         check_value(name, arguments[name], option_spec(cls, name))
+
+
+def check_kappa_bound(
+    kappa_init: float, kappa_max: float | None, rule: str, prefix: str = ""
+) -> None:
+    """What ``kappa_max`` must be beside the other κ options (each alone is checked by
+    :func:`check_value`): only the gradient rule's bound (the PID rule's is
+    ``pid.max_kappa``), finite and at least ``kappa_init``. One ``ValueError`` line
+    naming the options with ``prefix`` (``"algo."``: the config validator; ``""``: the
+    constraint). The one definition of these relations, for the config and the loss."""
+    if kappa_max is None:
+        return
+    if rule == "pid":
+        raise ValueError(
+            f"{prefix}kappa_max={kappa_max:g} bounds the gradient rule's κ; with "
+            f"{prefix}kappa_rule=pid the bound is {prefix}pid.max_kappa"
+        )
+    if not (math.isfinite(kappa_max) and kappa_max >= kappa_init):
+        raise ValueError(
+            f"{prefix}kappa_max must be a finite number >= {prefix}kappa_init "
+            f"({kappa_init:g}, where κ starts), got {kappa_max}"
+        )
 
 
 PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(

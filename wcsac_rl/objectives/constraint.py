@@ -34,7 +34,12 @@ import torch
 from torch import Tensor, nn
 
 from wcsac_rl.objectives.param_groups import watch_multiplier
-from wcsac_rl.options import CONSTRAINT_RULES, KAPPA_PARAMETRIZATIONS, PIDGains
+from wcsac_rl.options import (
+    CONSTRAINT_RULES,
+    KAPPA_PARAMETRIZATIONS,
+    PIDGains,
+    check_kappa_bound,
+)
 
 __all__ = [
     "CONSTRAINT_RULES",
@@ -96,10 +101,7 @@ class GradientLagrangian(nn.Module):
             )
         if not damp_scale >= 0:
             raise ValueError(f"damp_scale must be >= 0, got {damp_scale}")
-        if kappa_max is not None and not (math.isfinite(kappa_max) and kappa_max >= kappa_init):
-            raise ValueError(
-                f"kappa_max must be a finite number >= kappa_init ({kappa_init:g}), got {kappa_max}"
-            )
+        check_kappa_bound(kappa_init, kappa_max, self.rule)
         self.parametrization = parametrization
         self.damp_scale = float(damp_scale)
         self.kappa_max = None if kappa_max is None else float(kappa_max)
@@ -262,11 +264,7 @@ def make_constraint(
         if pid is not None:
             raise ValueError("pid gains apply to kappa_rule='pid' only (kappa_rule='gradient')")
         return GradientLagrangian(kappa_init, parametrization, damp_scale, kappa_max)
-    if kappa_max is not None:
-        raise ValueError(
-            f"kappa_max={kappa_max} bounds the gradient rule's κ; with kappa_rule='pid' "
-            "the bound is pid.max_kappa"
-        )
+    check_kappa_bound(kappa_init, kappa_max, rule)
     if damp_scale:
         raise ValueError(
             f"damp_scale={damp_scale} is the gradient rule's MDMM damping; with "

@@ -10,7 +10,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
-from wcsac_rl.options import SafetyOptions, range_text, read_options
+from wcsac_rl.options import SafetyOptions, check_kappa_bound, range_text, read_options
 from wcsac_rl.training.errors import ConfigError, TrainingError
 
 __all__ = [
@@ -372,16 +372,10 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int)
             "algo.kappa_test_window reads the test episodes, but eval_episodes=0 runs "
             "none: set eval_episodes > 0 or algo.kappa_test_window=0"
         )
-    if options.kappa_max is not None and options.kappa_max < options.kappa_init:
-        raise ConfigError(
-            f"algo.kappa_max ({options.kappa_max:g}) must be >= algo.kappa_init "
-            f"({options.kappa_init:g}): κ starts at kappa_init"
-        )
-    if options.kappa_max is not None and options.kappa_rule == "pid":
-        raise ConfigError(
-            f"algo.kappa_max={options.kappa_max:g} bounds the gradient rule's κ; with "
-            "algo.kappa_rule=pid the bound is algo.pid.max_kappa"
-        )
+    try:
+        check_kappa_bound(options.kappa_init, options.kappa_max, options.kappa_rule, prefix="algo.")
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     if ("pid" in algo or options.kappa_rule == "pid") and options.pid.d_delay > updates:
         raise ConfigError(
             f"algo.pid.d_delay={options.pid.d_delay} updates is longer than the run's "
