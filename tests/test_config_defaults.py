@@ -131,6 +131,7 @@ ADDED_SINCE = {
     "actor_lr": None,
     "kappa_max": None,
     "kappa_test_window": 0,
+    "kappa_min": 0.0,
 }
 
 

@@ -185,6 +185,54 @@ def test_kappa_max_bounds_kappa_without_winding_up(parametrization):
     assert float(constraint.kappa_raw.detach()) == pytest.approx(expected_raw, rel=1e-5)
 
 
+@pytest.mark.parametrize("parametrization", ["softplus", "log"])
+def test_kappa_min_floors_kappa_and_the_climb_starts_from_the_floor(parametrization):
+    """A long stretch under the threshold lowers κ to the floor and no further; the
+    first violation after it raises ``kappa_raw`` by one plain step from the floor's
+    raw value (it was projected, not left to decay)."""
+    constraint = GradientLagrangian(0.5, parametrization, kappa_min=0.1)
+    optimizer = torch.optim.SGD(constraint.parameters(), lr=0.05)
+
+    def update(signal: float) -> float:
+        optimizer.zero_grad()
+        constraint.loss(torch.tensor([signal]), D).mean().backward()
+        optimizer.step()
+        constraint.step(torch.tensor(signal), D)
+        return float(constraint.kappa)
+
+    kappas = [update(0.0) for _ in range(500)]  # 15 under: the plain rule decays to ~0
+    assert min(kappas) == pytest.approx(0.1, rel=1e-6) and kappas[-1] == pytest.approx(0.1)
+    raw_at_floor = float(constraint.kappa_raw.detach())
+    assert raw_at_floor == pytest.approx(constraint._raw(0.1), rel=1e-6)
+    slope = 0.1 if parametrization == "log" else 1 - math.exp(-float(torch.tensor(0.1)))
+    expected_raw = raw_at_floor + 0.05 * slope * 10.0  # 10 over: one step up
+    assert update(25.0) > 0.1
+    assert float(constraint.kappa_raw.detach()) == pytest.approx(expected_raw, rel=1e-5)
+
+
+def test_kappa_min_reads_the_floor_and_passes_the_gradient_below_it():
+    constraint = GradientLagrangian(0.5, "log", kappa_min=0.1)
+    with torch.no_grad():
+        constraint.kappa_raw.fill_(math.log(0.02))  # as after an optimizer step under it
+    assert float(constraint.kappa) == pytest.approx(0.1, rel=1e-6)
+    constraint.loss(torch.tensor([25.0]), D).mean().backward()  # 10 over
+    # the gradient of the floor's value κ = 0.1 (identity through the floor): −0.1 · 10
+    assert float(constraint.kappa_raw.grad) == pytest.approx(-0.1 * 10.0, rel=1e-5)
+
+
+def test_pid_kappa_min_floors_the_output_while_the_integral_unwinds():
+    """Under the threshold the PID's integral unwinds to 0 and its output would be 0;
+    the floor holds κ there, and the first violation adds to the floor at once."""
+    gains = PIDGains(kp=0.1, ki=0.01, p_ema=0.0, max_kappa=5.0)
+    pid = PIDLagrangian(0.5, gains, kappa_min=0.2)
+    for _ in range(100):
+        pid.step(torch.tensor(5.0), D)  # 10 under
+    assert float(pid.integral) == 0.0
+    assert float(pid.kappa) == pytest.approx(0.2, rel=1e-6)
+    pid.step(torch.tensor(35.0), D)  # 20 over: P 0.1·20 + I 0.01·20
+    assert float(pid.kappa) == pytest.approx(2.0 + 0.2, rel=1e-6)
+
+
 def test_kappa_max_reads_the_bound_and_passes_the_gradient_above_it():
     constraint = GradientLagrangian(0.1, "log", kappa_max=0.2)
     with torch.no_grad():
@@ -345,6 +393,8 @@ def test_bad_pid_config_is_one_line_naming_the_option(tmp_path, override, messag
             "starts), got 0.1",
         ),
         (["algo.kappa_max=-1"], "algo.kappa_max must be null or > 0 (a number), got -1"),
+        (["algo.kappa_min=-0.1"], "algo.kappa_min must be a finite number >= 0, got -0.1"),
+        (["algo.kappa_min=inf"], "algo.kappa_min must be a finite number >= 0, got inf"),
         (
             ["algo.kappa_rule=pid", "algo.kappa_init=0.1", "algo.kappa_max=0.1"],
             "algo.kappa_max=0.1 bounds the gradient rule's κ; with algo.kappa_rule=pid the "
@@ -359,13 +409,28 @@ def test_bad_kappa_max_config_is_one_line_naming_the_option(tmp_path, overrides,
 
 
 @pytest.mark.parametrize("algo", ["wcsac", "sac_lag"])
-def test_kappa_max_reaches_the_loss_constraint(tmp_path, algo):
-    cfg = compose_config("env=tiny", f"algo={algo}", "algo.kappa_init=0.05", "algo.kappa_max=0.25")
+def test_kappa_bounds_reach_the_loss_constraint(tmp_path, algo):
+    cfg = compose_config(
+        "env=tiny",
+        f"algo={algo}",
+        "algo.kappa_init=0.05",
+        "algo.kappa_max=0.25",
+        "algo.kappa_min=0.01",
+    )
     trainer = make_trainer(cfg, tmp_path / "r")
     try:
         assert trainer.loss.constraint.kappa_max == 0.25
+        assert trainer.loss.constraint.kappa_min == 0.01
     finally:
         trainer.close()
+    pid = make_trainer(
+        compose_config("env=tiny", f"algo={algo}", "algo.kappa_rule=pid", "algo.kappa_min=0.02"),
+        tmp_path / "p",
+    )
+    try:
+        assert pid.loss.constraint.kappa_min == 0.02
+    finally:
+        pid.close()
 
 
 def test_a_delay_longer_than_the_run_is_refused(tmp_path):

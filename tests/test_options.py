@@ -222,6 +222,24 @@ def test_nested_options_refuse_a_bad_gain_by_name():
     assert Path(inspect.getfile(SafetyOptions)).name == "options.py"
 
 
+@pytest.mark.parametrize("rule", ["gradient", "pid"])
+def test_a_kappa_floor_above_the_start_is_refused_alike(tmp_path, rule):
+    """kappa_min beside kappa_init: the constraint and the config validator refuse a
+    floor above where κ starts in the same words."""
+    from wcsac_rl.objectives.constraint import make_constraint
+    from wcsac_rl.training import make_trainer
+
+    with pytest.raises(ValueError) as loss_error:
+        make_constraint(rule, kappa_init=0.2, kappa_min=0.5)
+    words = str(loss_error.value)
+    assert words == "kappa_min must be <= kappa_init (0.2, where κ starts), got 0.5"
+    expected = re.sub(r"\b(kappa_min|kappa_init)\b", r"algo.\1", words)
+    overrides = [f"algo.kappa_rule={rule}", "algo.kappa_init=0.2", "algo.kappa_min=0.5"]
+    with pytest.raises(ConfigError, match=re.escape(expected)):
+        make_trainer(compose_config("env=tiny", *overrides), tmp_path / "r")
+    assert not (tmp_path / "r").exists()
+
+
 @pytest.mark.parametrize(
     ("rule", "kappa_init", "kappa_max"),
     [("gradient", 0.5, 0.1), ("pid", 0.05, 0.1)],

@@ -502,6 +502,15 @@ class SafetyOptions:
         nullable=True,
         saved_run=None,
     )
+    kappa_min: float = option(
+        0.0,
+        "a floor under κ (either rule): the gradient rule's kappa_raw is projected over it "
+        "at every update, the PID's output clipped at it; 0: none, the paper",
+        "number",
+        low=0.0,
+        finite_words=True,
+        saved_run=0.0,
+    )
     cost_gamma: float | None = option(
         1.0,
         "γ_c of the safety critic (null: the reward's γ, the paper)",
@@ -593,13 +602,24 @@ def check_loss_options(arguments: Mapping[str, Any]) -> None:
 
 
 def check_kappa_bound(
-    kappa_init: float, kappa_max: float | None, rule: str, prefix: str = ""
+    kappa_init: float,
+    kappa_max: float | None,
+    rule: str,
+    prefix: str = "",
+    kappa_min: float = 0.0,
 ) -> None:
-    """What ``kappa_max`` must be beside the other κ options (each alone is checked by
-    :func:`check_value`): only the gradient rule's bound (the PID rule's is
-    ``pid.max_kappa``), finite and at least ``kappa_init``. One ``ValueError`` line
-    naming the options with ``prefix`` (``"algo."``: the config validator; ``""``: the
-    constraint). The one definition of these relations, for the config and the loss."""
+    """What ``kappa_max`` and ``kappa_min`` must be beside the other κ options (each
+    alone is checked by :func:`check_value`): ``kappa_max`` only the gradient rule's
+    bound (the PID rule's is ``pid.max_kappa``), finite and at least ``kappa_init``;
+    ``kappa_min`` (either rule) at most ``kappa_init``, where κ starts. One
+    ``ValueError`` line naming the options with ``prefix`` (``"algo."``: the config
+    validator; ``""``: the constraint). The one definition of these relations, for the
+    config and the loss."""
+    if kappa_min > kappa_init:
+        raise ValueError(
+            f"{prefix}kappa_min must be <= {prefix}kappa_init ({kappa_init:g}, where κ "
+            f"starts), got {kappa_min:g}"
+        )
     if kappa_max is None:
         return
     if rule == "pid":

@@ -70,6 +70,11 @@ class GradientLagrangian(nn.Module):
             cannot wind it up: κ starts to fall as soon as the signal is under the
             threshold. While ``kappa_raw`` is above the bound (at most one optimizer
             step), κ reads the bound and the gradient passes through unchanged.
+        kappa_min (float): a floor under κ (``0``: none, the paper), held the same way:
+            however long the signal stays under the threshold, κ decays no lower, so a
+            violation after a long safe stretch meets a multiplier at least this large
+            and ``kappa_raw`` climbs from the floor's raw value at once, not from
+            wherever an unbounded decay left it.
 
     Example:
         >>> import torch
@@ -88,6 +93,7 @@ class GradientLagrangian(nn.Module):
         parametrization: str = "softplus",
         damp_scale: float = 0.0,
         kappa_max: float | None = None,
+        kappa_min: float = 0.0,
     ) -> None:
         super().__init__()
         if not kappa_init > 0:
@@ -101,15 +107,21 @@ class GradientLagrangian(nn.Module):
             )
         if not damp_scale >= 0:
             raise ValueError(f"damp_scale must be >= 0, got {damp_scale}")
-        check_kappa_bound(kappa_init, kappa_max, self.rule)
+        check_kappa_bound(kappa_init, kappa_max, self.rule, kappa_min=kappa_min)
         self.parametrization = parametrization
         self.damp_scale = float(damp_scale)
         self.kappa_max = None if kappa_max is None else float(kappa_max)
+        self.kappa_min = float(kappa_min)
         self.kappa_raw = nn.Parameter(torch.tensor(self._raw(kappa_init)))
-        # the largest kappa_raw (+inf: no bound); a buffer so that it moves with the module
+        # the range of kappa_raw (±inf: no bound); buffers so that they move with the module
         self.register_buffer(
             "raw_max",
             torch.tensor(math.inf if kappa_max is None else self._raw(kappa_max)),
+            persistent=False,
+        )
+        self.register_buffer(
+            "raw_min",
+            torch.tensor(-math.inf if kappa_min == 0.0 else self._raw(kappa_min)),
             persistent=False,
         )
         watch_multiplier(self.kappa_raw)  # an optimizer training it at one rate with others warns
@@ -122,10 +134,12 @@ class GradientLagrangian(nn.Module):
         return _inverse_softplus(kappa) if self.parametrization == "softplus" else math.log(kappa)
 
     def multiplier(self) -> Tensor:
-        """κ as a differentiable function of ``kappa_raw`` (at most ``kappa_max``)."""
+        """κ as a differentiable function of ``kappa_raw`` (within ``[kappa_min,
+        kappa_max]``)."""
         raw = self.kappa_raw
-        if self.kappa_max is not None:  # the bound's value, the identity's gradient
-            raw = raw - (raw - raw.clamp(max=self.raw_max)).detach()
+        if self.kappa_max is not None or self.kappa_min:
+            # the bound's value, the identity's gradient
+            raw = raw - (raw - raw.clamp(min=self.raw_min, max=self.raw_max)).detach()
         if self.parametrization == "softplus":
             return nn.functional.softplus(raw)
         return raw.exp()
@@ -150,14 +164,17 @@ class GradientLagrangian(nn.Module):
 
     @torch.no_grad()
     def step(self, signal: Tensor, threshold: Tensor) -> None:
-        """κ moves with its optimizer; with ``kappa_max``, ``kappa_raw`` is projected
-        back under the bound (anti-windup)."""
-        if self.kappa_max is not None:
-            self.kappa_raw.clamp_(max=self.raw_max)
+        """κ moves with its optimizer; ``kappa_raw`` is projected back into the bounds
+        (``kappa_max``: anti-windup; ``kappa_min``: the floor)."""
+        if self.kappa_max is not None or self.kappa_min:
+            self.kappa_raw.clamp_(min=self.raw_min, max=self.raw_max)
 
     def extra_repr(self) -> str:
         bound = "" if self.kappa_max is None else f", kappa_max={self.kappa_max}"
-        return f"parametrization={self.parametrization!r}, damp_scale={self.damp_scale}{bound}"
+        floor = "" if not self.kappa_min else f", kappa_min={self.kappa_min}"
+        return (
+            f"parametrization={self.parametrization!r}, damp_scale={self.damp_scale}{bound}{floor}"
+        )
 
 
 class PIDLagrangian(nn.Module):
@@ -169,9 +186,11 @@ class PIDLagrangian(nn.Module):
         I ← clip(I + ki · e, 0, max_kappa)                  (anti-windup)
         C ← d_ema · C + (1 − d_ema) · x                     (C starts at the first x)
         D ← max(0, C − C_{t − d_delay})                     (0 until d_delay steps exist)
-        κ ← clip(kp · P + I + kd · D, 0, max_kappa)
+        κ ← clip(kp · P + I + kd · D, kappa_min, max_kappa)
 
     The integral starts at ``kappa_init``, so κ starts where the gradient rule's does.
+    ``kappa_min`` (default 0) is a floor under the output only: the integral still
+    unwinds to 0 while the signal is under the threshold.
     A NaN signal (no episode has finished yet, with ``kappa_signal="episodes"``) leaves
     everything unchanged. All of it runs on tensors (no host synchronisation).
 
@@ -185,14 +204,18 @@ class PIDLagrangian(nn.Module):
 
     rule = "pid"
 
-    def __init__(self, kappa_init: float, gains: PIDGains | None = None) -> None:
+    def __init__(
+        self, kappa_init: float, gains: PIDGains | None = None, kappa_min: float = 0.0
+    ) -> None:
         super().__init__()
         gains = PIDGains() if gains is None else gains
         if not kappa_init >= 0:
             raise ValueError(f"kappa_init must be >= 0 with the PID rule, got {kappa_init}")
         if kappa_init > gains.max_kappa:
             raise ValueError(f"kappa_init={kappa_init} is above pid.max_kappa={gains.max_kappa}")
+        check_kappa_bound(kappa_init, None, self.rule, kappa_min=kappa_min)
         self.gains = gains
+        self.kappa_min = float(kappa_min)
         self.register_buffer("kappa_value", torch.tensor(float(kappa_init)))
         self.register_buffer("integral", torch.tensor(float(kappa_init)))
         self.register_buffer("error_ema", torch.zeros(()))
@@ -229,7 +252,7 @@ class PIDLagrangian(nn.Module):
         signal_ema = torch.where(first, x, g.d_ema * self.signal_ema + (1.0 - g.d_ema) * x)
         past = self.history[0]  # the EMA d_delay steps back (once that many exist)
         rise = torch.where(self.steps >= g.d_delay, (signal_ema - past).clamp(min=0.0), 0.0)
-        kappa = (g.kp * error_ema + integral + g.kd * rise).clamp(0.0, g.max_kappa)
+        kappa = (g.kp * error_ema + integral + g.kd * rise).clamp(self.kappa_min, g.max_kappa)
         # a NaN signal changes nothing
         self.error_ema.copy_(torch.where(valid, error_ema, self.error_ema))
         self.integral.copy_(torch.where(valid, integral, self.integral))
@@ -240,7 +263,8 @@ class PIDLagrangian(nn.Module):
         self.steps.add_(valid.long())
 
     def extra_repr(self) -> str:
-        return ", ".join(f"{k}={v}" for k, v in vars(self.gains).items())
+        floor = [f"kappa_min={self.kappa_min}"] if self.kappa_min else []
+        return ", ".join([f"{k}={v}" for k, v in vars(self.gains).items()] + floor)
 
 
 def make_constraint(
@@ -250,28 +274,29 @@ def make_constraint(
     parametrization: str = "softplus",
     damp_scale: float = 0.0,
     kappa_max: float | None = None,
+    kappa_min: float = 0.0,
     pid: PIDGains | dict | None = None,
 ) -> GradientLagrangian | PIDLagrangian:
     """The constraint for ``rule`` (``"gradient"`` or ``"pid"``) with its options.
 
     ``damp_scale``, ``parametrization`` and ``kappa_max`` are the gradient rule's,
     ``pid`` the PID rule's gains (its bound is ``pid.max_kappa``); an option of the
-    other rule is refused by name.
+    other rule is refused by name. ``kappa_min`` floors κ under either rule.
     """
     if rule not in CONSTRAINT_RULES:
         raise ValueError(f"kappa_rule must be one of {CONSTRAINT_RULES}, got {rule!r}")
     if rule == "gradient":
         if pid is not None:
             raise ValueError("pid gains apply to kappa_rule='pid' only (kappa_rule='gradient')")
-        return GradientLagrangian(kappa_init, parametrization, damp_scale, kappa_max)
-    check_kappa_bound(kappa_init, kappa_max, rule)
+        return GradientLagrangian(kappa_init, parametrization, damp_scale, kappa_max, kappa_min)
+    check_kappa_bound(kappa_init, kappa_max, rule, kappa_min=kappa_min)
     if damp_scale:
         raise ValueError(
             f"damp_scale={damp_scale} is the gradient rule's MDMM damping; with "
             "kappa_rule='pid' the proportional gain pid.kp plays its part (set damp_scale=0)"
         )
     gains = pid if isinstance(pid, PIDGains) else PIDGains(**(pid or {}))
-    return PIDLagrangian(kappa_init, gains)
+    return PIDLagrangian(kappa_init, gains, kappa_min)
 
 
 def rename_kappa_raw(module, state_dict, prefix, *args) -> None:

@@ -113,7 +113,8 @@ class WCSACLoss(SACLoss):
             ``kappa_states="initial"`` reads start states
             (:class:`~wcsac_rl.objectives.StartStateBuffer`).
         kappa_init (float), kappa_parametrization (str), damp_scale (float), kappa_max
-            (float, optional), kappa_rule (str), pid (PIDGains or dict): κ and how it moves
+            (float, optional), kappa_min (float), kappa_rule (str), pid (PIDGains or
+            dict): κ and how it moves
             (:mod:`wcsac_rl.objectives.constraint`); ``pid=None``: the default gains. The
             PID rule steps in :meth:`forward` while the loss is in training mode.
 
@@ -239,6 +240,7 @@ class WCSACLoss(SACLoss):
         kappa_signal: str = SafetyOptions.kappa_signal,
         damp_scale: float = SafetyOptions.damp_scale,
         kappa_max: float | None = SafetyOptions.kappa_max,
+        kappa_min: float = SafetyOptions.kappa_min,
         kappa_rule: str = SafetyOptions.kappa_rule,
         pid: PIDGains | Mapping[str, Any] | None = None,
         num_quantiles: int = IQNOptions.num_quantiles,
@@ -311,7 +313,7 @@ class WCSACLoss(SACLoss):
         )
         constraint = make_constraint(
             kappa_rule, kappa_init=kappa_init, parametrization=kappa_parametrization,
-            damp_scale=damp_scale, kappa_max=kappa_max, pid=pid,
+            damp_scale=damp_scale, kappa_max=kappa_max, kappa_min=kappa_min, pid=pid,
         )  # fmt: skip
         device = self.log_alpha.device
         self.constraint = constraint.to(device)

@@ -373,7 +373,13 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int)
             "none: set eval_episodes > 0 or algo.kappa_test_window=0"
         )
     try:
-        check_kappa_bound(options.kappa_init, options.kappa_max, options.kappa_rule, prefix="algo.")
+        check_kappa_bound(
+            options.kappa_init,
+            options.kappa_max,
+            options.kappa_rule,
+            prefix="algo.",
+            kappa_min=options.kappa_min,
+        )
     except ValueError as err:
         raise ConfigError(str(err)) from None
     if ("pid" in algo or options.kappa_rule == "pid") and options.pid.d_delay > updates:
