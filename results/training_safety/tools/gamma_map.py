@@ -19,6 +19,14 @@ the goal around the hazard; the forward-action gradients of Q^r and κΓ; and th
 against points 0.5 further out. The arrays go to OUT_PREFIX.npz. It reads two of the
 loss's private methods (``_critic_values``, ``_detached_critics``): a study tool pinned
 to the commit of the runs it maps (ee73765), not an API.
+
+Caveat, measured afterwards (RESULTS.md, seventh round; ``visited_reads.py``): a robot at
+rest is not what the replay buffer holds, and the critics extrapolate there. At the
+states really visited, Γ can differ from these maps several-fold either way. Near the
+goal the Gaussian head's at-rest read is 1.7–10× its visited read. In the hazard the
+IQN head's at-rest read is up to 20× below its visited read (1.1–20× on four
+checkpoints). Read the maps as the critic's
+shape at rest, not as the values the actor trains on.
 """
 
 from __future__ import annotations
