@@ -160,12 +160,10 @@ def test_gradient_rule_damping_lowers_the_penalty_while_under():
     assert float(weight) == pytest.approx(0.5 - 0.1 * 5.0, rel=1e-6)
 
 
-@pytest.mark.parametrize("parametrization", ["softplus", "log"])
-def test_kappa_max_bounds_kappa_without_winding_up(parametrization):
-    """A long violation holds κ at the bound; once the signal is under the threshold κ
-    falls at the very next step (``kappa_raw`` was projected, not left to wind up)."""
-    constraint = GradientLagrangian(0.1, parametrization, kappa_max=0.2)
-    optimizer = torch.optim.SGD(constraint.parameters(), lr=0.05)
+def _sgd_updates(constraint: GradientLagrangian, lr: float = 0.05):
+    """``update(signal) -> κ``: one plain SGD step on the κ loss, then the constraint's
+    projection, as the trainer does it (with Adam)."""
+    optimizer = torch.optim.SGD(constraint.parameters(), lr=lr)
 
     def update(signal: float) -> float:
         optimizer.zero_grad()
@@ -174,13 +172,27 @@ def test_kappa_max_bounds_kappa_without_winding_up(parametrization):
         constraint.step(torch.tensor(signal), D)
         return float(constraint.kappa)
 
+    return update
+
+
+def _kappa_slope(parametrization: str, kappa: float) -> float:
+    """dκ/d(kappa_raw) at κ (float32 κ, as the module holds it)."""
+    kappa32 = float(torch.tensor(kappa))
+    return kappa32 if parametrization == "log" else 1 - math.exp(-kappa32)
+
+
+@pytest.mark.parametrize("parametrization", ["softplus", "log"])
+def test_kappa_max_bounds_kappa_without_winding_up(parametrization):
+    """A long violation holds κ at the bound; once the signal is under the threshold κ
+    falls at the very next step (``kappa_raw`` was projected, not left to wind up)."""
+    constraint = GradientLagrangian(0.1, parametrization, kappa_max=0.2)
+    update = _sgd_updates(constraint)
     kappas = [update(45.0) for _ in range(200)]  # 30 over: the plain rule would reach e^300
     assert max(kappas) == pytest.approx(0.2, rel=1e-6) and kappas[-1] == pytest.approx(0.2)
     raw_at_bound = float(constraint.kappa_raw.detach())
     assert raw_at_bound == pytest.approx(constraint._raw(0.2), rel=1e-6)
     # 30 under: one plain gradient step down from the bound, whatever the past
-    slope = 0.2 if parametrization == "log" else 1 - math.exp(-float(torch.tensor(0.2)))
-    expected_raw = raw_at_bound - 0.05 * slope * 30.0
+    expected_raw = raw_at_bound - 0.05 * _kappa_slope(parametrization, 0.2) * 30.0
     assert update(-15.0) < 0.2
     assert float(constraint.kappa_raw.detach()) == pytest.approx(expected_raw, rel=1e-5)
 
@@ -191,56 +203,49 @@ def test_kappa_min_floors_kappa_and_the_climb_starts_from_the_floor(parametrizat
     first violation after it raises ``kappa_raw`` by one plain step from the floor's
     raw value (it was projected, not left to decay)."""
     constraint = GradientLagrangian(0.5, parametrization, kappa_min=0.1)
-    optimizer = torch.optim.SGD(constraint.parameters(), lr=0.05)
-
-    def update(signal: float) -> float:
-        optimizer.zero_grad()
-        constraint.loss(torch.tensor([signal]), D).mean().backward()
-        optimizer.step()
-        constraint.step(torch.tensor(signal), D)
-        return float(constraint.kappa)
-
+    update = _sgd_updates(constraint)
     kappas = [update(0.0) for _ in range(500)]  # 15 under: the plain rule decays to ~0
     assert min(kappas) == pytest.approx(0.1, rel=1e-6) and kappas[-1] == pytest.approx(0.1)
     raw_at_floor = float(constraint.kappa_raw.detach())
     assert raw_at_floor == pytest.approx(constraint._raw(0.1), rel=1e-6)
-    slope = 0.1 if parametrization == "log" else 1 - math.exp(-float(torch.tensor(0.1)))
-    expected_raw = raw_at_floor + 0.05 * slope * 10.0  # 10 over: one step up
+    expected_raw = raw_at_floor + 0.05 * _kappa_slope(parametrization, 0.1) * 10.0  # 10 over
     assert update(25.0) > 0.1
     assert float(constraint.kappa_raw.detach()) == pytest.approx(expected_raw, rel=1e-5)
 
 
-def test_kappa_min_reads_the_floor_and_passes_the_gradient_below_it():
-    constraint = GradientLagrangian(0.5, "log", kappa_min=0.1)
-    with torch.no_grad():
-        constraint.kappa_raw.fill_(math.log(0.02))  # as after an optimizer step under it
-    assert float(constraint.kappa) == pytest.approx(0.1, rel=1e-6)
-    constraint.loss(torch.tensor([25.0]), D).mean().backward()  # 10 over
-    # the gradient of the floor's value κ = 0.1 (identity through the floor): −0.1 · 10
-    assert float(constraint.kappa_raw.grad) == pytest.approx(-0.1 * 10.0, rel=1e-5)
-
-
 def test_pid_kappa_min_floors_the_output_while_the_integral_unwinds():
     """Under the threshold the PID's integral unwinds to 0 and its output would be 0;
-    the floor holds κ there, and the first violation adds to the floor at once."""
+    the floor holds κ there. It is a clip, not an offset: the first violation's P and I
+    terms take over at once."""
     gains = PIDGains(kp=0.1, ki=0.01, p_ema=0.0, max_kappa=5.0)
-    pid = PIDLagrangian(0.5, gains, kappa_min=0.2)
+    pid = PIDLagrangian(0.5, gains, kappa_min=0.3)
     for _ in range(100):
         pid.step(torch.tensor(5.0), D)  # 10 under
     assert float(pid.integral) == 0.0
-    assert float(pid.kappa) == pytest.approx(0.2, rel=1e-6)
-    pid.step(torch.tensor(35.0), D)  # 20 over: P 0.1·20 + I 0.01·20
+    assert float(pid.kappa) == pytest.approx(0.3, rel=1e-6)
+    pid.step(torch.tensor(35.0), D)  # 20 over: P 0.1·20 + I 0.01·20 (not + the floor)
     assert float(pid.kappa) == pytest.approx(2.0 + 0.2, rel=1e-6)
 
 
-def test_kappa_max_reads_the_bound_and_passes_the_gradient_above_it():
-    constraint = GradientLagrangian(0.1, "log", kappa_max=0.2)
+@pytest.mark.parametrize(
+    ("bounds", "raw_kappa", "bound", "signal"),
+    [
+        ({"kappa_init": 0.1, "kappa_max": 0.2}, 0.5, 0.2, 5.0),  # over the bound, 10 under
+        ({"kappa_init": 0.5, "kappa_min": 0.1}, 0.02, 0.1, 25.0),  # under the floor, 10 over
+    ],
+)
+def test_a_kappa_bound_reads_its_value_and_passes_the_gradient_beyond_it(
+    bounds, raw_kappa, bound, signal
+):
+    """While ``kappa_raw`` is beyond a bound (at most one optimizer step, before the
+    projection), κ reads the bound and the gradient is the bound's value through the
+    identity: d/draw of κ · (d − x) with dκ/draw = κ for the log parametrization."""
+    constraint = GradientLagrangian(parametrization="log", **bounds)
     with torch.no_grad():
-        constraint.kappa_raw.fill_(math.log(0.5))  # as after an optimizer step over it
-    assert float(constraint.kappa) == pytest.approx(0.2, rel=1e-6)
-    constraint.loss(torch.tensor([5.0]), D).mean().backward()  # 10 under
-    # the gradient of the bound's value κ = 0.2 (identity through the bound): 0.2 · 10
-    assert float(constraint.kappa_raw.grad) == pytest.approx(0.2 * 10.0, rel=1e-5)
+        constraint.kappa_raw.fill_(math.log(raw_kappa))  # as after an optimizer step
+    assert float(constraint.kappa) == pytest.approx(bound, rel=1e-6)
+    constraint.loss(torch.tensor([signal]), D).mean().backward()
+    assert float(constraint.kappa_raw.grad) == pytest.approx(bound * (15.0 - signal), rel=1e-5)
 
 
 @pytest.mark.parametrize(
