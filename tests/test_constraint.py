@@ -227,6 +227,13 @@ def test_pid_kappa_min_floors_the_output_while_the_integral_unwinds():
     assert float(pid.kappa) == pytest.approx(2.0 + 0.2, rel=1e-6)
 
 
+@pytest.mark.parametrize("rule", ["gradient", "pid"])
+@pytest.mark.parametrize("kappa_min", [-0.1, math.nan, math.inf, "0.1"])
+def test_a_bad_kappa_min_is_refused_by_name(rule, kappa_min):
+    with pytest.raises(ValueError, match=re.escape("kappa_min must be a finite number >= 0")):
+        make_constraint(rule, kappa_init=0.5, kappa_min=kappa_min)
+
+
 @pytest.mark.parametrize(
     ("bounds", "raw_kappa", "bound", "signal"),
     [

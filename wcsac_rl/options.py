@@ -615,6 +615,7 @@ def check_kappa_bound(
     ``ValueError`` line naming the options with ``prefix`` (``"algo."``: the config
     validator; ``""``: the constraint). The one definition of these relations, for the
     config and the loss."""
+    check_value(f"{prefix}kappa_min", kappa_min, option_spec(SafetyOptions, "kappa_min"))
     if kappa_min > kappa_init:
         raise ValueError(
             f"{prefix}kappa_min must be <= {prefix}kappa_init ({kappa_init:g}, where κ "
