@@ -609,7 +609,8 @@ def check_kappa_bound(
     kappa_min: float = 0.0,
 ) -> None:
     """What ``kappa_max`` and ``kappa_min`` must be beside the other κ options (each
-    alone is checked by :func:`check_value`): ``kappa_max`` only the gradient rule's
+    alone is checked by :func:`check_value`; ``kappa_min`` here too, as a constraint
+    built directly has no other check of it): ``kappa_max`` only the gradient rule's
     bound (the PID rule's is ``pid.max_kappa``), finite and at least ``kappa_init``;
     ``kappa_min`` (either rule) at most ``kappa_init``, where κ starts. One
     ``ValueError`` line naming the options with ``prefix`` (``"algo."``: the config

@@ -133,12 +133,17 @@ class GradientLagrangian(nn.Module):
     def _raw(self, kappa: float) -> float:
         return _inverse_softplus(kappa) if self.parametrization == "softplus" else math.log(kappa)
 
+    @property
+    def bounded(self) -> bool:
+        """Whether ``kappa_max`` or ``kappa_min`` bounds κ (unbounded: the paper's rule,
+        with no clamp on its path)."""
+        return self.kappa_max is not None or self.kappa_min > 0.0
+
     def multiplier(self) -> Tensor:
         """κ as a differentiable function of ``kappa_raw`` (within ``[kappa_min,
         kappa_max]``)."""
         raw = self.kappa_raw
-        if self.kappa_max is not None or self.kappa_min:
-            # the bound's value, the identity's gradient
+        if self.bounded:  # the bound's value, the identity's gradient
             raw = raw - (raw - raw.clamp(min=self.raw_min, max=self.raw_max)).detach()
         if self.parametrization == "softplus":
             return nn.functional.softplus(raw)
@@ -166,7 +171,7 @@ class GradientLagrangian(nn.Module):
     def step(self, signal: Tensor, threshold: Tensor) -> None:
         """κ moves with its optimizer; ``kappa_raw`` is projected back into the bounds
         (``kappa_max``: anti-windup; ``kappa_min``: the floor)."""
-        if self.kappa_max is not None or self.kappa_min:
+        if self.bounded:
             self.kappa_raw.clamp_(min=self.raw_min, max=self.raw_max)
 
     def extra_repr(self) -> str:
@@ -289,7 +294,7 @@ def make_constraint(
         if pid is not None:
             raise ValueError("pid gains apply to kappa_rule='pid' only (kappa_rule='gradient')")
         return GradientLagrangian(kappa_init, parametrization, damp_scale, kappa_max, kappa_min)
-    check_kappa_bound(kappa_init, kappa_max, rule, kappa_min=kappa_min)
+    check_kappa_bound(kappa_init, kappa_max, rule)  # (the floor: PIDLagrangian checks it)
     if damp_scale:
         raise ValueError(
             f"damp_scale={damp_scale} is the gradient rule's MDMM damping; with "
