@@ -132,6 +132,7 @@ ADDED_SINCE = {
     "kappa_max": None,
     "kappa_test_window": 0,
     "kappa_min": 0.0,
+    "num_safety_nets": 1,
 }
 
 

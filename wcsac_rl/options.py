@@ -376,6 +376,14 @@ class SafetyOptions:
         reader="network",
         saved_run="gaussian",
     )
+    num_safety_nets: int = option(
+        1,
+        "how many safety critics (each its own initialisation, target and TD loss); "
+        "the actor and κ read the largest Γ among them",
+        "integer",
+        low=1,
+        saved_run=1,
+    )
     iqn: IQNOptions = field(
         default_factory=IQNOptions,
         metadata=group_spec(

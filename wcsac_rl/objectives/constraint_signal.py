@@ -159,7 +159,7 @@ class ConstraintSignal:
         mean."""
         if self.statistic_kind == "mean":
             return self.head.cvar(values)
-        return self.head.mixture_cvar(values, mask).detach().expand(values.mean.shape)
+        return self.head.mixture_cvar(values, mask).detach().expand(self.head.row_shape(values))
 
     def episode_cvar(self, tensordict: TensorDictBase) -> Tensor:
         """The recent episodes' empirical CVaR_α from the batch (NaN: none finished)."""

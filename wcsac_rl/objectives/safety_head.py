@@ -52,6 +52,7 @@ from wcsac_rl.options import VARIANCE_LOSSES, VARIANCE_TARGETS
 
 __all__ = [
     "VARIANCE_TARGETS",
+    "EnsembleHead",
     "GaussianHead",
     "IQNHead",
     "SafetyHead",
@@ -145,6 +146,10 @@ class SafetyHead:
         """The detached ``cost_value`` and ``cost_variance`` (``None`` where there is none)."""
         variance = None if values.variance is None else values.variance.detach()
         return {"cost_value": values.mean.detach(), "cost_variance": variance}
+
+    def row_shape(self, values: SafetyValues) -> torch.Size:
+        """The batch shape ``*B`` of ``values`` (what :meth:`cvar` returns)."""
+        return values.mean.shape
 
 
 class GaussianHead(SafetyHead):
@@ -520,6 +525,155 @@ class IQNHead(SafetyHead):
         }
 
 
+class EnsembleHead(SafetyHead):
+    """``members`` safety critics of one kind, read pessimistically: the largest Γ.
+
+    Each member is an independent critic of the ``member`` head's kind (its own
+    initialisation, its own target network, its own TD loss against its own targets);
+    the loss holds their parameters stacked along a leading dimension of size
+    ``members`` (TorchRL's convention for the twin reward critics). Every reading
+    returns the members' :class:`SafetyValues` stacked the same way, ``[members, *B]``.
+
+    * :meth:`loss`: each member's TD loss, summed over the members (TorchRL's SAC
+      sums its reward critics' losses the same way), so each member's gradient is
+      exactly its own single-critic gradient;
+    * :meth:`cvar`: Γ(s, a, α) = ``max_k Γ_k(s, a, α)``, the actor's and κ's reading:
+      where the members disagree (state-actions the data has not pinned down, e.g. a
+      route the policy has just found), the most pessimistic one counts;
+    * :meth:`mixture_cvar`: the largest member's CVaR of its own mixture over the rows;
+    * :meth:`diagnostics` and :meth:`estimates`: per row, the member whose Γ is the
+      largest (so ``cost_value``, ``cost_variance`` and ``cvar`` belong together).
+
+    Example:
+        >>> import torch
+        >>> from wcsac_rl.modules import make_safety_critic
+        >>> from wcsac_rl.objectives import WCSACLoss
+        >>> member = GaussianHead(make_safety_critic(3, 1), WCSACLoss.default_keys(),
+        ...                       risk_level=0.5, nonnegative_cost=False)
+        >>> head = EnsembleHead(member, members=2)
+        >>> mean, variance = torch.tensor([[1.0, 5.0], [3.0, 0.0]]), torch.ones(2, 2)
+        >>> head.cvar(SafetyValues(mean, variance))  # per row, the larger of 1.80 and 3.80 ...
+        tensor([3.7979, 5.7979])
+    """
+
+    def __init__(self, member: SafetyHead, *, members: int) -> None:
+        _check_count("members", members)
+        if members < 2:
+            raise ValueError(f"an ensemble needs members >= 2, got {members}")
+        super().__init__(
+            member.network,
+            member.keys,
+            risk_level=member.risk_level,
+            nonnegative_cost=member.nonnegative_cost,
+        )
+        self.member, self.members = member, int(members)
+
+    kind = property(lambda self: self.member.kind)
+    has_variance = property(lambda self: self.member.has_variance)
+    loss_names = property(lambda self: self.member.loss_names)
+    diagnostic_names = property(lambda self: self.member.diagnostic_names)
+    random_readings = property(lambda self: self.member.random_readings)
+    in_keys = property(lambda self: self.member.in_keys)
+
+    def unfused_reason(self) -> str:
+        return (
+            f"fuse_critics=True: {self.members} safety critics (num_safety_nets) are "
+            "read one after the other, not fused with the reward critics; use "
+            "fuse_critics=None"
+        )
+
+    def _each(self, values: SafetyValues) -> list[SafetyValues]:
+        return [
+            SafetyValues(*(None if v is None else v[k] for v in values))
+            for k in range(self.members)
+        ]
+
+    @staticmethod
+    def _stack(readings: list) -> SafetyValues:
+        return SafetyValues(*(None if v[0] is None else torch.stack(v) for v in zip(*readings)))
+
+    def values(
+        self,
+        tensordict: TensorDictBase,
+        params: TensorDictBase,
+        action: Tensor | None = None,
+        *,
+        target: bool = False,
+        stratified: bool = True,
+    ) -> SafetyValues:
+        """Every member's values (``params``: stacked ``[members, ...]``), ``[members, *B]``."""
+        return self._stack(
+            [
+                self.member.values(
+                    tensordict, params[k], action, target=target, stratified=stratified
+                )
+                for k in range(self.members)
+            ]
+        )
+
+    def targets(
+        self, cost: Tensor, gamma: Tensor, alive: Tensor, ahead: SafetyValues
+    ) -> dict[str, Tensor | None]:
+        """Each member's targets from its own target critic, stacked ``[members, *B, ...]``."""
+        each = [self.member.targets(cost, gamma, alive, v) for v in self._each(ahead)]
+        return {
+            key: None if each[0][key] is None else torch.stack([t[key] for t in each])
+            for key in each[0]
+        }
+
+    def loss(self, values: SafetyValues, targets: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Per row: each term summed over the members."""
+        each = [
+            self.member.loss(v, {k: None if t is None else t[m] for k, t in targets.items()})
+            for m, v in enumerate(self._each(values))
+        ]
+        return {name: sum(terms[name] for terms in each) for name in each[0]}
+
+    def variance_target(self, targets: dict[str, Tensor], cost_value: Tensor) -> Tensor:
+        """The member head's variance target, member by member (stacked in, stacked out)."""
+        return self.member.variance_target(targets, cost_value)
+
+    def member_cvars(self, values: SafetyValues) -> Tensor:
+        """Each member's Γ, ``[members, *B]``."""
+        return torch.stack([self.member.cvar(v) for v in self._each(values)])
+
+    def cvar(self, values: SafetyValues) -> Tensor:
+        """Γ = the largest member's Γ per row, ``[*B]``."""
+        return self.member_cvars(values).max(0)[0]
+
+    def mixture_cvar(self, values: SafetyValues, weights: Tensor | None = None) -> Tensor:
+        """The largest of the members' mixture CVaRs (0-dim)."""
+        return torch.stack([self.member.mixture_cvar(v, weights) for v in self._each(values)]).max()
+
+    def row_shape(self, values: SafetyValues) -> torch.Size:
+        return values.mean.shape[1:]
+
+    @staticmethod
+    def _pick(pick: Tensor, readings: dict) -> dict:
+        """``readings`` (each ``[members, *B, ...]``) of member ``pick`` (``[*B]``) per row."""
+        out = {}
+        for name, value in readings.items():
+            if value is None:
+                out[name] = None
+                continue
+            index = pick.reshape(1, *pick.shape, *([1] * (value.dim() - 1 - pick.dim())))
+            out[name] = value.gather(0, index.expand(1, *value.shape[1:])).squeeze(0)
+        return out
+
+    def diagnostics(self, values: SafetyValues) -> dict[str, Tensor | None]:
+        """The detached ``cost_value`` and ``cost_variance`` of the member with the
+        largest Γ, per row."""
+        values = values.detach()
+        return self._pick(self.member_cvars(values).argmax(0), self.member.diagnostics(values))
+
+    def estimates(self, tensordict: TensorDictBase, params: TensorDictBase) -> dict[str, Tensor]:
+        """The member head's estimates of the member with the largest Γ per row
+        (``cvar`` is then :meth:`cvar`)."""
+        each = [self.member.estimates(tensordict, params[k]) for k in range(self.members)]
+        stacked = {key: torch.stack([e[key] for e in each]) for key in each[0]}
+        return self._pick(stacked["cvar"].argmax(0), stacked)
+
+
 def _check_count(name: str, count) -> None:
     if int(count) != count or count < 1:
         raise ValueError(f"{name} must be an integer >= 1, got {count}")
@@ -536,15 +690,36 @@ def make_safety_head(
     num_quantiles: int = 20,
     num_target_quantiles: int = 20,
     huber_kappa: float = 1.0,
-) -> GaussianHead | IQNHead:
+    members: int = 1,
+) -> GaussianHead | IQNHead | EnsembleHead:
     """The head for ``network``: the one place that decides the safety critic's kind.
 
     An implicit quantile network (an :class:`~wcsac_rl.modules.IQNSafetyCritic`, or a
     module reading ``keys.quantile_fractions``) gets an :class:`IQNHead`, anything
     else a :class:`GaussianHead`. Every option is checked whichever the kind; the
     Gaussian head's ``variance_loss`` / ``variance_target`` are refused for an IQN
-    critic unless left at their defaults.
+    critic unless left at their defaults. ``members`` > 1: that many critics of the
+    kind, read by an :class:`EnsembleHead` (their parameters stacked).
     """
+    _check_count("num_safety_nets", members)
+    head = _make_member_head(
+        network,
+        keys,
+        risk_level=risk_level,
+        nonnegative_cost=nonnegative_cost,
+        variance_loss=variance_loss,
+        variance_target=variance_target,
+        num_quantiles=num_quantiles,
+        num_target_quantiles=num_target_quantiles,
+        huber_kappa=huber_kappa,
+    )
+    return head if members == 1 else EnsembleHead(head, members=members)
+
+
+def _make_member_head(
+    network, keys, *, risk_level, nonnegative_cost, variance_loss, variance_target,
+    num_quantiles, num_target_quantiles, huber_kappa,
+) -> GaussianHead | IQNHead:  # fmt: skip
     if variance_target not in VARIANCE_TARGETS:
         raise ValueError(
             f"variance_target must be one of {VARIANCE_TARGETS}, got {variance_target!r}"

@@ -109,16 +109,37 @@ def sample_alive(
     return scatter_rows(action, alive), scatter_rows(log_prob, alive)
 
 
-def convert_safety_network(loss, safety_network, separate_losses: bool) -> None:
+def convert_safety_network(
+    loss, safety_network, separate_losses: bool, num_safety_nets: int = 1
+) -> None:
     """``loss``'s safety critic's functional parameters, as
     :class:`~torchrl.objectives.SACLoss` makes the reward critic's where it shares
     tensors with the actor (a common trunk): with ``separate_losses`` it reads the
     actor's tensors without training them (only the actor loss does); without, it gets
-    its own trainable copy of them (its loss trains that copy, never the actor's)."""
+    its own trainable copy of them (its loss trains that copy, never the actor's).
+
+    ``num_safety_nets`` > 1: that many critics, their parameters stacked along a
+    leading dimension (as TorchRL stacks the reward critics): from a list of that many
+    modules of one structure (each keeps its own initialisation), or from one module
+    re-drawn per member (TorchRL's ``expand_dim``)."""
+    if isinstance(safety_network, (list, tuple)):
+        if len(safety_network) != num_safety_nets:
+            raise ValueError(
+                f"num_safety_nets={num_safety_nets} but {len(safety_network)} safety "
+                f"critics were given: pass num_safety_nets={len(safety_network)}"
+            )
+        if num_safety_nets == 1:
+            safety_network = safety_network[0]
+        else:
+            loss.convert_to_functional(
+                list(safety_network), "safety_network", num_safety_nets, create_target_params=True
+            )
+            return
     actor_params = list(loss.actor_network_params.values(True, True))
     loss.convert_to_functional(
         safety_network,
         "safety_network",
+        num_safety_nets if num_safety_nets > 1 else None,
         create_target_params=True,
         compare_against=actor_params if separate_losses else None,
     )

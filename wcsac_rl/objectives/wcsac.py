@@ -79,11 +79,13 @@ class WCSACLoss(SACLoss):
         qvalue_network (TensorDictModule or list of them): the reward critic ``Q^r(s, a)``
             (a list gives independently initialised twins; see
             :class:`~torchrl.objectives.SACLoss`).
-        safety_network (TensorDictModule): the safety critic
+        safety_network (TensorDictModule or list of them): the safety critic
             (:func:`wcsac_rl.modules.make_safety_critic`): Gaussian (``"cost_value"`` and
             ``"cost_variance"``; mean-only at ``risk_level=1``) or an implicit quantile
             network (``"quantile_fractions"`` → ``"cost_quantiles"``); its head
-            (:func:`~wcsac_rl.objectives.safety_head.make_safety_head`) reads it.
+            (:func:`~wcsac_rl.objectives.safety_head.make_safety_head`) reads it. A list
+            of ``num_safety_nets`` modules of one structure gives that many
+            independently initialised critics.
 
     Keyword Args:
         risk_level (float): the paper's α ∈ (0, 1], the tail fraction whose mean cost
@@ -104,6 +106,12 @@ class WCSACLoss(SACLoss):
             adds to collected data.
         nonnegative_cost (bool): ``max(Q^c, 0)`` wherever Q^c is *used* (targets, Γ),
             not where it is fitted.
+        num_safety_nets (int): how many safety critics (default 1, the paper). With more,
+            each has its own target network and TD loss (summed over them), and the actor
+            and κ read the largest Γ among them
+            (:class:`~wcsac_rl.objectives.safety_head.EnsembleHead`): pessimism where
+            the critics disagree. Given one module, the others are re-drawn from it as
+            TorchRL's ``expand_dim`` does; given a list, each keeps its own initialisation.
         variance_loss, variance_target (str): the Gaussian head's variance TD loss and
             target (:class:`~wcsac_rl.objectives.safety_head.GaussianHead`).
         num_quantiles, num_target_quantiles (int), huber_kappa (float): the IQN head's
@@ -222,7 +230,7 @@ class WCSACLoss(SACLoss):
         self,
         actor_network: ProbabilisticTensorDictSequential,
         qvalue_network: TensorDictModule | list[TensorDictModule],
-        safety_network: TensorDictModule,
+        safety_network: TensorDictModule | list[TensorDictModule],
         *,
         risk_level: float = SafetyOptions.risk_level,
         cost_limit: float = 15.0,
@@ -251,6 +259,7 @@ class WCSACLoss(SACLoss):
         fuse_critics: bool | None = None,
         direct_sampling: bool | None = None,
         num_qvalue_nets: int = 2,
+        num_safety_nets: int = SafetyOptions.num_safety_nets,
         loss_function: str = "l2",
         check_finite: bool = False,
         **sac_kwargs,
@@ -285,7 +294,10 @@ class WCSACLoss(SACLoss):
             loss_function=loss_function,
             **sac_kwargs,
         )
-        convert_safety_network(self, safety_network, sac_kwargs.get("separate_losses", False))
+        convert_safety_network(
+            self, safety_network, sac_kwargs.get("separate_losses", False), num_safety_nets
+        )
+        self.num_safety_nets = int(num_safety_nets)
         self.cost_target = CostTarget(
             self.tensor_keys,
             gamma=cost_gamma,
@@ -302,6 +314,7 @@ class WCSACLoss(SACLoss):
             num_quantiles=num_quantiles,
             num_target_quantiles=num_target_quantiles,
             huber_kappa=huber_kappa,
+            members=self.num_safety_nets,
         )
         self.constraint_signal = ConstraintSignal(
             self.safety_head,

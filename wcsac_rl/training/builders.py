@@ -129,7 +129,7 @@ class Agent:
 
     actor: ProbabilisticActor
     qvalues: list[TensorDictModule]
-    safety: TensorDictModule | None
+    safety: TensorDictModule | list[TensorDictModule] | None  # (a list: num_safety_nets > 1)
 
 
 def network_shape(cfg: DictConfig) -> dict[str, Any]:
@@ -158,15 +158,18 @@ def make_agent(cfg: DictConfig, env: EnvBase, devices: RunDevices | None = None)
     if cfg.algo.name in ("wcsac", "sac_lag"):
         options = safety_options(cfg.algo)
         if options.safety_critic == "iqn":
-            num_cosines = options.iqn.num_cosines
-            safety = make_safety_critic(
-                obs_dim, act_dim, kind="iqn", num_cosines=num_cosines, **shape
-            )
+            kwargs = {"kind": "iqn", "num_cosines": options.iqn.num_cosines}
         else:
-            safety = make_safety_critic(obs_dim, act_dim, variance=options.variance, **shape)
+            kwargs = {"variance": options.variance}
+        # one module, or num_safety_nets of them, each initialised on its own
+        critics = [
+            make_safety_critic(obs_dim, act_dim, **kwargs, **shape)
+            for _ in range(options.num_safety_nets)
+        ]
+        safety = critics[0] if len(critics) == 1 else critics
     device = (devices or run_devices(cfg)).learner
     actor.to(device)
-    for module in [*qvalues, safety]:
+    for module in [*qvalues, *(safety if isinstance(safety, list) else [safety])]:
         if module is not None:
             module.to(device)
     return Agent(actor, qvalues, safety)
