@@ -552,7 +552,7 @@ class EnsembleHead(SafetyHead):
         ...                       risk_level=0.5, nonnegative_cost=False)
         >>> head = EnsembleHead(member, members=2)
         >>> mean, variance = torch.tensor([[1.0, 5.0], [3.0, 0.0]]), torch.ones(2, 2)
-        >>> head.cvar(SafetyValues(mean, variance))  # per row, the larger of 1.80 and 3.80 ...
+        >>> head.cvar(SafetyValues(mean, variance))  # max(1.80, 3.80), max(5.80, 0.80)
         tensor([3.7979, 5.7979])
     """
 
@@ -717,9 +717,17 @@ def make_safety_head(
 
 
 def _make_member_head(
-    network, keys, *, risk_level, nonnegative_cost, variance_loss, variance_target,
-    num_quantiles, num_target_quantiles, huber_kappa,
-) -> GaussianHead | IQNHead:  # fmt: skip
+    network,
+    keys,
+    *,
+    risk_level,
+    nonnegative_cost,
+    variance_loss,
+    variance_target,
+    num_quantiles,
+    num_target_quantiles,
+    huber_kappa,
+) -> GaussianHead | IQNHead:
     if variance_target not in VARIANCE_TARGETS:
         raise ValueError(
             f"variance_target must be one of {VARIANCE_TARGETS}, got {variance_target!r}"
