@@ -6,6 +6,9 @@ STAMP  := $(VENV)/.installed
 # One torch thread per process unless the caller says otherwise (2-core machine).
 export OMP_NUM_THREADS ?= 1
 export MUJOCO_GL ?= egl
+# Test workers (pytest-xdist): one per core by default; each test file runs whole on
+# one worker, so its module fixtures are built once. TEST_WORKERS=0: one process.
+TEST_WORKERS ?= auto
 
 .PHONY: install test test-fast train lint bench clean
 
@@ -21,10 +24,10 @@ $(STAMP): pyproject.toml constraints.txt
 	touch $(STAMP)
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 test-fast: $(STAMP)
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow"
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
