@@ -112,9 +112,8 @@ def test_an_iqn_ensemble_reads_the_larger_quantile_function():
     member = make_safety_head(module, keys, risk_level=0.2, nonnegative_cost=False)
     head = make_safety_head(module, keys, risk_level=0.2, nonnegative_cost=False, members=2)
     assert isinstance(head, EnsembleHead) and head.kind == "iqn"
-    params = torch.stack([TensorDict.from_module(module)] * 2).clone()
-    params.set("module", params.get("module").clone())
-    params.get("module").set("scale", torch.tensor([1.0, 3.0]))
+    assert list(TensorDict.from_module(module).keys(True, True)) == [("module", "scale")]
+    params = TensorDict({"module": {"scale": torch.tensor([1.0, 3.0])}}, [2])
     td = TensorDict({"observation": torch.tensor([[1.0, 2.0], [0.5, 0.0]])}, [2])
     one = member.estimates(td, TensorDict.from_module(module))
     both = head.estimates(td, params)
