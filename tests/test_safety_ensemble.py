@@ -26,13 +26,13 @@ from wcsac_rl.training import make_trainer
 PLAIN = {"cost_n_steps": 1, "kappa_states": "replay", "risk_level": 0.5}
 
 
-def _ensemble_and_singles(kind: str = "gaussian", **kwargs):
+def _ensemble_and_singles(**kwargs):
     """A two-member loss and one single-critic loss per member, sharing actor and
     reward critics; every loss reads its critics one by one (no fused products)."""
     torch.manual_seed(0)
     actor = make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=32)
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=32) for _ in range(2)]
-    members = [make_safety_critic(OBS_DIM, ACT_DIM, kind=kind, width=32) for _ in range(2)]
+    members = [make_safety_critic(OBS_DIM, ACT_DIM, width=32) for _ in range(2)]
     options = {**PLAIN, "fuse_critics": False, **kwargs}
     ensemble = WCSACLoss(actor, qvalues, members, num_safety_nets=2, **options)
     singles = [WCSACLoss(actor, qvalues, member, **options) for member in members]

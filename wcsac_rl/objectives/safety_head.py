@@ -592,6 +592,14 @@ class EnsembleHead(SafetyHead):
     def _stack(readings: list) -> SafetyValues:
         return SafetyValues(*(None if v[0] is None else torch.stack(v) for v in zip(*readings)))
 
+    @staticmethod
+    def _stack_dicts(each: list[dict]) -> dict:
+        """The members' dicts of tensors (``None`` where a head has none) stacked per key."""
+        return {
+            key: None if each[0][key] is None else torch.stack([d[key] for d in each])
+            for key in each[0]
+        }
+
     def values(
         self,
         tensordict: TensorDictBase,
@@ -615,11 +623,9 @@ class EnsembleHead(SafetyHead):
         self, cost: Tensor, gamma: Tensor, alive: Tensor, ahead: SafetyValues
     ) -> dict[str, Tensor | None]:
         """Each member's targets from its own target critic, stacked ``[members, *B, ...]``."""
-        each = [self.member.targets(cost, gamma, alive, v) for v in self._each(ahead)]
-        return {
-            key: None if each[0][key] is None else torch.stack([t[key] for t in each])
-            for key in each[0]
-        }
+        return self._stack_dicts(
+            [self.member.targets(cost, gamma, alive, v) for v in self._each(ahead)]
+        )
 
     def loss(self, values: SafetyValues, targets: dict[str, Tensor]) -> dict[str, Tensor]:
         """Per row: each term summed over the members."""
@@ -669,8 +675,9 @@ class EnsembleHead(SafetyHead):
     def estimates(self, tensordict: TensorDictBase, params: TensorDictBase) -> dict[str, Tensor]:
         """The member head's estimates of the member with the largest Γ per row
         (``cvar`` is then :meth:`cvar`)."""
-        each = [self.member.estimates(tensordict, params[k]) for k in range(self.members)]
-        stacked = {key: torch.stack([e[key] for e in each]) for key in each[0]}
+        stacked = self._stack_dicts(
+            [self.member.estimates(tensordict, params[k]) for k in range(self.members)]
+        )
         return self._pick(stacked["cvar"].argmax(0), stacked)
 
 
