@@ -31,7 +31,7 @@ BAD_VALUES = [
     ),
     ("algo.alpha_init=-1", "algo.alpha_init must be > 0 (a number), got -1"),
     ("algo.alpha_init=0", "algo.alpha_init must be > 0 (a number), got 0"),
-    ("algo.kappa_init=abc", "algo.kappa_init must be > 0 (a number), got 'abc'"),
+    ("algo.kappa_init=abc", "algo.kappa_init must be >= 0 (a number), got 'abc'"),
     ("algo.cost_gamma=abc", "algo.cost_gamma must be null or in [0, 1] (a number), got 'abc'"),
     ("algo.variance=3", "algo.variance must be true or false, got 3"),
     ("algo.iqn.huber_kappa=x", "algo.iqn.huber_kappa must be > 0 (a number), got 'x'"),

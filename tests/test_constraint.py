@@ -412,6 +412,12 @@ def test_bad_pid_config_is_one_line_naming_the_option(tmp_path, override, messag
             "algo.kappa_max=0.1 bounds the gradient rule's κ; with algo.kappa_rule=pid the "
             "bound is algo.pid.max_kappa",
         ),
+        (
+            ["algo.kappa_init=0"],
+            "algo.kappa_init must be > 0 with the gradient rule (κ is softplus or exp of a "
+            "parameter; algo.kappa_rule=pid may start at 0), got 0",
+        ),
+        (["algo.kappa_rule=pid", "algo.kappa_init=-1"], "algo.kappa_init must be >= 0"),
     ],
 )
 def test_bad_kappa_max_config_is_one_line_naming_the_option(tmp_path, overrides, message):
@@ -443,6 +449,15 @@ def test_kappa_bounds_reach_the_loss_constraint(tmp_path, algo):
         assert pid.loss.constraint.kappa_min == 0.02
     finally:
         pid.close()
+    # a PID controller may start at κ = 0 from the config as from the constructor
+    zero = make_trainer(
+        compose_config("env=tiny", f"algo={algo}", "algo.kappa_rule=pid", "algo.kappa_init=0"),
+        tmp_path / "z",
+    )
+    try:
+        assert float(zero.loss.constraint.kappa) == 0.0
+    finally:
+        zero.close()
 
 
 def test_a_delay_longer_than_the_run_is_refused(tmp_path):

@@ -137,7 +137,7 @@ CONFIG = [
     ("algo.network.activation=foo", "algo.network.activation must be one of relu"),
     ("algo.network.log_std_min=5", "algo.network.log_std_min (5) must be < algo.network"),
     ("algo.alpha_init=-1", "algo.alpha_init must be > 0 (a number), got -1"),
-    ("algo.kappa_init=0", "algo.kappa_init must be > 0 (a number), got 0"),
+    ("algo.kappa_init=0", "algo.kappa_init must be > 0 with the gradient rule"),
     ("algo.kappa_lr_scale=0", "algo.kappa_lr_scale must be > 0 (a number), got 0"),
     ("algo.damp_scale=-1", "algo.damp_scale must be >= 0 (a number), got -1"),
     ("algo.cost_gamma=2", "algo.cost_gamma must be null or in [0, 1] (a number), got 2"),

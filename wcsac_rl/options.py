@@ -489,10 +489,10 @@ class SafetyOptions:
     )
     kappa_init: float = option(
         math.log(2.0),
-        "κ's initial value: softplus(0), the authors'",
+        "κ's initial value: softplus(0), the authors'; > 0 under the gradient rule, "
+        "the PID rule may start at 0",
         "number",
         low=0.0,
-        low_open=True,
     )
     kappa_parametrization: str = option(
         "softplus",
@@ -599,12 +599,10 @@ SAVED_RUN_VALUES: Mapping[str, Any] = MappingProxyType(_saved_run_values(SafetyO
 
 def check_loss_options(arguments: Mapping[str, Any]) -> None:
     """Check the loss's arguments that are options (:data:`LOSS_OPTIONS`; the others are
-    left alone) with :func:`check_value`: ``kappa_init must be > 0 (a number), got 0``."""
+    left alone) with :func:`check_value`: ``kappa_init must be >= 0 (a number), got -1``."""
     for name in LOSS_OPTIONS:
         if name not in arguments:
             continue
-        if name == "kappa_init" and arguments.get("kappa_rule") == "pid":
-            continue  # (a PID controller may start at κ = 0: PIDLagrangian checks it)
         cls = SafetyOptions if name in SafetyOptions.__dataclass_fields__ else IQNOptions
         check_value(name, arguments[name], option_spec(cls, name))
 
@@ -616,14 +614,21 @@ def check_kappa_bound(
     prefix: str = "",
     kappa_min: float = 0.0,
 ) -> None:
-    """What ``kappa_max`` and ``kappa_min`` must be beside the other κ options (each
-    alone is checked by :func:`check_value`; ``kappa_min`` here too, as a constraint
-    built directly has no other check of it): ``kappa_max`` only the gradient rule's
+    """What ``kappa_init``, ``kappa_max`` and ``kappa_min`` must be beside the rule and
+    each other (each alone is checked by :func:`check_value`; ``kappa_min`` here too, as
+    a constraint built directly has no other check of it): ``kappa_init`` > 0 under the
+    gradient rule (κ is a function of a parameter; the PID rule may start at 0);
+    ``kappa_max`` only the gradient rule's
     bound (the PID rule's is ``pid.max_kappa``), finite and at least ``kappa_init``;
     ``kappa_min`` (either rule) at most ``kappa_init``, where κ starts. One
     ``ValueError`` line naming the options with ``prefix`` (``"algo."``: the config
     validator; ``""``: the constraint). The one definition of these relations, for the
     config and the loss."""
+    if rule != "pid" and not kappa_init > 0:
+        raise ValueError(
+            f"{prefix}kappa_init must be > 0 with the gradient rule (κ is softplus or exp "
+            f"of a parameter; {prefix}kappa_rule=pid may start at 0), got {kappa_init:g}"
+        )
     check_value(f"{prefix}kappa_min", kappa_min, option_spec(SafetyOptions, "kappa_min"))
     if kappa_min > kappa_init:
         raise ValueError(

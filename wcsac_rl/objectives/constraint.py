@@ -96,10 +96,6 @@ class GradientLagrangian(nn.Module):
         kappa_min: float = 0.0,
     ) -> None:
         super().__init__()
-        if not kappa_init > 0:
-            raise ValueError(
-                f"kappa_init must be > 0 (κ is a Lagrange multiplier), got {kappa_init}"
-            )
         if parametrization not in KAPPA_PARAMETRIZATIONS:
             raise ValueError(
                 f"kappa_parametrization must be one of {KAPPA_PARAMETRIZATIONS}, "
