@@ -133,6 +133,7 @@ ADDED_SINCE = {
     "kappa_test_window": 0,
     "kappa_min": 0.0,
     "num_safety_nets": 1,
+    "ensemble_target": "own",
 }
 
 

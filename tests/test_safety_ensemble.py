@@ -20,13 +20,13 @@ from torchrl.data import Bounded
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives.safety_head import EnsembleHead, SafetyValues, make_safety_head
-from wcsac_rl.training import make_trainer
+from wcsac_rl.training import ConfigError, make_trainer
 
 # one-step targets at the replay states: the batch needs no n-step or start-state entries
 PLAIN = {"cost_n_steps": 1, "kappa_states": "replay", "risk_level": 0.5}
 
 
-def _ensemble_and_singles(**kwargs):
+def _ensemble_and_singles(ensemble_target="own", **kwargs):
     """A two-member loss and one single-critic loss per member, sharing actor and
     reward critics; every loss reads its critics one by one (no fused products)."""
     torch.manual_seed(0)
@@ -34,7 +34,9 @@ def _ensemble_and_singles(**kwargs):
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=32) for _ in range(2)]
     members = [make_safety_critic(OBS_DIM, ACT_DIM, width=32) for _ in range(2)]
     options = {**PLAIN, "fuse_critics": False, **kwargs}
-    ensemble = WCSACLoss(actor, qvalues, members, num_safety_nets=2, **options)
+    ensemble = WCSACLoss(
+        actor, qvalues, members, num_safety_nets=2, ensemble_target=ensemble_target, **options
+    )
     singles = [WCSACLoss(actor, qvalues, member, **options) for member in members]
     return ensemble, singles
 
@@ -180,5 +182,110 @@ def test_the_config_builds_that_many_critics_each_initialised_on_its_own(tmp_pat
         first = next(iter(loss.safety_network_params.values(True, True)))
         assert first.shape[0] == 2 and not torch.equal(first[0], first[1])
         assert len(trainer.agent.safety) == 2
+    finally:
+        trainer.close()
+
+
+# ------------------------------------------------------- ensemble_target="max"
+def test_max_target_bootstraps_every_member_from_the_largest_target_row_by_row():
+    """Gaussian: per row the member with the larger target mean Q̄^c gives both
+    members' targets (its mean and its variance); "own" keeps each member's."""
+    keys = WCSACLoss.default_keys()
+    torch.manual_seed(0)
+    member = make_safety_head(make_safety_critic(3, 1, width=8), keys, risk_level=0.5)
+    ahead = SafetyValues(
+        torch.tensor([[1.0, 5.0, 2.0], [3.0, 0.0, 2.5]]),
+        torch.tensor([[1.0, 2.0, 7.0], [3.0, 4.0, 9.0]]),
+    )
+    cost, gamma, alive = torch.tensor([0.5, 0.0, 1.0]), torch.tensor(0.5), torch.ones(3)
+    shared = EnsembleHead(member, members=2, target="max").targets(cost, gamma, alive, ahead)
+    mean, variance = torch.tensor([3.0, 5.0, 2.5]), torch.tensor([3.0, 2.0, 9.0])
+    expected = member.targets(cost, gamma, alive, SafetyValues(mean, variance))
+    for key in ("cost_target", "cost_second_moment", "cost_next_variance"):
+        assert shared[key].shape == (2, 3)
+        assert torch.equal(shared[key][0], expected[key]) and torch.equal(
+            shared[key][1], expected[key]
+        )
+    # cost + γ·Q̄ of the picked member: 0.5 + 1.5, 0 + 2.5, 1 + 1.25
+    assert torch.equal(shared["cost_target"][0], torch.tensor([2.0, 2.5, 2.25]))
+    own = EnsembleHead(member, members=2).targets(cost, gamma, alive, ahead)
+    assert torch.equal(own["cost_target"][0], torch.tensor([1.0, 2.5, 2.0]))
+
+
+def test_max_target_of_an_iqn_ensemble_takes_the_larger_members_quantiles():
+    keys = WCSACLoss.default_keys()
+    member = make_safety_head(
+        linear_quantile_critic(), keys, risk_level=0.2, nonnegative_cost=False
+    )
+    quantiles = torch.tensor([[[0.0, 2.0], [4.0, 6.0]], [[1.0, 3.0], [0.0, 1.0]]])  # [2, B=2, N=2]
+    ahead = SafetyValues(quantiles.mean(-1), None, quantiles, torch.rand(2, 2))
+    cost, gamma, alive = torch.tensor([1.0, 0.0]), torch.tensor(0.5), torch.tensor([1.0, 0.0])
+    shared = EnsembleHead(member, members=2, target="max").targets(cost, gamma, alive, ahead)
+    # row 0: member 1 (mean 2 > 1): 1 + 0.5·[1, 3]; row 1: member 0, but terminated: 0
+    expected = torch.tensor([[1.5, 2.5], [0.0, 0.0]])
+    assert torch.equal(shared["cost_target_quantiles"], expected.expand(2, 2, 2))
+    assert torch.equal(shared["cost_target"][1], torch.tensor([2.0, 0.0]))
+
+
+def test_max_target_in_the_loss_is_each_member_bootstrapping_from_the_pessimistic_one():
+    """Member 1's target critic made pessimistic everywhere (+50 on its mean's output):
+    with "max" both members' TD losses are a single critic's whose target critic is
+    member 1's; with "own" member 0 keeps its own."""
+    out = {}
+    for target in ("own", "max"):
+        ensemble, singles = _ensemble_and_singles(ensemble_target=target)
+        last_bias = ("module", "mean_net", "4", "bias")
+        assert ensemble.target_safety_network_params.get(last_bias).shape == (2, 1)
+        with torch.no_grad():
+            ensemble.target_safety_network_params.get(last_bias)[1] += 50.0
+            pessimistic = ensemble.target_safety_network_params[1]
+            # "max": both members bootstrap from member 1's; "own": member 1 alone does
+            for single in singles if target == "max" else singles[1:]:
+                single.target_safety_network_params.update_(pessimistic)
+        batch = make_batch(16)
+        terms = _safety_terms(ensemble, batch)
+        alone = [_safety_terms(single, batch) for single in singles]
+        out[target] = terms[0]
+        assert_close_f32(terms[0], alone[0][0] + alone[1][0], ops=32, msg=target)
+        assert_close_f32(terms[1], alone[0][1] + alone[1][1], ops=32, msg=target)
+    assert out["own"] < out["max"]  # member 0 regresses on targets ~50 higher
+
+
+def test_max_target_needs_several_critics_and_a_known_name(tmp_path):
+    torch.manual_seed(0)
+    actor = make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=8)
+    qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)]
+    critic = make_safety_critic(OBS_DIM, ACT_DIM, width=8)
+    message = (
+        "ensemble_target='max' picks among several safety critics: it needs num_safety_nets >= 2"
+    )
+    with pytest.raises(ValueError, match=re.escape(message)):
+        WCSACLoss(actor, qvalues, critic, ensemble_target="max", **PLAIN)
+    with pytest.raises(
+        ValueError, match=re.escape("ensemble_target must be one of own, max, got 'min'")
+    ):
+        WCSACLoss(actor, qvalues, critic, num_safety_nets=2, ensemble_target="min", **PLAIN)
+    for overrides, line in (
+        (
+            ["algo.ensemble_target=max"],
+            "algo.ensemble_target=max picks among several safety critics: it needs algo.num_safety_nets >= 2",
+        ),
+        (
+            ["algo.num_safety_nets=2", "algo.ensemble_target=mean"],
+            "algo.ensemble_target must be one of own, max, got 'mean'",
+        ),
+    ):
+        with pytest.raises(ConfigError, match=re.escape(line)):
+            make_trainer(compose_config("env=tiny", *overrides), tmp_path / "r")
+        assert not (tmp_path / "r").exists()
+
+
+def test_the_config_reaches_the_ensemble_target(tmp_path):
+    cfg = compose_config(
+        "env=tiny", "algo.safety_critic=iqn", "algo.num_safety_nets=2", "algo.ensemble_target=max"
+    )
+    trainer = make_trainer(cfg, tmp_path / "r")
+    try:
+        assert trainer.loss.safety_head.target == "max"
     finally:
         trainer.close()

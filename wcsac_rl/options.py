@@ -31,6 +31,7 @@ from typing import Any
 
 __all__ = [
     "CONSTRAINT_RULES",
+    "ENSEMBLE_TARGETS",
     "EPISODE_STATISTICS",
     "KAPPA_ACTIONS",
     "KAPPA_PARAMETRIZATIONS",
@@ -60,6 +61,9 @@ __all__ = [
 # ------------------------------------------------------------------ allowed values
 SAFETY_CRITIC_KINDS = ("gaussian", "iqn")
 """What :func:`~wcsac_rl.modules.make_safety_critic` builds (``kind``)."""
+ENSEMBLE_TARGETS = ("own", "max")
+"""Where several safety critics bootstrap from
+(:class:`~wcsac_rl.objectives.safety_head.EnsembleHead`)."""
 VARIANCE_LOSSES = ("w2", "mse", "glm")
 """The Gaussian head's variance TD losses (:mod:`~wcsac_rl.objectives.variance`)."""
 VARIANCE_TARGETS = ("moment", "td")
@@ -383,6 +387,15 @@ class SafetyOptions:
         "integer",
         low=1,
         saved_run=1,
+    )
+    ensemble_target: str = option(
+        "own",
+        "num_safety_nets > 1: own (each critic bootstraps from its own target critic) or "
+        "max (all bootstrap, per row, from the member whose target value is largest: "
+        "TD3's clipped double-Q, turned pessimistic for a cost)",
+        "choice",
+        choices=ENSEMBLE_TARGETS,
+        saved_run="own",
     )
     iqn: IQNOptions = field(
         default_factory=IQNOptions,

@@ -48,7 +48,7 @@ from wcsac_rl.objectives.risk import (
     quantile_mixture_cvar,
 )
 from wcsac_rl.objectives.variance import variance_regression_loss
-from wcsac_rl.options import VARIANCE_LOSSES, VARIANCE_TARGETS
+from wcsac_rl.options import ENSEMBLE_TARGETS, VARIANCE_LOSSES, VARIANCE_TARGETS
 
 __all__ = [
     "VARIANCE_TARGETS",
@@ -534,9 +534,15 @@ class EnsembleHead(SafetyHead):
     ``members`` (TorchRL's convention for the twin reward critics). Every reading
     returns the members' :class:`SafetyValues` stacked the same way, ``[members, *B]``.
 
+    * :meth:`targets`: ``target="own"``: each member's from its own target critic;
+      ``"max"``: per row, every member's from the target critic of the member whose
+      target value (Q̄^c, the mean) is largest there — TD3's clipped double-Q, which
+      bootstraps from the smaller reward value, turned pessimistic for a cost, so
+      that an under-estimate the actor has found in one member is not copied back
+      through the bootstrap;
     * :meth:`loss`: each member's TD loss, summed over the members (TorchRL's SAC
-      sums its reward critics' losses the same way), so each member's gradient is
-      exactly its own single-critic gradient;
+      sums its reward critics' losses the same way), so with ``target="own"`` each
+      member's gradient is exactly its own single-critic gradient;
     * :meth:`cvar`: Γ(s, a, α) = ``max_k Γ_k(s, a, α)``, the actor's and κ's reading:
       where the members disagree (state-actions the data has not pinned down, e.g. a
       route the policy has just found), the most pessimistic one counts;
@@ -556,17 +562,19 @@ class EnsembleHead(SafetyHead):
         tensor([3.7979, 5.7979])
     """
 
-    def __init__(self, member: SafetyHead, *, members: int) -> None:
+    def __init__(self, member: SafetyHead, *, members: int, target: str = "own") -> None:
         _check_count("members", members)
         if members < 2:
             raise ValueError(f"an ensemble needs members >= 2, got {members}")
+        if target not in ENSEMBLE_TARGETS:
+            raise ValueError(f"ensemble_target must be one of {ENSEMBLE_TARGETS}, got {target!r}")
         super().__init__(
             member.network,
             member.keys,
             risk_level=member.risk_level,
             nonnegative_cost=member.nonnegative_cost,
         )
-        self.member, self.members = member, int(members)
+        self.member, self.members, self.target = member, int(members), target
 
     kind = property(lambda self: self.member.kind)
     has_variance = property(lambda self: self.member.has_variance)
@@ -622,10 +630,20 @@ class EnsembleHead(SafetyHead):
     def targets(
         self, cost: Tensor, gamma: Tensor, alive: Tensor, ahead: SafetyValues
     ) -> dict[str, Tensor | None]:
-        """Each member's targets from its own target critic, stacked ``[members, *B, ...]``."""
-        return self._stack_dicts(
-            [self.member.targets(cost, gamma, alive, v) for v in self._each(ahead)]
-        )
+        """Each member's targets, stacked ``[members, *B, ...]``: from its own target
+        critic (``target="own"``), or all from the member whose target value is the
+        largest, row by row (``"max"``; the rows' picks among ``ahead``'s members)."""
+        if self.target == "own":
+            return self._stack_dicts(
+                [self.member.targets(cost, gamma, alive, v) for v in self._each(ahead)]
+            )
+        rows = {"mean": ahead.mean, "variance": ahead.variance, "quantiles": ahead.quantiles}
+        pessimistic = SafetyValues(**self._pick(ahead.mean.argmax(0), rows))
+        shared = self.member.targets(cost, gamma, alive, pessimistic)
+        return {
+            key: None if value is None else value.expand(self.members, *value.shape)
+            for key, value in shared.items()
+        }
 
     def loss(self, values: SafetyValues, targets: dict[str, Tensor]) -> dict[str, Tensor]:
         """Per row: each term summed over the members."""
@@ -698,6 +716,7 @@ def make_safety_head(
     num_target_quantiles: int = 20,
     huber_kappa: float = 1.0,
     members: int = 1,
+    ensemble_target: str = "own",
 ) -> GaussianHead | IQNHead | EnsembleHead:
     """The head for ``network``: the one place that decides the safety critic's kind.
 
@@ -706,9 +725,19 @@ def make_safety_head(
     else a :class:`GaussianHead`. Every option is checked whichever the kind; the
     Gaussian head's ``variance_loss`` / ``variance_target`` are refused for an IQN
     critic unless left at their defaults. ``members`` > 1: that many critics of the
-    kind, read by an :class:`EnsembleHead` (their parameters stacked).
+    kind, read by an :class:`EnsembleHead` (their parameters stacked), bootstrapping
+    as ``ensemble_target`` says (``"max"`` needs ``members`` > 1).
     """
     _check_count("num_safety_nets", members)
+    if ensemble_target not in ENSEMBLE_TARGETS:
+        raise ValueError(
+            f"ensemble_target must be one of {ENSEMBLE_TARGETS}, got {ensemble_target!r}"
+        )
+    if members == 1 and ensemble_target != "own":
+        raise ValueError(
+            f"ensemble_target={ensemble_target!r} picks among several safety critics: "
+            "it needs num_safety_nets >= 2"
+        )
     head = _make_member_head(
         network,
         keys,
@@ -720,7 +749,7 @@ def make_safety_head(
         num_target_quantiles=num_target_quantiles,
         huber_kappa=huber_kappa,
     )
-    return head if members == 1 else EnsembleHead(head, members=members)
+    return head if members == 1 else EnsembleHead(head, members=members, target=ensemble_target)
 
 
 def _make_member_head(

@@ -112,6 +112,10 @@ class WCSACLoss(SACLoss):
             (:class:`~wcsac_rl.objectives.safety_head.EnsembleHead`): pessimism where
             the critics disagree. Given one module, the others are re-drawn from it as
             TorchRL's ``expand_dim`` does; given a list, each keeps its own initialisation.
+        ensemble_target (str): with ``num_safety_nets`` > 1, where the critics bootstrap:
+            ``"own"`` (each from its own target critic) or ``"max"`` (per row, all from
+            the member whose target value is largest: TD3's clipped double-Q, turned
+            pessimistic for a cost).
         variance_loss, variance_target (str): the Gaussian head's variance TD loss and
             target (:class:`~wcsac_rl.objectives.safety_head.GaussianHead`).
         num_quantiles, num_target_quantiles (int), huber_kappa (float): the IQN head's
@@ -260,6 +264,7 @@ class WCSACLoss(SACLoss):
         direct_sampling: bool | None = None,
         num_qvalue_nets: int = 2,
         num_safety_nets: int = SafetyOptions.num_safety_nets,
+        ensemble_target: str = SafetyOptions.ensemble_target,
         loss_function: str = "l2",
         check_finite: bool = False,
         **sac_kwargs,
@@ -315,6 +320,7 @@ class WCSACLoss(SACLoss):
             num_target_quantiles=num_target_quantiles,
             huber_kappa=huber_kappa,
             members=self.num_safety_nets,
+            ensemble_target=ensemble_target,
         )
         self.constraint_signal = ConstraintSignal(
             self.safety_head,

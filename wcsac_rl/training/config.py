@@ -362,6 +362,11 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int)
             "(episode costs are compared with the episodic limit d), got "
             f"{options.kappa_states}"
         )
+    if options.ensemble_target != "own" and options.num_safety_nets == 1:
+        raise ConfigError(
+            f"algo.ensemble_target={options.ensemble_target} picks among several safety "
+            "critics: it needs algo.num_safety_nets >= 2"
+        )
     if options.kappa_test_window and options.kappa_signal == "critic":
         raise ConfigError(
             f"algo.kappa_test_window={options.kappa_test_window} floors κ's signal by the "
