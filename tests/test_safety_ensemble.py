@@ -257,7 +257,7 @@ def test_max_target_needs_several_critics_and_a_known_name(tmp_path):
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)]
     critic = make_safety_critic(OBS_DIM, ACT_DIM, width=8)
     message = (
-        "ensemble_target='max' picks among several safety critics: it needs num_safety_nets >= 2"
+        "ensemble_target=max picks among several safety critics: it needs num_safety_nets >= 2"
     )
     with pytest.raises(ValueError, match=re.escape(message)):
         WCSACLoss(actor, qvalues, critic, ensemble_target="max", **PLAIN)

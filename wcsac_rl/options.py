@@ -48,6 +48,7 @@ __all__ = [
     "Option",
     "PIDGains",
     "SafetyOptions",
+    "check_ensemble_target",
     "check_fields",
     "check_kappa_bound",
     "check_loss_options",
@@ -631,9 +632,9 @@ def check_kappa_bound(
     each other (each alone is checked by :func:`check_value`; ``kappa_min`` here too, as
     a constraint built directly has no other check of it): ``kappa_init`` > 0 under the
     gradient rule (κ is a function of a parameter; the PID rule may start at 0);
-    ``kappa_max`` only the gradient rule's
-    bound (the PID rule's is ``pid.max_kappa``), finite and at least ``kappa_init``;
-    ``kappa_min`` (either rule) at most ``kappa_init``, where κ starts. One
+    ``kappa_max`` only the gradient rule's bound (the PID rule's is ``pid.max_kappa``),
+    finite and at least ``kappa_init``; ``kappa_min`` (either rule) at most
+    ``kappa_init``, where κ starts. One
     ``ValueError`` line naming the options with ``prefix`` (``"algo."``: the config
     validator; ``""``: the constraint). The one definition of these relations, for the
     config and the loss."""
@@ -659,6 +660,20 @@ def check_kappa_bound(
         raise ValueError(
             f"{prefix}kappa_max must be a finite number >= {prefix}kappa_init "
             f"({kappa_init:g}, where κ starts), got {kappa_max}"
+        )
+
+
+def check_ensemble_target(ensemble_target: str, num_safety_nets: int, prefix: str = "") -> None:
+    """``ensemble_target`` is one of :data:`ENSEMBLE_TARGETS`, and other than ``"own"``
+    only with several safety critics: one ``ValueError`` line naming the options with
+    ``prefix`` (``"algo."``: the config validator; ``""``: the loss). The one definition
+    of this relation, for the config and the loss."""
+    spec = option_spec(SafetyOptions, "ensemble_target")
+    check_value(f"{prefix}ensemble_target", ensemble_target, spec)
+    if ensemble_target != "own" and num_safety_nets == 1:
+        raise ValueError(
+            f"{prefix}ensemble_target={ensemble_target} picks among several safety critics: "
+            f"it needs {prefix}num_safety_nets >= 2"
         )
 
 

@@ -48,7 +48,7 @@ from wcsac_rl.objectives.risk import (
     quantile_mixture_cvar,
 )
 from wcsac_rl.objectives.variance import variance_regression_loss
-from wcsac_rl.options import ENSEMBLE_TARGETS, VARIANCE_LOSSES, VARIANCE_TARGETS
+from wcsac_rl.options import VARIANCE_LOSSES, VARIANCE_TARGETS, check_ensemble_target
 
 __all__ = [
     "VARIANCE_TARGETS",
@@ -566,8 +566,7 @@ class EnsembleHead(SafetyHead):
         _check_count("members", members)
         if members < 2:
             raise ValueError(f"an ensemble needs members >= 2, got {members}")
-        if target not in ENSEMBLE_TARGETS:
-            raise ValueError(f"ensemble_target must be one of {ENSEMBLE_TARGETS}, got {target!r}")
+        check_ensemble_target(target, members)
         super().__init__(
             member.network,
             member.keys,
@@ -729,15 +728,7 @@ def make_safety_head(
     as ``ensemble_target`` says (``"max"`` needs ``members`` > 1).
     """
     _check_count("num_safety_nets", members)
-    if ensemble_target not in ENSEMBLE_TARGETS:
-        raise ValueError(
-            f"ensemble_target must be one of {ENSEMBLE_TARGETS}, got {ensemble_target!r}"
-        )
-    if members == 1 and ensemble_target != "own":
-        raise ValueError(
-            f"ensemble_target={ensemble_target!r} picks among several safety critics: "
-            "it needs num_safety_nets >= 2"
-        )
+    check_ensemble_target(ensemble_target, members)
     head = _make_member_head(
         network,
         keys,

@@ -10,7 +10,13 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
-from wcsac_rl.options import SafetyOptions, check_kappa_bound, range_text, read_options
+from wcsac_rl.options import (
+    SafetyOptions,
+    check_ensemble_target,
+    check_kappa_bound,
+    range_text,
+    read_options,
+)
 from wcsac_rl.training.errors import ConfigError, TrainingError
 
 __all__ = [
@@ -362,11 +368,10 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int)
             "(episode costs are compared with the episodic limit d), got "
             f"{options.kappa_states}"
         )
-    if options.ensemble_target != "own" and options.num_safety_nets == 1:
-        raise ConfigError(
-            f"algo.ensemble_target={options.ensemble_target} picks among several safety "
-            "critics: it needs algo.num_safety_nets >= 2"
-        )
+    try:
+        check_ensemble_target(options.ensemble_target, options.num_safety_nets, prefix="algo.")
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     if options.kappa_test_window and options.kappa_signal == "critic":
         raise ConfigError(
             f"algo.kappa_test_window={options.kappa_test_window} floors κ's signal by the "
