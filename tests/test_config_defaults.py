@@ -1,6 +1,8 @@
-"""The paper presets are PAPER_OPTIONS; saved runs and the κ advice compose as they ran.
+"""The paper presets are PAPER_OPTIONS; the presets (``preset=kit``, ``kit_2026_11``) set
+what they say; saved runs and the κ advice compose as they ran.
 
-(The config's defaults and the loss's are one definition, SafetyOptions: test_options.py.)"""
+(The config's defaults and the loss's are one definition, SafetyOptions, which
+``preset=kit`` then changes for the trainer: test_options.py and below.)"""
 
 from __future__ import annotations
 
@@ -20,15 +22,25 @@ def _algo(*overrides: str):
 
 
 @pytest.mark.parametrize(
-    ("preset", "name"), [("wcsac_paper", "wcsac"), ("sac_lag_paper", "sac_lag")]
+    ("variant", "name"), [("wcsac_paper", "wcsac"), ("sac_lag_paper", "sac_lag")]
 )
-def test_paper_presets_are_the_paper_options_and_nothing_else(preset, name):
-    paper, base = _algo(f"algo={preset}"), _algo(f"algo={name}")
+def test_paper_presets_are_the_paper_options_and_nothing_else(variant, name):
+    """Beside the row as it was before the training-safety change (``preset=kit_2026_11``,
+    whose StaticEnv κ advice is the authors'), the paper variant differs in PAPER_OPTIONS
+    and its label only; under the default ``preset=kit`` it is the same paper variant
+    (the episode window it keeps is read only by kappa_signal max/episodes)."""
+    paper, base = _algo(f"algo={variant}", "preset=kit_2026_11"), _algo(
+        f"algo={name}", "preset=kit_2026_11"
+    )
     assert paper.name == name
     for key, value in PAPER_OPTIONS.items():
         assert paper[key] == value, key
+    assert (paper.safety_critic, paper.alpha_init, paper.actor_lr) == ("gaussian", 1.0, None)
     different = {k for k in base if base[k] != paper[k]}
     assert different == {"label", *(k for k in PAPER_OPTIONS if base[k] != PAPER_OPTIONS[k])}
+    under_kit = _algo(f"algo={variant}")
+    assert under_kit.kappa_signal == "critic"
+    assert {k for k in paper if paper[k] != under_kit[k]} == {"kappa_episode_window"}
 
 
 def test_paper_preset_builds_the_papers_loss():
@@ -104,24 +116,79 @@ def test_a_config_saved_before_the_safety_options_validates_and_builds_what_it_r
     assert loss.safety_critic_kind == "gaussian"
 
 
-@pytest.mark.parametrize("env", ["static", "tiny", "dynamic", "point_goal1", "point_goal2"])
+ENVS = ["static", "tiny", "dynamic", "point_goal1", "point_goal2", "gymnasium"]
+
+
+@pytest.mark.parametrize("env", ENVS)
 def test_kappa_advice_is_the_authors_in_the_units_of_each_formulation(env):
     """The authors' κ advice (lr × 50, damping 10 on harder layouts) was made for a Γ
     held under d's per-step equivalent (1.5 at d = 15); the kit's formulation holds the
-    episode cost at d, ten times larger: its lr scale is theirs / 10 and its damping
-    theirs / 100 (the damping weighs a 10× gap against a 10× critic). The paper presets
-    keep the authors' numbers; StaticEnv's advice (lr × 1, no damping) is the same in both."""
-    harder = env not in ("static", "tiny")
-    for preset in ("wcsac_paper", "sac_lag_paper"):
-        paper = _algo(f"algo={preset}", f"env={env}")
-        assert (paper.kappa_lr_scale, paper.damp_scale) == ((50.0, 10.0) if harder else (1.0, 0.0))
+    episode cost at d, ten times larger: under ``preset=kit_2026_11`` its lr scale is
+    theirs / 10 and its damping theirs / 100 (the damping weighs a 10× gap against a
+    10× critic). The paper presets keep the authors' numbers under either preset;
+    StaticEnv's advice (lr × 1, no damping) is the same in both, as is your own env's.
+    The default ``preset=kit`` has one κ rate for every layout: 0.3 × lr, no damping."""
+    harder = env not in ("static", "tiny", "gymnasium")
+    for preset in ("kit", "kit_2026_11"):
+        for variant in ("wcsac_paper", "sac_lag_paper"):
+            paper = _algo(f"algo={variant}", f"env={env}", f"preset={preset}")
+            advice = (50.0, 10.0) if harder else (1.0, 0.0)
+            assert (paper.kappa_lr_scale, paper.damp_scale) == advice
     # d's per-step equivalent over d: 0.09999568 for the paper's d, γ and T (1 − γ^1000)
     ratio = per_step_cost_threshold(15.0, 0.99, 1000) / 15.0
     assert ratio == pytest.approx(0.1, abs=1e-5)
     for name in ("wcsac", "sac_lag"):
-        kit = _algo(f"algo={name}", f"env={env}")
+        before = _algo(f"algo={name}", f"env={env}", "preset=kit_2026_11")
         expected = (50.0 * 0.1, 10.0 * 0.1**2) if harder else (1.0, 0.0)
-        assert (kit.kappa_lr_scale, kit.damp_scale) == pytest.approx(expected, rel=1e-12)
+        assert (before.kappa_lr_scale, before.damp_scale) == pytest.approx(expected, rel=1e-12)
+        kit = _algo(f"algo={name}", f"env={env}")
+        assert (kit.kappa_lr_scale, kit.damp_scale) == (0.3, 0.0)
+
+
+# What results/training_safety/ measured as C36 (StaticEnv) and D23 (DynamicEnv, also
+# algo.damp_scale=0), on top of the defaults before the change.
+TRAINING_SAFETY_OPTIONS = [
+    "algo.safety_critic=iqn",
+    "algo.kappa_signal=max",
+    "algo.kappa_episode_statistic=cvar",
+    "algo.kappa_episode_window=10",
+    "algo.kappa_lr_scale=0.3",
+    "algo.alpha_init=0.1",
+    "algo.actor_lr=3e-4",
+    "algo.damp_scale=0",
+]
+
+
+def _whole(*overrides: str) -> dict:
+    from omegaconf import OmegaConf
+
+    from wcsac_rl.training.checkpoint import _leaves
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("config", overrides=list(overrides))
+    return _leaves(OmegaConf.to_container(cfg, resolve=True))
+
+
+@pytest.mark.parametrize("env", ENVS)
+@pytest.mark.parametrize("algo", ["wcsac", "sac_lag"])
+def test_the_kit_preset_is_the_measured_candidate_on_the_defaults_before_it(algo, env):
+    """``preset=kit`` (the default) is exactly the earlier defaults with the options the
+    training-safety study screened (C36, D23), and nothing else, in every key of the
+    run's config, for WCSAC and SAC-Lag on every layout."""
+    before = _whole(f"algo={algo}", f"env={env}", "preset=kit_2026_11", *TRAINING_SAFETY_OPTIONS)
+    assert _whole(f"algo={algo}", f"env={env}") == before
+    assert _whole(f"algo={algo}", f"env={env}", "preset=kit") == before
+
+
+@pytest.mark.parametrize("algo", ["sac", "cpo", "random"])
+def test_the_preset_leaves_the_algorithms_without_a_lagrangian_alone(algo):
+    """SAC, CPO and the random policy take nothing from either preset (no safety keys,
+    SAC's own entropy weight and learning rates)."""
+    kit = _whole(f"algo={algo}")
+    assert _whole(f"algo={algo}", "preset=kit_2026_11") == kit
+    assert not any(k.startswith(("algo.kappa", "algo.safety")) for k in kit)
+    if algo == "sac":
+        assert (kit["algo.alpha_init"], kit["algo.actor_lr"]) == (1.0, None)
 
 
 # options added since those runs, and their value then (absent from their config)
@@ -137,32 +204,35 @@ ADDED_SINCE = {
 }
 
 
+# committed studies: their experiment (results/dynamic_laptop/ ran before the κ advice
+# moved to the kit's units: its RESULTS.md says so; dynamic_kappa_units is it since)
+COMMITTED_TABLE1 = {"static_laptop": "table1_static_laptop", "dynamic_kappa_units": "table1_dynamic_laptop"}
+
+
 @pytest.mark.parametrize(
-    "run",
+    ("study", "run"),
     sorted(
-        p.name
-        for p in (CONF.parent / "results" / "static_laptop" / "runs").iterdir()
-        if p.name.startswith(("wcsac", "sac_lag"))
+        (study, p.name)
+        for study in COMMITTED_TABLE1
+        for p in (CONF.parent / "results" / study / "runs").iterdir()
+        if p.name.startswith(("wcsac", "sac"))
     ),
 )
-def test_the_committed_static_rows_are_reachable_with_the_paper_rule(run):
+def test_the_committed_table1_rows_are_what_their_experiment_composes(study, run):
+    """Every committed Table 1 row (StaticEnv; DynamicEnv with the κ advice in the kit's
+    units) is what its experiment file composes today (it selects
+    ``preset=kit_2026_11``): the sweep runs again as committed."""
     import yaml
     from omegaconf import OmegaConf
 
     from wcsac_rl.training.checkpoint import _leaves
 
-    saved = yaml.safe_load(
-        (CONF.parent / "results" / "static_laptop" / "runs" / run / "config.yaml").read_text()
-    )
-    row = run.removesuffix(f"_static_seed{saved['seed']}")
+    saved = yaml.safe_load((CONF.parent / "results" / study / "runs" / run / "config.yaml").read_text())
+    row = run.removesuffix(f"_{saved['env']['name']}_seed{saved['seed']}")
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose(
             "config",
-            overrides=[
-                "env=static",
-                f"+row={row}",
-                f"seed={saved['seed']}",
-            ],
+            overrides=[f"experiment={COMMITTED_TABLE1[study]}", f"+row={row}", f"seed={saved['seed']}"],
         )
     now = _leaves(OmegaConf.to_container(cfg.algo, resolve=True))
     then = _leaves(saved["algo"])

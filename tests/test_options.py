@@ -97,11 +97,17 @@ def test_a_misspelt_loss_keyword_names_the_closest():
 
 # ------------------------------------------------------------------ the config
 def test_the_composed_config_starts_from_the_dataclass():
+    """The dataclass's defaults, then what the default preset sets (conf/algo/preset/kit.yaml;
+    test_config_defaults.py pins those to the measured candidate)."""
+    import yaml
+
     defaults = config_defaults(SafetyOptions)
+    preset = yaml.safe_load((CONF / "algo" / "preset" / "kit.yaml").read_text())
     algo = compose_config("algo=wcsac", small=False).algo
     for key, value in defaults.items():
         if key != "risk_level":  # (the run's α: ${risk_level})
-            assert algo[key] == value, key
+            assert algo[key] == preset.get(key, value), key
+    assert set(preset) - set(defaults) == {"alpha_init", "actor_lr"}  # (off_policy.yaml's)
 
 
 def test_changing_a_default_changes_the_composed_config_and_the_loss_it_builds(monkeypatch):
@@ -172,13 +178,21 @@ def test_an_added_misspelt_option_names_the_closest_once_composed():
 
 
 def test_the_yaml_files_set_only_what_differs_from_the_schema():
+    """wcsac.yaml and sac_lag.yaml set only what differs from the schema, the default
+    preset only what differs from the schema and off_policy.yaml, the paper variants only
+    what differs from both (they undo the preset where the paper differs)."""
     defaults = config_defaults(SafetyOptions)
+    preset = yaml.safe_load((CONF / "algo" / "preset" / "kit.yaml").read_text())
+    off_policy = yaml.safe_load((CONF / "algo" / "off_policy.yaml").read_text())
+    for key, value in preset.items():
+        assert value != {**defaults, **off_policy}[key], f"preset/kit.yaml: {key} repeats"
     for name in ("wcsac", "sac_lag", "wcsac_paper", "sac_lag_paper"):  # (the schema's users)
+        inherited = {**defaults, **preset} if name.endswith("_paper") else defaults
         path = CONF / "algo" / f"{name}.yaml"
         node = yaml.safe_load(path.read_text()) or {}
         for key, value in node.items():
-            if key in defaults:
-                assert value != defaults[key], f"{path.name}: {key} repeats the schema's default"
+            if key in inherited:
+                assert value != inherited[key], f"{path.name}: {key} repeats what it inherits"
             assert key not in PAPER_OPTIONS, (
                 f"{path.name}: {key} is PAPER_OPTIONS' (/schema/paper_options)"
             )
