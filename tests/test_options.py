@@ -178,16 +178,16 @@ def test_an_added_misspelt_option_names_the_closest_once_composed():
 
 
 def test_the_yaml_files_set_only_what_differs_from_the_schema():
-    """wcsac.yaml and sac_lag.yaml set only what differs from the schema, the default
-    preset only what differs from the schema and off_policy.yaml, the paper variants only
-    what differs from both (they undo the preset where the paper differs)."""
+    """wcsac.yaml sets only what differs from the schema, the default preset only what
+    differs from the schema and off_policy.yaml, the variants built on wcsac (sac_lag and
+    the paper's) only what differs from both (they undo the preset where they differ)."""
     defaults = config_defaults(SafetyOptions)
     preset = yaml.safe_load((CONF / "algo" / "preset" / "kit.yaml").read_text())
     off_policy = yaml.safe_load((CONF / "algo" / "off_policy.yaml").read_text())
     for key, value in preset.items():
         assert value != {**defaults, **off_policy}[key], f"preset/kit.yaml: {key} repeats"
     for name in ("wcsac", "sac_lag", "wcsac_paper", "sac_lag_paper"):  # (the schema's users)
-        inherited = {**defaults, **preset} if name.endswith("_paper") else defaults
+        inherited = defaults if name == "wcsac" else {**defaults, **preset}
         path = CONF / "algo" / f"{name}.yaml"
         node = yaml.safe_load(path.read_text()) or {}
         for key, value in node.items():
