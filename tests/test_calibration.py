@@ -387,7 +387,9 @@ def test_cli_writes_calibration_json_and_refuses_to_overwrite(runs, tmp_path, ca
     assert "Γ_α / CVaR_α (α = 0.5)" in out and f"wrote {run / 'calibration.json'}" in out
     written = (run / "calibration.json").read_text()
     data = json.loads(written)
-    assert data["algo"] == "wcsac" and data["episodes"] == 4 and data["has_variance"]
+    assert data["algo"] == "wcsac" and data["episodes"] == 4
+    # the default preset's critic: quantiles, no variance network
+    assert data["safety_critic"] == "iqn" and data["has_variance"] is False
     assert set(data["metrics"]) == {k.removeprefix("calib/") for k in CALIBRATION_KEYS}
     assert data["metrics"]["start_cvar_ratio"] is None or data["metrics"]["start_cvar_ratio"] > 0
     episodes = data["per_episode"]

@@ -258,7 +258,7 @@ def test_config_validation_names_the_option():
         (("algo.kappa_signal=max", "algo.kappa_states=replay"), "needs algo.kappa_states=initial"),
         (("algo.kappa_signal=max", "algo.kappa_episode_window=0"), "kappa_episode_window"),
         (("algo.kappa_signal=max", "algo.kappa_test_window=-1"), "algo.kappa_test_window must"),
-        (("algo.kappa_test_window=5",), "needs algo.kappa_signal=max"),
+        (("algo.kappa_signal=critic", "algo.kappa_test_window=5"), "needs algo.kappa_signal=max"),
         (
             ("algo.kappa_signal=max", "algo.kappa_test_window=5", "eval_episodes=0"),
             "eval_episodes=0 runs none",

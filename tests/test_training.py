@@ -49,23 +49,39 @@ def _train(tmp_path: Path, *overrides: str, name: str = "run"):
     return trainer, run_dir
 
 
+# the default preset's: κ also reads the episode window (its CVaR, and the larger of both)
+WINDOW_COLUMNS = {"loss/episode_cvar", "loss/constraint_cvar"}
+# the IQN critic's one TD loss (its cost_value / cost_variance: the quantiles' mean and variance)
+IQN_COLUMNS = WCSAC_COLUMNS - {"loss/loss_cost_value", "loss/loss_cost_variance"} | {
+    "loss/loss_cost_quantile"
+}
+
+
 @pytest.mark.parametrize(
-    ("algo", "extra_columns", "absent"),
+    ("algo", "preset", "extra_columns", "absent"),
     [
-        ("wcsac", WCSAC_COLUMNS, {"loss/constraint_cvar"}),
+        ("wcsac", "kit", IQN_COLUMNS | WINDOW_COLUMNS, {"loss/loss_cost_value"}),
+        ("wcsac", "kit_2026_11", WCSAC_COLUMNS, {"loss/constraint_cvar", "loss/loss_cost_quantile"}),
         (
             "sac_lag",
+            "kit",
+            WCSAC_COLUMNS - {"loss/loss_cost_variance", "loss/cost_variance"} | WINDOW_COLUMNS,
+            {"loss/cost_variance", "loss/loss_cost_quantile"},
+        ),
+        (
+            "sac_lag",
+            "kit_2026_11",
             WCSAC_COLUMNS - {"loss/loss_cost_variance", "loss/cost_variance"},
             {"loss/cost_variance", "loss/constraint_cvar"},
         ),
-        ("sac", {"loss/loss_actor", "loss/loss_qvalue", "loss/alpha"}, {"loss/kappa"}),
-        ("random", set(), {"loss/loss_actor"}),
+        ("sac", "kit", {"loss/loss_actor", "loss/loss_qvalue", "loss/alpha"}, {"loss/kappa"}),
+        ("random", "kit", set(), {"loss/loss_actor"}),
     ],
 )
 def test_each_algorithm_trains_on_the_tiny_env_and_logs_the_documented_columns(
-    tmp_path, algo, extra_columns, absent
+    tmp_path, algo, preset, extra_columns, absent
 ):
-    trainer, run_dir = _train(tmp_path, f"algo={algo}", "env=tiny")
+    trainer, run_dir = _train(tmp_path, f"algo={algo}", "env=tiny", f"preset={preset}")
     rows = _rows(run_dir)
     assert [int(r["frames"]) for r in rows] == [400, 800]
     columns = set(rows[0])
@@ -98,7 +114,10 @@ def test_wcsac_trains_on_static_env_with_the_paper_networks(tmp_path):
     # itself (the paper's per-step threshold 1.49994: tests/test_config_defaults.py)
     assert float(row["loss/cost_threshold"]) == 15.0
     assert float(row["eval/episode_length"]) <= 1000
-    assert trainer.loss.has_variance and trainer.loss.risk_level == 0.5
+    # the default preset: the IQN critic, κ also held by the episode window
+    assert trainer.loss.safety_critic_kind == "iqn" and trainer.loss.risk_level == 0.5
+    # (no 1 000-step episode has ended in 400 frames: the window reads NaN, κ the critic)
+    assert trainer.loss.kappa_signal == "max" and math.isnan(float(row["loss/episode_cvar"]))
 
 
 def test_cost_rate_is_total_cost_over_frames(tmp_path):
@@ -180,7 +199,7 @@ def test_start_states_and_nstep_cost_entries_reach_the_loss_through_the_trainer(
     steps = stored["nstep", "steps"]
     assert 1 <= int(steps.min()) and int(steps.max()) == 4
     out = trainer.update(batch)
-    assert torch.isfinite(out["loss_kappa"]) and torch.isfinite(out["loss_cost_value"])
+    assert torch.isfinite(out["loss_kappa"]) and torch.isfinite(out["loss_cost_quantile"])
     # both buffers come back on resume
     resumed, _ = _train(tmp_path, *options, "save_replay_buffer=true", f"resume={run_dir}")
     assert len(resumed.initial_state_buffer) == len(starts)
@@ -361,14 +380,14 @@ def test_compile_option_trains_with_the_compiled_loss(tmp_path):
     rows = _rows(run_dir)
     assert [int(r["updates"]) for r in rows] == [100, 200]
     for row in rows:
-        for key in ("loss/loss_actor", "loss/loss_qvalue", "loss/loss_cost_value"):
+        for key in ("loss/loss_actor", "loss/loss_qvalue", "loss/loss_cost_quantile"):
             assert math.isfinite(float(row[key])), key
 
 
 def test_actor_lr_sets_the_actors_rate_only(tmp_path):
     from wcsac_rl.training.builders import make_optimizers
 
-    overrides = ("env=tiny", "algo.actor_lr=3e-4", "algo.kappa_rule=gradient")  # (κ's Adam too)
+    overrides = ("env=tiny", "algo.actor_lr=5e-4", "algo.kappa_rule=gradient")  # (κ's Adam too)
     trainer = make_trainer(compose_config(*overrides), tmp_path / "run")
     try:
         rates = {
@@ -377,7 +396,8 @@ def test_actor_lr_sets_the_actors_rate_only(tmp_path):
         }
     finally:
         trainer.close()
-    assert rates == {"actor": 3e-4, "critic": 1e-3, "alpha": 1e-3, "kappa": 1e-3}
+    # κ's: lr × kappa_lr_scale (0.3 in the default preset)
+    assert rates == {"actor": 5e-4, "critic": 1e-3, "alpha": 1e-3, "kappa": pytest.approx(3e-4)}
 
 
 @pytest.mark.parametrize("value", ["0", "-1e-4", "abc", "true"])
