@@ -29,8 +29,9 @@ def test_paper_presets_are_the_paper_options_and_nothing_else(variant, name):
     whose StaticEnv κ advice is the authors'), the paper variant differs in PAPER_OPTIONS
     and its label only; under the default ``preset=kit`` it is the same paper variant
     (the episode window it keeps is read only by kappa_signal max/episodes)."""
-    paper, base = _algo(f"algo={variant}", "preset=kit_2026_11"), _algo(
-        f"algo={name}", "preset=kit_2026_11"
+    paper, base = (
+        _algo(f"algo={variant}", "preset=kit_2026_11"),
+        _algo(f"algo={name}", "preset=kit_2026_11"),
     )
     assert paper.name == name
     for key, value in PAPER_OPTIONS.items():
@@ -207,7 +208,10 @@ ADDED_SINCE = {
 
 # committed studies: their experiment (results/dynamic_laptop/ ran before the κ advice
 # moved to the kit's units: its RESULTS.md says so; dynamic_kappa_units is it since)
-COMMITTED_TABLE1 = {"static_laptop": "table1_static_laptop", "dynamic_kappa_units": "table1_dynamic_laptop"}
+COMMITTED_TABLE1 = {
+    "static_laptop": "table1_static_laptop",
+    "dynamic_kappa_units": "table1_dynamic_laptop",
+}
 
 
 @pytest.mark.parametrize(
@@ -228,12 +232,18 @@ def test_the_committed_table1_rows_are_what_their_experiment_composes(study, run
 
     from wcsac_rl.training.checkpoint import _leaves
 
-    saved = yaml.safe_load((CONF.parent / "results" / study / "runs" / run / "config.yaml").read_text())
+    saved = yaml.safe_load(
+        (CONF.parent / "results" / study / "runs" / run / "config.yaml").read_text()
+    )
     row = run.removesuffix(f"_{saved['env']['name']}_seed{saved['seed']}")
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
         cfg = compose(
             "config",
-            overrides=[f"experiment={COMMITTED_TABLE1[study]}", f"+row={row}", f"seed={saved['seed']}"],
+            overrides=[
+                f"experiment={COMMITTED_TABLE1[study]}",
+                f"+row={row}",
+                f"seed={saved['seed']}",
+            ],
         )
     now = _leaves(OmegaConf.to_container(cfg.algo, resolve=True))
     then = _leaves(saved["algo"])

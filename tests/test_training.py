@@ -61,7 +61,12 @@ IQN_COLUMNS = WCSAC_COLUMNS - {"loss/loss_cost_value", "loss/loss_cost_variance"
     ("algo", "preset", "extra_columns", "absent"),
     [
         ("wcsac", "kit", IQN_COLUMNS | WINDOW_COLUMNS, {"loss/loss_cost_value"}),
-        ("wcsac", "kit_2026_11", WCSAC_COLUMNS, {"loss/constraint_cvar", "loss/loss_cost_quantile"}),
+        (
+            "wcsac",
+            "kit_2026_11",
+            WCSAC_COLUMNS,
+            {"loss/constraint_cvar", "loss/loss_cost_quantile"},
+        ),
         (
             "sac_lag",
             "kit",
