@@ -251,3 +251,53 @@ def test_the_committed_table1_rows_are_what_their_experiment_composes(study, run
     for key in set(now) - set(then):
         if not key.startswith("pid."):  # (the PID gains do nothing under the gradient rule)
             assert now[key] == ADDED_SINCE[key], key
+
+
+def test_the_keys_a_resume_names_as_the_presets_are_the_keys_they_differ_in():
+    """checkpoint.PRESET_KEYS (what a refused resume blames on the preset) is every key in
+    which the two presets differ, for WCSAC and SAC-Lag on every layout."""
+    from wcsac_rl.training.checkpoint import PRESET_KEYS
+
+    differing = set()
+    for algo in ("wcsac", "sac_lag"):
+        for env in ENVS:
+            kit, before = (
+                _whole(f"algo={algo}", f"env={env}"),
+                _whole(f"algo={algo}", f"env={env}", "preset=kit_2026_11"),
+            )
+            differing |= {k for k in kit if kit[k] != before[k]}
+    assert differing == PRESET_KEYS
+
+
+@pytest.mark.parametrize("algo", ["wcsac", "sac_lag"])
+def test_a_run_begun_before_the_default_changed_resumes_only_under_its_preset(tmp_path, algo):
+    """``resume=auto`` on a run made under ``preset=kit_2026_11``: under the default
+    preset it is refused in one line that names the preset to add (nothing of the run is
+    touched), and with ``preset=kit_2026_11`` it continues."""
+    from _training_helpers import compose_config
+
+    from wcsac_rl.training import ConfigError, make_trainer
+
+    run_dir = tmp_path / "run"
+    base = (f"algo={algo}", "env=tiny", "resume=auto")
+    first = make_trainer(compose_config(*base, "preset=kit_2026_11", "total_frames=400"), run_dir)
+    try:
+        first.run()
+    finally:
+        first.close()
+    files = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file() and p.name != ".lock"}
+    with pytest.raises(ConfigError) as err:
+        make_trainer(compose_config(*base), run_dir).close()
+    message = str(err.value)
+    assert "\n" not in message and message.endswith(
+        "(a run begun before the config's default preset changed continues with "
+        "preset=kit_2026_11 on the command line)"
+    )
+    assert {p: p.read_bytes() for p in files} == files
+    resumed = make_trainer(compose_config(*base, "preset=kit_2026_11"), run_dir)
+    try:
+        resumed.run()
+    finally:
+        resumed.close()
+    rows = (run_dir / "progress.csv").read_text().splitlines()
+    assert len(rows) == 1 + 2  # header, the first session's epoch and the resumed one's

@@ -407,13 +407,41 @@ def _identity_diffs(saved_config: dict, cfg: DictConfig | dict, *, now: str) -> 
     ]
 
 
+PRESET_KEYS = frozenset(
+    f"algo.{key}"
+    for key in (
+        "safety_critic",
+        "kappa_signal",
+        "kappa_episode_window",
+        "kappa_lr_scale",
+        "damp_scale",
+        "alpha_init",
+        "actor_lr",
+    )
+)
+"""The keys in which the config's two presets differ (``conf/algo/preset/``): a run
+begun under ``preset=kit_2026_11`` (before the default changed) and continued with
+``resume=auto`` under the default differs in them, and the refusal says which preset
+it ran with."""
+
+PRESET_HINT = (
+    " (a run begun before the config's default preset changed continues with "
+    "preset=kit_2026_11 on the command line)"
+)
+
+
+def _preset_hint(keys: list[str]) -> str:
+    return PRESET_HINT if PRESET_KEYS.intersection(keys) else ""
+
+
 def check_compatible(saved_config: dict, cfg: DictConfig, path: Path) -> None:
     """Refuse a checkpoint whose networks/loss were made by a different configuration."""
     diffs = _identity_diffs(saved_config, cfg, now="now")
     if diffs:
+        keys = [d.split(":", 1)[0] for d in diffs]
         raise ConfigError(
             f"checkpoint {path} was made by another configuration ({'; '.join(diffs)}); "
-            "run with the same settings or start a new run"
+            f"run with the same settings or start a new run{_preset_hint(keys)}"
         )
 
 
@@ -559,16 +587,18 @@ def check_resume_changes(saved_config: dict, cfg: DictConfig, path: Path) -> Non
         else OmegaConf.to_container(saved_config, resolve=True)
     )
     now = _leaves(OmegaConf.to_container(cfg, resolve=True))
-    diffs = [
-        f"{key}: run={saved[key]!r}, now={value!r}"
+    keys = [
+        key
         for key, value in now.items()
         if key in saved and saved[key] != value and not _changeable(key)
     ]
-    if diffs:
+    if keys:
+        diffs = [f"{key}: run={saved[key]!r}, now={now[key]!r}" for key in keys]
         raise ConfigError(
             f"resume continues {path.parent.parent} as it was configured, and "
             f"{'; '.join(diffs)} cannot change on resume (these can: "
-            f"{', '.join(RESUME_CHANGEABLE[1:])}); start a new run to change the others"
+            f"{', '.join(RESUME_CHANGEABLE[1:])}); start a new run to change the "
+            f"others{_preset_hint(keys)}"
         )
 
 
