@@ -399,14 +399,6 @@ def _select(cfg: DictConfig | dict, key: str) -> Any:
     return value
 
 
-def _identity_diffs(saved_config: dict, cfg: DictConfig | dict, *, now: str) -> list[str]:
-    return [
-        f"{key}: checkpoint={_select(saved_config, key)!r}, {now}={_select(cfg, key)!r}"
-        for key in IDENTITY_KEYS
-        if _select(saved_config, key) != _select(cfg, key)
-    ]
-
-
 PRESET_KEYS = frozenset(
     f"algo.{key}"
     for key in (
@@ -436,9 +428,12 @@ def _preset_hint(keys: list[str]) -> str:
 
 def check_compatible(saved_config: dict, cfg: DictConfig, path: Path) -> None:
     """Refuse a checkpoint whose networks/loss were made by a different configuration."""
-    diffs = _identity_diffs(saved_config, cfg, now="now")
-    if diffs:
-        keys = [d.split(":", 1)[0] for d in diffs]
+    keys = [key for key in IDENTITY_KEYS if _select(saved_config, key) != _select(cfg, key)]
+    if keys:
+        diffs = [
+            f"{key}: checkpoint={_select(saved_config, key)!r}, now={_select(cfg, key)!r}"
+            for key in keys
+        ]
         raise ConfigError(
             f"checkpoint {path} was made by another configuration ({'; '.join(diffs)}); "
             f"run with the same settings or start a new run{_preset_hint(keys)}"
