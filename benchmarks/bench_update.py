@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/bench_update.py [--threads 1] [--rounds 5] [--updates 20]
-                                      [--options defaults paper] [--compile]
+                                      [--options kit defaults paper] [--compile]
                                       [--no-loop] [--default-malloc] [--json PATH]
     python benchmarks/bench_update.py --batch 8 --width 16 --rounds 1 --updates 1 \\
         --peak-seconds 0.01 --env tiny --loop-frames 800     # a smoke run (tests)
@@ -14,12 +14,16 @@ Prints, with one torch thread by default:
 * updates/s of every variant below, timed in interleaved rounds (median reported),
   each with its FLOPs per update (forward + backward matrix products) and the
   achieved GFLOP/s as a fraction of the matmul peak. Each ``WCSACLoss`` variant is
-  timed at each option set of ``--options``: ``defaults`` (the loss's code defaults =
-  ``algo=wcsac``: 10-step cost targets, κ on the tail statistic at episode start
-  states) and ``paper`` (``PAPER_OPTIONS`` = ``algo=wcsac_paper``). Its batch comes
-  through the kit's pipeline, as the trainer builds it: collected trajectories →
+  timed at each option set of ``--options`` (:data:`OPTION_SETS`): ``kit`` (what
+  ``python train.py`` runs, ``preset=kit``: the IQN safety critic, κ on the larger of
+  its start-state CVaR and the empirical CVaR_α of the last training episodes),
+  ``defaults`` (``WCSACLoss``'s own defaults, = ``preset=kit_2026_11``: the Gaussian
+  critic, 10-step cost targets, κ on the tail statistic at episode start states) and
+  ``paper`` (``PAPER_OPTIONS`` = ``algo=wcsac_paper``). Its batch comes through the
+  kit's pipeline, as the trainer builds it: collected trajectories →
   ``make_postproc(loss)`` (the n-step cost entries) → the replay rows the loss reads
-  → a uniform sample → ``StartStateBuffer.attach`` (a start state per row).
+  → a uniform sample → ``StartStateBuffer.attach`` (a start state per row) →
+  ``EpisodeCostWindow.attach`` (the recent episodes' CVaR, ``kit``).
 
   - ``sac``: TorchRL's ``SACLoss`` + ``SoftUpdate`` with the kit's networks (what a
     TorchRL user runs); ``sac_polyak``: the same with the kit's ``PolyakUpdate``;
@@ -31,11 +35,10 @@ Prints, with one torch thread by default:
   - ``sac_torchrl_nets`` / ``wcsac_<options>_torchrl_nets``: ``SACLoss`` and
     ``WCSACLoss`` with TorchRL's generic networks (``torchrl.modules.MLP``,
     ``ProbabilisticActor`` + ``TanhNormal``, ``ValueOperator``; a user's own
-    networks): ``loss(td)`` + backward + Adam step + ``SoftUpdate``;
+    networks; their safety critic is two MLPs, mean and softplus variance, under
+    every option set): ``loss(td)`` + backward + Adam step + ``SoftUpdate``;
   - ``plain_wcsac_paper``: the plain-PyTorch update of ``plain_wcsac.py`` (the
-    paper's loss with an MSE variance loss, no framework);
-  - ``wcsac_defaults_iqn``: the implicit-quantile safety critic
-    (``algo.safety_critic=iqn``: N = N' = 20) at the defaults.
+    paper's loss with an MSE variance loss, no framework).
 
   "vs SAC" compares with ``sac`` (kit networks) or ``sac_torchrl_nets`` (TorchRL's
   networks). Sizes: ``--width`` (2 hidden layers), ``--batch``, obs 44, action 2
@@ -54,17 +57,19 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import json
 import math
 import statistics
 import sys
 import tempfile
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
+from omegaconf import DictConfig
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import nn
@@ -79,16 +84,82 @@ from plain_wcsac import PlainWCSAC, batch_inputs
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import PAPER_OPTIONS, PolyakUpdate, StartStateBuffer
+from wcsac_rl.objectives import (
+    PAPER_OPTIONS,
+    EpisodeCostWindow,
+    PolyakUpdate,
+    StartStateBuffer,
+)
 from wcsac_rl.objectives.inputs import collected_keys
+from wcsac_rl.options import SafetyOptions
 from wcsac_rl.training.builders import adam, make_postproc
+from wcsac_rl.training.config import safety_options
 from wcsac_rl.training.runtime import retain_freed_memory
 
 OBS, ACT = 44, 2
-OPTION_SETS = {"defaults": {}, "paper": dict(PAPER_OPTIONS)}
-"""The loss options each ``WCSACLoss`` variant is timed at (``--options``)."""
-CONFIG_ALGO = {"defaults": "wcsac", "paper": "wcsac_paper"}
-"""The same option sets as Hydra presets (the end-to-end loop)."""
+CONF = Path(__file__).resolve().parents[1] / "conf"
+CONFIG_OVERRIDES = {
+    "kit": ("algo=wcsac",),
+    "defaults": ("algo=wcsac", "preset=kit_2026_11"),
+    "paper": ("algo=wcsac_paper",),
+}
+"""The option sets each ``WCSACLoss`` variant is timed at (``--options``), as the config
+composes them: ``kit`` is ``python train.py``'s default, ``defaults`` the loss's own
+(``SafetyOptions()``; the preset before the training-safety change), ``paper``
+``PAPER_OPTIONS``. The end-to-end loop runs these configs."""
+OPTION_SETS = tuple(CONFIG_OVERRIDES)
+
+
+def compose_config(overrides: Sequence[str]) -> DictConfig:
+    """The run config ``python train.py <overrides>`` would compose."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        return compose("config", overrides=list(overrides))
+
+
+@dataclass(frozen=True)
+class OptionSet:
+    """One option set: the safety options and the loss keywords the trainer adds."""
+
+    options: SafetyOptions
+    extra: dict = field(default_factory=dict)
+
+    def replace(self, **changes) -> OptionSet:
+        """These options with ``changes`` (e.g. ``safety_critic="gaussian"``)."""
+        return OptionSet(replace(self.options, **changes), self.extra)
+
+    def loss_kwargs(self) -> dict:
+        """``WCSACLoss``'s keywords, as ``make_loss`` passes them."""
+        return {**self.options.loss_kwargs(), **self.extra}
+
+    @property
+    def critic_kwargs(self) -> dict:
+        """``make_safety_critic``'s keywords, as ``make_agent`` passes them."""
+        if self.options.safety_critic == "iqn":
+            return {"kind": "iqn", "num_cosines": self.options.iqn.num_cosines}
+        return {"kind": "gaussian", "variance": self.options.variance}
+
+    @property
+    def window_kwargs(self) -> dict | None:
+        """``EpisodeCostWindow.for_loss``'s keywords where κ reads the episodes."""
+        if self.options.kappa_signal == "critic":
+            return None
+        return {
+            "window": self.options.kappa_episode_window,
+            "statistic": self.options.kappa_episode_statistic,
+        }
+
+
+@functools.cache
+def option_set(name: str) -> OptionSet:
+    """The options of :data:`CONFIG_OVERRIDES` ``name``, as the trainer reads them from
+    the composed config (``tests/test_benchmarks.py`` pins ``defaults`` to
+    ``SafetyOptions()`` and ``paper`` to ``PAPER_OPTIONS``)."""
+    if name not in CONFIG_OVERRIDES:
+        raise KeyError(f"unknown option set {name!r}; one of {OPTION_SETS}")
+    algo = compose_config(CONFIG_OVERRIDES[name]).algo
+    return OptionSet(safety_options(algo), {"alpha_init": float(algo.alpha_init)})
 
 
 @dataclass(frozen=True)
@@ -122,13 +193,20 @@ def matmul_peak_gflops(seconds: float = 1.0) -> dict[str, float]:
 def trajectories(sizes: Sizes, *, envs: int = 4, episode_steps: int = 50) -> TensorDict:
     """Collector-shaped data ``[envs, T]``: random transitions in ``episode_steps``-step
     episodes (``step_count`` marks their starts; a few end by termination), cost 1
-    with probability 0.1. ``T`` gives at least twice ``sizes.batch`` rows."""
+    with probability 0.1, and the running ``episode_cost`` the kit's envs write.
+    ``T`` gives at least twice ``sizes.batch`` rows."""
     g = torch.Generator().manual_seed(0)
     steps = max(2 * episode_steps, -(-2 * sizes.batch // envs))
     shape = (envs, steps)
     step_count = (torch.arange(steps) % episode_steps).expand(shape).clone()
     truncated = step_count == episode_steps - 1
     terminated = torch.rand(shape, generator=g) < 0.005
+    cost = torch.bernoulli(torch.full(shape, 0.1), generator=g)
+    # the cost since each episode's start (a terminated row ends its episode early)
+    episode_cost = cost.clone()
+    for t in range(1, steps):
+        fresh = (step_count[:, t] == 0) | terminated[:, t - 1]
+        episode_cost[:, t] += torch.where(fresh, 0.0, episode_cost[:, t - 1])
     return TensorDict(
         {
             "observation": torch.randn(*shape, sizes.obs, generator=g),
@@ -137,7 +215,9 @@ def trajectories(sizes: Sizes, *, envs: int = 4, episode_steps: int = 50) -> Ten
             "next": {
                 "observation": torch.randn(*shape, sizes.obs, generator=g),
                 "reward": torch.randn(*shape, 1, generator=g),
-                "cost": torch.bernoulli(torch.full((*shape, 1), 0.1), generator=g),
+                "cost": cost.unsqueeze(-1),
+                "episode_cost": episode_cost.unsqueeze(-1),
+                "step_count": (step_count + 1).unsqueeze(-1),
                 "done": (terminated | truncated).unsqueeze(-1),
                 "terminated": terminated.unsqueeze(-1),
             },
@@ -146,10 +226,13 @@ def trajectories(sizes: Sizes, *, envs: int = 4, episode_steps: int = 50) -> Ten
     )
 
 
-def pipeline_batch(loss, sizes: Sizes) -> TensorDictBase:
+def pipeline_batch(loss, sizes: Sizes, window: dict | None = None) -> TensorDictBase:
     """A replay batch for ``loss`` built as the trainer builds it (``OffPolicyTrainer.learn``
     and ``.sample``): the collector postproc (n-step cost entries), the rows the loss
-    reads, a uniform sample, and a start state per row for ``kappa_states="initial"``."""
+    reads, a uniform sample, a start state per row for ``kappa_states="initial"`` and,
+    where κ reads the episodes (``kappa_signal`` not ``"critic"``), the CVaR of an
+    ``EpisodeCostWindow`` (``window``: its ``for_loss`` keywords) of the trajectories'
+    finished episodes."""
     traj = trajectories(sizes)
     postproc = make_postproc(loss)
     if postproc is not None:
@@ -163,19 +246,41 @@ def pipeline_batch(loss, sizes: Sizes) -> TensorDictBase:
         torch.manual_seed(2)
         batch = starts.attach(batch)
     if getattr(loss, "kappa_signal", "critic") != "critic":
-        raise ValueError("the benchmark's batches carry no episode-cost window (kappa_signal)")
+        if window is None:
+            raise ValueError(
+                f"kappa_signal={loss.kappa_signal} reads an episode-cost window: "
+                "pass window= (EpisodeCostWindow.for_loss keywords)"
+            )
+        episodes = EpisodeCostWindow.for_loss(loss, **window)
+        if not episodes.add_episodes(traj.reshape(-1)):
+            raise RuntimeError("the benchmark's trajectories finished no episode")
+        batch = episodes.attach(batch)
     return batch
 
 
 # ------------------------------------------------------------------ networks
-def kit_networks(sizes: Sizes, kind: str = "gaussian"):
-    """The kit's networks (``make_actor`` / ``make_qvalue`` / ``make_safety_critic``)."""
+def kit_networks(sizes: Sizes, **critic):
+    """The kit's networks (``make_actor`` / ``make_qvalue`` / ``make_safety_critic``;
+    ``critic``: the last one's keywords, :attr:`OptionSet.critic_kwargs`)."""
     spec = Bounded(-1.0, 1.0, shape=(sizes.act,))
     w = sizes.width
     actor = make_actor(sizes.obs, spec, width=w)
     qvalues = [make_qvalue(sizes.obs, sizes.act, width=w) for _ in range(2)]
-    safety = make_safety_critic(sizes.obs, sizes.act, kind=kind, width=w)
+    safety = make_safety_critic(sizes.obs, sizes.act, width=w, **critic)
     return actor, qvalues, safety
+
+
+def kit_loss(
+    name: str, sizes: Sizes, changes: dict | None = None, **kwargs
+) -> tuple[WCSACLoss, TensorDictBase]:
+    """``WCSACLoss`` at option set ``name`` (``changes``: options replaced in it) with the
+    kit's networks as the trainer builds them, and its pipeline batch (``kwargs``: the
+    loss's other keywords, e.g. ``fuse_critics=False``)."""
+    options = option_set(name).replace(**(changes or {}))
+    loss = WCSACLoss(
+        *kit_networks(sizes, **options.critic_kwargs), **options.loss_kwargs(), **kwargs
+    )
+    return loss, pipeline_batch(loss, sizes, options.window_kwargs)
 
 
 def torchrl_networks(sizes: Sizes):
@@ -259,8 +364,9 @@ def build_variants(
     torch.manual_seed(0)
     variants: dict[str, Variant] = {}
 
-    def add(name, label, loss, options, baseline, **kwargs):
-        loss_batch = pipeline_batch(loss, sizes)
+    def add(name, label, loss, options, baseline, batch=None, **kwargs):
+        window = None if options is None else option_set(options).window_kwargs
+        loss_batch = pipeline_batch(loss, sizes, window) if batch is None else batch
         update = torchrl_update_fn(loss, **kwargs)
         variants[name] = Variant(label, update, loss_batch, options, baseline)
 
@@ -279,34 +385,36 @@ def build_variants(
         updater_class=SoftUpdate,
     )
     for options in option_sets:
-        kwargs = OPTION_SETS[options]
         name = f"wcsac_{options}"
-        add(
-            name,
-            f"WCSACLoss [{options}]",
-            WCSACLoss(*kit_networks(sizes), **kwargs),
-            options,
-            "sac",
-        )
-        general = WCSACLoss(
-            *kit_networks(sizes), fuse_critics=False, direct_sampling=False, **kwargs
-        )
+        loss, batch = kit_loss(options, sizes)
+        add(name, f"WCSACLoss [{options}]", loss, options, "sac", batch)
+        general, batch = kit_loss(options, sizes, fuse_critics=False, direct_sampling=False)
         add(
             f"{name}_general",
             f"WCSACLoss [{options}], general paths",
             general,
             options,
             "sac",
+            batch,
             updater_class=SoftUpdate,
         )
         if with_compile:
-            compiled = WCSACLoss(*kit_networks(sizes), **kwargs)
-            add(f"{name}_compiled", f"WCSACLoss [{options}], compiled", compiled, options, "sac")
+            compiled, batch = kit_loss(options, sizes)
+            add(
+                f"{name}_compiled",
+                f"WCSACLoss [{options}], compiled",
+                compiled,
+                options,
+                "sac",
+                batch,
+                compile_loss=True,
+            )
         actor, qvalue, safety = torchrl_networks(sizes)
+        user = option_set(options).replace(safety_critic="gaussian").loss_kwargs()
         add(
             f"{name}_torchrl_nets",
             f"WCSACLoss [{options}], TorchRL networks",
-            WCSACLoss(actor, qvalue, safety, num_qvalue_nets=2, **kwargs),
+            WCSACLoss(actor, qvalue, safety, num_qvalue_nets=2, **user),
             options,
             "sac_torchrl_nets",
             updater_class=SoftUpdate,
@@ -316,13 +424,10 @@ def build_variants(
         variants["plain_wcsac_paper"] = Variant(
             "plain PyTorch WCSAC [paper, mse]",
             plain_update_fn(plain),
-            pipeline_batch(WCSACLoss(*kit_networks(sizes), **PAPER_OPTIONS), sizes),
+            kit_loss("paper", sizes)[1],
             "paper",
             "sac",
         )
-    if "defaults" in option_sets:
-        iqn = WCSACLoss(*kit_networks(sizes, kind="iqn"))
-        add("wcsac_defaults_iqn", "WCSACLoss [defaults], IQN critic", iqn, "defaults", "sac")
     return variants
 
 
@@ -421,32 +526,27 @@ def env_rows(env: str, steps: int) -> list[dict]:
 def training_loop(
     options: str, sizes: Sizes, env: str, frames: int, threads: int, retained: bool
 ) -> dict:
-    """Frames/s and updates/s of a short training run of ``algo=wcsac`` (defaults) or
-    ``algo=wcsac_paper``, from its last whole epoch (400-frame batches, UTD 0.25)."""
-    from hydra import compose, initialize_config_dir
-
+    """Frames/s and updates/s of a short training run at option set ``options``
+    (:data:`CONFIG_OVERRIDES`), from its last whole epoch (400-frame batches, UTD 0.25)."""
     from wcsac_rl.training import make_trainer
 
     epoch_frames = max(400, (frames // 2) // 400 * 400)
-    conf = Path(__file__).resolve().parents[1] / "conf"
-    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose(
-            "config",
-            overrides=[
-                f"algo={CONFIG_ALGO[options]}",
-                f"env={env}",
-                f"total_frames={frames}",
-                f"epoch_frames={epoch_frames}",
-                "algo.collector.init_random_frames=400",
-                f"algo.batch_size={sizes.batch}",
-                f"algo.network.width={sizes.width}",
-                "eval_episodes=0",
-                "progress_bar=false",
-                "logger=none",
-                f"threads={threads}",
-                f"retain_freed_memory={str(retained).lower()}",
-            ],
-        )
+    cfg = compose_config(
+        [
+            *CONFIG_OVERRIDES[options],
+            f"env={env}",
+            f"total_frames={frames}",
+            f"epoch_frames={epoch_frames}",
+            "algo.collector.init_random_frames=400",
+            f"algo.batch_size={sizes.batch}",
+            f"algo.network.width={sizes.width}",
+            "eval_episodes=0",
+            "progress_bar=false",
+            "logger=none",
+            f"threads={threads}",
+            f"retain_freed_memory={str(retained).lower()}",
+        ],
+    )
     with tempfile.TemporaryDirectory() as tmp:
         trainer = make_trainer(cfg, Path(tmp) / "run")
         try:
@@ -468,9 +568,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--warmup", type=int, default=3, help="untimed updates per variant")
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--width", type=int, default=256, help="hidden units (2 layers)")
-    parser.add_argument(
-        "--options", nargs="+", choices=list(OPTION_SETS), default=list(OPTION_SETS)
-    )
+    parser.add_argument("--options", nargs="+", choices=OPTION_SETS, default=list(OPTION_SETS))
     parser.add_argument("--peak-seconds", type=float, default=1.0, help="per matmul size")
     parser.add_argument(
         "--compile", action="store_true", help="also time WCSACLoss under torch.compile"
@@ -534,9 +632,6 @@ def main(argv: list[str] | None = None) -> dict:
             f"  {name:<40} {rate:10.1f} {row['vs_sac']:7.2f} {gflops:10.3f} "
             f"{row['gflop_per_s']:8.1f} {row['of_peak']:8.0%}"
         )
-    if "wcsac_defaults_iqn" in rates:
-        ratio = rates["wcsac_defaults"] / rates["wcsac_defaults_iqn"]
-        print(f"\nIQN critic: {ratio:.2f}x the time per update of the Gaussian critic (defaults)")
 
     loop_rows: list[dict] = []
     if not args.no_loop:

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/profile_update.py [--options defaults paper] [--updates 30]
+    python benchmarks/profile_update.py [--options kit defaults paper] [--updates 30]
                                         [--repeats 3] [--ablation ROUNDS]
                                         [--batch 256] [--width 256] [--json PATH]
 
@@ -36,9 +36,9 @@ critic parameters`` (the fused ensemble's per-update gather) and ``safety module
 call`` (the safety critic called as a module, not fused). The profiler adds a fixed
 cost per operator, so operator-heavy parts are over-counted against the matrix
 products; the shares are relative, not timings. ``--ablation`` cross-checks them
-without the profiler: the update's time with each extra of the defaults switched off
-alone (``cost_n_steps=1``, ``kappa_states="replay"``, ``kappa_statistic="mean"``) and
-with the paper's options, against the defaults' time, in interleaved rounds.
+without the profiler: the update's time with each extra of the kit's options
+(``python train.py``'s) switched off alone (:data:`ABLATIONS`), at the loss's own
+defaults and at the paper's options, against the kit's time, in interleaved rounds.
 """
 
 from __future__ import annotations
@@ -59,10 +59,10 @@ from torch.profiler import ProfilerActivity, profile, record_function
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from bench_update import OPTION_SETS, Sizes, kit_networks, pipeline_batch
+from bench_update import OPTION_SETS, Sizes, kit_loss
 
 from wcsac_rl import WCSACLoss
-from wcsac_rl.objectives import PAPER_OPTIONS, PolyakUpdate
+from wcsac_rl.objectives import PolyakUpdate
 from wcsac_rl.training.builders import adam
 from wcsac_rl.training.runtime import retain_freed_memory
 
@@ -203,8 +203,7 @@ def top_operators(prof) -> dict[str, float]:
 
 def profile_options(options: str, sizes: Sizes, updates: int, warmup: int) -> dict:
     torch.manual_seed(0)
-    loss = WCSACLoss(*kit_networks(sizes), **OPTION_SETS[options])
-    batch = pipeline_batch(loss, sizes)
+    loss, batch = kit_loss(options, sizes)
     instrument(loss)
     update = make_update(loss)
     for _ in range(warmup):
@@ -252,23 +251,29 @@ def combine(options: str, repeats: list[dict], top: int = 12) -> dict:
 
 
 ABLATIONS = {
-    "defaults": {},
-    "cost_n_steps=1": {"cost_n_steps": 1},
-    "kappa_states=replay": {"kappa_states": "replay"},
-    "kappa_statistic=mean": {"kappa_statistic": "mean"},
-    "paper options": dict(PAPER_OPTIONS),
+    "kit": ("kit", {}),
+    "kappa_signal=critic": ("kit", {"kappa_signal": "critic"}),
+    "cost_n_steps=1": ("kit", {"cost_n_steps": 1}),
+    "kappa_statistic=mean": ("kit", {"kappa_statistic": "mean"}),
+    "Gaussian critic (defaults)": ("defaults", {}),
+    "defaults, kappa_states=replay": ("defaults", {"kappa_states": "replay"}),
+    "paper options": ("paper", {}),
 }
-"""The defaults, each extra of theirs switched off alone, and the paper's options."""
+"""The variants the ablation times against ``kit`` (``python train.py``'s default): an
+option set of ``bench_update.OPTION_SETS`` and the options changed in it. Each of
+the kit's extras switched off alone (the episode window, the n-step targets, the tail
+statistic), the loss's own defaults (the Gaussian critic: ``kappa_signal="critic"``),
+those without the start states, and the paper's options."""
 
 
 def ablation(sizes: Sizes, rounds: int, updates: int, warmup: int) -> list[dict]:
     """Time per update (no profiler) of each :data:`ABLATIONS` variant relative to the
-    defaults': medians of ``rounds`` interleaved rounds of ``updates`` updates."""
+    kit's: medians of ``rounds`` interleaved rounds of ``updates`` updates."""
     runs = {}
-    for name, kwargs in ABLATIONS.items():
+    for name, (options, changes) in ABLATIONS.items():
         torch.manual_seed(0)
-        loss = WCSACLoss(*kit_networks(sizes), **kwargs)
-        runs[name] = (make_update(loss), pipeline_batch(loss, sizes))
+        loss, batch = kit_loss(options, sizes, changes)
+        runs[name] = (make_update(loss), batch)
     for update, batch in runs.values():
         for _ in range(warmup):
             update(batch)
@@ -279,9 +284,9 @@ def ablation(sizes: Sizes, rounds: int, updates: int, warmup: int) -> list[dict]
             for _ in range(updates):
                 update(batch)
             seconds[name].append((time.perf_counter() - start) / updates)
-    base = statistics.median(seconds["defaults"])
+    base = statistics.median(seconds["kit"])
     return [
-        {"variant": name, "time_vs_defaults": statistics.median(values) / base}
+        {"variant": name, "time_vs_kit": statistics.median(values) / base}
         for name, values in seconds.items()
     ]
 
@@ -290,9 +295,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument(
-        "--options", nargs="+", choices=list(OPTION_SETS), default=list(OPTION_SETS)
-    )
+    parser.add_argument("--options", nargs="+", choices=OPTION_SETS, default=list(OPTION_SETS))
     parser.add_argument("--updates", type=int, default=30, help="profiled updates per repeat")
     parser.add_argument("--warmup", type=int, default=5, help="unprofiled updates first")
     parser.add_argument(
@@ -305,8 +308,8 @@ def main(argv: list[str] | None = None) -> dict:
         type=int,
         default=0,
         metavar="ROUNDS",
-        help="also time the update (no profiler) with each extra of the defaults switched "
-        "off, in this many interleaved rounds of --updates updates",
+        help="also time the update (no profiler) with each extra of the kit's options "
+        "switched off, in this many interleaved rounds of --updates updates",
     )
     parser.add_argument("--json", type=Path, help="also write the breakdown here as JSON")
     args = parser.parse_args(argv)
@@ -346,11 +349,11 @@ def main(argv: list[str] | None = None) -> dict:
         with contextlib.redirect_stdout(sys.stderr):
             ablation_rows = ablation(sizes, args.ablation, args.updates, args.warmup)
         print(
-            f"\ntime per update against the defaults' (no profiler; medians of "
+            f"\ntime per update against the kit's (no profiler; medians of "
             f"{args.ablation} interleaved rounds of {args.updates} updates):"
         )
         for row in ablation_rows:
-            print(f"  {row['variant']:<24} {row['time_vs_defaults']:6.3f}")
+            print(f"  {row['variant']:<32} {row['time_vs_kit']:6.3f}")
     output = {"profiles": results, "ablation": ablation_rows}
     if args.json:
         args.json.write_text(json.dumps(output, indent=1))

@@ -20,9 +20,13 @@ import math
 import os
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
+
+from wcsac_rl.objectives import PAPER_OPTIONS
+from wcsac_rl.options import SafetyOptions
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "benchmarks"
@@ -96,8 +100,8 @@ def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
     assert len(result["matmul_peak_gflops"]) == 3
     assert all(math.isfinite(v) and v > 0 for v in result["matmul_peak_gflops"].values())
     rows = {row["name"]: row for row in result["updates"]}
-    expected = {"sac", "sac_polyak", "sac_torchrl_nets", "plain_wcsac_paper", "wcsac_defaults_iqn"}
-    for options in ("defaults", "paper"):
+    expected = {"sac", "sac_polyak", "sac_torchrl_nets", "plain_wcsac_paper"}
+    for options in ("kit", "defaults", "paper"):
         for suffix in ("", "_general", "_torchrl_nets"):
             expected.add(f"wcsac_{options}{suffix}")
     assert set(rows) == expected
@@ -116,6 +120,11 @@ def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
     # targets, where the fused ensemble keeps its one product over every member at s'
     assert flops["wcsac_paper_general"] == pytest.approx(flops["wcsac_paper"])
     assert flops["wcsac_defaults_general"] < flops["wcsac_defaults"]
+    # the kit's IQN critic is not in the fused ensemble: both paths multiply the same
+    # matrices; with a user's Gaussian critic the kit's options cost what the defaults'
+    # do (κ's second signal, the episodes' CVaR, is no matrix work)
+    assert flops["wcsac_kit_general"] == pytest.approx(flops["wcsac_kit"])
+    assert flops["wcsac_kit_torchrl_nets"] == pytest.approx(flops["wcsac_defaults_torchrl_nets"])
 
     loop = result["loop"]
     env_rows = [row for row in loop if "options" not in row]
@@ -123,7 +132,7 @@ def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
     for row in env_rows:
         assert_positive(row, "value")
     runs = {row["options"]: row for row in loop if "options" in row}
-    assert set(runs) == {"defaults", "paper"}
+    assert set(runs) == {"kit", "defaults", "paper"}
     for row in runs.values():
         assert_positive(row, "fps", "ups", "of_ceiling")
         # UTD 0.25 (100 updates per 400-frame batch): over a whole epoch, updates per frame
@@ -147,13 +156,13 @@ def test_bench_memory_runs_at_the_defaults_and_the_paper_options(tmp_path):
 def test_profile_update_gives_each_part_of_the_update_its_share(tmp_path):
     output = run_benchmark("profile_update.py", tmp_path)
     results = {r["options"]: r for r in output["profiles"]}
-    assert set(results) == {"defaults", "paper"}
+    assert set(results) == {"kit", "defaults", "paper"}
     extras = {"targets: n-step draw", "kappa: start-state values"}
     common = {"targets", "online critics", "actor loss", "optimizer step"}
     for options, result in results.items():
         parts = result["parts"]
         assert common <= set(parts)
-        assert extras <= set(parts) if options == "defaults" else not extras & set(parts)
+        assert extras <= set(parts) if options != "paper" else not extras & set(parts)
         for entry in parts.values():
             assert 0 <= entry["share"] <= 1 and 0 <= entry["flop_share"] <= 1
         # one repeat: the shares are of one profile and add up to it
@@ -173,14 +182,76 @@ def test_profile_update_gives_each_part_of_the_update_its_share(tmp_path):
     assert flops["targets: n-step draw"] / flops["targets"] == pytest.approx(
         actor / (actor + 6 * critic), rel=0.01
     )
-    # the cross-check without the profiler: the defaults, each extra off, the paper's
-    ablation = {row["variant"]: row["time_vs_defaults"] for row in output["ablation"]}
+    # the cross-check without the profiler: the kit's options, each extra off, the
+    # loss's own defaults, the paper's
+    ablation = {row["variant"]: row["time_vs_kit"] for row in output["ablation"]}
     assert list(ablation) == [
-        "defaults",
+        "kit",
+        "kappa_signal=critic",
         "cost_n_steps=1",
-        "kappa_states=replay",
         "kappa_statistic=mean",
+        "Gaussian critic (defaults)",
+        "defaults, kappa_states=replay",
         "paper options",
     ]
-    assert ablation["defaults"] == 1.0
+    assert ablation["kit"] == 1.0
     assert all(math.isfinite(v) and v > 0 for v in ablation.values())
+
+
+def _bench_update():
+    sys.path.insert(0, str(BENCHMARKS))
+    try:
+        import bench_update
+    finally:
+        sys.path.remove(str(BENCHMARKS))
+    return bench_update
+
+
+def test_option_sets_are_what_the_trainer_and_the_loss_read():
+    """``kit`` is ``python train.py``'s config; ``defaults`` is ``WCSACLoss``'s own
+    options and ``paper`` ``PAPER_OPTIONS``, in every keyword the loss is given."""
+    bench = _bench_update()
+    kit = bench.option_set("kit")
+    assert kit.options.safety_critic == "iqn" and kit.options.kappa_signal == "max"
+    assert kit.critic_kwargs == {"kind": "iqn", "num_cosines": kit.options.iqn.num_cosines}
+    assert kit.window_kwargs == {"window": 10, "statistic": "cvar"}
+    assert kit.extra == {"alpha_init": 0.1}
+    for name, options in (
+        ("defaults", SafetyOptions()),
+        ("paper", replace(SafetyOptions(), **PAPER_OPTIONS)),
+    ):
+        chosen = bench.option_set(name)
+        assert chosen.loss_kwargs() == {**options.loss_kwargs(), "alpha_init": 1.0}, name
+        assert chosen.critic_kwargs == {"kind": "gaussian", "variance": options.variance}
+        assert chosen.window_kwargs is None
+    with pytest.raises(KeyError, match="unknown option set 'fast'"):
+        bench.option_set("fast")
+
+
+def test_kit_batch_carries_the_cvar_of_the_trajectories_finished_episodes():
+    """The benchmark's batch for κ on the episodes: every row holds the empirical CVaR_α
+    of the last ``window`` episodes its synthetic trajectories finish, computed here
+    from the per-step costs (episodes restart where ``step_count`` is 0 or after a
+    termination)."""
+    bench = _bench_update()
+    sizes = bench.Sizes(batch=8, width=16)
+    loss, batch = bench.kit_loss("kit", sizes)
+    traj = bench.trajectories(sizes)
+    costs = []
+    for row in range(traj.shape[0]):
+        running = 0.0
+        for t in range(traj.shape[1]):
+            if traj["step_count"][row, t].item() == 0:
+                running = 0.0
+            running += traj["next", "cost"][row, t].item()
+            if traj["next", "done"][row, t].item():
+                costs.append(running)
+                running = 0.0
+    # the window keeps the last 10 in the order the trainer adds them (rows flattened)
+    last = costs[-10:]
+    worst = sorted(last, reverse=True)[: math.ceil(loss.risk_level * len(last))]
+    expected = sum(worst) / len(worst)
+    assert batch["episode_cvar"].shape == (8, 1)
+    assert batch["episode_cvar"].flatten().tolist() == pytest.approx([expected] * 8)
+    with pytest.raises(ValueError, match="kappa_signal=max reads an episode-cost window"):
+        bench.pipeline_batch(loss, sizes)
