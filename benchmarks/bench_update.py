@@ -85,7 +85,6 @@ from plain_wcsac import PlainWCSAC, batch_inputs
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives import (
-    PAPER_OPTIONS,
     EpisodeCostWindow,
     PolyakUpdate,
     StartStateBuffer,

@@ -408,6 +408,46 @@ def test_nstep_targets_bootstrap_from_the_state_m_steps_ahead(midpoints):
     assert_close_f32(targets["cost_target_quantiles"], expected, ops=4)
 
 
+@pytest.mark.parametrize("members", [1, 2])
+@pytest.mark.parametrize("target", [False, True])
+@pytest.mark.parametrize("stratified", [True, False])
+def test_a_skipped_reading_draws_exactly_what_a_reading_draws(members, target, stratified):
+    """The n-step targets do not read the target critic at ``(s', a')`` but draw its
+    fractions there: the random stream after the skip is the one after the reading (so
+    every later draw, and the training run, is what it was when the reading was made),
+    for one critic and for an ensemble, whose members draw one after the other."""
+    loss = make_loss(num_safety_nets=members)
+    params = loss.target_safety_network_params if target else loss.safety_network_params
+    batch = make_batch(8)
+    torch.manual_seed(3)
+    loss.safety_head.values(batch, params, target=target, stratified=stratified)
+    after_reading = torch.get_rng_state()
+    torch.manual_seed(3)
+    loss.safety_head.skip_reading(params, target=target, stratified=stratified)
+    assert torch.equal(torch.get_rng_state(), after_reading)
+
+
+def test_nstep_targets_evaluate_the_iqn_critic_once_per_reading_they_use():
+    """One update's forward with n-step targets and κ at start states evaluates the
+    safety network at the replay state-actions, at the actor's actions, at the start
+    states and (target parameters) at s_{t+m}: four calls, none discarded."""
+    loss = make_loss(cost_n_steps=3, kappa_states="initial")
+    calls = []
+    loss.safety_head.network.register_forward_hook(lambda *_: calls.append(1))
+    batch = make_batch(8, initial=True)
+    batch["nstep"] = TensorDict(
+        {
+            "observation": batch["next", "observation"],
+            "cost": batch["next", "cost"],
+            "steps": torch.full((8, 1), 3),
+            "terminated": batch["next", "terminated"],
+        },
+        [8],
+    )
+    loss(batch)
+    assert len(calls) == 4
+
+
 @pytest.mark.parametrize("nonnegative", [False, True])
 def test_gamma_is_the_mean_of_the_tail_quantiles_and_estimates_use_midpoints(nonnegative):
     alpha, n = 0.2, 4

@@ -119,9 +119,9 @@ class Critics:
         ``sample(ahead)`` (``a ~ π``).
 
         With ``ahead`` the safety critic is not read at ``(s', a')`` by an unfused
-        critic (except by a head whose readings draw random numbers, the IQN's: its
-        draws there keep the random stream, and so the results, those of the reading it
-        has always made). Fused critics keep the one batched product over every member
+        critic; a head whose readings draw random numbers (the IQN's fractions) draws
+        there what that reading drew, without evaluating the critic, so the random
+        stream, and every result, is that of the reading it made before. Fused critics keep the one batched product over every member
         at ``(s', a')``: evaluating fewer members, or the safety pair at ``ahead`` in the
         same product, rounds differently, and the risky-detour learning test showed that
         training outcomes are not robust to it. ``sample`` is called after ``a'`` was
@@ -137,8 +137,7 @@ class Critics:
             q, _, _ = self.fused.values(observation, next_action, self.layers(params))
         else:
             q = self._qvalue(next_states, next_action, params, vmap_qvalue)
-        if self.head.random_readings:
-            self.head.values(next_states, params.safety, next_action, target=params.target)
+        self.head.skip_reading(params.safety, target=params.target)
         safety = self.head.values(ahead, params.safety, sample(ahead), target=params.target)
         return CriticValues(q, safety)
 

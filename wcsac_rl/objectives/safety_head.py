@@ -110,8 +110,13 @@ class SafetyHead:
         """Whether the critic has a variance network (only the Gaussian head's)."""
         return False
 
-    random_readings = False
-    """Whether :meth:`values` draws random numbers (an IQN head's fractions)."""
+    def skip_reading(
+        self, params: TensorDictBase, *, target: bool = False, stratified: bool = True
+    ) -> None:
+        """Draw the random numbers a :meth:`values` call with these arguments would (an
+        IQN head's fractions; none here) without evaluating the critic: a reading whose
+        result is not needed keeps the random stream, and every result after it, as they
+        were when it was made."""
 
     @property
     def in_keys(self) -> list:
@@ -374,7 +379,6 @@ class IQNHead(SafetyHead):
     """
 
     kind = "iqn"
-    random_readings = True  # each reading draws its fractions
     loss_names = ("loss_cost_quantile",)
     diagnostic_names = ("cost_value", "cost_variance")  # of the quantiles
 
@@ -468,6 +472,15 @@ class IQNHead(SafetyHead):
         mean = quantiles.mean(-1)
         variance = (quantiles - mean.unsqueeze(-1)).pow(2).mean(-1)
         return SafetyValues(mean, variance, quantiles, fractions, tail)
+
+    def skip_reading(
+        self, params: TensorDictBase, *, target: bool = False, stratified: bool = True
+    ) -> None:
+        like = params.get(self._like_key)
+        count = self.num_target_quantiles if target else self.num_quantiles
+        self.fractions(count, like, stratified=stratified)
+        if not target:
+            self.fractions(self.num_quantiles, like, True, stratified)
 
     def targets(
         self, cost: Tensor, gamma: Tensor, alive: Tensor, ahead: SafetyValues
@@ -579,7 +592,6 @@ class EnsembleHead(SafetyHead):
     has_variance = property(lambda self: self.member.has_variance)
     loss_names = property(lambda self: self.member.loss_names)
     diagnostic_names = property(lambda self: self.member.diagnostic_names)
-    random_readings = property(lambda self: self.member.random_readings)
     in_keys = property(lambda self: self.member.in_keys)
 
     def unfused_reason(self) -> str:
@@ -625,6 +637,12 @@ class EnsembleHead(SafetyHead):
                 for k in range(self.members)
             ]
         )
+
+    def skip_reading(
+        self, params: TensorDictBase, *, target: bool = False, stratified: bool = True
+    ) -> None:
+        for k in range(self.members):
+            self.member.skip_reading(params[k], target=target, stratified=stratified)
 
     def targets(
         self, cost: Tensor, gamma: Tensor, alive: Tensor, ahead: SafetyValues
