@@ -121,10 +121,11 @@ class Critics:
         With ``ahead`` the safety critic is not read at ``(s', a')`` by an unfused
         critic; a head whose readings draw random numbers (the IQN's fractions) draws
         there what that reading drew, without evaluating the critic, so the random
-        stream, and every result, is that of the reading it made before. Fused critics keep the one batched product over every member
-        at ``(s', a')``: evaluating fewer members, or the safety pair at ``ahead`` in the
-        same product, rounds differently, and the risky-detour learning test showed that
-        training outcomes are not robust to it. ``sample`` is called after ``a'`` was
+        stream, and every result, is that of the reading it made before. Fused critics
+        keep the one batched product over every member at ``(s', a')``: evaluating fewer
+        members, or the safety pair at ``ahead`` in the same product, rounds differently,
+        and the risky-detour learning test showed that training outcomes are not robust
+        to it. ``sample`` is called after ``a'`` was
         drawn and after the reward critics (the order the targets always drew)."""
         if ahead is None:
             return self.values(next_states, next_action, params, vmap_qvalue)
