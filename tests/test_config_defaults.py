@@ -147,7 +147,9 @@ def test_kappa_advice_is_the_authors_in_the_units_of_each_formulation(env):
 
 
 # What results/training_safety/ measured as C36 (StaticEnv) and D23 (DynamicEnv, also
-# algo.damp_scale=0), on top of the defaults before the change.
+# algo.damp_scale=0), on top of the defaults before the change; on DynamicEnv the PID
+# rule with κ >= 0.1 (D21) in place of D23's gradient rule.
+DYNAMIC_RULE = ["algo.kappa_rule=pid", "algo.kappa_min=0.1"]
 TRAINING_SAFETY_OPTIONS = [
     "algo.safety_critic=iqn",
     "algo.kappa_signal=max",
@@ -174,13 +176,16 @@ def _whole(*overrides: str) -> dict:
 @pytest.mark.parametrize("algo", ["wcsac", "sac_lag"])
 def test_the_kit_preset_is_the_measured_candidate_on_the_defaults_before_it(algo, env):
     """``preset=kit`` (the default) is exactly the earlier defaults with the options the
-    training-safety study screened (C36, D23), and nothing else, in every key of the
-    run's config, for WCSAC and SAC-Lag on every layout (SAC-Lag keeps its mean critic)."""
+    training-safety study screened (C36; D21 on DynamicEnv), and nothing else, in every
+    key of the run's config, for WCSAC and SAC-Lag on every layout (SAC-Lag keeps its
+    mean critic)."""
     options = [
         o
         for o in TRAINING_SAFETY_OPTIONS
         if not (algo == "sac_lag" and o == "algo.safety_critic=iqn")
     ]
+    if env == "dynamic":
+        options += DYNAMIC_RULE
     before = _whole(f"algo={algo}", f"env={env}", "preset=kit_2026_11", *options)
     assert _whole(f"algo={algo}", f"env={env}") == before
     assert _whole(f"algo={algo}", f"env={env}", "preset=kit") == before
@@ -299,6 +304,47 @@ def test_a_run_begun_before_the_default_changed_resumes_only_under_its_preset(tm
     )
     assert {p: p.read_bytes() for p in files} == files
     resumed = make_trainer(compose_config(*base, "preset=kit_2026_11"), run_dir)
+    try:
+        resumed.run()
+    finally:
+        resumed.close()
+    rows = (run_dir / "progress.csv").read_text().splitlines()
+    assert len(rows) == 1 + 2  # header, the first session's epoch and the resumed one's
+
+
+def test_a_dynamic_run_begun_under_the_kit_before_its_pid_rule_resumes_with_the_old_rule(
+    tmp_path,
+):
+    """A DynamicEnv run begun under ``preset=kit`` while its κ rule was the gradient rule
+    (as the card's command ran before the PID rule became DynamicEnv's default): under
+    today's default ``resume=auto`` is refused in one line that names the two options to
+    add, nothing of the run touched; with them it continues."""
+    from _training_helpers import compose_config
+
+    from wcsac_rl.training import ConfigError, make_trainer
+
+    run_dir = tmp_path / "run"
+    base = ("algo=wcsac", "env=dynamic", "risk_level=0.5", "resume=auto")
+    old_rule = ("algo.kappa_rule=gradient", "algo.kappa_min=0")
+    first = make_trainer(compose_config(*base, *old_rule, "total_frames=400"), run_dir)
+    try:
+        first.run()
+    finally:
+        first.close()
+    files = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file() and p.name != ".lock"}
+    with pytest.raises(ConfigError) as err:
+        make_trainer(compose_config(*base), run_dir).close()
+    message = str(err.value)
+    assert (
+        "\n" not in message
+        and "algo.kappa_rule" in message
+        and message.endswith(
+            "(a DynamicEnv run begun under preset=kit before its κ rule became the PID rule "
+            "continues with algo.kappa_rule=gradient algo.kappa_min=0 on the command line)"
+        )
+    )
+    assert {p: p.read_bytes() for p in files} == files
+    resumed = make_trainer(compose_config(*base, *old_rule), run_dir)
     try:
         resumed.run()
     finally:

@@ -103,6 +103,7 @@ def test_the_composed_config_starts_from_the_dataclass():
 
     defaults = config_defaults(SafetyOptions)
     preset = yaml.safe_load((CONF / "algo" / "preset" / "kit.yaml").read_text())
+    preset.pop("defaults")  # (a layout's own κ advice: none on StaticEnv, the default)
     algo = compose_config("algo=wcsac", small=False).algo
     for key, value in defaults.items():
         if key != "risk_level":  # (the run's α: ${risk_level})
@@ -183,9 +184,15 @@ def test_the_yaml_files_set_only_what_differs_from_the_schema():
     the paper's) only what differs from both (they undo the preset where they differ)."""
     defaults = config_defaults(SafetyOptions)
     preset = yaml.safe_load((CONF / "algo" / "preset" / "kit.yaml").read_text())
+    preset.pop("defaults")  # (a layout's κ advice, checked below)
     off_policy = yaml.safe_load((CONF / "algo" / "off_policy.yaml").read_text())
     for key, value in preset.items():
         assert value != {**defaults, **off_policy}[key], f"preset/kit.yaml: {key} repeats"
+    advice = sorted((CONF / "algo" / "kappa_advice" / "kit").glob("*.yaml"))
+    assert [path.stem for path in advice] == ["dynamic"]
+    for path in advice:  # a layout's κ advice under the preset: only what differs from it
+        for key, value in yaml.safe_load(path.read_text()).items():
+            assert value != {**defaults, **preset}[key], f"{path.name}: {key} repeats"
     for name in ("wcsac", "sac_lag", "wcsac_paper", "sac_lag_paper"):  # (the schema's users)
         inherited = defaults if name == "wcsac" else {**defaults, **preset}
         path = CONF / "algo" / f"{name}.yaml"

@@ -399,6 +399,10 @@ def _select(cfg: DictConfig | dict, key: str) -> Any:
     return value
 
 
+DYNAMIC_RULE_KEYS = frozenset({"algo.kappa_rule", "algo.kappa_min"})
+"""The keys ``preset=kit`` changed on DynamicEnv after it became the default
+(``conf/algo/kappa_advice/kit/dynamic.yaml``: the PID rule, κ ≥ 0.1)."""
+
 PRESET_KEYS = frozenset(
     f"algo.{key}"
     for key in (
@@ -410,19 +414,27 @@ PRESET_KEYS = frozenset(
         "alpha_init",
         "actor_lr",
     )
-)
-"""The keys in which the config's two presets differ (``conf/algo/preset/``): a run
-begun under ``preset=kit_2026_11`` (before the default changed) and continued with
-``resume=auto`` under the default differs in them, and the refusal says which preset
-it ran with."""
+).union(DYNAMIC_RULE_KEYS)
+"""The keys in which the config's two presets differ (``conf/algo/preset/``, on some
+layout): a run begun under ``preset=kit_2026_11`` (before the default changed) and
+continued with ``resume=auto`` under the default differs in them, and the refusal says
+which preset it ran with."""
 
 PRESET_HINT = (
     " (a run begun before the config's default preset changed continues with "
     "preset=kit_2026_11 on the command line)"
 )
+DYNAMIC_RULE_HINT = (
+    " (a DynamicEnv run begun under preset=kit before its κ rule became the PID rule "
+    "continues with algo.kappa_rule=gradient algo.kappa_min=0 on the command line)"
+)
 
 
 def _preset_hint(keys: list[str]) -> str:
+    """What to add to a refusal over ``keys``: how a run begun under an earlier default
+    continues, when the keys are the ones that default changed."""
+    if keys and DYNAMIC_RULE_KEYS.issuperset(keys):
+        return DYNAMIC_RULE_HINT
     return PRESET_HINT if PRESET_KEYS.intersection(keys) else ""
 
 
