@@ -278,18 +278,42 @@ def test_the_keys_a_resume_names_as_the_presets_are_the_keys_they_differ_in():
     assert differing == PRESET_KEYS
 
 
-@pytest.mark.parametrize("algo", ["wcsac", "sac_lag"])
-def test_a_run_begun_before_the_default_changed_resumes_only_under_its_preset(tmp_path, algo):
-    """``resume=auto`` on a run made under ``preset=kit_2026_11``: under the default
-    preset it is refused in one line that names the preset to add (nothing of the run is
-    touched), and with ``preset=kit_2026_11`` it continues."""
+PRESET_HINT = (
+    "(a run begun before the config's default preset changed continues with "
+    "preset=kit_2026_11 on the command line)"
+)
+DYNAMIC_RULE_HINT = (
+    "(a DynamicEnv run begun under preset=kit before its κ rule became the PID rule "
+    "continues with algo.kappa_rule=gradient algo.kappa_min=0 on the command line)"
+)
+
+
+@pytest.mark.parametrize(
+    ("base", "then", "hint"),
+    [
+        (("algo=wcsac", "env=tiny"), ("preset=kit_2026_11",), PRESET_HINT),
+        (("algo=sac_lag", "env=tiny"), ("preset=kit_2026_11",), PRESET_HINT),
+        (
+            ("algo=wcsac", "env=dynamic", "risk_level=0.5"),
+            ("algo.kappa_rule=gradient", "algo.kappa_min=0"),
+            DYNAMIC_RULE_HINT,
+        ),
+    ],
+    ids=["wcsac-kit_2026_11", "sac_lag-kit_2026_11", "dynamic-kit-before-pid"],
+)
+def test_a_run_begun_under_an_earlier_default_resumes_only_as_it_began(tmp_path, base, then, hint):
+    """``resume=auto`` on a run made under an earlier default: one made under
+    ``preset=kit_2026_11``, and a DynamicEnv one made under ``preset=kit`` while its κ
+    rule was the gradient rule (as the card's command ran before). Under today's default
+    it is refused in one line that ends with what to add (nothing of the run is
+    touched); with that added it continues."""
     from _training_helpers import compose_config
 
     from wcsac_rl.training import ConfigError, make_trainer
 
     run_dir = tmp_path / "run"
-    base = (f"algo={algo}", "env=tiny", "resume=auto")
-    first = make_trainer(compose_config(*base, "preset=kit_2026_11", "total_frames=400"), run_dir)
+    base = (*base, "resume=auto")
+    first = make_trainer(compose_config(*base, *then, "total_frames=400"), run_dir)
     try:
         first.run()
     finally:
@@ -298,53 +322,9 @@ def test_a_run_begun_before_the_default_changed_resumes_only_under_its_preset(tm
     with pytest.raises(ConfigError) as err:
         make_trainer(compose_config(*base), run_dir).close()
     message = str(err.value)
-    assert "\n" not in message and message.endswith(
-        "(a run begun before the config's default preset changed continues with "
-        "preset=kit_2026_11 on the command line)"
-    )
+    assert "\n" not in message and message.endswith(hint)
     assert {p: p.read_bytes() for p in files} == files
-    resumed = make_trainer(compose_config(*base, "preset=kit_2026_11"), run_dir)
-    try:
-        resumed.run()
-    finally:
-        resumed.close()
-    rows = (run_dir / "progress.csv").read_text().splitlines()
-    assert len(rows) == 1 + 2  # header, the first session's epoch and the resumed one's
-
-
-def test_a_dynamic_run_begun_under_the_kit_before_its_pid_rule_resumes_with_the_old_rule(
-    tmp_path,
-):
-    """A DynamicEnv run begun under ``preset=kit`` while its κ rule was the gradient rule
-    (as the card's command ran before the PID rule became DynamicEnv's default): under
-    today's default ``resume=auto`` is refused in one line that names the two options to
-    add, nothing of the run touched; with them it continues."""
-    from _training_helpers import compose_config
-
-    from wcsac_rl.training import ConfigError, make_trainer
-
-    run_dir = tmp_path / "run"
-    base = ("algo=wcsac", "env=dynamic", "risk_level=0.5", "resume=auto")
-    old_rule = ("algo.kappa_rule=gradient", "algo.kappa_min=0")
-    first = make_trainer(compose_config(*base, *old_rule, "total_frames=400"), run_dir)
-    try:
-        first.run()
-    finally:
-        first.close()
-    files = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file() and p.name != ".lock"}
-    with pytest.raises(ConfigError) as err:
-        make_trainer(compose_config(*base), run_dir).close()
-    message = str(err.value)
-    assert (
-        "\n" not in message
-        and "algo.kappa_rule" in message
-        and message.endswith(
-            "(a DynamicEnv run begun under preset=kit before its κ rule became the PID rule "
-            "continues with algo.kappa_rule=gradient algo.kappa_min=0 on the command line)"
-        )
-    )
-    assert {p: p.read_bytes() for p in files} == files
-    resumed = make_trainer(compose_config(*base, *old_rule), run_dir)
+    resumed = make_trainer(compose_config(*base, *then), run_dir)
     try:
         resumed.run()
     finally:
