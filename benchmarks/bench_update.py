@@ -64,12 +64,11 @@ import statistics
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import torch
-from omegaconf import DictConfig
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import nn
@@ -82,21 +81,21 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from plain_wcsac import PlainWCSAC, batch_inputs
 
-from wcsac_rl import WCSACLoss
+from wcsac_rl import WCSACLoss, compose_config
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import (
-    EpisodeCostWindow,
-    PolyakUpdate,
-    StartStateBuffer,
-)
+from wcsac_rl.objectives import PolyakUpdate, StartStateBuffer
 from wcsac_rl.objectives.inputs import collected_keys
 from wcsac_rl.options import SafetyOptions
-from wcsac_rl.training.builders import adam, make_postproc
+from wcsac_rl.training.builders import (
+    adam,
+    episode_window,
+    make_postproc,
+    safety_critic_kwargs,
+)
 from wcsac_rl.training.config import safety_options
 from wcsac_rl.training.runtime import retain_freed_memory
 
 OBS, ACT = 44, 2
-CONF = Path(__file__).resolve().parents[1] / "conf"
 CONFIG_OVERRIDES = {
     "kit": ("algo=wcsac",),
     "defaults": ("algo=wcsac", "preset=kit_2026_11"),
@@ -107,14 +106,6 @@ composes them: ``kit`` is ``python train.py``'s default, ``defaults`` the loss's
 (``SafetyOptions()``; the preset before the training-safety change), ``paper``
 ``PAPER_OPTIONS``. The end-to-end loop runs these configs."""
 OPTION_SETS = tuple(CONFIG_OVERRIDES)
-
-
-def compose_config(overrides: Sequence[str]) -> DictConfig:
-    """The run config ``python train.py <overrides>`` would compose."""
-    from hydra import compose, initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        return compose("config", overrides=list(overrides))
 
 
 @dataclass(frozen=True)
@@ -132,23 +123,6 @@ class OptionSet:
         """``WCSACLoss``'s keywords, as ``make_loss`` passes them."""
         return {**self.options.loss_kwargs(), **self.extra}
 
-    @property
-    def critic_kwargs(self) -> dict:
-        """``make_safety_critic``'s keywords, as ``make_agent`` passes them."""
-        if self.options.safety_critic == "iqn":
-            return {"kind": "iqn", "num_cosines": self.options.iqn.num_cosines}
-        return {"kind": "gaussian", "variance": self.options.variance}
-
-    @property
-    def window_kwargs(self) -> dict | None:
-        """``EpisodeCostWindow.for_loss``'s keywords where κ reads the episodes."""
-        if self.options.kappa_signal == "critic":
-            return None
-        return {
-            "window": self.options.kappa_episode_window,
-            "statistic": self.options.kappa_episode_statistic,
-        }
-
 
 @functools.cache
 def option_set(name: str) -> OptionSet:
@@ -157,7 +131,7 @@ def option_set(name: str) -> OptionSet:
     ``SafetyOptions()`` and ``paper`` to ``PAPER_OPTIONS``)."""
     if name not in CONFIG_OVERRIDES:
         raise KeyError(f"unknown option set {name!r}; one of {OPTION_SETS}")
-    algo = compose_config(CONFIG_OVERRIDES[name]).algo
+    algo = compose_config(*CONFIG_OVERRIDES[name]).algo
     return OptionSet(safety_options(algo), {"alpha_init": float(algo.alpha_init)})
 
 
@@ -225,13 +199,13 @@ def trajectories(sizes: Sizes, *, envs: int = 4, episode_steps: int = 50) -> Ten
     )
 
 
-def pipeline_batch(loss, sizes: Sizes, window: dict | None = None) -> TensorDictBase:
+def pipeline_batch(loss, sizes: Sizes, options: SafetyOptions | None = None) -> TensorDictBase:
     """A replay batch for ``loss`` built as the trainer builds it (``OffPolicyTrainer.learn``
     and ``.sample``): the collector postproc (n-step cost entries), the rows the loss
     reads, a uniform sample, a start state per row for ``kappa_states="initial"`` and,
-    where κ reads the episodes (``kappa_signal`` not ``"critic"``), the CVaR of an
-    ``EpisodeCostWindow`` (``window``: its ``for_loss`` keywords) of the trajectories'
-    finished episodes."""
+    where κ reads the episodes (``kappa_signal`` not ``"critic"``), the CVaR of the
+    trainer's ``EpisodeCostWindow`` for ``options`` (``builders.episode_window``) over
+    the trajectories' finished episodes."""
     traj = trajectories(sizes)
     postproc = make_postproc(loss)
     if postproc is not None:
@@ -245,12 +219,12 @@ def pipeline_batch(loss, sizes: Sizes, window: dict | None = None) -> TensorDict
         torch.manual_seed(2)
         batch = starts.attach(batch)
     if getattr(loss, "kappa_signal", "critic") != "critic":
-        if window is None:
+        if options is None:
             raise ValueError(
                 f"kappa_signal={loss.kappa_signal} reads an episode-cost window: "
-                "pass window= (EpisodeCostWindow.for_loss keywords)"
+                "pass options= (the SafetyOptions that size it)"
             )
-        episodes = EpisodeCostWindow.for_loss(loss, **window)
+        episodes = episode_window(options, loss)
         if not episodes.add_episodes(traj.reshape(-1)):
             raise RuntimeError("the benchmark's trajectories finished no episode")
         batch = episodes.attach(batch)
@@ -260,7 +234,7 @@ def pipeline_batch(loss, sizes: Sizes, window: dict | None = None) -> TensorDict
 # ------------------------------------------------------------------ networks
 def kit_networks(sizes: Sizes, **critic):
     """The kit's networks (``make_actor`` / ``make_qvalue`` / ``make_safety_critic``;
-    ``critic``: the last one's keywords, :attr:`OptionSet.critic_kwargs`)."""
+    ``critic``: the last one's keywords, ``builders.safety_critic_kwargs``)."""
     spec = Bounded(-1.0, 1.0, shape=(sizes.act,))
     w = sizes.width
     actor = make_actor(sizes.obs, spec, width=w)
@@ -276,10 +250,9 @@ def kit_loss(
     kit's networks as the trainer builds them, and its pipeline batch (``kwargs``: the
     loss's other keywords, e.g. ``fuse_critics=False``)."""
     options = option_set(name).replace(**(changes or {}))
-    loss = WCSACLoss(
-        *kit_networks(sizes, **options.critic_kwargs), **options.loss_kwargs(), **kwargs
-    )
-    return loss, pipeline_batch(loss, sizes, options.window_kwargs)
+    critic = safety_critic_kwargs(options.options)
+    loss = WCSACLoss(*kit_networks(sizes, **critic), **options.loss_kwargs(), **kwargs)
+    return loss, pipeline_batch(loss, sizes, options.options)
 
 
 def torchrl_networks(sizes: Sizes):
@@ -364,8 +337,8 @@ def build_variants(
     variants: dict[str, Variant] = {}
 
     def add(name, label, loss, options, baseline, batch=None, **kwargs):
-        window = None if options is None else option_set(options).window_kwargs
-        loss_batch = pipeline_batch(loss, sizes, window) if batch is None else batch
+        safety = None if options is None else option_set(options).options
+        loss_batch = pipeline_batch(loss, sizes, safety) if batch is None else batch
         update = torchrl_update_fn(loss, **kwargs)
         variants[name] = Variant(label, update, loss_batch, options, baseline)
 
@@ -531,20 +504,18 @@ def training_loop(
 
     epoch_frames = max(400, (frames // 2) // 400 * 400)
     cfg = compose_config(
-        [
-            *CONFIG_OVERRIDES[options],
-            f"env={env}",
-            f"total_frames={frames}",
-            f"epoch_frames={epoch_frames}",
-            "algo.collector.init_random_frames=400",
-            f"algo.batch_size={sizes.batch}",
-            f"algo.network.width={sizes.width}",
-            "eval_episodes=0",
-            "progress_bar=false",
-            "logger=none",
-            f"threads={threads}",
-            f"retain_freed_memory={str(retained).lower()}",
-        ],
+        *CONFIG_OVERRIDES[options],
+        f"env={env}",
+        f"total_frames={frames}",
+        f"epoch_frames={epoch_frames}",
+        "algo.collector.init_random_frames=400",
+        f"algo.batch_size={sizes.batch}",
+        f"algo.network.width={sizes.width}",
+        "eval_episodes=0",
+        "progress_bar=false",
+        "logger=none",
+        f"threads={threads}",
+        f"retain_freed_memory={str(retained).lower()}",
     )
     with tempfile.TemporaryDirectory() as tmp:
         trainer = make_trainer(cfg, Path(tmp) / "run")

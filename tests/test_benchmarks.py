@@ -27,6 +27,7 @@ import pytest
 
 from wcsac_rl.objectives import PAPER_OPTIONS
 from wcsac_rl.options import SafetyOptions
+from wcsac_rl.training.builders import safety_critic_kwargs
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS = ROOT / "benchmarks"
@@ -213,8 +214,12 @@ def test_option_sets_are_what_the_trainer_and_the_loss_read():
     bench = _bench_update()
     kit = bench.option_set("kit")
     assert kit.options.safety_critic == "iqn" and kit.options.kappa_signal == "max"
-    assert kit.critic_kwargs == {"kind": "iqn", "num_cosines": kit.options.iqn.num_cosines}
-    assert kit.window_kwargs == {"window": 10, "statistic": "cvar"}
+    assert safety_critic_kwargs(kit.options) == {
+        "kind": "iqn",
+        "num_cosines": kit.options.iqn.num_cosines,
+    }
+    window = (kit.options.kappa_episode_window, kit.options.kappa_episode_statistic)
+    assert window == (10, "cvar")
     assert kit.extra == {"alpha_init": 0.1}
     for name, options in (
         ("defaults", SafetyOptions()),
@@ -222,8 +227,11 @@ def test_option_sets_are_what_the_trainer_and_the_loss_read():
     ):
         chosen = bench.option_set(name)
         assert chosen.loss_kwargs() == {**options.loss_kwargs(), "alpha_init": 1.0}, name
-        assert chosen.critic_kwargs == {"kind": "gaussian", "variance": options.variance}
-        assert chosen.window_kwargs is None
+        assert safety_critic_kwargs(chosen.options) == {
+            "kind": "gaussian",
+            "variance": options.variance,
+        }
+        assert chosen.options.kappa_signal == "critic"  # (no episode window)
     with pytest.raises(KeyError, match="unknown option set 'fast'"):
         bench.option_set("fast")
 

@@ -44,6 +44,7 @@ __all__ = [
     "Agent",
     "adam",
     "env_kwargs",
+    "episode_window",
     "make_agent",
     "make_collector",
     "make_episode_window",
@@ -57,6 +58,7 @@ __all__ = [
     "make_target_updater",
     "make_train_env",
     "network_shape",
+    "safety_critic_kwargs",
 ]
 
 
@@ -157,10 +159,7 @@ def make_agent(cfg: DictConfig, env: EnvBase, devices: RunDevices | None = None)
     safety = None
     if cfg.algo.name in ("wcsac", "sac_lag"):
         options = safety_options(cfg.algo)
-        if options.safety_critic == "iqn":
-            kwargs = {"kind": "iqn", "num_cosines": options.iqn.num_cosines}
-        else:
-            kwargs = {"variance": options.variance}
+        kwargs = safety_critic_kwargs(options)
         # one module, or num_safety_nets of them, each initialised on its own
         critics = [
             make_safety_critic(obs_dim, act_dim, **kwargs, **shape)
@@ -173,6 +172,13 @@ def make_agent(cfg: DictConfig, env: EnvBase, devices: RunDevices | None = None)
         if module is not None:
             module.to(device)
     return Agent(actor, qvalues, safety)
+
+
+def safety_critic_kwargs(options: SafetyOptions) -> dict:
+    """``make_safety_critic``'s keywords for ``options`` (its kind and that kind's own)."""
+    if options.safety_critic == "iqn":
+        return {"kind": "iqn", "num_cosines": options.iqn.num_cosines}
+    return {"kind": "gaussian", "variance": options.variance}
 
 
 def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModule:
@@ -337,7 +343,11 @@ def make_episode_window(cfg: DictConfig, loss: LossModule) -> EpisodeCostWindow:
     """The recent training episodes whose CVaR κ sees, for ``kappa_signal`` ``max`` /
     ``episodes`` (the last ``algo.kappa_episode_window``), and the last
     ``algo.kappa_test_window`` test episodes (0: none)."""
-    options = safety_options(cfg.algo)
+    return episode_window(safety_options(cfg.algo), loss)
+
+
+def episode_window(options: SafetyOptions, loss: LossModule) -> EpisodeCostWindow:
+    """:func:`make_episode_window` for ``options`` already read from a config."""
     return EpisodeCostWindow.for_loss(
         loss,
         window=options.kappa_episode_window,
