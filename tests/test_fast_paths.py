@@ -1,7 +1,8 @@
 """The fast paths compute exactly what the general TorchRL paths compute.
 
 Direct tanh-Normal sampling (``direct_sampling``), the inline TD(0) reward target,
-``PolyakUpdate`` and ``TanhNormalPolicy`` are there for speed only; each is checked here against the
+``PolyakUpdate``, ``TanhNormalPolicy`` and the twin critic read from its stacked weights
+(``evaluate_stacked_mlp``) are there for speed only; each is checked here against the
 path it replaces: same values, same gradients, same fall-backs.
 """
 
@@ -15,6 +16,7 @@ from _loss_helpers import (
     assert_same_losses_and_gradients,
     make_batch,
     make_loss,
+    paper_options,
 )
 from _tolerance import assert_close_f32
 from tensordict import TensorDict
@@ -22,17 +24,19 @@ from tensordict.nn import NormalParamExtractor, TensorDictModule
 from torch import nn
 from torchrl.data import Bounded
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import ProbabilisticActor, TanhNormal
+from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import SoftUpdate
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
+from wcsac_rl.modules.mlp import evaluate_stacked_mlp
 from wcsac_rl.modules.tanh_normal import (
     TanhNormalPolicy,
     sample_tanh_normal,
     tanh_normal_actor_plan,
 )
 from wcsac_rl.objectives import PAPER_OPTIONS, PolyakUpdate
+from wcsac_rl.objectives.critics import stacked_mlp_layout
 
 
 def _torchrl_draw(actor, observation):
@@ -207,3 +211,155 @@ def test_tanh_normal_policy_refuses_other_actors_and_follows_training():
                 p.add_(0.1)
         after = policy(td.clone())["action"]
     assert not torch.allclose(before, after)
+
+
+# ------------------------------------------------ the twin critic read without vmap
+def _grads_and_values(loss, batch, seed=5):
+    torch.manual_seed(seed)
+    out = loss(batch.clone())
+    sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+    return out, {n: p.grad.clone() for n, p in loss.named_parameters() if p.grad is not None}
+
+
+@pytest.mark.parametrize("activation", ["relu", "tanh", "elu", "gelu"])
+@pytest.mark.parametrize("shape", [(64,), (1,), (3, 5)])
+def test_stacked_mlp_is_the_vmapped_twin_critic_bit_for_bit(activation, shape):
+    """``evaluate_stacked_mlp`` replaces TorchRL's vmapped call of the twin critic: the
+    same values and the same gradients (to the stacked weights and to the action), equal
+    to the last bit, at any batch shape."""
+    torch.manual_seed(0)
+    qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=16, activation=activation) for _ in range(2)]
+    safety = make_safety_critic(OBS_DIM, ACT_DIM, kind="iqn", width=16)
+    loss = WCSACLoss(
+        make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=16), qvalues, safety
+    )
+    layout = stacked_mlp_layout(loss.qvalue_network, "action")
+    assert layout is not None and loss.critics.stacked == layout
+    g = torch.Generator().manual_seed(1)
+    observation = torch.randn(*shape, OBS_DIM, generator=g)
+    readings = []
+    for path in ("vmap", "stacked"):
+        action = (
+            torch.rand(*shape, ACT_DIM, generator=torch.Generator().manual_seed(2)) * 2 - 1
+        ).requires_grad_()
+        params = loss.qvalue_network_params.apply(lambda p: p.detach().clone().requires_grad_())
+        if path == "vmap":
+            td = TensorDict({"observation": observation, "action": action}, shape)
+            q = loss._vmap_qnetworkN0(td, params).get("state_action_value")
+        else:
+            q = evaluate_stacked_mlp(torch.cat([observation, action], -1), params, layout)
+        weights = torch.randn(q.shape, generator=torch.Generator().manual_seed(3))
+        (q * weights).sum().backward()
+        readings.append((q.detach(), action.grad, [p.grad for p in params.values(True, True)]))
+    (q_v, a_v, g_v), (q_s, a_s, g_s) = readings
+    assert q_v.shape == q_s.shape == (2, *shape, 1)
+    assert torch.equal(q_v, q_s) and torch.equal(a_v, a_s)
+    assert len(g_v) == len(g_s) == 6 and all(torch.equal(x, y) for x, y in zip(g_v, g_s))
+
+
+def _twin_read_through_vmap(loss):
+    loss.critics.stacked = None  # what the loss did before: TorchRL's vmapped call
+    return loss
+
+
+def _torchrl_networks_loss(**kwargs):
+    """A TorchRL user's own networks: ``torchrl.modules.MLP`` critics, a two-MLP safety critic."""
+    torch.manual_seed(0)
+    actor = _actor_not_from_make_actor()
+    qvalue = ValueOperator(
+        MLP(in_features=OBS_DIM + ACT_DIM, out_features=1, num_cells=[16, 16]),
+        in_keys=["observation", "action"],
+    )
+    safety = TensorDictModule(
+        _MeanVariance(), in_keys=["observation", "action"], out_keys=["cost_value", "cost_variance"]
+    )
+    return WCSACLoss(actor, qvalue, safety, num_qvalue_nets=2, **kwargs)
+
+
+class _MeanVariance(nn.Module):
+    def __init__(self) -> None:
+        super().__init__()
+        self.mean = MLP(in_features=OBS_DIM + ACT_DIM, out_features=1, num_cells=[16, 16])
+        self.variance = MLP(in_features=OBS_DIM + ACT_DIM, out_features=1, num_cells=[16, 16])
+
+    def forward(self, observation, action):
+        return self.mean(observation, action), nn.functional.softplus(
+            self.variance(observation, action)
+        )
+
+
+@pytest.mark.parametrize(
+    "build",
+    [
+        lambda: make_loss(kind="iqn", width=16),  # the kit's default critic
+        lambda: make_loss(width=16, fuse_critics=False),  # the Gaussian critic, unfused
+        lambda: make_loss(kind="iqn", width=16, cost_n_steps=3, kappa_states="initial"),
+        lambda: _torchrl_networks_loss(**PAPER_OPTIONS),
+    ],
+    ids=["iqn", "gaussian-unfused", "iqn-nstep-start-states", "torchrl-networks"],
+)
+def test_loss_reads_the_twin_without_vmap_and_gives_the_same_bits(build):
+    """Every loss output and every parameter gradient, over two optimizer steps, is the
+    same bit for bit whether the twin critic is read from its stacked weights or
+    through TorchRL's vmapped call."""
+    direct, general = build(), _twin_read_through_vmap(build())
+    assert direct.critics.stacked is not None and direct.critics.fused is None
+    general.load_state_dict(direct.state_dict())
+    batch = make_batch(initial=True, seed=4)
+    batch["nstep"] = TensorDict(  # read by the n-step case only
+        {
+            "observation": batch["next", "observation"],
+            "cost": batch["next", "cost"],
+            "steps": torch.full((16, 1), 3),
+            "terminated": batch["next", "terminated"],
+        },
+        [16],
+    )
+    optimizers = [torch.optim.Adam(loss.parameters(), lr=1e-2) for loss in (direct, general)]
+    for step in range(2):
+        results = []
+        for loss, optimizer in zip((direct, general), optimizers):
+            optimizer.zero_grad()
+            results.append(_grads_and_values(loss, batch, seed=step))
+            optimizer.step()
+        (out_d, grad_d), (out_g, grad_g) = results
+        assert out_d.keys() == out_g.keys() and grad_d.keys() == grad_g.keys()
+        for key in out_d.keys():
+            assert torch.equal(out_d[key], out_g[key]), key
+        for name in grad_d:
+            assert torch.equal(grad_d[name], grad_g[name]), name
+
+
+class _ScaledMLP(MLP):
+    def forward(self, *inputs):  # not TorchRL's forward: reading its weights would be wrong
+        return 2 * super().forward(*inputs)
+
+
+def test_twin_critics_not_read_as_torchrl_mlps_keep_the_vmapped_call():
+    torch.manual_seed(0)
+    assert make_loss(width=8).critics.stacked is None  # fused with the Gaussian critic instead
+    assert make_loss(kind="iqn", width=8, deactivate_vmap=True).critics.stacked is None
+    spec = Bounded(-1.0, 1.0, shape=(ACT_DIM,))
+    safety = make_safety_critic(OBS_DIM, ACT_DIM, kind="iqn", width=8)
+    for module in (
+        _ScaledMLP(in_features=OBS_DIM + ACT_DIM, out_features=1, num_cells=[8]),
+        MLP(
+            in_features=OBS_DIM + ACT_DIM,
+            out_features=1,
+            num_cells=[8],
+            norm_class=nn.LayerNorm,
+            norm_kwargs={"normalized_shape": 8},
+        ),
+        MLP(in_features=OBS_DIM + ACT_DIM, out_features=(1,), num_cells=[8]),
+    ):
+        qvalue = ValueOperator(module, in_keys=["observation", "action"])
+        loss = WCSACLoss(
+            make_actor(OBS_DIM, spec, width=8),
+            qvalue,
+            safety,
+            num_qvalue_nets=2,
+            **paper_options("iqn"),
+        )
+        assert loss.critics.stacked is None, type(module).__name__
+        out = loss(make_batch())  # the vmapped call still serves it
+        assert torch.isfinite(out["loss_qvalue"])

@@ -11,7 +11,7 @@ import torch
 from tensordict import TensorDictBase
 from torch import Tensor, nn
 
-__all__ = ["ACTIVATIONS", "MLPLayout", "evaluate_mlp", "mlp_layout"]
+__all__ = ["ACTIVATIONS", "MLPLayout", "evaluate_mlp", "evaluate_stacked_mlp", "mlp_layout"]
 
 
 @dataclass(frozen=True)
@@ -79,3 +79,24 @@ def evaluate_mlp(x: Tensor, params: TensorDictBase, layout: MLPLayout) -> Tensor
         if depth < last:
             x = act(x)
     return x
+
+
+def evaluate_stacked_mlp(x: Tensor, params: TensorDictBase, layout: MLPLayout) -> Tensor:
+    """``K`` MLPs of one ``layout`` with stacked parameters (weights ``[K, out, in]``, as
+    TorchRL stacks a loss's twin critic) at a shared input ``x [*B, in]``: ``[K, *B, out]``.
+
+    Bit for bit what ``torch.vmap`` over the module computes (TorchRL's vmapped call of
+    the twin critic), values and gradients: the same kernels in the same order, each
+    layer the product against the stacked weights and then the bias added (not one
+    ``baddbmm``, which rounds differently), without vmap's per-call overhead.
+    """
+    act = ACTIVATIONS[layout.activation]
+    batch_shape = x.shape[:-1]
+    x = x.reshape(-1, x.shape[-1])
+    last = len(layout.prefixes) - 1
+    for depth, prefix in enumerate(layout.prefixes):
+        weight, bias = params.get((*prefix, "weight")), params.get((*prefix, "bias"))
+        x = torch.matmul(x, weight.transpose(-1, -2)) + bias.unsqueeze(-2)
+        if depth < last:
+            x = act(x)
+    return x.reshape(x.shape[0], *batch_shape, x.shape[-1])

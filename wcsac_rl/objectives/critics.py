@@ -6,7 +6,11 @@ online ones at ``(s, a ~ π)``). :class:`Critics` does each reading in one call:
 batched ensemble evaluation when the networks allow it
 (:class:`~wcsac_rl.objectives.critic_ensemble.FusedCritics`, which the safety head
 plans), else the reward critics through TorchRL's vmapped call and the safety critic
-through its head (:mod:`wcsac_rl.objectives.safety_head`). Same values and gradients
+through its head (:mod:`wcsac_rl.objectives.safety_head`). When the reward critic is a
+plain TorchRL ``MLP`` (what :mod:`wcsac_rl.modules` builds, and ``torchrl.modules.MLP``
+in a ``ValueOperator``), that vmapped call is replaced by its own kernels read from the
+stacked parameters (:func:`~wcsac_rl.modules.mlp.evaluate_stacked_mlp`: bit for bit the
+vmapped call's values and gradients, without vmap's overhead). Same values and gradients
 either way.
 """
 
@@ -15,10 +19,14 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import NamedTuple
 
+import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
+from tensordict.utils import NestedKey
 from torch import Tensor
+from torchrl.modules import MLP
 
+from wcsac_rl.modules.mlp import MLPLayout, evaluate_stacked_mlp, mlp_layout
 from wcsac_rl.objectives.critic_ensemble import Layers
 from wcsac_rl.objectives.safety_head import SafetyHead, SafetyValues
 
@@ -59,6 +67,10 @@ class Critics:
         num_qvalue_nets (int): how many reward critics are stacked.
         fuse (bool, optional): ``None``: fuse when possible; ``True``: fuse or raise a
             ``ValueError`` saying why not; ``False``: never.
+        direct (bool, optional): read an unfused plain-``MLP`` reward critic from its
+            stacked parameters instead of through ``vmap_qvalue`` (the same values and
+            gradients bit for bit). ``False`` where the loss does not vmap (TorchRL's
+            ``deactivate_vmap=True`` loops over the critics, which rounds differently).
     """
 
     def __init__(
@@ -69,11 +81,17 @@ class Critics:
         *,
         num_qvalue_nets: int,
         fuse: bool | None = None,
+        direct: bool = True,
     ) -> None:
         self.qvalue_network, self.head, self.keys = qvalue_network, head, keys
         self.fused = None if fuse is False else head.fusion_plan(qvalue_network, num_qvalue_nets)
         if fuse and self.fused is None:
             raise ValueError(head.unfused_reason())
+        self.stacked = (
+            stacked_mlp_layout(qvalue_network, keys.action)
+            if direct and self.fused is None
+            else None
+        )
 
     def layers(self, params: CriticParams) -> Layers | None:
         """The fused critics' stacked parameters (``None`` when not fused): gather them
@@ -143,7 +161,35 @@ class Critics:
         return CriticValues(q, safety)
 
     def _qvalue(self, tensordict, action, params: CriticParams, vmap_qvalue) -> Tensor:
-        """The reward critics through TorchRL's vmapped call, ``[num_qvalue_nets, *B]``."""
+        """The reward critics, ``[num_qvalue_nets, *B]``: TorchRL's vmapped call, or
+        its kernels read straight from the stacked parameters (the same values)."""
+        if self.stacked is not None:
+            observation = tensordict.get(self.qvalue_network.in_keys[0])
+            x = torch.cat([observation, action], dim=-1)
+            return evaluate_stacked_mlp(x, params.qvalue, self.stacked).squeeze(-1)
         td_q = tensordict.select(*self.qvalue_network.in_keys, strict=False)
         td_q.set(self.keys.action, action)
         return vmap_qvalue(td_q, params.qvalue).get(self.keys.state_action_value).squeeze(-1)
+
+
+def stacked_mlp_layout(qvalue_network: TensorDictModule, action_key: NestedKey) -> MLPLayout | None:
+    """The layout of a reward critic that :func:`~wcsac_rl.modules.mlp.evaluate_stacked_mlp`
+    reads exactly as its vmapped call computes: a TorchRL ``MLP`` (its own ``forward``,
+    which concatenates its inputs; a flat output of one value) of plain ``Linear`` /
+    activation layers reading ``[observation, action]`` and writing one key; else
+    ``None`` (call the module)."""
+    module = getattr(qvalue_network, "module", None)
+    in_keys = list(qvalue_network.in_keys)
+    if (
+        not isinstance(module, MLP)
+        or type(module).forward is not MLP.forward
+        or getattr(module, "_reshape_out", True)
+        or len(in_keys) != 2
+        or in_keys[1] != action_key
+        or len(qvalue_network.out_keys) != 1
+    ):
+        return None
+    layout = mlp_layout(module, ("module",))
+    if layout is None or layout.shapes[-1][0] != 1:
+        return None
+    return layout

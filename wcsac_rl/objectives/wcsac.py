@@ -352,6 +352,7 @@ class WCSACLoss(SACLoss):
             self.tensor_keys,
             num_qvalue_nets=self.num_qvalue_nets,
             fuse=fuse_critics,
+            direct=not self.deactivate_vmap,  # (a loop rounds unlike the vmapped call)
         )
         self._actor_plan = (
             tanh_normal_actor_plan(actor_network) if direct_sampling is not False else None
