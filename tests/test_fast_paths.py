@@ -257,8 +257,12 @@ def test_stacked_mlp_is_the_vmapped_twin_critic_bit_for_bit(activation, shape):
     assert len(g_v) == len(g_s) == 6 and all(torch.equal(x, y) for x, y in zip(g_v, g_s))
 
 
-def _twin_read_through_vmap(loss):
-    loss.critics.stacked = None  # what the loss did before: TorchRL's vmapped call
+def _through_module_calls(loss):
+    """What the loss did before: the twin through TorchRL's vmapped call, the IQN
+    critic through its module."""
+    loss.critics.stacked = None
+    if hasattr(loss.safety_head, "_reader"):
+        loss.safety_head._reader = None
     return loss
 
 
@@ -298,12 +302,15 @@ class _MeanVariance(nn.Module):
     ],
     ids=["iqn", "gaussian-unfused", "iqn-nstep-start-states", "torchrl-networks"],
 )
-def test_loss_reads_the_twin_without_vmap_and_gives_the_same_bits(build):
+def test_loss_reads_critics_without_module_calls_and_gives_the_same_bits(build):
     """Every loss output and every parameter gradient, over two optimizer steps, is the
-    same bit for bit whether the twin critic is read from its stacked weights or
-    through TorchRL's vmapped call."""
-    direct, general = build(), _twin_read_through_vmap(build())
+    same bit for bit whether the twin critic is read from its stacked weights (and the
+    IQN critic from its parameters) or through TorchRL's vmapped call (and the
+    module)."""
+    direct, general = build(), _through_module_calls(build())
     assert direct.critics.stacked is not None and direct.critics.fused is None
+    if direct.safety_critic_kind == "iqn":
+        assert direct.safety_head._reader is not None
     general.load_state_dict(direct.state_dict())
     batch = make_batch(initial=True, seed=4)
     batch["nstep"] = TensorDict(  # read by the n-step case only

@@ -28,12 +28,14 @@ from _loss_helpers import make_loss as _make_loss
 from _tolerance import assert_close_f32
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
+from torch import nn
 from torchrl.data import Bounded
 from torchrl.objectives import SoftUpdate
 
 import wcsac_rl.objectives.safety_head as safety_head_module
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import IQNSafetyCritic, make_actor, make_qvalue, make_safety_critic
+from wcsac_rl.modules.quantile_critic import IQNReader
 from wcsac_rl.objectives import PolyakUpdate, quantile_mixture_cvar
 from wcsac_rl.objectives.quantile import (
     midpoint_fractions,
@@ -45,6 +47,74 @@ from wcsac_rl.objectives.quantile import (
 def make_loss(**kwargs) -> WCSACLoss:
     kwargs.setdefault("risk_level", 0.1)
     return _make_loss(kind="iqn", **kwargs)
+
+
+@pytest.mark.parametrize("activation, depth", [("relu", 2), ("tanh", 1), ("elu", 3), ("gelu", 2)])
+@pytest.mark.parametrize("shape", [(64,), (1,), (3, 5)])
+@pytest.mark.parametrize("shared", [True, False], ids=["shared-tau", "per-row-tau"])
+def test_reader_is_the_module_bit_for_bit(activation, depth, shape, shared):
+    """``IQNReader`` (how the loss reads the critic) gives the module's quantiles for
+    one row of τ expanded over the batch (a batch of one row is read row by row, as the
+    module does) or τ per row, and the same gradients to every parameter, the state and
+    the action, to the last bit."""
+    torch.manual_seed(0)
+    critic = make_safety_critic(
+        OBS_DIM, ACT_DIM, kind="iqn", width=16, depth=depth, activation=activation
+    )
+    reader = IQNReader.of(critic.module, ("module",))
+    assert reader is not None and reader.features.activate_last
+    g = torch.Generator().manual_seed(1)
+    tau = torch.rand(7, generator=g)
+    fractions = tau.expand(*shape, 7) if shared else torch.rand(*shape, 7, generator=g)
+    readings = []
+    for path in ("module", "reader"):
+        obs = torch.randn(
+            *shape, OBS_DIM, generator=torch.Generator().manual_seed(2)
+        ).requires_grad_()
+        act = torch.rand(
+            *shape, ACT_DIM, generator=torch.Generator().manual_seed(3)
+        ).requires_grad_()
+        params = TensorDict.from_module(critic).apply(lambda p: p.detach().clone().requires_grad_())
+        if path == "module":
+            td = TensorDict(
+                {"observation": obs, "action": act, "quantile_fractions": fractions}, shape
+            )
+            with params.to_module(critic):
+                z = critic(td)["cost_quantiles"]
+        else:
+            z = reader.quantiles(params, obs, act, fractions)
+        (z * torch.randn(z.shape, generator=torch.Generator().manual_seed(4))).sum().backward()
+        readings.append(
+            (z.detach(), obs.grad, act.grad, [p.grad for p in params.values(True, True)])
+        )
+    (z_m, o_m, a_m, g_m), (z_r, o_r, a_r, g_r) = readings
+    assert z_m.shape == z_r.shape == (*shape, 7)
+    assert torch.equal(z_m, z_r) and torch.equal(o_m, o_r) and torch.equal(a_m, a_r)
+    assert all(torch.equal(x, y) for x, y in zip(g_m, g_r, strict=True))
+
+
+def test_reader_declines_what_it_cannot_read_exactly():
+    critic = make_safety_critic(OBS_DIM, ACT_DIM, kind="iqn", width=8)
+
+    class Shifted(IQNSafetyCritic):  # a subclass may compute otherwise
+        def forward(self, observation, action, quantile_fractions):
+            return super().forward(observation, action, quantile_fractions) + 1.0
+
+    assert IQNReader.of(Shifted(OBS_DIM, ACT_DIM, width=8)) is None
+    assert IQNReader.of(critic) is None  # the TensorDictModule, not the network
+    odd = IQNSafetyCritic(OBS_DIM, ACT_DIM, width=8)
+    odd.features.append(nn.Dropout(0.1))  # not Linear / activation layers
+    assert IQNReader.of(odd) is None
+    # a loss given such a critic reads it through the module, with the same results
+    loss = make_loss(width=8)
+    assert loss.safety_head._reader is not None
+    swapped = make_loss(width=8)
+    swapped.safety_head._reader = None
+    batch = make_batch(8)
+    torch.manual_seed(0)
+    first = loss(batch.clone())["loss_cost_quantile"]
+    torch.manual_seed(0)
+    assert torch.equal(first, swapped(batch.clone())["loss_cost_quantile"])
 
 
 @pytest.fixture
@@ -467,7 +537,8 @@ def test_nstep_targets_evaluate_the_iqn_critic_once_per_reading_they_use():
     states and (target parameters) at s_{t+m}: four calls, none discarded."""
     loss = make_loss(cost_n_steps=3, kappa_states="initial")
     calls = []
-    loss.safety_head.network.register_forward_hook(lambda *_: calls.append(1))
+    head, read = loss.safety_head, loss.safety_head.quantiles
+    head.quantiles = lambda *args: calls.append(1) or read(*args)  # one reading per call
     batch = make_batch(8, initial=True)
     batch["nstep"] = TensorDict(
         {

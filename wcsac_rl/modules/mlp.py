@@ -22,15 +22,20 @@ class MLPLayout:
         prefixes: key prefix of each ``nn.Linear`` in order (``("module", "0")``...).
         shapes: ``(out_features, in_features)`` of each layer.
         activation: the activation class between layers.
+        activate_last: the activation follows the last layer too (a feature extractor).
     """
 
     prefixes: tuple[tuple[str, ...], ...]
     shapes: tuple[tuple[int, int], ...]
     activation: type[nn.Module]
+    activate_last: bool = False
 
 
-def mlp_layout(module: nn.Module, prefix: tuple[str, ...] = ()) -> MLPLayout | None:
-    """The :class:`MLPLayout` of ``module`` if it is ``Linear, act, Linear, act, ..., Linear``.
+def mlp_layout(
+    module: nn.Module, prefix: tuple[str, ...] = (), *, activate_last: bool = False
+) -> MLPLayout | None:
+    """The :class:`MLPLayout` of ``module`` if it is ``Linear, act, Linear, act, ..., Linear``
+    (with ``activate_last``: ``..., Linear, act``).
 
     Returns ``None`` for anything else (other layers, no bias, mixed activations),
     which makes the caller fall back to calling the modules one by one.
@@ -40,7 +45,7 @@ def mlp_layout(module: nn.Module, prefix: tuple[str, ...] = ()) -> MLPLayout | N
     children = list(module.named_children())
     linears = children[0::2]
     activations = children[1::2]
-    if len(children) % 2 != 1 or not linears:
+    if len(children) % 2 != (0 if activate_last else 1) or not linears:
         return None
     if not all(type(m) is nn.Linear and m.bias is not None for _, m in linears):
         return None
@@ -58,6 +63,7 @@ def mlp_layout(module: nn.Module, prefix: tuple[str, ...] = ()) -> MLPLayout | N
         prefixes=tuple((*prefix, name) for name, _ in linears),
         shapes=tuple((m.out_features, m.in_features) for _, m in linears),
         activation=activation,
+        activate_last=activate_last,
     )
 
 
@@ -76,7 +82,7 @@ def evaluate_mlp(x: Tensor, params: TensorDictBase, layout: MLPLayout) -> Tensor
     last = len(layout.prefixes) - 1
     for depth, prefix in enumerate(layout.prefixes):
         x = nn.functional.linear(x, params.get((*prefix, "weight")), params.get((*prefix, "bias")))
-        if depth < last:
+        if depth < last or layout.activate_last:
             x = act(x)
     return x
 
@@ -97,6 +103,6 @@ def evaluate_stacked_mlp(x: Tensor, params: TensorDictBase, layout: MLPLayout) -
     for depth, prefix in enumerate(layout.prefixes):
         weight, bias = params.get((*prefix, "weight")), params.get((*prefix, "bias"))
         x = torch.matmul(x, weight.transpose(-1, -2)) + bias.unsqueeze(-2)
-        if depth < last:
+        if depth < last or layout.activate_last:
             x = act(x)
     return x.reshape(x.shape[0], *batch_shape, x.shape[-1])

@@ -10,13 +10,17 @@ reads a state-action and quantile fractions ``τ ∈ [0, 1]`` and returns the
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
+from tensordict import TensorDictBase
 from torch import nn
+from torchrl.modules import MLP
 
 from wcsac_rl.modules._mlp import make_mlp
+from wcsac_rl.modules.mlp import MLPLayout, evaluate_mlp, mlp_layout
 
-__all__ = ["IQNSafetyCritic"]
+__all__ = ["IQNReader", "IQNSafetyCritic"]
 
 
 def _shared_over_batch(fractions: torch.Tensor) -> bool:
@@ -79,20 +83,92 @@ class IQNSafetyCritic(nn.Module):
 
     def embed(self, fractions: torch.Tensor) -> torch.Tensor:
         """``φ(τ)``: ``[..., N]`` fractions to ``[..., N, width]`` embeddings."""
-        frequencies = math.pi * torch.arange(
-            self.num_cosines, device=fractions.device, dtype=fractions.dtype
-        )
-        return torch.relu(self.embedding(torch.cos(fractions.unsqueeze(-1) * frequencies)))
+        return torch.relu(self.embedding(_cosines(fractions, self.num_cosines)))
 
     def forward(
         self, observation: torch.Tensor, action: torch.Tensor, quantile_fractions: torch.Tensor
     ) -> torch.Tensor:
         features = self.features(torch.cat([observation, action], dim=-1))  # [*B, W]
-        weighted = features * self.head.weight[0]
-        if _shared_over_batch(quantile_fractions):
-            row = quantile_fractions[(0,) * (quantile_fractions.dim() - 1)]  # [N]
-            quantiles = weighted @ self.embed(row).transpose(-1, -2)
-        else:
-            embedded = self.embed(quantile_fractions)  # [*B, N, W]
-            quantiles = (embedded @ weighted.unsqueeze(-1)).squeeze(-1)
-        return quantiles + self.head.bias
+        return _quantiles(
+            features, self.head.weight, self.head.bias, quantile_fractions, self.embed
+        )
+
+
+def _cosines(fractions: torch.Tensor, num_cosines: int) -> torch.Tensor:
+    """``cos(π i τ)`` for ``i < num_cosines``: ``[..., N]`` to ``[..., N, num_cosines]``."""
+    frequencies = math.pi * torch.arange(
+        num_cosines, device=fractions.device, dtype=fractions.dtype
+    )
+    return torch.cos(fractions.unsqueeze(-1) * frequencies)
+
+
+def _quantiles(features, head_weight, head_bias, fractions, embed) -> torch.Tensor:
+    """``w · (ψ ⊙ φ(τ)) + b`` from the features ``ψ`` ``[*B, W]``, the output layer and
+    ``embed`` (``φ``): one embedding for a row of τ shared by the batch (an expanded
+    ``[*B, N]`` tensor), else one per (row, τ)."""
+    weighted = features * head_weight[0]
+    if _shared_over_batch(fractions):
+        row = fractions[(0,) * (fractions.dim() - 1)]  # [N]
+        quantiles = weighted @ embed(row).transpose(-1, -2)
+    else:
+        embedded = embed(fractions)  # [*B, N, W]
+        quantiles = (embedded @ weighted.unsqueeze(-1)).squeeze(-1)
+    return quantiles + head_bias
+
+
+@dataclass(frozen=True)
+class IQNReader:
+    """An :class:`IQNSafetyCritic` read from a parameter tensordict (how
+    :class:`~wcsac_rl.WCSACLoss` reads it): the module's own operations in its order, so
+    the same quantiles and gradients bit for bit, without the module call (swapping the
+    parameters in and out of the module, the tensordict in and out).
+
+    Build with :meth:`of` (``None`` when the module is not an unmodified
+    ``IQNSafetyCritic``); call :meth:`quantiles`.
+    """
+
+    features: MLPLayout
+    prefix: tuple[str, ...]
+    num_cosines: int
+
+    @classmethod
+    def of(cls, module: nn.Module, prefix: tuple[str, ...] = ()) -> IQNReader | None:
+        """The reader of ``module`` whose parameters sit under ``prefix`` (``("module",)``
+        in a ``TensorDictModule``'s), or ``None``: not exactly an ``IQNSafetyCritic``
+        (a subclass may compute otherwise), or features other than a TorchRL ``MLP`` of
+        plain ``Linear`` / activation layers."""
+        if type(module) is not IQNSafetyCritic:
+            return None
+        features = module.features
+        if (
+            not isinstance(features, MLP)
+            or type(features).forward is not MLP.forward
+            or getattr(features, "_reshape_out", True)
+        ):
+            return None
+        layout = mlp_layout(features, (*prefix, "features"), activate_last=True)
+        if layout is None:
+            return None
+        return cls(layout, tuple(prefix), module.num_cosines)
+
+    def quantiles(
+        self,
+        params: TensorDictBase,
+        observation: torch.Tensor,
+        action: torch.Tensor,
+        fractions: torch.Tensor,
+    ) -> torch.Tensor:
+        """``Z(s, a, τ)`` ``[*B, N]``: what the module returns for ``observation``,
+        ``action`` and ``fractions`` ``[*B, N]`` with the parameters ``params``."""
+        key = self.prefix
+        features = evaluate_mlp(torch.cat([observation, action], dim=-1), params, self.features)
+        weight = params.get((*key, "embedding", "weight"))
+        bias = params.get((*key, "embedding", "bias"))
+
+        def embed(tau: torch.Tensor) -> torch.Tensor:
+            return torch.relu(nn.functional.linear(_cosines(tau, self.num_cosines), weight, bias))
+
+        head_weight = params.get((*key, "head", "weight"))
+        return _quantiles(
+            features, head_weight, params.get((*key, "head", "bias")), fractions, embed
+        )

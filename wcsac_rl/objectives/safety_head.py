@@ -34,7 +34,7 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import Tensor
 
-from wcsac_rl.modules.quantile_critic import IQNSafetyCritic
+from wcsac_rl.modules.quantile_critic import IQNReader, IQNSafetyCritic
 from wcsac_rl.modules.safety_critic import VARIANCE_MAX, VARIANCE_MIN
 from wcsac_rl.objectives.critic_ensemble import FusedCritics
 from wcsac_rl.objectives.quantile import (
@@ -413,6 +413,16 @@ class IQNHead(SafetyHead):
         if not leaves:
             raise ValueError("the IQN safety critic has no parameters to learn its quantiles with")
         self._like_key = leaves[0]
+        # the kit's IQNSafetyCritic is read from its parameters (the same values, no
+        # module call) when it reads (observation, action, fractions) in that order
+        self._reader = (
+            IQNReader.of(network.module, ("module",))
+            if len(in_keys) == 3
+            and in_keys[2] == keys.quantile_fractions
+            and keys.cost_quantiles in out_keys
+            and len(out_keys) == 1
+            else None
+        )
 
     @property
     def in_keys(self) -> list:
@@ -422,7 +432,7 @@ class IQNHead(SafetyHead):
         return (
             "fuse_critics=True: an IQN safety critic is not fused with the reward "
             "critics (it also reads quantile fractions); use fuse_critics=None, which "
-            "evaluates it as a module and still fuses nothing else"
+            "evaluates it on its own and still fuses nothing else"
         )
 
     def fractions(self, count: int, like: Tensor, tail: bool = False, stratified: bool = True):
@@ -438,8 +448,12 @@ class IQNHead(SafetyHead):
         """The quantiles ``[*B, N]`` at the state-action in ``tensordict`` and the
         fractions ``[N]`` (given expanded over the batch: one embedding of τ serves
         every row)."""
+        expanded = fractions.expand(*tensordict.batch_size, fractions.shape[-1])
+        if self._reader is not None:
+            observation, action = (tensordict.get(key) for key in self.network.in_keys[:2])
+            return self._reader.quantiles(params, observation, action, expanded)
         td = tensordict.select(*self.in_keys, strict=False)
-        td.set(self.keys.quantile_fractions, fractions.expand(*td.batch_size, fractions.shape[-1]))
+        td.set(self.keys.quantile_fractions, expanded)
         with params.to_module(self.network, preserve_module_state=False):
             td = self.network(td)
         return td.get(self.keys.cost_quantiles)
