@@ -5,6 +5,9 @@ Usage::
     python benchmarks/bench_update.py [--threads 1] [--rounds 5] [--updates 20]
                                       [--options kit defaults paper] [--compile]
                                       [--no-loop] [--default-malloc] [--json PATH]
+                                      [--variants NAME ...]
+    python benchmarks/bench_update.py --options kit --variants wcsac_kit \
+        wcsac_kit_module_calls --rounds 11 --no-loop      # a direct read's gain, alone
     python benchmarks/bench_update.py --batch 8 --width 16 --rounds 1 --updates 1 \\
         --peak-seconds 0.01 --env tiny --loop-frames 800     # a smoke run (tests)
 
@@ -31,6 +34,9 @@ Prints, with one torch thread by default:
     sampling, ``PolyakUpdate``);
   - ``wcsac_<options>_general``: ``WCSACLoss`` through TorchRL's general paths
     (module calls, ``TanhNormal``, ``SoftUpdate``);
+  - ``wcsac_kit_module_calls``: ``wcsac_kit`` with its twin read through TorchRL's
+    vmapped call and its IQN critic through its module, as before 2cefd15 read them
+    from their parameters (the same values bit for bit: the difference is the gain);
   - ``wcsac_<options>_compiled``: under ``torch.compile`` (``--compile``);
   - ``sac_torchrl_nets`` / ``wcsac_<options>_torchrl_nets``: ``SACLoss`` and
     ``WCSACLoss`` with TorchRL's generic networks (``torchrl.modules.MLP``,
@@ -307,6 +313,17 @@ class Variant:
     baseline: str  # the SAC variant it is compared with
 
 
+def through_module_calls(loss: WCSACLoss) -> WCSACLoss:
+    """``loss`` reading its unfused twin through TorchRL's vmapped call and its IQN
+    critic through its module, as before they were read from their parameters
+    (2cefd15): the same values, bit for bit (``tests/test_fast_paths.py``), so the
+    difference in rate is what those reads saved."""
+    loss.critics.stacked = None
+    if hasattr(loss.safety_head, "_reader"):
+        loss.safety_head._reader = None
+    return loss
+
+
 def torchrl_update_fn(loss, *, updater_class=PolyakUpdate, compile_loss: bool = False):
     """``loss(td)`` + backward of the summed ``loss_*`` terms + Adam step + target update."""
     updater = updater_class(loss, tau=0.005)
@@ -360,6 +377,16 @@ def build_variants(
         name = f"wcsac_{options}"
         loss, batch = kit_loss(options, sizes)
         add(name, f"WCSACLoss [{options}]", loss, options, "sac", batch)
+        if options == "kit":  # the same update before the critics were read directly
+            slow, batch = kit_loss(options, sizes)
+            add(
+                f"{name}_module_calls",
+                f"WCSACLoss [{options}], critics through vmap and module calls",
+                through_module_calls(slow),
+                options,
+                "sac",
+                batch,
+            )
         general, batch = kit_loss(options, sizes, fuse_critics=False, direct_sampling=False)
         add(
             f"{name}_general",
@@ -539,6 +566,13 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--width", type=int, default=256, help="hidden units (2 layers)")
     parser.add_argument("--options", nargs="+", choices=OPTION_SETS, default=list(OPTION_SETS))
+    parser.add_argument(
+        "--variants",
+        nargs="+",
+        metavar="NAME",
+        help="time only these variants (and the SAC rows they are compared with); "
+        "default: every one",
+    )
     parser.add_argument("--peak-seconds", type=float, default=1.0, help="per matmul size")
     parser.add_argument(
         "--compile", action="store_true", help="also time WCSACLoss under torch.compile"
@@ -575,6 +609,15 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"  {name:<28} {value:8.1f}")
 
     variants = build_variants(sizes, args.options, args.compile)
+    if args.variants:
+        unknown = sorted(set(args.variants) - set(variants))
+        if unknown:
+            parser.error(
+                f"--variants: unknown {', '.join(unknown)} (with --options "
+                f"{' '.join(args.options)}: {', '.join(variants)})"
+            )
+        keep = set(args.variants) | {variants[name].baseline for name in args.variants}
+        variants = {name: v for name, v in variants.items() if name in keep}
     flops = {name: flops_per_update(v.update, v.batch) for name, v in variants.items()}
     rates = time_variants(variants, args.rounds, args.updates, args.warmup)
     print(f"\nupdates/s (median of {args.rounds} interleaved rounds of {args.updates} updates):")
@@ -613,13 +656,15 @@ def main(argv: list[str] | None = None) -> dict:
             run = training_loop(
                 options, sizes, args.env, args.loop_frames, args.threads, bool(retained)
             )
-            ceiling = 4 * rates[f"wcsac_{options}"]
-            run["of_ceiling"] = run["fps"] / ceiling
+            isolated = rates.get(f"wcsac_{options}")  # (not timed when --variants omits it)
+            run["of_ceiling"] = run["fps"] / (4 * isolated) if isolated else None
             loop_rows.append({"what": f"end-to-end WCSAC [{options}] frames/s", **run})
+            ceiling = (
+                f" = {run['of_ceiling']:.0%} of 4 x its isolated updates/s" if isolated else ""
+            )
             print(
                 f"  {'end-to-end WCSAC [' + options + '] frames/s (UTD 0.25)':<60} "
-                f"{run['fps']:,.1f} ({run['ups']:.1f} updates/s) = "
-                f"{run['of_ceiling']:.0%} of 4 x its isolated updates/s"
+                f"{run['fps']:,.1f} ({run['ups']:.1f} updates/s){ceiling}"
             )
     result = {
         "torch": torch.__version__,

@@ -102,6 +102,7 @@ def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
     assert all(math.isfinite(v) and v > 0 for v in result["matmul_peak_gflops"].values())
     rows = {row["name"]: row for row in result["updates"]}
     expected = {"sac", "sac_polyak", "sac_torchrl_nets", "plain_wcsac_paper"}
+    expected.add("wcsac_kit_module_calls")
     for options in ("kit", "defaults", "paper"):
         for suffix in ("", "_general", "_torchrl_nets"):
             expected.add(f"wcsac_{options}{suffix}")
@@ -125,6 +126,8 @@ def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
     # matrices; with a user's Gaussian critic the kit's options cost what the defaults'
     # do (κ's second signal, the episodes' CVaR, is no matrix work)
     assert flops["wcsac_kit_general"] == pytest.approx(flops["wcsac_kit"])
+    # reading the critics from their parameters multiplies the same matrices
+    assert flops["wcsac_kit_module_calls"] == flops["wcsac_kit"]
     assert flops["wcsac_kit_torchrl_nets"] == pytest.approx(flops["wcsac_defaults_torchrl_nets"])
 
     loop = result["loop"]
@@ -263,3 +266,20 @@ def test_kit_batch_carries_the_cvar_of_the_trajectories_finished_episodes():
     assert batch["episode_cvar"].flatten().tolist() == pytest.approx([expected] * 8)
     with pytest.raises(ValueError, match="kappa_signal=max reads an episode-cost window"):
         bench.pipeline_batch(loss, sizes)
+
+
+def test_bench_update_times_only_the_variants_asked_for_with_their_baselines(tmp_path, capsys):
+    bench = _bench_update()
+    out = tmp_path / "subset.json"
+    argv = [*TINY_UPDATE, "--warmup", "1", "--peak-seconds", "0.01", "--no-loop"]
+    result = bench.main(
+        [*argv, "--options", "kit", "--variants", "wcsac_kit_module_calls", "--json", str(out)]
+    )
+    rows = {row["name"]: row for row in result["updates"]}
+    assert set(rows) == {"wcsac_kit_module_calls", "sac"}  # its baseline comes along
+    assert rows["wcsac_kit_module_calls"]["baseline"] == "sac"
+    assert json.loads(out.read_text())["updates"] == result["updates"]
+    with pytest.raises(SystemExit):
+        bench.main([*argv, "--options", "paper", "--variants", "wcsac_kit"])
+    err = capsys.readouterr().err
+    assert "--variants: unknown wcsac_kit" in err and "wcsac_paper" in err
