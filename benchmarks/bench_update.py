@@ -318,9 +318,7 @@ def through_module_calls(loss: WCSACLoss) -> WCSACLoss:
     critic through its module, as before they were read from their parameters
     (2cefd15): the same values, bit for bit (``tests/test_fast_paths.py``), so the
     difference in rate is what those reads saved."""
-    loss.critics.stacked = None
-    if hasattr(loss.safety_head, "_reader"):
-        loss.safety_head._reader = None
+    loss.critics.read_through_modules()
     return loss
 
 

@@ -260,9 +260,8 @@ def test_stacked_mlp_is_the_vmapped_twin_critic_bit_for_bit(activation, shape):
 def _through_module_calls(loss):
     """What the loss did before: the twin through TorchRL's vmapped call, the IQN
     critic through its module."""
-    loss.critics.stacked = None
-    if hasattr(loss.safety_head, "_reader"):
-        loss.safety_head._reader = None
+    loss.critics.read_through_modules()
+    assert loss.critics.stacked is None and getattr(loss.safety_head, "_reader", None) is None
     return loss
 
 

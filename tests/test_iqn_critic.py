@@ -109,7 +109,8 @@ def test_reader_declines_what_it_cannot_read_exactly():
     loss = make_loss(width=8)
     assert loss.safety_head._reader is not None
     swapped = make_loss(width=8)
-    swapped.safety_head._reader = None
+    swapped.safety_head.read_through_module()
+    assert swapped.safety_head._reader is None
     batch = make_batch(8)
     torch.manual_seed(0)
     first = loss(batch.clone())["loss_cost_quantile"]

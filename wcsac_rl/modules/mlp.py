@@ -10,8 +10,16 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 from torch import Tensor, nn
+from torchrl.modules import MLP
 
-__all__ = ["ACTIVATIONS", "MLPLayout", "evaluate_mlp", "evaluate_stacked_mlp", "mlp_layout"]
+__all__ = [
+    "ACTIVATIONS",
+    "MLPLayout",
+    "evaluate_mlp",
+    "evaluate_stacked_mlp",
+    "mlp_layout",
+    "torchrl_mlp_layout",
+]
 
 
 @dataclass(frozen=True)
@@ -65,6 +73,21 @@ def mlp_layout(
         activation=activation,
         activate_last=activate_last,
     )
+
+
+def torchrl_mlp_layout(
+    module: nn.Module, prefix: tuple[str, ...] = (), *, activate_last: bool = False
+) -> MLPLayout | None:
+    """:func:`mlp_layout` of a TorchRL ``MLP`` that computes exactly what its layers do:
+    its own ``forward`` (which concatenates several inputs), a flat output; else
+    ``None`` (a subclass may compute otherwise: call the module)."""
+    if (
+        not isinstance(module, MLP)
+        or type(module).forward is not MLP.forward
+        or getattr(module, "_reshape_out", True)
+    ):
+        return None
+    return mlp_layout(module, prefix, activate_last=activate_last)
 
 
 ACTIVATIONS = {

@@ -15,10 +15,9 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDictBase
 from torch import nn
-from torchrl.modules import MLP
 
 from wcsac_rl.modules._mlp import make_mlp
-from wcsac_rl.modules.mlp import MLPLayout, evaluate_mlp, mlp_layout
+from wcsac_rl.modules.mlp import MLPLayout, evaluate_mlp, torchrl_mlp_layout
 
 __all__ = ["IQNReader", "IQNSafetyCritic"]
 
@@ -139,14 +138,7 @@ class IQNReader:
         plain ``Linear`` / activation layers."""
         if type(module) is not IQNSafetyCritic:
             return None
-        features = module.features
-        if (
-            not isinstance(features, MLP)
-            or type(features).forward is not MLP.forward
-            or getattr(features, "_reshape_out", True)
-        ):
-            return None
-        layout = mlp_layout(features, (*prefix, "features"), activate_last=True)
+        layout = torchrl_mlp_layout(module.features, (*prefix, "features"), activate_last=True)
         if layout is None:
             return None
         return cls(layout, tuple(prefix), module.num_cosines)

@@ -24,9 +24,8 @@ from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torch import Tensor
-from torchrl.modules import MLP
 
-from wcsac_rl.modules.mlp import MLPLayout, evaluate_stacked_mlp, mlp_layout
+from wcsac_rl.modules.mlp import MLPLayout, evaluate_stacked_mlp, torchrl_mlp_layout
 from wcsac_rl.objectives.critic_ensemble import Layers
 from wcsac_rl.objectives.safety_head import SafetyHead, SafetyValues
 
@@ -92,6 +91,13 @@ class Critics:
             if direct and self.fused is None
             else None
         )
+
+    def read_through_modules(self) -> None:
+        """Read every unfused critic through its module call (the twin through
+        TorchRL's vmapped call), as before they were read from their parameters: the
+        same values, slower; the reference those reads are compared with."""
+        self.stacked = None
+        self.head.read_through_module()
 
     def layers(self, params: CriticParams) -> Layers | None:
         """The fused critics' stacked parameters (``None`` when not fused): gather them
@@ -178,18 +184,10 @@ def stacked_mlp_layout(qvalue_network: TensorDictModule, action_key: NestedKey) 
     which concatenates its inputs; a flat output of one value) of plain ``Linear`` /
     activation layers reading ``[observation, action]`` and writing one key; else
     ``None`` (call the module)."""
-    module = getattr(qvalue_network, "module", None)
     in_keys = list(qvalue_network.in_keys)
-    if (
-        not isinstance(module, MLP)
-        or type(module).forward is not MLP.forward
-        or getattr(module, "_reshape_out", True)
-        or len(in_keys) != 2
-        or in_keys[1] != action_key
-        or len(qvalue_network.out_keys) != 1
-    ):
+    if len(in_keys) != 2 or in_keys[1] != action_key or len(qvalue_network.out_keys) != 1:
         return None
-    layout = mlp_layout(module, ("module",))
+    layout = torchrl_mlp_layout(getattr(qvalue_network, "module", None), ("module",))
     if layout is None or layout.shapes[-1][0] != 1:
         return None
     return layout

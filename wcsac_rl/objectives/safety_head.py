@@ -134,6 +134,10 @@ class SafetyHead:
         reward critics and this one at once, or ``None`` (call the modules)."""
         return None
 
+    def read_through_module(self) -> None:
+        """Evaluate the network through its module call from now on (a head that reads
+        it from its parameters instead: the same values; see ``Critics.read_through_modules``)."""
+
     def unfused_reason(self) -> str:
         """Why ``fuse_critics=True`` cannot be honoured."""
         return (
@@ -427,6 +431,9 @@ class IQNHead(SafetyHead):
     @property
     def in_keys(self) -> list:
         return [k for k in self.network.in_keys if k != self.keys.quantile_fractions]
+
+    def read_through_module(self) -> None:
+        self._reader = None
 
     def unfused_reason(self) -> str:
         return (
