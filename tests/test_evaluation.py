@@ -244,3 +244,60 @@ def test_evaluate_cli_usage_errors():
         parse_args(["somewhere", "--episodes", "0"])
     args = parse_args(["a", "b"])
     assert args.episodes == 100 and args.seed == DEFAULT_SEED_OFFSET and not args.force
+
+
+def test_evaluate_archive_keeps_each_runs_records_and_refuses_to_replace_others(tmp_path, capsys):
+    """``--archive DIR``: every evaluated run's records (no checkpoint) in DIR/<run>,
+    byte for byte; a report of DIR alone makes the runs' own Table 1; an archived file
+    with other bytes is not replaced without --force."""
+    from wcsac_rl.evaluate import main
+    from wcsac_rl.evaluation.archive import ArchiveError, archive_run, archived_records
+    from wcsac_rl.evaluation.reporting import TABLE_MD, build_report
+    from wcsac_rl.evaluation.training_safety_table import TRAINING_SAFETY_MD
+
+    sweep = copy_sweep(tmp_path)
+    kept = tmp_path / "kept"
+    args = [str(sweep), "--episodes", "2", "--no-progress", "--archive", str(kept)]
+    assert main(args) == 0
+    runs = run_dirs(sweep)
+    assert f"{len(runs)} archived in {kept}" in capsys.readouterr().out
+    assert sorted(p.name for p in kept.iterdir()) == [d.name for d in runs]
+    for run in runs:
+        records = archived_records(run)
+        names = {p.name for p in records}
+        assert {"evaluation.json", "evaluation.csv", "config.yaml", "progress.csv"} <= names
+        assert sorted(p.name for p in (kept / run.name).iterdir()) == sorted(names)
+        for path in records:
+            assert (kept / run.name / path.name).read_bytes() == path.read_bytes()
+    # the archive alone gives the runs' own tables
+    quiet = {"trajectories": False, "log": lambda _: None}
+    from_runs = build_report([sweep], tmp_path / "from_runs", **quiet)
+    from_kept = build_report([kept], tmp_path / "from_kept", **quiet)
+    for name in (TABLE_MD, TRAINING_SAFETY_MD):
+        made = (tmp_path / "from_kept" / name).read_text()
+        assert made == (tmp_path / "from_runs" / name).read_text()
+    assert from_kept.warnings == from_runs.warnings == []
+
+    # again: every run skipped (already evaluated), its archive left as it is
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "0 evaluated" in out and f"{len(runs)} archived" in out
+    # an archived evaluation with other bytes (e.g. of another run of that name) stays
+    tampered = kept / runs[0].name / "evaluation.json"
+    tampered.write_text("{}")
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and "pass --force" in lines[0] and runs[0].name in lines[0]
+    assert "Traceback" not in err and tampered.read_text() == "{}"
+    # --force evaluates again and replaces the archived files with the new ones
+    assert main([*args, "--force"]) == 0
+    capsys.readouterr()
+    assert tampered.read_bytes() == (runs[0] / "evaluation.json").read_bytes()
+
+    unevaluated = tmp_path / "fresh"
+    unevaluated.mkdir()
+    (unevaluated / "config.yaml").write_text("seed: 0\n")
+    with pytest.raises(ArchiveError, match="not evaluated"):
+        archive_run(unevaluated, kept)
+    assert not (kept / "fresh").exists()

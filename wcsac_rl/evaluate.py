@@ -15,13 +15,17 @@ directory (``multirun.yaml``, any launcher) every job of the sweep is accounted 
 (:mod:`~wcsac_rl.evaluation.sweeps`): a job that never started or has no checkpoint is
 one ``error:`` line naming it (exit code 1), one still training (its run directory
 locked) or stopped before ``total_frames`` a ``warning:`` (a checkpoint it has is
-evaluated as it is).
+evaluated as it is). ``--archive DIR`` also copies each evaluated run's records (no
+checkpoint: :mod:`~wcsac_rl.evaluation.archive`) into ``DIR/<run name>`` as soon as it
+is evaluated, so that a study whose run directories may not last keeps every finished
+run; ``python -m wcsac_rl.report DIR`` then makes its tables.
 
 Examples::
 
     python -m wcsac_rl.evaluate multirun/2026-11-22/10-00-00
     python -m wcsac_rl.evaluate outputs/2026-11-22/10-00-00_wcsac_0.5_static_seed0 --episodes 20
     python -m wcsac_rl.evaluate --random-policy static --out evaluations/random_static
+    python -m wcsac_rl.evaluate multirun/evidence_static --archive results/evidence_static/runs
 """
 
 from __future__ import annotations
@@ -73,7 +77,22 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         default=None,
         help="bound on an episode's length (default: the env's own)",
     )
-    parser.add_argument("--force", action="store_true", help="overwrite existing evaluation files")
+    parser.add_argument(
+        "--force",
+        action="store_true",
+        help="overwrite existing evaluation files (and, with --archive, differing archived ones)",
+    )
+    parser.add_argument(
+        "--archive",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help=(
+            "also copy each evaluated run's records (evaluation, config, provenance, "
+            "progress.csv; no checkpoint) into DIR/<run name>, as soon as it is evaluated: "
+            "what `wcsac-report --archive` keeps, for run directories that may not last"
+        ),
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     random_group = parser.add_argument_group("random policy (no training run needed)")
@@ -117,6 +136,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     import torch
 
+    from wcsac_rl.evaluation.archive import ArchiveError, archive_run
     from wcsac_rl.evaluation.evaluator import (
         EvaluationExistsError,
         evaluate_random_policy,
@@ -130,6 +150,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     errors: list[str] = []
     skipped: list[str] = []
     done: list[str] = []
+    archived: list[Path] = []
 
     def report(directory: Path, evaluation) -> None:
         m = evaluation.summary["metrics"]
@@ -186,10 +207,22 @@ def main(argv: Sequence[str] | None = None) -> int:
                     ),
                 )
             )
+
+    def keep(directory: Path) -> None:
+        """With --archive: the records of a run evaluated now or before, copied."""
+        if args.archive is None:
+            return
+        try:
+            archived.append(archive_run(directory, args.archive, force=args.force))
+        except (ArchiveError, OSError) as err:
+            errors.append(str(err))
+            print(f"error: archive: {err}", file=sys.stderr, flush=True)
+
     for job in sweep_jobs:
         if job.complete and not job.has_checkpoint:  # evaluated, its checkpoint removed
             skipped.append(str(job.directory))
             print(f"skipped: {job.directory}: {job.detail}", file=sys.stderr, flush=True)
+            keep(job.directory)
     for directory, job in jobs:
         try:
             report(directory, job())
@@ -199,10 +232,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         except ConfigError as err:
             errors.append(str(err))
             print(f"error: {err}", file=sys.stderr, flush=True)
+            continue
         except Exception as err:  # one broken run must not stop a sweep's evaluation
             first = (str(err).strip().splitlines() or [""])[0]  # one line, never a dump
             errors.append(f"{directory}: {first}")
             print(f"error: {directory}: {type(err).__name__}: {first}", file=sys.stderr, flush=True)
+            continue
+        keep(directory)
+    if archived:
+        print(f"{len(archived)} archived in {args.archive}", flush=True)
     print(
         f"{len(done)} evaluated, {len(skipped)} skipped (already evaluated; --force "
         f"re-evaluates), {len(errors)} failed",

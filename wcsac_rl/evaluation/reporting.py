@@ -60,6 +60,7 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from wcsac_rl.evaluation import plots
+from wcsac_rl.evaluation.archive import ARCHIVED_FILES, archived_records
 from wcsac_rl.evaluation.evaluator import (
     DEFAULT_SEED_OFFSET,
     Evaluation,
@@ -70,8 +71,6 @@ from wcsac_rl.evaluation.intervals import INTERVAL_METRICS, seed_bootstrap
 from wcsac_rl.evaluation.metrics import RISK_LEVELS, aggregate_seeds, cvar_key
 from wcsac_rl.evaluation.paper import paper_comparison_markdown
 from wcsac_rl.evaluation.runs import (
-    EVALUATION_CSV,
-    EVALUATION_JSON,
     display_text,
     env_title,
     find_evaluated_dirs,
@@ -113,19 +112,6 @@ TABLE_VS_PAPER = "table1_vs_paper.md"
 RUNS_MD = "runs.md"
 ARCHIVE_DIR = "runs"
 """Where ``archive=True`` copies the reported runs' records, below the report's directory."""
-ARCHIVED_FILES = (
-    EVALUATION_JSON,
-    EVALUATION_CSV,
-    "config.yaml",
-    "config.resume*.yaml",
-    "provenance*.json",
-    "progress.csv",
-    "calibration.json",
-)
-"""What an archived run keeps (names and glob patterns): enough to make the table,
-``runs.md`` and Figures 4 and 6 again (no checkpoint, so no Figure 5, and no replay
-buffer), and the safety critic's calibration when ``python -m wcsac_rl.calibration``
-measured it."""
 FIG4 = "fig4_training_curves.png"
 FIG5 = "fig5_trajectories.png"
 FIG5_STAGES = "fig5_stages.png"
@@ -980,9 +966,7 @@ def _archive_plan(directories: Sequence[Path], archive_dir: Path) -> list[tuple[
     return [
         (path, archive_dir / directory.name / path.name)
         for directory in by_name.values()
-        for pattern in ARCHIVED_FILES
-        for path in sorted(directory.glob(pattern))
-        if path.is_file()
+        for path in archived_records(directory)
     ]
 
 

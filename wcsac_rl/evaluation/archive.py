@@ -1,0 +1,76 @@
+"""A run's records without its checkpoints: what a results folder keeps of a run.
+
+``python -m wcsac_rl.report --archive`` copies them for every reported run;
+``python -m wcsac_rl.evaluate --archive DIR`` copies them as soon as each run is
+evaluated, so a study whose run directories may not last (a cluster's scratch space,
+a machine that is reset) keeps each finished run's records. A report of the archive
+alone makes the same Table 1, training-safety table and Figures 4 and 6 as a report of
+the runs themselves (no Figure 5: it needs the checkpoints).
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+from wcsac_rl.evaluation.runs import EVALUATION_CSV, EVALUATION_JSON
+from wcsac_rl.training.config import ConfigError
+
+__all__ = ["ARCHIVED_FILES", "ArchiveError", "archive_run", "archived_records"]
+
+ARCHIVED_FILES = (
+    EVALUATION_JSON,
+    EVALUATION_CSV,
+    "config.yaml",
+    "config.resume*.yaml",
+    "provenance*.json",
+    "progress.csv",
+    "calibration.json",
+)
+"""What an archived run keeps (names and glob patterns): enough to make the table,
+``runs.md`` and Figures 4 and 6 again (no checkpoint, so no Figure 5, and no replay
+buffer), and the safety critic's calibration when ``python -m wcsac_rl.calibration``
+measured it."""
+
+
+class ArchiveError(ConfigError):
+    """A run's records cannot be archived as asked; the message says why."""
+
+
+def archived_records(directory: Path) -> list[Path]:
+    """The files of run ``directory`` that an archive keeps (:data:`ARCHIVED_FILES`)."""
+    directory = Path(directory)
+    return [
+        path
+        for pattern in ARCHIVED_FILES
+        for path in sorted(directory.glob(pattern))
+        if path.is_file()
+    ]
+
+
+def archive_run(directory: Path, archive_dir: Path, *, force: bool = False) -> Path:
+    """Copy the records of run ``directory`` into ``archive_dir/<its name>`` and return
+    that folder. Files already there with the same bytes are left as they are; a file
+    there with other bytes (a run evaluated again, or trained further) is replaced only
+    with ``force`` — otherwise :class:`ArchiveError`, before anything is copied.
+    """
+    directory = Path(directory)
+    records = archived_records(directory)
+    if not any(path.name == EVALUATION_JSON for path in records):
+        raise ArchiveError(f"{directory}: not evaluated (no {EVALUATION_JSON}): nothing to archive")
+    target = Path(archive_dir).expanduser() / directory.resolve().name
+    differing = [
+        path.name
+        for path in records
+        if (target / path.name).is_file() and (target / path.name).read_bytes() != path.read_bytes()
+    ]
+    if differing and not force:
+        raise ArchiveError(
+            f"{target} already has other {', '.join(differing)} (another evaluation or a "
+            "longer run of that name); pass --force to replace them"
+        )
+    target.mkdir(parents=True, exist_ok=True)
+    for path in records:
+        if not (target / path.name).is_file() or path.name in differing:
+            shutil.copyfile(path, target / path.name)
+    return target
