@@ -10,6 +10,7 @@ the runs themselves (no Figure 5: it needs the checkpoints).
 
 from __future__ import annotations
 
+import filecmp
 import shutil
 from pathlib import Path
 
@@ -59,18 +60,20 @@ def archive_run(directory: Path, archive_dir: Path, *, force: bool = False) -> P
     if not any(path.name == EVALUATION_JSON for path in records):
         raise ArchiveError(f"{directory}: not evaluated (no {EVALUATION_JSON}): nothing to archive")
     target = Path(archive_dir).expanduser() / directory.resolve().name
-    differing = [
-        path.name
+    # the records not already there byte for byte; of those, the ones there with other bytes
+    pending = [
+        path
         for path in records
-        if (target / path.name).is_file() and (target / path.name).read_bytes() != path.read_bytes()
+        if not (target / path.name).is_file()
+        or not filecmp.cmp(path, target / path.name, shallow=False)
     ]
+    differing = [path.name for path in pending if (target / path.name).is_file()]
     if differing and not force:
         raise ArchiveError(
             f"{target} already has other {', '.join(differing)} (another evaluation or a "
             "longer run of that name); pass --force to replace them"
         )
     target.mkdir(parents=True, exist_ok=True)
-    for path in records:
-        if not (target / path.name).is_file() or path.name in differing:
-            shutil.copyfile(path, target / path.name)
+    for path in pending:
+        shutil.copyfile(path, target / path.name)
     return target
