@@ -402,3 +402,27 @@ def test_an_archived_report_is_made_again_from_its_archive_alone(sweep, tmp_path
     with pytest.raises(ReportError, match="both would be"):
         build_report([sweep, twin], tmp_path / "clash", archive=True, log=lambda _: None)
     assert not (tmp_path / "clash").exists()
+
+
+def test_report_archive_leaves_identical_copies_and_refuses_other_bytes(sweep, tmp_path):
+    """After ``wcsac-evaluate --archive <out>/runs`` (byte-equal copies), ``report
+    --archive --out <out>`` is not refused for them; an archived file with other bytes
+    still is, before anything is written."""
+    from wcsac_rl.evaluation.archive import archive_run
+
+    out = tmp_path / "study"
+    for run in run_dirs(sweep):
+        archive_run(run, out / "runs")
+    before = {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("*") if p.is_file()}
+    build_report([sweep], out, trajectories=False, archive=True, log=lambda _: None)
+    assert (out / "table1.md").is_file()
+    assert {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("*") if p.is_file()} == before
+
+    other = tmp_path / "other"
+    first = run_dirs(sweep)[0]
+    archive_run(first, other / "runs")
+    (other / "runs" / first.name / "progress.csv").write_text("epoch,frames\n")
+    with pytest.raises(ReportError, match=rf"already has runs/{first.name}/progress\.csv;"):
+        build_report([sweep], other, trajectories=False, archive=True, log=lambda _: None)
+    assert not (other / "table1.md").exists()
+    assert (other / "runs" / first.name / "progress.csv").read_text() == "epoch,frames\n"

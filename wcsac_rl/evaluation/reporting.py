@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import filecmp
 import io
 import math
 import os
@@ -868,7 +869,7 @@ def _plan_outputs(
         _check_video(video_format, env)
     existing = [p for p in planned if p.exists()]
     if existing and not force:
-        listing = ", ".join(p.name for p in existing)
+        listing = ", ".join(p.relative_to(out_dir).as_posix() for p in existing)
         raise ReportError(f"{out_dir} already has {listing}; pass --force to overwrite")
     return rows, comparison, copies
 
@@ -954,7 +955,9 @@ def _outside(directories: Sequence[Path], archive: Path | None) -> list[Path]:
 
 def _archive_plan(directories: Sequence[Path], archive_dir: Path) -> list[tuple[Path, Path]]:
     """``(source, target)`` pairs copying the records of each run directory into
-    ``archive_dir/<its name>``; two runs of one name cannot share the archive."""
+    ``archive_dir/<its name>``, without the files already there byte for byte (as
+    ``wcsac-evaluate --archive`` left them: a report after it is not refused for them);
+    two runs of one name cannot share the archive."""
     by_name: dict[str, Path] = {}
     for directory in dict.fromkeys(Path(d).resolve() for d in directories):
         other = by_name.setdefault(directory.name, directory)
@@ -963,10 +966,15 @@ def _archive_plan(directories: Sequence[Path], archive_dir: Path) -> list[tuple[
                 f"cannot archive {other} and {directory}: both would be "
                 f"{archive_dir / directory.name}; report them separately"
             )
-    return [
+    pairs = [
         (path, archive_dir / directory.name / path.name)
         for directory in by_name.values()
         for path in archived_records(directory)
+    ]
+    return [
+        (path, target)
+        for path, target in pairs
+        if not (target.is_file() and filecmp.cmp(path, target, shallow=False))
     ]
 
 
