@@ -17,7 +17,9 @@ from wcsac_rl.experiments.compare import compare_runs, format_table, main
 def _run(tmp_path, name, label, seed, ec, c01, ratio=None, kappa=0.5, calibrated=True):
     run = tmp_path / name
     run.mkdir()
-    metrics = {"EC": ec, "C0.9": ec, "C0.5": ec, "C0.1": c01, "ER": 0.5, "over_budget": 0.1}
+    # (C_α = EC/α, as where >= 1 - α of the episodes cost 0)
+    metrics = {"EC": ec, "C0.9": ec / 0.9, "C0.5": 2 * ec, "C0.1": c01, "ER": 0.5}
+    metrics["over_budget"] = 0.1
     (run / "evaluation.json").write_text(
         json.dumps({"label": label, "seed": seed, "trained_frames": 300000, "metrics": metrics})
     )
@@ -51,7 +53,8 @@ def test_rows_and_per_label_means(tmp_path):
     table = format_table(rows, means)
     lines = table.splitlines()
     assert len(lines) == 2 + 3 + 2
-    assert "| wcsac_x | mean of 2 | 300000 | 20.00 | 15.00 | 50.00 |" in table
+    assert means[0]["C0.5"] == pytest.approx(30.0)
+    assert "| wcsac_x | mean of 2 | 300000 | 20.00 | 15.00 | 16.67 | 30.00 | 50.00 |" in table
     assert lines[4].count("—") >= 5  # the uncalibrated SAC-Lag run
 
 

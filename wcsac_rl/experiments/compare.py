@@ -2,7 +2,7 @@
 
 For each run directory (already evaluated by ``python -m wcsac_rl.evaluate`` and,
 for WCSAC / SAC-Lag runs, ``python -m wcsac_rl.calibration``) one row: the Table-1
-metrics of its test episodes (EC, C0.1, ER, share over budget), the κ, training
+metrics of its test episodes (EC, C0.9, C0.5, C0.1, ER, share over budget), the κ, training
 cost rate (cost of all training episodes per frame) and wall time at the end of
 training, and the calibration of the start-state estimate (predicted
 Γ_α(s0), and the CVaR_α of the critic's start-state distributions mixed over the
@@ -35,6 +35,8 @@ COLUMNS = (
     ("frames", "frames"),
     ("minutes", "wall min"),
     ("EC", "EC"),
+    ("C0.9", "C0.9"),
+    ("C0.5", "C0.5"),
     ("C0.1", "C0.1"),
     ("ER", "ER"),
     ("over_budget", "> d"),
@@ -68,7 +70,8 @@ def run_row(run_dir: Path) -> dict[str, float | str]:
         "seed": evaluation.get("seed", math.nan),
         "frames": evaluation.get("trained_frames", math.nan),
     }
-    row.update({k: evaluation["metrics"][k] for k in ("EC", "C0.1", "ER", "over_budget")})
+    metrics = evaluation["metrics"]
+    row.update({k: metrics[k] for k in ("EC", "C0.9", "C0.5", "C0.1", "ER", "over_budget")})
     progress = read_progress(run_dir / "progress.csv")
     row["minutes"] = progress["time_s"][-1] / 60 if progress else math.nan
     row["kappa"] = progress.get("loss/kappa", [math.nan])[-1] if progress else math.nan
