@@ -297,3 +297,13 @@ def test_the_report_writes_the_training_safety_table_in_table_1s_row_order(tmp_p
         "| WCSAC-0.1 | 147 (289 / 5) | 2 (4 / 0) | 0.5 (1 / 0) | 26.50 (50.00 / 3.00) "
         "| 30 k (60 k / 0 k) | 80 k (2) |"
     )
+
+
+def test_frames_are_written_in_thousands_with_at_most_one_decimal():
+    """A mean over seeds of frames (170 k, 90 k, 120 k) is 126.7 k, not 126.667 k."""
+    from wcsac_rl.evaluation.training_safety_table import _frames_text
+
+    assert _frames_text((170_000 + 90_000 + 120_000) / 3) == "126.7 k"
+    assert _frames_text(130_000 / 3) == "43.3 k"
+    assert _frames_text(60_000) == "60 k" and _frames_text(0.0) == "0 k"
+    assert _frames_text(math.nan) == "never"

@@ -137,7 +137,7 @@ def _cell(row: dict[str, Any], key: str, text: Callable[[float], str]) -> str:
 
 
 def _frames_text(frames: float) -> str:
-    return "never" if math.isnan(frames) else f"{frames / 1000:g} k"
+    return "never" if math.isnan(frames) else f"{_count_text(frames / 1000)} k"
 
 
 def _count_text(value: float) -> str:
