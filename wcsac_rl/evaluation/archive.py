@@ -17,7 +17,7 @@ from pathlib import Path
 from wcsac_rl.evaluation.runs import EVALUATION_CSV, EVALUATION_JSON
 from wcsac_rl.training.config import ConfigError
 
-__all__ = ["ARCHIVED_FILES", "ArchiveError", "archive_run", "archived_records"]
+__all__ = ["ARCHIVED_FILES", "ArchiveError", "archive_run", "archived_records", "needs_copy"]
 
 ARCHIVED_FILES = (
     EVALUATION_JSON,
@@ -49,6 +49,12 @@ def archived_records(directory: Path) -> list[Path]:
     ]
 
 
+def needs_copy(source: Path, target: Path) -> bool:
+    """Whether archiving ``source`` to ``target`` would write anything: ``target`` is
+    missing, or holds other bytes."""
+    return not (target.is_file() and filecmp.cmp(source, target, shallow=False))
+
+
 def archive_run(directory: Path, archive_dir: Path, *, force: bool = False) -> Path:
     """Copy the records of run ``directory`` into ``archive_dir/<its name>`` and return
     that folder. Files already there with the same bytes are left as they are; a file
@@ -61,12 +67,7 @@ def archive_run(directory: Path, archive_dir: Path, *, force: bool = False) -> P
         raise ArchiveError(f"{directory}: not evaluated (no {EVALUATION_JSON}): nothing to archive")
     target = Path(archive_dir).expanduser() / directory.resolve().name
     # the records not already there byte for byte; of those, the ones there with other bytes
-    pending = [
-        path
-        for path in records
-        if not (target / path.name).is_file()
-        or not filecmp.cmp(path, target / path.name, shallow=False)
-    ]
+    pending = [path for path in records if needs_copy(path, target / path.name)]
     differing = [path.name for path in pending if (target / path.name).is_file()]
     if differing and not force:
         raise ArchiveError(

@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import filecmp
 import io
 import math
 import os
@@ -61,7 +60,7 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from wcsac_rl.evaluation import plots
-from wcsac_rl.evaluation.archive import ARCHIVED_FILES, archived_records
+from wcsac_rl.evaluation.archive import ARCHIVED_FILES, archived_records, needs_copy
 from wcsac_rl.evaluation.evaluator import (
     DEFAULT_SEED_OFFSET,
     Evaluation,
@@ -971,11 +970,7 @@ def _archive_plan(directories: Sequence[Path], archive_dir: Path) -> list[tuple[
         for directory in by_name.values()
         for path in archived_records(directory)
     ]
-    return [
-        (path, target)
-        for path, target in pairs
-        if not (target.is_file() and filecmp.cmp(path, target, shallow=False))
-    ]
+    return [(path, target) for path, target in pairs if needs_copy(path, target)]
 
 
 def _check_video(video_format: str, env: str | None) -> None:
