@@ -304,6 +304,33 @@ def test_pid_loss_has_no_kappa_term_or_parameter_and_steps_in_training_mode(name
     assert int(loss.constraint.steps) == 1
 
 
+@pytest.mark.parametrize("name", sorted(LOSSES))
+def test_pid_loss_reports_the_controllers_integral_and_error_before_its_step(name):
+    gains = _gains(kp=0.2, ki=0.01, p_ema=0.5)
+    loss = make_loss(**LOSSES[name], kappa_rule="pid", pid=gains, kappa_init=0.3)
+    assert {"kappa_integral", "kappa_error"} <= set(loss.out_keys)
+    first = loss(make_batch())
+    # before the first step: the integral is kappa_init, the error's EMA 0, κ = I
+    assert float(first["kappa_integral"]) == pytest.approx(0.3)
+    assert float(first["kappa_error"]) == 0.0
+    assert float(first["kappa"]) == pytest.approx(0.3)
+    # the step used the signal against the threshold: e = Γ − d
+    error = float(first["cvar"]) - float(first["cost_threshold"])
+    second = loss(make_batch(seed=1))
+    assert float(second["kappa_error"]) == pytest.approx(0.5 * error, rel=1e-5, abs=1e-6)
+    integral = min(max(0.3 + 0.01 * error, 0.0), gains.max_kappa)
+    assert float(second["kappa_integral"]) == pytest.approx(integral, rel=1e-5, abs=1e-6)
+    # κ is the sum of the two terms (no derivative gain), clipped at 0
+    expected = max(0.2 * float(second["kappa_error"]) + float(second["kappa_integral"]), 0.0)
+    assert float(second["kappa"]) == pytest.approx(expected, rel=1e-5, abs=1e-6)
+
+
+def test_gradient_loss_reports_no_controller_state():
+    loss = make_loss(risk_level=0.5)
+    assert not {"kappa_integral", "kappa_error"} & set(loss.out_keys)
+    assert not {"kappa_integral", "kappa_error"} & set(loss(make_batch()).keys())
+
+
 def test_the_pid_kappa_weighs_the_actors_cost_term():
     batch = make_batch()
     actors = []
@@ -354,6 +381,25 @@ def test_kappa_rule_pid_is_selectable_for_every_lagrangian_algorithm(tmp_path, o
         assert int(kappa.steps) == trainer.updates > 0  # one controller step per update
     finally:
         trainer.close()
+
+
+def test_a_pid_run_logs_the_controllers_integral_and_error(tmp_path):
+    import csv
+
+    cfg = compose_config("env=tiny", "algo.kappa_rule=pid", "algo.pid.ki=0.001")
+    trainer = make_trainer(cfg, tmp_path / "run")
+    try:
+        trainer.run()
+        integral = float(trainer.loss.constraint.integral)
+    finally:
+        trainer.close()
+    rows = list(csv.DictReader((tmp_path / "run" / "progress.csv").open()))
+    logged = [float(r["loss/kappa_integral"]) for r in rows]
+    assert all(math.isfinite(v) for v in logged + [float(r["loss/kappa_error"]) for r in rows])
+    # each epoch's mean over its updates lies within the integral's clip range, and the
+    # integral moved away from where it started (kappa_init = log 2) by ki·e per update
+    assert all(0.0 <= v <= 100.0 for v in logged)
+    assert integral != pytest.approx(math.log(2.0), abs=1e-9)
 
 
 def test_the_trainer_steps_the_pid_and_resume_continues_its_state(tmp_path):

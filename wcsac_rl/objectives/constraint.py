@@ -21,8 +21,8 @@ moves is this module's business, and the loss never asks which rule it holds:
 
 Both are ``nn.Module`` with the same small interface: :attr:`kappa` (the multiplier,
 detached), :meth:`penalty_weight` (κ's weight on Γ in the actor loss), :meth:`loss`
-(the multiplier's loss term, or ``None``) and :meth:`step` (the controller's update,
-or nothing). Their state (``kappa_raw``; the PID's integral, averages and history) is
+(the multiplier's loss term, or ``None``), :meth:`step` (the controller's update,
+or nothing) and :meth:`diagnostics` (the rule's own state worth logging, by name). Their state (``kappa_raw``; the PID's integral, averages and history) is
 in the state dict, so a resumed run continues where it stopped.
 """
 
@@ -170,6 +170,13 @@ class GradientLagrangian(nn.Module):
         if self.bounded:
             self.kappa_raw.clamp_(min=self.raw_min, max=self.raw_max)
 
+    diagnostic_names: tuple[str, ...] = ()
+    """The names :meth:`diagnostics` returns: none (κ is all there is)."""
+
+    def diagnostics(self) -> dict[str, Tensor]:
+        """Nothing beyond κ."""
+        return {}
+
     def extra_repr(self) -> str:
         bound = "" if self.kappa_max is None else f", kappa_max={self.kappa_max}"
         floor = "" if not self.kappa_min else f", kappa_min={self.kappa_min}"
@@ -262,6 +269,15 @@ class PIDLagrangian(nn.Module):
         self.history.copy_(torch.where(valid, history, self.history))
         self.kappa_value.copy_(torch.where(valid, kappa, self.kappa_value))
         self.steps.add_(valid.long())
+
+    diagnostic_names: tuple[str, ...] = ("kappa_integral", "kappa_error")
+    """The names :meth:`diagnostics` returns."""
+
+    def diagnostics(self) -> dict[str, Tensor]:
+        """The controller's state (copies): ``kappa_integral``, the integral term I, and
+        ``kappa_error``, the EMA of the error that the proportional term multiplies. κ
+        is ``Kp·kappa_error + kappa_integral`` (+ the derivative term), clipped."""
+        return {"kappa_integral": self.integral.clone(), "kappa_error": self.error_ema.clone()}
 
     def extra_repr(self) -> str:
         floor = [f"kappa_min={self.kappa_min}"] if self.kappa_min else []

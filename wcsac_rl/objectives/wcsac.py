@@ -448,7 +448,8 @@ class WCSACLoss(SACLoss):
             keys = ["loss_actor", "loss_qvalue", "loss_alpha", *head.loss_names]
             if self.constraint.rule == "gradient":
                 keys.append("loss_kappa")
-            keys += ["alpha", "kappa", "entropy", *head.diagnostic_names, "cvar", "cost_threshold"]
+            keys += ["alpha", "kappa", *self.constraint.diagnostic_names, "entropy"]
+            keys += [*head.diagnostic_names, "cvar", "cost_threshold"]
             if self.kappa_signal != "critic":
                 keys += ["episode_cvar", "constraint_cvar"]
             self._out_keys = keys
@@ -787,6 +788,7 @@ class WCSACLoss(SACLoss):
         scalars = {
             "alpha": self._alpha,
             "kappa": self.kappa,
+            **self.constraint.diagnostics(),  # before this update's step, like κ
             "entropy": -log_prob.mean(),
             **{k: v.mean() for k, v in safety_metadata.items() if v is not None},
             "cvar": statistic.mean(),
