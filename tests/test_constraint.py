@@ -3,6 +3,7 @@ every Lagrangian algorithm (WCSAC Gaussian, WCSAC IQN, SAC-Lag)."""
 
 from __future__ import annotations
 
+import csv
 import math
 import re
 import subprocess
@@ -384,8 +385,6 @@ def test_kappa_rule_pid_is_selectable_for_every_lagrangian_algorithm(tmp_path, o
 
 
 def test_a_pid_run_logs_the_controllers_integral_and_error(tmp_path):
-    import csv
-
     cfg = compose_config("env=tiny", "algo.kappa_rule=pid", "algo.pid.ki=0.001")
     trainer = make_trainer(cfg, tmp_path / "run")
     try:

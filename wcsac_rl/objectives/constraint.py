@@ -22,8 +22,9 @@ moves is this module's business, and the loss never asks which rule it holds:
 Both are ``nn.Module`` with the same small interface: :attr:`kappa` (the multiplier,
 detached), :meth:`penalty_weight` (κ's weight on Γ in the actor loss), :meth:`loss`
 (the multiplier's loss term, or ``None``), :meth:`step` (the controller's update,
-or nothing) and :meth:`diagnostics` (the rule's own state worth logging, by name). Their state (``kappa_raw``; the PID's integral, averages and history) is
-in the state dict, so a resumed run continues where it stopped.
+or nothing) and :meth:`diagnostics` (the rule's own state worth logging, by name).
+Their state (``kappa_raw``; the PID's integral, averages and history) is in the state
+dict, so a resumed run continues where it stopped.
 """
 
 from __future__ import annotations
