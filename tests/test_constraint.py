@@ -228,6 +228,27 @@ def test_pid_kappa_min_floors_the_output_while_the_integral_unwinds():
     assert float(pid.kappa) == pytest.approx(2.0 + 0.2, rel=1e-6)
 
 
+def test_pid_i_error_max_bounds_what_a_violation_adds_to_the_integral():
+    """With ``i_error_max`` the integral adds at most ``ki · i_error_max`` per update: a
+    window 45 over the threshold winds it up no faster than one 15 over, and a stretch
+    of cost-free updates (error −15) takes off exactly what as many updates over put on
+    when the bound is d. The P term still sees the whole error. Without the bound
+    (the default) the integral adds the whole error."""
+    gains = dict(kp=0.1, ki=0.01, p_ema=0.0, max_kappa=50.0)
+    bounded = PIDLagrangian(0.1, PIDGains(i_error_max=15.0, **gains))
+    plain = PIDLagrangian(0.1, PIDGains(**gains))
+    for _ in range(10):
+        bounded.step(torch.tensor(60.0), D)  # 45 over
+        plain.step(torch.tensor(60.0), D)
+    assert float(bounded.integral) == pytest.approx(0.1 + 10 * 0.01 * 15.0, rel=1e-5)
+    assert float(plain.integral) == pytest.approx(0.1 + 10 * 0.01 * 45.0, rel=1e-5)
+    # the output: P on the whole error (0.1 · 45) plus the bounded integral
+    assert float(bounded.kappa) == pytest.approx(4.5 + 1.6, rel=1e-5)
+    for _ in range(10):
+        bounded.step(torch.tensor(0.0), D)  # 15 under: not clipped (a bound from above)
+    assert float(bounded.integral) == pytest.approx(0.1, rel=1e-4)
+
+
 @pytest.mark.parametrize("rule", ["gradient", "pid"])
 @pytest.mark.parametrize("kappa_min", [-0.1, math.nan, math.inf, "0.1"])
 def test_a_bad_kappa_min_is_refused_by_name(rule, kappa_min):
@@ -432,6 +453,10 @@ def test_the_trainer_steps_the_pid_and_resume_continues_its_state(tmp_path):
         ("algo.pid.kd=abc", "algo.pid.kd must be a finite number >= 0, got 'abc'"),
         ("algo.pid.d_delay=0", "algo.pid.d_delay must be an integer >= 1"),
         ("algo.pid.max_kappa=-1", "algo.pid.max_kappa must be a finite number > 0"),
+        (
+            "algo.pid.i_error_max=0",
+            "algo.pid.i_error_max must be null or a finite number > 0, got 0",
+        ),
         ("+algo.pid.kq=1", "unknown PID option algo.pid.kq"),
     ],
 )

@@ -289,6 +289,19 @@ class PIDGains:
         low=0.0,
         finite_words=True,
     )
+    i_error_max: float | None = option(
+        None,
+        "the most one update's error adds to the integral (cost units; the error is "
+        "clipped at it, so a costly window winds the integral up by at most what a "
+        "cost-free one of the same length, error -d, takes off when this is d); "
+        "null: the whole error (Stooke et al.'s)",
+        "number",
+        low=0.0,
+        low_open=True,
+        nullable=True,
+        saved_run=None,
+        finite_words=True,
+    )
     kd: float = option(
         0.0,
         "derivative gain, on the rise of the signal's EMA over "

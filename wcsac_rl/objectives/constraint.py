@@ -192,7 +192,7 @@ class PIDLagrangian(nn.Module):
     Each :meth:`step` with the signal ``x`` and threshold ``d`` (error ``e = x − d``)::
 
         P ← p_ema · P + (1 − p_ema) · e
-        I ← clip(I + ki · e, 0, max_kappa)                  (anti-windup)
+        I ← clip(I + ki · min(e, i_error_max), 0, max_kappa)  (anti-windup)
         C ← d_ema · C + (1 − d_ema) · x                     (C starts at the first x)
         D ← max(0, C − C_{t − d_delay})                     (0 until d_delay steps exist)
         κ ← clip(kp · P + I + kd · D, kappa_min, max_kappa)
@@ -257,7 +257,8 @@ class PIDLagrangian(nn.Module):
         error = x - torch.as_tensor(threshold, dtype=x.dtype, device=x.device)
         first = self.steps == 0
         error_ema = g.p_ema * self.error_ema + (1.0 - g.p_ema) * error
-        integral = (self.integral + g.ki * error).clamp(0.0, g.max_kappa)
+        added = error if g.i_error_max is None else error.clamp(max=g.i_error_max)
+        integral = (self.integral + g.ki * added).clamp(0.0, g.max_kappa)
         signal_ema = torch.where(first, x, g.d_ema * self.signal_ema + (1.0 - g.d_ema) * x)
         past = self.history[0]  # the EMA d_delay steps back (once that many exist)
         rise = torch.where(self.steps >= g.d_delay, (signal_ema - past).clamp(min=0.0), 0.0)
