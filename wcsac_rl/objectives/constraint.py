@@ -193,8 +193,8 @@ class PIDLagrangian(nn.Module):
 
         P ← p_ema · P + (1 − p_ema) · e
         I ← clip(I + ki · min(e, i_error_max), 0, max_kappa)  (anti-windup)
-        C ← d_ema · C + (1 − d_ema) · x                     (C starts at the first x)
-        D ← max(0, C − C_{t − d_delay})                     (0 until d_delay steps exist)
+        C ← d_ema · C + (1 − d_ema) · x                       (C starts at the first x)
+        D ← max(0, C − C_{t − d_delay})                       (0 until d_delay steps exist)
         κ ← clip(kp · P + I + kd · D, kappa_min, max_kappa)
 
     The integral starts at ``kappa_init``, so κ starts where the gradient rule's does.
