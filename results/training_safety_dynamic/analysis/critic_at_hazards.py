@@ -17,9 +17,9 @@ replay buffer saved with it (``save_replay_buffer=true``; the study's
   by when it was collected (50 k-frame brackets), against its stored n-step cost.
 * ``refit``: a fresh safety critic of ``--kind`` fitted offline on the same replay (the
   run's actor fixed, uniform batches of 256, Adam at the run's lr, Polyak 0.005), with
-  the n-step entries recomputed for ``--n-steps`` inside the collector's per-env
-  segments exactly as ``NStepCost`` computes them (checked against the stored entries
-  for the run's own n and γ_c); Q^c at the cost steps by age every 2 500 updates.
+  the n-step entries recomputed for ``--n-steps`` by the kit's ``NStepCost`` over the
+  collector's batches as stored (checked against the stored entries for the run's own n
+  and γ_c); Q^c at the cost steps by age every 2 500 updates.
 """
 
 from __future__ import annotations
@@ -35,17 +35,24 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from wcsac_rl.evaluation.run_calibration import load_safety_run
+from wcsac_rl.objectives.nstep import NStepCost
 from wcsac_rl.training import builders
 from wcsac_rl.training.trainer import env_max_episode_steps
 
 
 def _replay(run: Path) -> tuple[TensorDict, int]:
-    buffers = sorted((run / "checkpoints").glob("buffers-*"))
+    buffers = {int(p.name.split("-")[1]): p for p in (run / "checkpoints").glob("buffers-*")}
     if not buffers:
         raise SystemExit(f"{run}: no saved replay buffer (train with save_replay_buffer=true)")
-    storage = TensorDict.load_memmap(buffers[-1] / "replay_buffer" / "storage")
-    filled = int(buffers[-1].name.split("-")[1])
+    filled = max(buffers)  # the newest (by frames: "buffers-1000000" sorts before "-400000")
+    storage = TensorDict.load_memmap(buffers[filled] / "replay_buffer" / "storage")
     return storage, min(filled, storage.shape[0])
+
+
+def _cost_rows(storage: TensorDict, filled: int) -> tuple[np.ndarray, np.ndarray]:
+    """The stored rows with a cost and those without."""
+    cost = storage["next", "cost"][:filled].reshape(-1).numpy()
+    return np.nonzero(cost > 0)[0], np.nonzero(cost == 0)[0]
 
 
 def _brackets(filled: int, width: int = 50_000) -> list[tuple[int, int]]:
@@ -93,8 +100,7 @@ def replay(args: argparse.Namespace) -> None:
     _, env, _, loss, _ = load_safety_run(args.run, seed=args.seed)
     env.close()
     storage, filled = _replay(Path(args.run))
-    cost = storage["next", "cost"][:filled].reshape(-1).numpy()
-    where = np.nonzero(cost > 0)[0]
+    where, _ = _cost_rows(storage, filled)
     print(f"{filled} transitions, {len(where)} with a cost")
     for lo, hi in _brackets(filled):
         rows = torch.as_tensor(where[(where >= lo) & (where < hi)])
@@ -109,35 +115,6 @@ def replay(args: argparse.Namespace) -> None:
         )
 
 
-def _nstep_entries(storage: TensorDict, filled: int, n: int, gamma: float, segment: int):
-    """``NStepCost``'s entries for ``n`` over the stored rows: each collector batch is
-    ``segment`` consecutive rows per env, and a lookahead stops at its end or a done."""
-    cost = storage["next", "cost"][:filled].reshape(-1).double().numpy()
-    done = storage["next", "done"][:filled].reshape(-1).numpy()
-    terminated = storage["next", "terminated"][:filled].reshape(-1).numpy()
-    rows = np.arange(filled)
-    to_done = np.empty(filled, np.int64)  # steps to the first done at or after a row, +1
-    nearest = None
-    for i in range(filled - 1, -1, -1):
-        if i % segment == segment - 1:
-            nearest = None
-        if done[i]:
-            nearest = i
-        to_done[i] = filled if nearest is None else nearest - i + 1
-    steps = np.minimum(np.minimum(n, segment - rows % segment), to_done)
-    discounted = np.zeros(filled)
-    for k in range(n):
-        live = steps > k
-        discounted[live] += gamma**k * cost[rows[live] + k]
-    end = rows + steps - 1
-    return {
-        "steps": torch.as_tensor(steps),
-        "cost": torch.as_tensor(discounted, dtype=torch.float32),
-        "done": torch.as_tensor(done[end]),
-        "terminated": torch.as_tensor(terminated[end]),
-    }
-
-
 def refit(args: argparse.Namespace) -> None:
     torch.manual_seed(args.seed)
     cfg, env, _, trained, _ = load_safety_run(args.run, seed=args.seed)
@@ -148,31 +125,27 @@ def refit(args: argparse.Namespace) -> None:
     loss = builders.make_loss(cfg, builders.make_agent(cfg, env), env_max_episode_steps(cfg))
     loss.actor_network_params.data.update_(trained.actor_network_params.data)
     storage, filled = _replay(Path(args.run))
+    # the n-step entries of this n and γ_c, by the kit's own postproc over the collector's
+    # batches: each is `segment` consecutive stored rows per env, its lookahead cut at the end
     collector = cfg.algo.collector
     segment = int(collector.frames_per_batch) // int(collector.num_envs)
-    entries = _nstep_entries(
-        storage, filled, int(cfg.algo.cost_n_steps), float(cfg.algo.cost_gamma), segment
-    )
+    if filled % segment:
+        raise SystemExit(f"{filled} stored rows are not whole batches of {segment} per env")
+    steps = TensorDict({"next": storage["next"][:filled]}, [filled]).reshape(-1, segment)
+    nstep = NStepCost.for_loss(loss)(steps)["nstep"].reshape(filled)
     own = (int(trained.cost_n_steps), float(trained.cost_gamma))
-    if (int(cfg.algo.cost_n_steps), float(cfg.algo.cost_gamma)) == own:
+    if (loss.cost_n_steps, float(loss.cost_gamma)) == own:
         stored = storage["nstep"][:filled]
-        same = torch.equal(entries["steps"], stored["steps"].reshape(-1)) and torch.equal(
-            entries["cost"], stored["cost"].reshape(-1).float()
-        )
+        same = all(torch.equal(nstep[key], stored[key]) for key in stored.keys())
         print(f"n-step entries recomputed for the run's own n and γ_c equal the stored: {same}")
 
     def batch(rows: torch.Tensor) -> TensorDict:
         out = storage[rows].clone()
-        nstep = out["nstep"]
-        for key, value in entries.items():
-            nstep[key] = value[rows].reshape(nstep[key].shape)
-        ahead = (rows + entries["steps"][rows] - 1) % storage.shape[0]
-        nstep["observation"] = storage["next", "observation"][ahead]
+        out["nstep"] = nstep[rows]
         return out
 
-    cost = storage["next", "cost"][:filled].reshape(-1).numpy()
-    where = np.nonzero(cost > 0)[0]
-    free = np.random.default_rng(1).choice(np.nonzero(cost == 0)[0], 4000, replace=False)
+    where, free_rows = _cost_rows(storage, filled)
+    free = np.random.default_rng(1).choice(free_rows, 4000, replace=False)
     brackets = [
         (0, filled - 100_000),
         (filled - 100_000, filled - 50_000),
