@@ -20,7 +20,7 @@ from wcsac_rl.objectives.constraint import (
     PIDLagrangian,
     make_constraint,
 )
-from wcsac_rl.training import ConfigError, make_trainer
+from wcsac_rl.training import ConfigError, make_trainer, validate_config
 from wcsac_rl.training.builders import make_optimizers
 
 D = torch.tensor(15.0)
@@ -532,11 +532,32 @@ def test_kappa_bounds_reach_the_loss_constraint(tmp_path, algo):
 
 def test_a_delay_longer_than_the_run_is_refused(tmp_path):
     # 800 frames, 200 of them random, 0.25 updates per frame: 150 updates
-    cfg = compose_config("env=tiny", "algo.kappa_rule=pid", "algo.pid.d_delay=151")
+    cfg = compose_config(
+        "env=tiny", "algo.kappa_rule=pid", "algo.pid.kd=0.1", "algo.pid.d_delay=151"
+    )
     with pytest.raises(
         ConfigError, match=re.escape("d_delay=151 updates is longer than the run's 150")
     ):
         make_trainer(cfg, tmp_path / "r")
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ("algo=wcsac",),  # the gradient rule never reads d_delay
+        ("algo=sac_lag",),
+        ("algo=wcsac", "algo.kappa_rule=pid"),  # kd = 0: no derivative term
+        ("algo=wcsac", "algo.kappa_rule=pid", "algo.pid.d_delay=151"),
+    ],
+)
+@pytest.mark.parametrize("total_frames", [200, 800])  # 0 updates (all random), 150 updates
+def test_a_delay_longer_than_the_run_is_accepted_without_a_derivative(overrides, total_frames):
+    # a run too short for the default d_delay = 1 (0 updates: a smoke test) or for
+    # 151, where the derivative term does not act, is valid: the refusal named an option
+    # it does not read
+    cfg = compose_config("env=tiny", *overrides, f"total_frames={total_frames}")
+    validate_config(cfg)
 
 
 def test_a_refused_command_leaves_no_run_directory(tmp_path):

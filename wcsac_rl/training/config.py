@@ -392,7 +392,10 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int)
         )
     except ValueError as err:
         raise ConfigError(str(err)) from None
-    if ("pid" in algo or options.kappa_rule == "pid") and options.pid.d_delay > updates:
+    # the derivative term acts only under the PID rule with kd > 0 (a gradient-rule run,
+    # or kd = 0, never reads d_delay: a short run is no reason to refuse them)
+    pid = options.pid
+    if options.kappa_rule == "pid" and pid.kd > 0 and pid.d_delay > updates:
         raise ConfigError(
             f"algo.pid.d_delay={options.pid.d_delay} updates is longer than the run's "
             f"{updates} updates: the derivative term would never act"
