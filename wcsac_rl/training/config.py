@@ -397,6 +397,6 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int)
     pid = options.pid
     if options.kappa_rule == "pid" and pid.kd > 0 and pid.d_delay > updates:
         raise ConfigError(
-            f"algo.pid.d_delay={options.pid.d_delay} updates is longer than the run's "
+            f"algo.pid.d_delay={pid.d_delay} updates is longer than the run's "
             f"{updates} updates: the derivative term would never act"
         )
