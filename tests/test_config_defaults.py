@@ -148,8 +148,24 @@ def test_kappa_advice_is_the_authors_in_the_units_of_each_formulation(env):
 
 # What results/training_safety/ measured as C36 (StaticEnv) and D23 (DynamicEnv, also
 # algo.damp_scale=0), on top of the defaults before the change; on DynamicEnv the PID
-# rule with κ >= 0.1 (D21) in place of D23's gradient rule.
-DYNAMIC_RULE = ["algo.kappa_rule=pid", "algo.kappa_min=0.1"]
+# rule from κ = 0.1, never under it, with no integral term, 50-step cost targets and
+# SAC's actor rate (Y9, results/training_safety_dynamic/) in place of D23's gradient rule.
+DYNAMIC_RULE = [
+    "algo.kappa_rule=pid",
+    "algo.kappa_min=0.1",
+    "algo.kappa_init=0.1",
+    "algo.pid.ki=0",
+    "algo.cost_n_steps=50",
+    "algo.actor_lr=1e-3",
+]
+# DynamicEnv's κ rule under preset=kit from D21 (results/training_safety/, eleventh
+# round) until Y9: the PID rule at its own gains, κ >= 0.1 from log 2, 10-step targets.
+DYNAMIC_D21 = [
+    "algo.kappa_init=0.6931471805599453",
+    "algo.pid.ki=1e-06",
+    "algo.cost_n_steps=10",
+    "algo.actor_lr=0.0003",
+]
 TRAINING_SAFETY_OPTIONS = [
     "algo.safety_critic=iqn",
     "algo.kappa_signal=max",
@@ -282,10 +298,6 @@ PRESET_HINT = (
     "(a run begun before the config's default preset changed continues with "
     "preset=kit_2026_11 on the command line)"
 )
-DYNAMIC_RULE_HINT = (
-    "(a DynamicEnv run begun under preset=kit before its κ rule became the PID rule "
-    "continues with algo.kappa_rule=gradient algo.kappa_min=0 on the command line)"
-)
 
 
 @pytest.mark.parametrize(
@@ -295,21 +307,34 @@ DYNAMIC_RULE_HINT = (
         (("algo=sac_lag", "env=tiny"), ("preset=kit_2026_11",), PRESET_HINT),
         (
             ("algo=wcsac", "env=dynamic", "risk_level=0.5"),
-            ("algo.kappa_rule=gradient", "algo.kappa_min=0"),
-            DYNAMIC_RULE_HINT,
+            ("algo.kappa_rule=gradient", "algo.kappa_min=0", *DYNAMIC_D21),
+            None,
         ),
+        (("algo=wcsac", "env=dynamic", "risk_level=0.5"), tuple(DYNAMIC_D21), None),
+        (("algo=sac_lag", "env=dynamic"), tuple(DYNAMIC_D21), None),
     ],
-    ids=["wcsac-kit_2026_11", "sac_lag-kit_2026_11", "dynamic-kit-before-pid"],
+    ids=[
+        "wcsac-kit_2026_11",
+        "sac_lag-kit_2026_11",
+        "dynamic-kit-gradient-rule",
+        "dynamic-kit-d21",
+        "sac_lag-dynamic-kit-d21",
+    ],
 )
 def test_a_run_begun_under_an_earlier_default_resumes_only_as_it_began(tmp_path, base, then, hint):
     """``resume=auto`` on a run made under an earlier default: one made under
-    ``preset=kit_2026_11``, and a DynamicEnv one made under ``preset=kit`` while its κ
-    rule was the gradient rule (as the card's command ran before). Under today's default
-    it is refused in one line that ends with what to add (nothing of the run is
-    touched); with that added it continues."""
+    ``preset=kit_2026_11``, and DynamicEnv ones made under ``preset=kit`` while its κ
+    rule was the gradient rule (as the card's command ran before) or D21's PID rule.
+    Under today's default it is refused in one line that ends with what to add (nothing
+    of the run is touched); with exactly that added it continues, in every key of its
+    config as it began (the actor's rate too, which a resume may change)."""
+    import re
+
     from _training_helpers import compose_config
+    from omegaconf import OmegaConf
 
     from wcsac_rl.training import ConfigError, make_trainer
+    from wcsac_rl.training.checkpoint import _leaves, load_checkpoint
 
     run_dir = tmp_path / "run"
     base = (*base, "resume=auto")
@@ -322,12 +347,28 @@ def test_a_run_begun_under_an_earlier_default_resumes_only_as_it_began(tmp_path,
     with pytest.raises(ConfigError) as err:
         make_trainer(compose_config(*base), run_dir).close()
     message = str(err.value)
-    assert "\n" not in message and message.endswith(hint)
+    assert "\n" not in message
+    if hint is not None:
+        assert message.endswith(hint)
+        added = then
+    else:
+        found = re.search(
+            r" \(a DynamicEnv run begun under an earlier preset=kit κ rule continues with "
+            r"(.+) on the command line\)$",
+            message,
+        )
+        assert found is not None, message
+        added = tuple(found.group(1).split(" "))
+        assert sorted(o.split("=")[0] for o in added) == sorted(o.split("=")[0] for o in then)
     assert {p: p.read_bytes() for p in files} == files
-    resumed = make_trainer(compose_config(*base, *then), run_dir)
+    began = _leaves(load_checkpoint(run_dir / "checkpoints" / "last.pt")["config"])
+    resumed = make_trainer(compose_config(*base, *added), run_dir)
     try:
         resumed.run()
     finally:
         resumed.close()
+    now = _leaves(OmegaConf.to_container(resumed.cfg, resolve=True))
+    changed = {k for k in began if k in now and began[k] != now[k]}
+    assert changed <= {"resume", "total_frames"}, changed
     rows = (run_dir / "progress.csv").read_text().splitlines()
     assert len(rows) == 1 + 2  # header, the first session's epoch and the resumed one's

@@ -399,9 +399,19 @@ def _select(cfg: DictConfig | dict, key: str) -> Any:
     return value
 
 
-DYNAMIC_RULE_KEYS = frozenset({"algo.kappa_rule", "algo.kappa_min"})
+DYNAMIC_RULE_KEYS = frozenset(
+    {
+        "algo.kappa_rule",
+        "algo.kappa_min",
+        "algo.kappa_init",
+        "algo.pid.ki",
+        "algo.cost_n_steps",
+        "algo.actor_lr",
+    }
+)
 """The keys ``preset=kit`` changed on DynamicEnv after it became the default
-(``conf/algo/kappa_advice/kit/dynamic.yaml``: the PID rule, κ ≥ 0.1)."""
+(``conf/algo/kappa_advice/kit/dynamic.yaml``: the PID rule with κ ≥ 0.1, then κ from 0.1
+with no integral term, a 50-step cost target and SAC's actor rate)."""
 
 PRESET_KEYS = frozenset(
     f"algo.{key}"
@@ -424,17 +434,37 @@ PRESET_HINT = (
     " (a run begun before the config's default preset changed continues with "
     "preset=kit_2026_11 on the command line)"
 )
-DYNAMIC_RULE_HINT = (
-    " (a DynamicEnv run begun under preset=kit before its κ rule became the PID rule "
-    "continues with algo.kappa_rule=gradient algo.kappa_min=0 on the command line)"
-)
 
 
-def _preset_hint(keys: list[str]) -> str:
+def _override_value(value: Any) -> str:
+    """``value`` as a Hydra command-line override writes it (``0.001``, ``pid``)."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    return str(value)
+
+
+def _preset_hint(keys: list[str], saved_config: Any = None, cfg: Any = None) -> str:
     """What to add to a refusal over ``keys``: how a run begun under an earlier default
-    continues, when the keys are the ones that default changed."""
-    if keys and DYNAMIC_RULE_KEYS.issuperset(keys):
-        return DYNAMIC_RULE_HINT
+    continues, when the keys are the ones that default changed. On DynamicEnv's κ keys
+    the hint lists each of them in which the run differs from today's config, with the
+    run's own value (a changeable one too, such as the actor's rate: left out, the run
+    would go on at today's)."""
+    if (
+        keys
+        and DYNAMIC_RULE_KEYS.issuperset(keys)
+        and saved_config is not None
+        and _select(saved_config, "env.name") == "dynamic"
+    ):
+        pairs = [
+            f"{key}={_override_value(_select(saved_config, key))}"
+            for key in sorted(DYNAMIC_RULE_KEYS)
+            if _select(saved_config, key) is not None
+            and _select(saved_config, key) != _select(cfg, key)
+        ]
+        return (
+            " (a DynamicEnv run begun under an earlier preset=kit κ rule continues with "
+            f"{' '.join(pairs)} on the command line)"
+        )
     return PRESET_HINT if PRESET_KEYS.intersection(keys) else ""
 
 
@@ -448,7 +478,8 @@ def check_compatible(saved_config: dict, cfg: DictConfig, path: Path) -> None:
         ]
         raise ConfigError(
             f"checkpoint {path} was made by another configuration ({'; '.join(diffs)}); "
-            f"run with the same settings or start a new run{_preset_hint(keys)}"
+            f"run with the same settings or start a new run"
+            f"{_preset_hint(keys, saved_config, cfg)}"
         )
 
 
@@ -605,7 +636,7 @@ def check_resume_changes(saved_config: dict, cfg: DictConfig, path: Path) -> Non
             f"resume continues {path.parent.parent} as it was configured, and "
             f"{'; '.join(diffs)} cannot change on resume (these can: "
             f"{', '.join(RESUME_CHANGEABLE[1:])}); start a new run to change the "
-            f"others{_preset_hint(keys)}"
+            f"others{_preset_hint(keys, saved_config, cfg)}"
         )
 
 
