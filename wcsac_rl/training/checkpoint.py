@@ -436,13 +436,6 @@ PRESET_HINT = (
 )
 
 
-def _override_value(value: Any) -> str:
-    """``value`` as a Hydra command-line override writes it (``0.001``, ``pid``)."""
-    if isinstance(value, bool):
-        return str(value).lower()
-    return str(value)
-
-
 def _preset_hint(keys: list[str], saved_config: Any = None, cfg: Any = None) -> str:
     """What to add to a refusal over ``keys``: how a run begun under an earlier default
     continues, when the keys are the ones that default changed. On DynamicEnv's κ keys
@@ -455,11 +448,11 @@ def _preset_hint(keys: list[str], saved_config: Any = None, cfg: Any = None) -> 
         and saved_config is not None
         and _select(saved_config, "env.name") == "dynamic"
     ):
+        run = {key: _select(saved_config, key) for key in sorted(DYNAMIC_RULE_KEYS)}
         pairs = [
-            f"{key}={_override_value(_select(saved_config, key))}"
-            for key in sorted(DYNAMIC_RULE_KEYS)
-            if _select(saved_config, key) is not None
-            and _select(saved_config, key) != _select(cfg, key)
+            f"{key}={value}"
+            for key, value in run.items()
+            if value is not None and value != _select(cfg, key)
         ]
         return (
             " (a DynamicEnv run begun under an earlier preset=kit κ rule continues with "
