@@ -372,3 +372,25 @@ def test_a_run_begun_under_an_earlier_default_resumes_only_as_it_began(tmp_path,
     assert changed <= {"resume", "total_frames"}, changed
     rows = (run_dir / "progress.csv").read_text().splitlines()
     assert len(rows) == 1 + 2  # header, the first session's epoch and the resumed one's
+
+
+def test_the_dynamic_rule_hint_is_not_offered_for_a_key_the_run_never_had():
+    """A DynamicEnv run whose config predates a refused κ option (no value for it) gets
+    the general preset hint, not the DynamicEnv one, which would list nothing for that
+    key: no value of it would continue the run."""
+    from _training_helpers import compose_config
+    from omegaconf import OmegaConf
+
+    from wcsac_rl.training.checkpoint import PRESET_HINT as GENERAL_HINT
+    from wcsac_rl.training.checkpoint import _preset_hint
+
+    cfg = compose_config("algo=wcsac", "env=dynamic", "risk_level=0.5")
+    saved = OmegaConf.to_container(cfg, resolve=True)
+    del saved["algo"]["kappa_rule"]
+    assert _preset_hint(["algo.kappa_rule"], saved, cfg) == GENERAL_HINT
+    saved["algo"]["kappa_rule"] = "gradient"
+    hint = _preset_hint(["algo.kappa_rule"], saved, cfg)
+    assert hint.endswith(
+        " (a DynamicEnv run begun under an earlier preset=kit κ rule "
+        "continues with algo.kappa_rule=gradient on the command line)"
+    )

@@ -441,12 +441,15 @@ def _preset_hint(keys: list[str], saved_config: Any = None, cfg: Any = None) -> 
     continues, when the keys are the ones that default changed. On DynamicEnv's κ keys
     the hint lists each of them in which the run differs from today's config, with the
     run's own value (a changeable one too, such as the actor's rate: left out, the run
-    would go on at today's)."""
+    would go on at today's). A run whose config has no value for a refused key (it
+    predates the option) gets the general hint instead: no value of that key would
+    continue it."""
     if (
         keys
         and DYNAMIC_RULE_KEYS.issuperset(keys)
         and saved_config is not None
         and _select(saved_config, "env.name") == "dynamic"
+        and all(_select(saved_config, key) is not None for key in keys)
     ):
         run = {key: _select(saved_config, key) for key in sorted(DYNAMIC_RULE_KEYS)}
         pairs = [
