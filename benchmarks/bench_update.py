@@ -37,6 +37,9 @@ Prints, with one torch thread by default:
   - ``wcsac_kit_module_calls``: ``wcsac_kit`` with its twin read through TorchRL's
     vmapped call and its IQN critic through its module, as before 2cefd15 read them
     from their parameters (the same values bit for bit: the difference is the gain);
+  - ``wcsac_kit_signal_every10``: ``wcsac_kit`` with ``kappa_signal_every=10`` (the
+    critic's start-state tail read once in 10 updates and held in between; not the
+    default: it changes κ's course);
   - ``wcsac_<options>_compiled``: under ``torch.compile`` (``--compile``);
   - ``sac_torchrl_nets`` / ``wcsac_<options>_torchrl_nets``: ``SACLoss`` and
     ``WCSACLoss`` with TorchRL's generic networks (``torchrl.modules.MLP``,
@@ -311,6 +314,7 @@ class Variant:
     batch: TensorDictBase
     options: str | None  # an OPTION_SETS key, or None (SAC)
     baseline: str  # the SAC variant it is compared with
+    flop_updates: int = 1  # FLOPs per update: the mean over this many (a held κ signal: k)
 
 
 def through_module_calls(loss: WCSACLoss) -> WCSACLoss:
@@ -355,7 +359,8 @@ def build_variants(
         safety = None if options is None else option_set(options).options
         loss_batch = pipeline_batch(loss, sizes, safety) if batch is None else batch
         update = torchrl_update_fn(loss, **kwargs)
-        variants[name] = Variant(label, update, loss_batch, options, baseline)
+        flop_updates = getattr(loss, "kappa_signal_every", 1)
+        variants[name] = Variant(label, update, loss_batch, options, baseline, flop_updates)
 
     def sac(networks):
         actor, qvalues, _ = networks
@@ -381,6 +386,16 @@ def build_variants(
                 f"{name}_module_calls",
                 f"WCSACLoss [{options}], critics through vmap and module calls",
                 through_module_calls(slow),
+                options,
+                "sac",
+                batch,
+            )
+        if options == "kit":  # κ's start-state tail read once in 10 updates
+            held, batch = kit_loss(options, sizes, {"kappa_signal_every": 10})
+            add(
+                f"{name}_signal_every10",
+                f"WCSACLoss [{options}], κ's start-state tail every 10 updates",
+                held,
                 options,
                 "sac",
                 batch,
@@ -449,10 +464,13 @@ class _MatmulFlops(TorchDispatchMode):
         return out
 
 
-def flops_per_update(update, batch) -> float:
+def flops_per_update(update, batch, updates: int = 1) -> float:
+    """Matrix-product FLOPs of one update, the mean over ``updates`` of them (an update
+    that reads κ's start-state tail once in k does its work in k)."""
     with _MatmulFlops() as counter:
-        update(batch)
-    return float(counter.flops)
+        for _ in range(updates):
+            update(batch)
+    return float(counter.flops) / updates
 
 
 def time_variants(
@@ -616,7 +634,9 @@ def main(argv: list[str] | None = None) -> dict:
             )
         keep = set(args.variants) | {variants[name].baseline for name in args.variants}
         variants = {name: v for name, v in variants.items() if name in keep}
-    flops = {name: flops_per_update(v.update, v.batch) for name, v in variants.items()}
+    flops = {
+        name: flops_per_update(v.update, v.batch, v.flop_updates) for name, v in variants.items()
+    }
     rates = time_variants(variants, args.rounds, args.updates, args.warmup)
     print(f"\nupdates/s (median of {args.rounds} interleaved rounds of {args.updates} updates):")
     print(

@@ -102,7 +102,7 @@ def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
     assert all(math.isfinite(v) and v > 0 for v in result["matmul_peak_gflops"].values())
     rows = {row["name"]: row for row in result["updates"]}
     expected = {"sac", "sac_polyak", "sac_torchrl_nets", "plain_wcsac_paper"}
-    expected.add("wcsac_kit_module_calls")
+    expected.update({"wcsac_kit_module_calls", "wcsac_kit_signal_every10"})
     for options in ("kit", "defaults", "paper"):
         for suffix in ("", "_general", "_torchrl_nets"):
             expected.add(f"wcsac_{options}{suffix}")
@@ -128,6 +128,8 @@ def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
     assert flops["wcsac_kit_general"] == pytest.approx(flops["wcsac_kit"])
     # reading the critics from their parameters multiplies the same matrices
     assert flops["wcsac_kit_module_calls"] == flops["wcsac_kit"]
+    # κ's start-state tail read once in 10 updates: that evaluation's work in 1 of 10
+    assert flops["wcsac_kit_signal_every10"] < flops["wcsac_kit"]
     assert flops["wcsac_kit_torchrl_nets"] == pytest.approx(flops["wcsac_defaults_torchrl_nets"])
 
     loop = result["loop"]

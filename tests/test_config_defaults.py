@@ -228,6 +228,7 @@ ADDED_SINCE = {
     "kappa_min": 0.0,
     "num_safety_nets": 1,
     "ensemble_target": "own",
+    "kappa_signal_every": 1,
 }
 
 

@@ -52,6 +52,7 @@ __all__ = [
     "check_fields",
     "check_kappa_bound",
     "check_loss_options",
+    "check_signal_every",
     "check_value",
     "config_defaults",
     "option_spec",
@@ -468,6 +469,16 @@ class SafetyOptions:
         choices=KAPPA_SIGNALS,
         saved_run="critic",
     )
+    kappa_signal_every: int = option(
+        1,
+        "kappa_states=initial with kappa_statistic=tail: the critic's start-state "
+        "statistic is read every this many training updates and held in between "
+        "(1: every update)",
+        "integer",
+        low=1,
+        unit="updates",
+        saved_run=1,
+    )
     # (saved_run: a run saved before the window existed read the critic, not the window)
     kappa_episode_window: int = option(
         30,
@@ -687,6 +698,22 @@ def check_ensemble_target(ensemble_target: str, num_safety_nets: int, prefix: st
         raise ValueError(
             f"{prefix}ensemble_target={ensemble_target} picks among several safety critics: "
             f"it needs {prefix}num_safety_nets >= 2"
+        )
+
+
+def check_signal_every(every: int, states: str, statistic: str, prefix: str = "") -> None:
+    """``kappa_signal_every`` is an integer >= 1, and above 1 only where the critic's
+    statistic is one number per batch read where nothing else reads the critic: at the
+    start states (``kappa_states="initial"``) with ``kappa_statistic="tail"``. One
+    ``ValueError`` line naming the options with ``prefix``, for the config and the loss."""
+    check_value(
+        f"{prefix}kappa_signal_every", every, option_spec(SafetyOptions, "kappa_signal_every")
+    )
+    if every > 1 and (states != "initial" or statistic != "tail"):
+        raise ValueError(
+            f"{prefix}kappa_signal_every={every} holds the critic's start-state tail "
+            f"between reads: it needs {prefix}kappa_states=initial and "
+            f"{prefix}kappa_statistic=tail, got {states} and {statistic}"
         )
 
 

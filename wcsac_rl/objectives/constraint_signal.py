@@ -28,6 +28,13 @@ says what it reads. Four options, each with the paper's choice first:
 
 The actor's cost term is always the critic's Γ at its own actions; the signal only sets
 κ (and the MDMM damping).
+
+``kappa_signal_every`` (k): at the start states with the tail statistic, the critic's
+reading is one number per batch that nothing else uses, so it may be read every k
+training updates and held in between (:class:`HeldStatistic`): the actor draws at the
+start states and the critic's evaluation there happen once in k updates. The episodes'
+half of the signal is still read at every update. k = 1 (the default) reads it every
+update, as before.
 """
 
 from __future__ import annotations
@@ -36,7 +43,7 @@ from collections.abc import Callable
 
 import torch
 from tensordict import TensorDictBase
-from torch import Tensor
+from torch import Tensor, nn
 
 from wcsac_rl.objectives.budget import per_step_cost_threshold
 from wcsac_rl.objectives.inputs import required_entry
@@ -53,6 +60,7 @@ __all__ = [
     "KAPPA_STATES",
     "KAPPA_STATISTICS",
     "ConstraintSignal",
+    "HeldStatistic",
 ]
 
 
@@ -183,3 +191,47 @@ class ConstraintSignal:
         if self.signal_kind == "max":
             return torch.fmax(statistic, episodes)  # fmax: NaN loses
         return torch.where(episodes.isnan(), statistic, episodes)
+
+
+class HeldStatistic(nn.Module):
+    """The critic's statistic read every ``every`` training updates and held in between.
+
+    Two buffers, so that a checkpoint carries them and a resumed run reads the critic
+    when the uninterrupted one would: ``value`` (the last reading, 0-dim) and ``age``
+    (updates since it was read, counting the one that read it; 0: none yet).
+
+    Example:
+        >>> hold = HeldStatistic(3)
+        >>> hold.take() is None          # nothing held yet: read the critic
+        True
+        >>> hold.store(torch.tensor(4.0))
+        >>> hold.take(), hold.take()     # the next two updates hold it
+        (tensor(4.), tensor(4.))
+        >>> hold.take() is None          # the third reads it again
+        True
+    """
+
+    def __init__(self, every: int) -> None:
+        super().__init__()
+        if isinstance(every, bool) or not isinstance(every, int) or every < 2:
+            raise ValueError(f"HeldStatistic holds for every >= 2 updates, got {every!r}")
+        self.every = every
+        self.register_buffer("value", torch.full((), float("nan")))
+        self.register_buffer("age", torch.zeros((), dtype=torch.long))
+
+    def take(self) -> Tensor | None:
+        """The held value for this update (and count it), or ``None`` when the critic is
+        to be read: nothing held yet, or held for ``every`` updates already."""
+        age = int(self.age)  # (a host read of a 0-dim buffer)
+        if age == 0 or age >= self.every:
+            return None
+        self.age += 1
+        return self.value.clone()
+
+    def store(self, value: Tensor) -> None:
+        """Hold ``value`` (0-dim, detached) from this update on."""
+        self.value.copy_(value.detach().reshape(()))
+        self.age.fill_(1)
+
+    def extra_repr(self) -> str:
+        return f"every={self.every}"

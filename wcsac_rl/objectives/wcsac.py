@@ -38,7 +38,7 @@ from wcsac_rl.objectives.budget import (
     validate_max_episode_steps,
 )
 from wcsac_rl.objectives.constraint import make_constraint, rename_kappa_raw
-from wcsac_rl.objectives.constraint_signal import ConstraintSignal
+from wcsac_rl.objectives.constraint_signal import ConstraintSignal, HeldStatistic
 from wcsac_rl.objectives.cost_target import CostTarget
 from wcsac_rl.objectives.critic_ensemble import Layers
 from wcsac_rl.objectives.critics import CriticParams, Critics, CriticValues
@@ -61,7 +61,14 @@ from wcsac_rl.objectives.torchrl_compat import (
     refuse_unknown_keywords,
     sample_alive,
 )
-from wcsac_rl.options import PAPER_OPTIONS, IQNOptions, PIDGains, SafetyOptions, check_loss_options
+from wcsac_rl.options import (
+    PAPER_OPTIONS,
+    IQNOptions,
+    PIDGains,
+    SafetyOptions,
+    check_loss_options,
+    check_signal_every,
+)
 
 __all__ = ["PAPER_OPTIONS", "CriticValues", "WCSACLoss", "per_step_cost_threshold"]
 
@@ -124,6 +131,11 @@ class WCSACLoss(SACLoss):
             under the threshold (:mod:`wcsac_rl.objectives.constraint_signal`);
             ``kappa_states="initial"`` reads start states
             (:class:`~wcsac_rl.objectives.StartStateBuffer`).
+        kappa_signal_every (int): with ``kappa_states="initial"`` and
+            ``kappa_statistic="tail"``, read the critic's start-state tail in one
+            training update of this many and hold it in the others
+            (:class:`~wcsac_rl.objectives.constraint_signal.HeldStatistic`; 1: every
+            update).
         kappa_init (float), kappa_parametrization (str), damp_scale (float), kappa_max
             (float, optional), kappa_min (float), kappa_rule (str), pid (PIDGains or
             dict): κ and how it moves
@@ -250,6 +262,7 @@ class WCSACLoss(SACLoss):
         kappa_actions: str = SafetyOptions.kappa_actions,
         kappa_states: str = SafetyOptions.kappa_states,
         kappa_signal: str = SafetyOptions.kappa_signal,
+        kappa_signal_every: int = SafetyOptions.kappa_signal_every,
         damp_scale: float = SafetyOptions.damp_scale,
         kappa_max: float | None = SafetyOptions.kappa_max,
         kappa_min: float = SafetyOptions.kappa_min,
@@ -330,12 +343,21 @@ class WCSACLoss(SACLoss):
             statistic=kappa_statistic,
             signal=kappa_signal,
         )
+        check_signal_every(kappa_signal_every, kappa_states, kappa_statistic)
         constraint = make_constraint(
             kappa_rule, kappa_init=kappa_init, parametrization=kappa_parametrization,
             damp_scale=damp_scale, kappa_max=kappa_max, kappa_min=kappa_min, pid=pid,
         )  # fmt: skip
         device = self.log_alpha.device
         self.constraint = constraint.to(device)
+        # the start-state tail held between reads (kappa_signal_every > 1 only: a loss
+        # that reads it every update keeps the state dict it always had)
+        self.kappa_signal_every = int(kappa_signal_every)
+        self.kappa_signal_hold = (
+            HeldStatistic(self.kappa_signal_every).to(device)
+            if self.kappa_signal_every > 1
+            else None
+        )
         self.register_load_state_dict_pre_hook(rename_kappa_raw)
         self.register_buffer("cost_threshold", torch.zeros((), device=device))
         # derived from cost_gamma / the value estimator: not part of the state dict
@@ -706,13 +728,23 @@ class WCSACLoss(SACLoss):
 
     def _constraint_statistic(self, tensordict, replay_values, layers=None) -> Tensor | None:
         """The critic's statistic κ reads, per row (:attr:`constraint_signal`), or
-        ``None`` when it is taken at the actor's own actions (with the actor loss)."""
+        ``None`` when it is taken at the actor's own actions (with the actor loss).
+        With ``kappa_signal_every`` k > 1, a training update reads it once in k and
+        the others take the held reading (evaluation mode reads it and holds nothing)."""
+        hold = self.kappa_signal_hold if self.training else None
+        if hold is not None:
+            held = hold.take()
+            if held is not None:
+                return held.expand(tensordict.shape)
         values = self.constraint_signal.critic_values(
             tensordict, replay_values, lambda states: self._policy_values(states, layers)
         )
         if values is None:
             return None
-        return self.constraint_signal.statistic(values.safety, self._row_mask(tensordict))
+        statistic = self.constraint_signal.statistic(values.safety, self._row_mask(tensordict))
+        if hold is not None:
+            hold.store(statistic.reshape(-1)[0])  # (the tail: one number, repeated per row)
+        return statistic
 
     def _row_mask(self, tensordict: TensorDictBase) -> Tensor | None:
         """Which rows count, from the loss masks TorchRL's reduction reads

@@ -14,6 +14,7 @@ from wcsac_rl.options import (
     SafetyOptions,
     check_ensemble_target,
     check_kappa_bound,
+    check_signal_every,
     range_text,
     read_options,
 )
@@ -370,6 +371,9 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int)
         )
     try:
         check_ensemble_target(options.ensemble_target, options.num_safety_nets, prefix="algo.")
+        check_signal_every(
+            options.kappa_signal_every, options.kappa_states, options.kappa_statistic, "algo."
+        )
     except ValueError as err:
         raise ConfigError(str(err)) from None
     if options.kappa_test_window and options.kappa_signal == "critic":
