@@ -158,6 +158,14 @@ DYNAMIC_RULE = [
     "algo.cost_n_steps=50",
     "algo.actor_lr=1e-3",
 ]
+# SAC-Lag's own values on DynamicEnv (S4, results/training_safety_dynamic/), after
+# DYNAMIC_RULE (conf/algo/kappa_advice/per_algo/kit_sac_lag_dynamic.yaml)
+DYNAMIC_SAC_LAG = [
+    "algo.safety_critic=iqn",
+    "algo.kappa_min=0.02",
+    "algo.kappa_init=0.02",
+    "algo.pid.max_kappa=0.3",
+]
 # DynamicEnv's κ rule under preset=kit from D21 (results/training_safety/, eleventh
 # round) until Y9: the PID rule at its own gains, κ >= 0.1 from log 2, 10-step targets.
 DYNAMIC_D21 = [
@@ -201,7 +209,7 @@ def test_the_kit_preset_is_the_measured_candidate_on_the_defaults_before_it(algo
         if not (algo == "sac_lag" and o == "algo.safety_critic=iqn")
     ]
     if env == "dynamic":
-        options += DYNAMIC_RULE
+        options += DYNAMIC_RULE + (DYNAMIC_SAC_LAG if algo == "sac_lag" else [])
     before = _whole(f"algo={algo}", f"env={env}", "preset=kit_2026_11", *options)
     assert _whole(f"algo={algo}", f"env={env}") == before
     assert _whole(f"algo={algo}", f"env={env}", "preset=kit") == before
@@ -312,7 +320,26 @@ PRESET_HINT = (
             None,
         ),
         (("algo=wcsac", "env=dynamic", "risk_level=0.5"), tuple(DYNAMIC_D21), None),
-        (("algo=sac_lag", "env=dynamic"), tuple(DYNAMIC_D21), None),
+        (
+            ("algo=sac_lag", "env=dynamic"),
+            (
+                "algo.safety_critic=gaussian",
+                "algo.kappa_min=0.1",
+                "algo.pid.max_kappa=100.0",
+                *DYNAMIC_D21,
+            ),
+            None,
+        ),
+        (
+            ("algo=sac_lag", "env=dynamic"),
+            (
+                "algo.safety_critic=gaussian",
+                "algo.kappa_min=0.1",
+                "algo.kappa_init=0.1",
+                "algo.pid.max_kappa=100.0",
+            ),
+            None,
+        ),
     ],
     ids=[
         "wcsac-kit_2026_11",
@@ -320,6 +347,7 @@ PRESET_HINT = (
         "dynamic-kit-gradient-rule",
         "dynamic-kit-d21",
         "sac_lag-dynamic-kit-d21",
+        "sac_lag-dynamic-kit-y9",
     ],
 )
 def test_a_run_begun_under_an_earlier_default_resumes_only_as_it_began(tmp_path, base, then, hint):

@@ -407,11 +407,14 @@ DYNAMIC_RULE_KEYS = frozenset(
         "algo.pid.ki",
         "algo.cost_n_steps",
         "algo.actor_lr",
+        "algo.safety_critic",
+        "algo.pid.max_kappa",
     }
 )
 """The keys ``preset=kit`` changed on DynamicEnv after it became the default
 (``conf/algo/kappa_advice/kit/dynamic.yaml``: the PID rule with κ ≥ 0.1, then κ from 0.1
-with no integral term, a 50-step cost target and SAC's actor rate)."""
+with no integral term, a 50-step cost target and SAC's actor rate; then SAC-Lag's own
+values, the IQN critic with 0.02 ≤ κ ≤ 0.3: ``conf/algo/kappa_advice/per_algo/``)."""
 
 PRESET_KEYS = frozenset(
     f"algo.{key}"
