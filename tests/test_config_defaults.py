@@ -166,6 +166,13 @@ DYNAMIC_SAC_LAG = [
     "algo.kappa_init=0.02",
     "algo.pid.max_kappa=0.3",
 ]
+# What a SAC-Lag DynamicEnv run had under preset=kit before S4 (its mean critic, κ ≥ 0.1,
+# the PID's default bound); a run begun then resumes only with these
+SAC_LAG_BEFORE_S4 = [
+    "algo.safety_critic=gaussian",
+    "algo.kappa_min=0.1",
+    "algo.pid.max_kappa=100.0",
+]
 # DynamicEnv's κ rule under preset=kit from D21 (results/training_safety/, eleventh
 # round) until Y9: the PID rule at its own gains, κ >= 0.1 from log 2, 10-step targets.
 DYNAMIC_D21 = [
@@ -320,26 +327,8 @@ PRESET_HINT = (
             None,
         ),
         (("algo=wcsac", "env=dynamic", "risk_level=0.5"), tuple(DYNAMIC_D21), None),
-        (
-            ("algo=sac_lag", "env=dynamic"),
-            (
-                "algo.safety_critic=gaussian",
-                "algo.kappa_min=0.1",
-                "algo.pid.max_kappa=100.0",
-                *DYNAMIC_D21,
-            ),
-            None,
-        ),
-        (
-            ("algo=sac_lag", "env=dynamic"),
-            (
-                "algo.safety_critic=gaussian",
-                "algo.kappa_min=0.1",
-                "algo.kappa_init=0.1",
-                "algo.pid.max_kappa=100.0",
-            ),
-            None,
-        ),
+        (("algo=sac_lag", "env=dynamic"), (*SAC_LAG_BEFORE_S4, *DYNAMIC_D21), None),
+        (("algo=sac_lag", "env=dynamic"), (*SAC_LAG_BEFORE_S4, "algo.kappa_init=0.1"), None),
     ],
     ids=[
         "wcsac-kit_2026_11",
