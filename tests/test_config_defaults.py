@@ -166,6 +166,10 @@ DYNAMIC_SAC_LAG = [
     "algo.kappa_init=0.02",
     "algo.pid.max_kappa=0.3",
 ]
+# SAC-Lag's own value on StaticEnv (L19, results/training_safety/, sixteenth round;
+# conf/algo/kappa_advice/per_algo/kit_sac_lag_static.yaml)
+STATIC_SAC_LAG = ["algo.safety_critic=iqn"]
+SAC_LAG_OWN = {"dynamic": DYNAMIC_SAC_LAG, "static": STATIC_SAC_LAG}
 # What a SAC-Lag DynamicEnv run had under preset=kit before S4 (its mean critic, κ ≥ 0.1,
 # the PID's default bound); a run begun then resumes only with these
 SAC_LAG_BEFORE_S4 = [
@@ -207,16 +211,19 @@ def _whole(*overrides: str) -> dict:
 @pytest.mark.parametrize("algo", ["wcsac", "sac_lag"])
 def test_the_kit_preset_is_the_measured_candidate_on_the_defaults_before_it(algo, env):
     """``preset=kit`` (the default) is exactly the earlier defaults with the options the
-    training-safety study screened (C36; D21 on DynamicEnv), and nothing else, in every
+    training-safety study screened (C36; Y9 on DynamicEnv), and nothing else, in every
     key of the run's config, for WCSAC and SAC-Lag on every layout (SAC-Lag keeps its
-    mean critic)."""
+    mean critic except where it has its own values: S4 on DynamicEnv, L19 on
+    StaticEnv)."""
     options = [
         o
         for o in TRAINING_SAFETY_OPTIONS
         if not (algo == "sac_lag" and o == "algo.safety_critic=iqn")
     ]
     if env == "dynamic":
-        options += DYNAMIC_RULE + (DYNAMIC_SAC_LAG if algo == "sac_lag" else [])
+        options += DYNAMIC_RULE
+    if algo == "sac_lag":
+        options += SAC_LAG_OWN.get(env, [])
     before = _whole(f"algo={algo}", f"env={env}", "preset=kit_2026_11", *options)
     assert _whole(f"algo={algo}", f"env={env}") == before
     assert _whole(f"algo={algo}", f"env={env}", "preset=kit") == before
@@ -329,6 +336,7 @@ PRESET_HINT = (
         (("algo=wcsac", "env=dynamic", "risk_level=0.5"), tuple(DYNAMIC_D21), None),
         (("algo=sac_lag", "env=dynamic"), (*SAC_LAG_BEFORE_S4, *DYNAMIC_D21), None),
         (("algo=sac_lag", "env=dynamic"), (*SAC_LAG_BEFORE_S4, "algo.kappa_init=0.1"), None),
+        (("algo=sac_lag", "env=static"), ("algo.safety_critic=gaussian",), None),
     ],
     ids=[
         "wcsac-kit_2026_11",
@@ -337,12 +345,14 @@ PRESET_HINT = (
         "dynamic-kit-d21",
         "sac_lag-dynamic-kit-d21",
         "sac_lag-dynamic-kit-y9",
+        "sac_lag-static-kit-mean-critic",
     ],
 )
 def test_a_run_begun_under_an_earlier_default_resumes_only_as_it_began(tmp_path, base, then, hint):
     """``resume=auto`` on a run made under an earlier default: one made under
-    ``preset=kit_2026_11``, and DynamicEnv ones made under ``preset=kit`` while its κ
-    rule was the gradient rule (as the card's command ran before) or D21's PID rule.
+    ``preset=kit_2026_11``, DynamicEnv ones made under ``preset=kit`` while its κ rule was
+    the gradient rule (as the card's command ran before) or D21's PID rule, and a
+    StaticEnv SAC-Lag one made while ``preset=kit`` gave it its mean critic.
     Under today's default it is refused in one line that ends with what to add (nothing
     of the run is touched); with exactly that added it continues, in every key of its
     config as it began (the actor's rate too, which a resume may change)."""
@@ -371,8 +381,8 @@ def test_a_run_begun_under_an_earlier_default_resumes_only_as_it_began(tmp_path,
         added = then
     else:
         found = re.search(
-            r" \(a DynamicEnv run begun under an earlier preset=kit κ rule continues with "
-            r"(.+) on the command line\)$",
+            r" \(a (?:DynamicEnv|StaticEnv) run begun under an earlier preset=kit default "
+            r"continues with (.+) on the command line\)$",
             message,
         )
         assert found is not None, message
@@ -409,6 +419,6 @@ def test_the_dynamic_rule_hint_is_not_offered_for_a_key_the_run_never_had():
     saved["algo"]["kappa_rule"] = "gradient"
     hint = _preset_hint(["algo.kappa_rule"], saved, cfg)
     assert hint.endswith(
-        " (a DynamicEnv run begun under an earlier preset=kit κ rule "
+        " (a DynamicEnv run begun under an earlier preset=kit default "
         "continues with algo.kappa_rule=gradient on the command line)"
     )

@@ -416,6 +416,17 @@ DYNAMIC_RULE_KEYS = frozenset(
 with no integral term, a 50-step cost target and SAC's actor rate; then SAC-Lag's own
 values, the IQN critic with 0.02 ≤ κ ≤ 0.3: ``conf/algo/kappa_advice/per_algo/``)."""
 
+STATIC_RULE_KEYS = frozenset({"algo.safety_critic"})
+"""The key ``preset=kit`` changed on StaticEnv after it became the default: SAC-Lag's
+safety critic, the mean critic until L19 and the IQN critic since
+(``conf/algo/kappa_advice/per_algo/kit_sac_lag_static.yaml``)."""
+
+LATER_RULE_KEYS = {"dynamic": DYNAMIC_RULE_KEYS, "static": STATIC_RULE_KEYS}
+"""Per layout (``env.name``), the keys ``preset=kit`` changed there after it became the
+default; a run begun before such a change continues with its own values of them."""
+
+_LAYOUT_NAMES = {"dynamic": "DynamicEnv", "static": "StaticEnv"}
+
 PRESET_KEYS = frozenset(
     f"algo.{key}"
     for key in (
@@ -427,7 +438,7 @@ PRESET_KEYS = frozenset(
         "alpha_init",
         "actor_lr",
     )
-).union(DYNAMIC_RULE_KEYS)
+).union(*LATER_RULE_KEYS.values())
 """The keys in which the config's two presets differ (``conf/algo/preset/``, on some
 layout): a run begun under ``preset=kit_2026_11`` (before the default changed) and
 continued with ``resume=auto`` under the default differs in them, and the refusal says
@@ -441,28 +452,29 @@ PRESET_HINT = (
 
 def _preset_hint(keys: list[str], saved_config: Any = None, cfg: Any = None) -> str:
     """What to add to a refusal over ``keys``: how a run begun under an earlier default
-    continues, when the keys are the ones that default changed. On DynamicEnv's κ keys
-    the hint lists each of them in which the run differs from today's config, with the
-    run's own value (a changeable one too, such as the actor's rate: left out, the run
-    would go on at today's). A run whose config has no value for a refused key (it
-    predates the option) gets the general hint instead: no value of that key would
+    continues, when the keys are the ones that default changed. On a layout where
+    ``preset=kit`` changed after it became the default (:data:`LATER_RULE_KEYS`), the
+    hint lists each of that layout's keys in which the run differs from today's config,
+    with the run's own value (a changeable one too, such as the actor's rate: left out,
+    the run would go on at today's). A run whose config has no value for a refused key
+    (it predates the option) gets the general hint instead: no value of that key would
     continue it."""
+    layout = _select(saved_config, "env.name") if saved_config is not None else None
+    later = LATER_RULE_KEYS.get(layout, frozenset())
     if (
         keys
-        and DYNAMIC_RULE_KEYS.issuperset(keys)
-        and saved_config is not None
-        and _select(saved_config, "env.name") == "dynamic"
+        and later.issuperset(keys)
         and all(_select(saved_config, key) is not None for key in keys)
     ):
-        run = {key: _select(saved_config, key) for key in sorted(DYNAMIC_RULE_KEYS)}
+        run = {key: _select(saved_config, key) for key in sorted(later)}
         pairs = [
             f"{key}={value}"
             for key, value in run.items()
             if value is not None and value != _select(cfg, key)
         ]
         return (
-            " (a DynamicEnv run begun under an earlier preset=kit κ rule continues with "
-            f"{' '.join(pairs)} on the command line)"
+            f" (a {_LAYOUT_NAMES[layout]} run begun under an earlier preset=kit default "
+            f"continues with {' '.join(pairs)} on the command line)"
         )
     return PRESET_HINT if PRESET_KEYS.intersection(keys) else ""
 
