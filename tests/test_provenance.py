@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import shutil
 import subprocess
 
@@ -69,6 +70,29 @@ def test_a_session_record_is_json_with_the_overrides_and_versions():
     assert again["overrides"] == ["seed=3", "env=tiny"] and again["threads"] == 1
     assert again["versions"]["torch"] and again["versions"]["python"]
     assert again["started"].endswith("+00:00")  # UTC
+
+
+def test_a_session_record_names_the_machine_whose_kernels_made_its_numbers():
+    """Runs of one seed on two machines part after the first updates (kernels for other
+    vector instructions round differently): the record says which CPU and which of
+    torch's kernel sets (the one torch reports) made the numbers."""
+    import platform
+
+    import torch
+
+    machine = session_provenance(overrides=None, threads=1, resumed_from_frames=None)[
+        "machine"
+    ]
+    assert machine["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert machine["architecture"] == platform.machine()
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.is_file() and "model name" in cpuinfo.read_text(errors="replace"):
+        names = [
+            line.partition(":")[2].strip()
+            for line in cpuinfo.read_text(errors="replace").splitlines()
+            if line.partition(":")[0].strip() == "model name"
+        ]
+        assert machine["processor"] == names[0]
 
 
 def test_each_session_writes_its_own_file_and_they_read_back_in_order(tmp_path):

@@ -10,7 +10,13 @@ record holds
 * ``overrides``: the command line's overrides (``train.py`` passes Hydra's), so
   ``python train.py <overrides>`` composes the same config;
 * ``started`` (UTC, ISO 8601), ``host``, ``threads``, and the versions of Python and
-  the libraries whose numerics the results depend on.
+  the libraries whose numerics the results depend on;
+* ``machine``: the CPU (``processor``, its model name where the OS gives one;
+  ``architecture``) and the vector instructions torch's CPU kernels use on it
+  (``cpu_capability``: ``torch.backends.cpu.get_cpu_capability()``, e.g. ``AVX2`` or
+  ``AVX512``). The same commit, config and seed give the same logged values on one
+  machine, but kernels for other instructions round differently, so two machines'
+  runs of one seed part after the first updates and agree only in distribution.
 
 :func:`read_provenance` returns a run directory's records, first session first;
 ``report`` lists them in ``runs.md`` (the commit each run's numbers were made on and
@@ -32,6 +38,7 @@ from typing import Any
 __all__ = [
     "PROVENANCE_FILE",
     "code_version",
+    "machine_record",
     "provenance_files",
     "read_provenance",
     "session_provenance",
@@ -90,6 +97,36 @@ def _library_versions() -> dict[str, str | None]:
     return versions
 
 
+def _cpu_model() -> str | None:
+    """The CPU's model name (``/proc/cpuinfo`` on Linux, else ``platform.processor()``),
+    ``None`` when neither names it."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                key, _, value = line.partition(":")
+                if key.strip() == "model name" and value.strip():
+                    return value.strip()
+    except OSError:
+        pass
+    return platform.processor() or None
+
+
+def machine_record() -> dict[str, str | None]:
+    """``{"processor", "architecture", "cpu_capability"}`` of this machine (see the
+    module docstring)."""
+    try:
+        import torch
+
+        capability = str(torch.backends.cpu.get_cpu_capability())
+    except (ImportError, AttributeError, RuntimeError):
+        capability = None
+    return {
+        "processor": _cpu_model(),
+        "architecture": platform.machine() or None,
+        "cpu_capability": capability,
+    }
+
+
 def session_provenance(
     *, overrides: Sequence[str] | None, threads: int, resumed_from_frames: int | None
 ) -> dict[str, Any]:
@@ -102,6 +139,7 @@ def session_provenance(
         "host": socket.gethostname(),
         "threads": int(threads),
         "versions": _library_versions(),
+        "machine": machine_record(),
     }
 
 
