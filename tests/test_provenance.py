@@ -80,9 +80,7 @@ def test_a_session_record_names_the_machine_whose_kernels_made_its_numbers():
 
     import torch
 
-    machine = session_provenance(overrides=None, threads=1, resumed_from_frames=None)[
-        "machine"
-    ]
+    machine = session_provenance(overrides=None, threads=1, resumed_from_frames=None)["machine"]
     assert machine["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
     assert machine["architecture"] == platform.machine()
     cpuinfo = Path("/proc/cpuinfo")
