@@ -472,8 +472,9 @@ def _preset_hint(keys: list[str], saved_config: Any = None, cfg: Any = None) -> 
             for key, value in run.items()
             if value is not None and value != _select(cfg, key)
         ]
+        name = _LAYOUT_NAMES.get(layout, layout)
         return (
-            f" (a {_LAYOUT_NAMES[layout]} run begun under an earlier preset=kit default "
+            f" (a {name} run begun under an earlier preset=kit default "
             f"continues with {' '.join(pairs)} on the command line)"
         )
     return PRESET_HINT if PRESET_KEYS.intersection(keys) else ""
