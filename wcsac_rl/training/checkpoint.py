@@ -425,8 +425,6 @@ LATER_RULE_KEYS = {"dynamic": DYNAMIC_RULE_KEYS, "static": STATIC_RULE_KEYS}
 """Per layout (``env.name``), the keys ``preset=kit`` changed there after it became the
 default; a run begun before such a change continues with its own values of them."""
 
-_LAYOUT_NAMES = {"dynamic": "DynamicEnv", "static": "StaticEnv"}
-
 PRESET_KEYS = frozenset(
     f"algo.{key}"
     for key in (
@@ -472,9 +470,10 @@ def _preset_hint(keys: list[str], saved_config: Any = None, cfg: Any = None) -> 
             for key, value in run.items()
             if value is not None and value != _select(cfg, key)
         ]
-        name = _LAYOUT_NAMES.get(layout, layout)
+        from wcsac_rl.evaluation.runs import env_title  # (it imports this module)
+
         return (
-            f" (a {name} run begun under an earlier preset=kit default "
+            f" (a {env_title(layout)} run begun under an earlier preset=kit default "
             f"continues with {' '.join(pairs)} on the command line)"
         )
     return PRESET_HINT if PRESET_KEYS.intersection(keys) else ""
