@@ -38,6 +38,7 @@ __all__ = [
     "PRESETS",
     "PRESET_NAMES",
     "Preset",
+    "env_title",
     "get_preset",
     "make_gym_env",
     "register_envs",
@@ -175,6 +176,14 @@ def get_preset(name: str) -> Preset:
         f"unknown env {name!r}; valid names are {list(PRESET_NAMES)} "
         f"(or the gymnasium ids {list(_BY_GYM_ID)})"
     )
+
+
+def env_title(name: str) -> str:
+    """``"static"`` → ``"StaticEnv"`` (the gymnasium id's name), unknown names unchanged."""
+    try:
+        return get_preset(name).gym_id.split("/")[-1].rsplit("-v", 1)[0]
+    except (ValueError, KeyError):
+        return name
 
 
 def register_envs() -> None:

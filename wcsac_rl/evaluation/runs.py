@@ -15,6 +15,7 @@ import re
 from collections.abc import Iterable
 from pathlib import Path
 
+from wcsac_rl.envs.presets import env_title
 from wcsac_rl.training.checkpoint import CHECKPOINT_DIR, LAST_CHECKPOINT
 
 __all__ = [
@@ -109,16 +110,6 @@ def split_row_label(label: str) -> tuple[str, str]:
         base, settings = label[:-1].split("[", 1)
         return base, settings
     return label, ""
-
-
-def env_title(name: str) -> str:
-    """``"static"`` → ``"StaticEnv"`` (the gymnasium id's name), unknown names unchanged."""
-    try:
-        from wcsac_rl.envs import get_preset
-
-        return get_preset(name).gym_id.split("/")[-1].rsplit("-v", 1)[0]
-    except (ValueError, KeyError):
-        return name
 
 
 def row_sort_key(label: str) -> tuple[int, float, str]:

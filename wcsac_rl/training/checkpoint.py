@@ -470,7 +470,7 @@ def _preset_hint(keys: list[str], saved_config: Any = None, cfg: Any = None) -> 
             for key, value in run.items()
             if value is not None and value != _select(cfg, key)
         ]
-        from wcsac_rl.evaluation.runs import env_title  # (it imports this module)
+        from wcsac_rl.envs.presets import env_title  # (loads MuJoCo: only on this path)
 
         return (
             f" (a {env_title(layout)} run begun under an earlier preset=kit default "
