@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from wcsac_rl.envs import PointGoalConfig, get_preset, make_gym_env
+from wcsac_rl.envs import PointGoalConfig, env_title, get_preset, make_gym_env
 
 
 @pytest.fixture(scope="module")
@@ -27,6 +27,14 @@ def test_unknown_preset_lists_valid_names():
     # short names are case-insensitive, gym ids work too
     assert get_preset("Static").name == "static"
     assert get_preset("wcsac_rl/PointGoal2-v0").name == "point_goal2"
+
+
+def test_env_title_names_a_preset_by_its_gymnasium_id_and_leaves_other_names_alone():
+    """The title reports and resume hints print: the gym id's name without its version."""
+    assert env_title("static") == "StaticEnv"
+    assert env_title("dynamic") == "DynamicEnv"
+    assert env_title("wcsac_rl/PointGoal2-v0") == "PointGoal2"
+    assert env_title("my_own_env") == "my_own_env"  # a user's env: its own name
 
 
 @pytest.mark.parametrize(

@@ -182,7 +182,7 @@ def env_title(name: str) -> str:
     """``"static"`` → ``"StaticEnv"`` (the gymnasium id's name), unknown names unchanged."""
     try:
         return get_preset(name).gym_id.split("/")[-1].rsplit("-v", 1)[0]
-    except (ValueError, KeyError):
+    except ValueError:
         return name
 
 
