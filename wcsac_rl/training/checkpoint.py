@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from wcsac_rl.envs.presets import env_title
 from wcsac_rl.training.config import ConfigError, TrainingError
 from wcsac_rl.training.preemption import DeferredSignals
 from wcsac_rl.training.safe_load import check_buffer_files, load_data
@@ -470,8 +471,6 @@ def _preset_hint(keys: list[str], saved_config: Any = None, cfg: Any = None) -> 
             for key, value in run.items()
             if value is not None and value != _select(cfg, key)
         ]
-        from wcsac_rl.envs.presets import env_title  # (loads MuJoCo: only on this path)
-
         return (
             f" (a {env_title(layout)} run begun under an earlier preset=kit default "
             f"continues with {' '.join(pairs)} on the command line)"
