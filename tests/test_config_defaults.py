@@ -251,6 +251,8 @@ ADDED_SINCE = {
     "num_safety_nets": 1,
     "ensemble_target": "own",
     "kappa_signal_every": 1,
+    "shield.candidates": 0,
+    "shield.scale": 1.0,
 }
 
 

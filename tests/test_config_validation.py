@@ -35,6 +35,13 @@ BAD_VALUES = [
     ("algo.cost_gamma=abc", "algo.cost_gamma must be null or in [0, 1] (a number), got 'abc'"),
     ("algo.variance=3", "algo.variance must be true or false, got 3"),
     ("algo.iqn.huber_kappa=x", "algo.iqn.huber_kappa must be > 0 (a number), got 'x'"),
+    ("algo.shield.candidates=1", "algo.shield.candidates must be 0 (no shield) or >= 2"),
+    ("algo.shield.candidates=-2", "algo.shield.candidates must be an integer >= 0, got -2"),
+    ("algo.shield.scale=0", "algo.shield.scale must be > 0 (a number), got 0"),
+    (
+        "+algo.shield.candidate=8",
+        "unknown shield option algo.shield.candidate (did you mean algo.shield.candidates?)",
+    ),
     ("algo.collector=4", "algo.collector must hold its options (a mapping), got 4"),
     ("seed=18446744073709551616", "seed must be at most 2**63 - 1 = 9223372036854775807"),
     ("risk_level=true", "risk_level α must be a number in (0, 1], got True"),

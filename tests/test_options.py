@@ -27,6 +27,7 @@ from wcsac_rl.options import (
     IQNOptions,
     PIDGains,
     SafetyOptions,
+    ShieldOptions,
     config_defaults,
     option,
     option_spec,
@@ -34,7 +35,7 @@ from wcsac_rl.options import (
 from wcsac_rl.training import ConfigError, validate_config
 from wcsac_rl.training.config_keys import check_override_keys
 
-GROUPS = {"iqn": IQNOptions, "pid": PIDGains}
+GROUPS = {"iqn": IQNOptions, "pid": PIDGains, "shield": ShieldOptions}
 
 
 def _leaves() -> list[tuple[str, type, str]]:
@@ -162,6 +163,7 @@ def test_a_bad_value_of_every_field_is_one_line_naming_it(key, cls, name):
         ),
         ("algo.iqn.num_quantile=5", "(did you mean algo.iqn.num_quantiles?)"),
         ("algo.pid.kq=1", "(did you mean algo.pid.kp?)"),
+        ("algo.shield.scael=1", "(did you mean algo.shield.scale?)"),
     ],
 )
 def test_a_misspelt_option_on_the_command_line_names_the_closest(override, message):
@@ -240,6 +242,8 @@ def test_nested_options_refuse_a_bad_gain_by_name():
         PIDGains(kp=-1.0)
     with pytest.raises(ValueError, match=re.escape("iqn.num_cosines must be an integer >= 1")):
         IQNOptions(num_cosines=0)
+    with pytest.raises(ValueError, match=re.escape("shield.scale must be > 0 (a number)")):
+        ShieldOptions(scale=0.0)
     assert Path(inspect.getfile(SafetyOptions)).name == "options.py"
 
 

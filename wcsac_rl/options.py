@@ -1,9 +1,9 @@
 """Every option of the safety critic and κ, defined once.
 
-:class:`SafetyOptions` (with :class:`PIDGains` and :class:`IQNOptions` inside) is the one
-definition of each WCSAC / SAC-Lag option: its default, what it may be, a line saying
-what it does, which part reads it, and, where a run saved before the option existed
-did something else, what that run did. Everything else reads these dataclasses:
+:class:`SafetyOptions` (with :class:`PIDGains`, :class:`IQNOptions` and :class:`ShieldOptions`
+inside) is the one definition of each WCSAC / SAC-Lag option: its default, what it may
+be, a line saying what it does, which part reads it, and, where a run saved before the
+option existed did something else, what that run did. Everything else reads these dataclasses:
 
 * the keyword defaults of :class:`~wcsac_rl.objectives.WCSACLoss` are their class
   attributes (``kappa_init=SafetyOptions.kappa_init``), and the loss checks what it is
@@ -48,10 +48,12 @@ __all__ = [
     "Option",
     "PIDGains",
     "SafetyOptions",
+    "ShieldOptions",
     "check_ensemble_target",
     "check_fields",
     "check_kappa_bound",
     "check_loss_options",
+    "check_shield_candidates",
     "check_signal_every",
     "check_value",
     "config_defaults",
@@ -368,6 +370,48 @@ class IQNOptions:
 
 
 @dataclass(frozen=True)
+class ShieldOptions:
+    """The collection-time shield's options (:class:`~wcsac_rl.modules.CriticShield`):
+    each training step the policy's action and ``candidates − 1`` more drawn from π are
+    read by the safety critic (Γ), and an action reading over ``scale`` × the loss's
+    ``cost_threshold`` (what κ holds the start states' Γ under: ``d`` at the defaults)
+    is replaced by the first candidate under it, else the lowest. Test episodes play the
+    policy alone."""
+
+    candidates: int = option(
+        0,
+        "actions the safety critic reads per training step, the policy's own included "
+        "(0: no shield; else >= 2)",
+        "integer",
+        low=0,
+        reader="collector (CriticShield)",
+        saved_run=0,
+    )
+    scale: float = option(
+        1.0,
+        "the shield's threshold on Γ(s, a), in units of the loss's cost_threshold",
+        "number",
+        low=0.0,
+        low_open=True,
+        reader="collector (CriticShield)",
+        saved_run=1.0,
+    )
+
+    def __post_init__(self) -> None:
+        check_fields(self, "shield.")  # (candidates=1: check_shield_candidates)
+
+
+def check_shield_candidates(candidates: int, prefix: str = "") -> None:
+    """``candidates`` is 0 (no shield) or at least 2: one ``ValueError`` line naming
+    the option with ``prefix`` (``"algo.shield."``: the config validator)."""
+    if candidates == 1:
+        raise ValueError(
+            f"{prefix}candidates must be 0 (no shield) or >= 2 (the policy's action and "
+            "at least one other), got 1"
+        )
+
+
+@dataclass(frozen=True)
 class SafetyOptions:
     """The options of WCSAC's and SAC-Lag's safety critic and κ (``algo.*`` in the config).
 
@@ -523,6 +567,15 @@ class SafetyOptions:
             holds="the PID gains",
             unknown_label="PID",
             members="gains",
+        ),
+    )
+    shield: ShieldOptions = field(
+        default_factory=ShieldOptions,
+        metadata=group_spec(
+            "a collection-time shield on the safety critic's reading of each action",
+            holds="the shield's options",
+            reader="collector (CriticShield)",
+            unknown_label="shield",
         ),
     )
     kappa_init: float = option(

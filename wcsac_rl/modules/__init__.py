@@ -2,9 +2,11 @@
 (Gaussian, and implicit-quantile), and CPO's Gaussian actor and state-value networks;
 and acting with them: ``TanhNormalPolicy`` (the actor's fast path for collection and
 test episodes, :mod:`~wcsac_rl.modules.tanh_normal`) and the MLP evaluation it uses
-(:mod:`~wcsac_rl.modules.mlp`)."""
+(:mod:`~wcsac_rl.modules.mlp`), and ``CriticShield``, which filters its collection actions
+through a safety critic (:mod:`~wcsac_rl.modules.critic_shield`)."""
 
 from wcsac_rl.modules.actor import ClampedLogStdNormalParams, make_actor
+from wcsac_rl.modules.critic_shield import CriticShield
 from wcsac_rl.modules.gaussian_actor import make_gaussian_actor, make_state_value
 from wcsac_rl.modules.quantile_critic import IQNSafetyCritic
 from wcsac_rl.modules.reward_critic import make_qvalue
@@ -23,6 +25,7 @@ __all__ = [
     "VARIANCE_MAX",
     "VARIANCE_MIN",
     "ClampedLogStdNormalParams",
+    "CriticShield",
     "GaussianSafetyCritic",
     "IQNSafetyCritic",
     "TanhNormalPolicy",

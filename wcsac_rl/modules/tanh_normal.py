@@ -191,3 +191,21 @@ class TanhNormalPolicy(TensorDictModuleBase):
         tensordict.set(self._scale_key, scale)
         tensordict.set(self._action_key, action)
         return tensordict
+
+    @property
+    def observation_key(self) -> NestedKey:
+        """The key the actor reads."""
+        return self._plan.observation_key
+
+    @property
+    def action_key(self) -> NestedKey:
+        """The key the policy writes its action to."""
+        return self._action_key
+
+    def draw(self, tensordict: TensorDictBase, count: int) -> Tensor:
+        """``count`` more actions ``a ~ π(·|s)`` (``[count, *B, A]``) from the ``loc`` and
+        ``scale`` a call of this policy under ``ExplorationType.RANDOM`` wrote to
+        ``tensordict`` (batch ``[*B]``): the distribution it sampled its action from."""
+        loc, scale = tensordict.get(self._loc_key), tensordict.get(self._scale_key)
+        noise = torch.randn((count, *loc.shape), dtype=loc.dtype, device=loc.device)
+        return self._plan.to_bounds(safetanh_noeps(loc + noise * scale))[0]

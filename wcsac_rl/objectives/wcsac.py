@@ -596,6 +596,25 @@ class WCSACLoss(SACLoss):
             out = self.safety_head.estimates(tensordict, self.safety_network_params)
         return TensorDict(out, batch_size=tensordict.batch_size)
 
+    def action_cvar(self, tensordict: TensorDictBase, action: Tensor) -> Tensor:
+        """Γ(s, a, α) of the online safety critic at the states of ``tensordict`` and
+        ``action`` (``[*B, A]`` for a batch ``[*B]``), shaped ``[*B]``, no gradient.
+
+        The reading a collection-time shield compares with its threshold
+        (:class:`~wcsac_rl.modules.CriticShield`): deterministic (an IQN critic is
+        read at the midpoints of its tail strata) and, with several safety critics,
+        the largest Γ among them, as the actor and κ read it."""
+        batch = tensordict.batch_size
+        flat = tensordict.reshape(-1)
+        with torch.no_grad():
+            values = self.safety_head.values(
+                flat,
+                self.safety_network_params.detach(),
+                action.reshape(flat.numel(), action.shape[-1]),
+                stratified=False,
+            )
+            return self.safety_head.cvar(values).reshape(batch)
+
     # ---------------------------------------------------------------- targets
     def compute_targets(self, tensordict: TensorDictBase) -> dict[str, Tensor]:
         """TD targets (no gradient) from ``a' ~ π(·|s')`` scored by the target critics:

@@ -25,7 +25,13 @@ from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import LossModule, SACLoss
 from torchrl.record.loggers import Logger
 
-from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
+from wcsac_rl.modules import (
+    CriticShield,
+    TanhNormalPolicy,
+    make_actor,
+    make_qvalue,
+    make_safety_critic,
+)
 from wcsac_rl.objectives import (
     EpisodeCostWindow,
     NStepCost,
@@ -212,6 +218,25 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
     # (its γ buffer is made on the default device unless told)
     loss.make_value_estimator(gamma=float(algo.gamma), device=run_devices(cfg).learner)
     return loss
+
+
+def make_collection_policy(cfg: DictConfig, loss: LossModule, policy: TanhNormalPolicy):
+    """The policy the collector acts with: ``policy`` itself, or, with
+    ``algo.shield.candidates >= 2`` (WCSAC, SAC-Lag), ``policy`` behind a
+    :class:`~wcsac_rl.modules.CriticShield` reading ``loss``'s safety critic, its
+    threshold ``algo.shield.scale`` × the loss's ``cost_threshold`` (read at each step)."""
+    if cfg.algo.name not in ("wcsac", "sac_lag"):
+        return policy
+    shield = safety_options(cfg.algo).shield
+    if not shield.candidates:
+        return policy
+    scale, threshold = shield.scale, loss.cost_threshold
+    return CriticShield(
+        policy,
+        loss.action_cvar,
+        lambda: scale * float(threshold),
+        candidates=shield.candidates,
+    )
 
 
 def make_target_updater(cfg: DictConfig, loss: LossModule) -> PolyakUpdate:

@@ -14,6 +14,7 @@ from wcsac_rl.options import (
     SafetyOptions,
     check_ensemble_target,
     check_kappa_bound,
+    check_shield_candidates,
     check_signal_every,
     range_text,
     read_options,
@@ -374,6 +375,7 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int)
         check_signal_every(
             options.kappa_signal_every, options.kappa_states, options.kappa_statistic, "algo."
         )
+        check_shield_candidates(options.shield.candidates, "algo.shield.")
     except ValueError as err:
         raise ConfigError(str(err)) from None
     if options.kappa_test_window and options.kappa_signal == "critic":

@@ -84,6 +84,10 @@ class OffPolicyTrainer(Trainer):
         self.update_start_frames = self.init_random_frames
         # collection and test episodes act through the fast path of make_actor actors
         self.policy = TanhNormalPolicy(self.agent.actor)
+        # algo.shield: the collector acts through a CriticShield (test episodes do not)
+        collection = builders.make_collection_policy(cfg, self.loss, self.policy)
+        self.collection_policy = None if collection is self.policy else collection
+        self.shield_steps = self.shield_replaced = 0  # of the epoch in progress
         # (compiled lazily, at the first update)
         self._loss_forward = torch.compile(self.loss) if cfg.compile else self.loss
 
@@ -150,11 +154,25 @@ class OffPolicyTrainer(Trainer):
                 self.initial_state_buffer.add_starts(batch)
             if self.episode_window is not None:
                 self.episode_window.add_episodes(batch)
+            # (the warm-up's random batches hold the flag too, all False: not counted)
+            start = self.tracker.frames - batch.numel()
+            if self.collection_policy is not None and start >= self.init_random_frames:
+                self.shield_steps += batch.numel()
+                self.shield_replaced += int(batch.get("shielded").sum())
         if self.tracker.frames < self.update_start_frames:
             return []
         with timeit("update"):
             outputs = [self.update(self.sample()) for _ in range(self.updates_per_batch)]
         return [out for out in outputs if out is not None]
+
+    def collection_metrics(self) -> dict[str, float]:
+        """With a shield: ``train/shielded``, the fraction of the epoch's policy steps
+        (the random warm-up has none) whose action the shield replaced."""
+        if self.collection_policy is None:
+            return {}
+        steps, replaced = self.shield_steps, self.shield_replaced
+        self.shield_steps = self.shield_replaced = 0
+        return {"train/shielded": replaced / steps if steps else 0.0}
 
     def observe_test_episodes(self, results: list) -> None:
         if self.episode_window is not None and self.episode_window.test_window:
@@ -181,6 +199,8 @@ class OffPolicyTrainer(Trainer):
         }
         if self.episode_window is not None:
             state["episode_window"] = self.episode_window.state_dict()
+        if self.collection_policy is not None:  # (the epoch in progress: a mid-epoch save)
+            state["shield"] = {"steps": self.shield_steps, "replaced": self.shield_replaced}
         if self.cfg.save_replay_buffer and len(self.replay_buffer):
             state["buffers"] = self._save_buffers()
         return state
@@ -226,6 +246,9 @@ class OffPolicyTrainer(Trainer):
             load_optimizer_state(optimizer, state["optimizers"][key])
         if self.episode_window is not None and "episode_window" in state:
             self.episode_window.load_state_dict(state["episode_window"])
+        if self.collection_policy is not None and "shield" in state:
+            self.shield_steps = int(state["shield"]["steps"])
+            self.shield_replaced = int(state["shield"]["replaced"])
         directory = self._buffers_to_load(state)
         if directory is not None:
             buffers = {REPLAY_BUFFER_DIR: self.replay_buffer}

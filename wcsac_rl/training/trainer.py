@@ -186,6 +186,7 @@ class Trainer:
             else None
         )
         self.policy = None  # set by _build_learner; None acts uniformly at random
+        self.collection_policy = None  # set by _build_learner if it differs (a shield)
         self.init_random_frames = 0  # collector frames with random actions at the start
         self._build_learner()
 
@@ -223,7 +224,7 @@ class Trainer:
             builders.make_collector(
                 cfg,
                 self.env,
-                self.policy,
+                self.collection_policy or self.policy,
                 total_frames=remaining,
                 init_random_frames=max(0, self.init_random_frames - self.tracker.frames),
                 # a resumed run must not replay the episodes its first session started with
@@ -326,11 +327,17 @@ class Trainer:
 
     # ---------------------------------------------------------- algorithm
     def _build_learner(self) -> None:
-        """Build the algorithm's networks, loss and optimizers; set ``self.policy``."""
+        """Build the algorithm's networks, loss and optimizers; set ``self.policy`` (and
+        ``self.collection_policy`` when the collector acts through something else)."""
 
     def learn(self, batch: TensorDictBase) -> list[TensorDictBase]:
         """Learn from one collected batch; return the loss outputs to average per epoch."""
         return []
+
+    def collection_metrics(self) -> dict[str, float]:
+        """The epoch's ``train/*`` columns about how the learner collected (a shield's
+        rate), then reset for the next epoch; fixed keys for a run."""
+        return {}
 
     def learner_state(self) -> dict[str, Any]:
         """What a checkpoint must hold to resume the algorithm (networks, optimizers...)."""
@@ -517,6 +524,7 @@ class Trainer:
         row.update(self.training_safety.columns())
         row["train/skipped_updates"] = self.epoch_skipped_updates
         self.epoch_skipped_updates = 0
+        row.update(self.collection_metrics())
         row.update(loss_means.means())
         if "loss/cost_threshold" in row and "loss/cvar" in row:
             # what the κ loss pushes on: > 0 lets κ shrink, < 0 makes it grow
