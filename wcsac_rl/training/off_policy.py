@@ -154,9 +154,11 @@ class OffPolicyTrainer(Trainer):
                 self.initial_state_buffer.add_starts(batch)
             if self.episode_window is not None:
                 self.episode_window.add_episodes(batch)
-            # (the warm-up's random batches hold the flag too, all False: not counted)
+            # (the warm-up's random batches hold the flag too, all False: not counted;
+            # the collector rounds the warm-up up to whole batches)
             start = self.tracker.frames - batch.numel()
-            if self.collection_policy is not None and start >= self.init_random_frames:
+            warm_up = -(-self.init_random_frames // batch.numel()) * batch.numel()
+            if self.collection_policy is not None and start >= warm_up:
                 self.shield_steps += batch.numel()
                 self.shield_replaced += int(batch.get("shielded").sum())
         if self.tracker.frames < self.update_start_frames:
