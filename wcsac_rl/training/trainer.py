@@ -224,7 +224,7 @@ class Trainer:
             builders.make_collector(
                 cfg,
                 self.env,
-                self.collection_policy or self.policy,
+                self.policy if self.collection_policy is None else self.collection_policy,
                 total_frames=remaining,
                 init_random_frames=max(0, self.init_random_frames - self.tracker.frames),
                 # a resumed run must not replay the episodes its first session started with
