@@ -17,7 +17,13 @@ from torchrl.data import Bounded
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from wcsac_rl import WCSACLoss
-from wcsac_rl.modules import CriticShield, TanhNormalPolicy, make_actor, make_qvalue
+from wcsac_rl.modules import (
+    CriticShield,
+    TanhNormalPolicy,
+    make_actor,
+    make_qvalue,
+    make_safety_critic,
+)
 from wcsac_rl.training import make_trainer
 from wcsac_rl.training.checkpoint import load_checkpoint
 from wcsac_rl.training.off_policy import OffPolicyTrainer
@@ -155,8 +161,6 @@ def test_a_policy_that_is_not_a_tanh_normal_policy_is_refused():
 def test_action_cvar_is_the_critics_gamma_at_the_given_actions(options):
     if "num_safety_nets" in options:
         torch.manual_seed(0)
-        from wcsac_rl.modules import make_safety_critic
-
         loss = WCSACLoss(
             make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=32),
             [make_qvalue(OBS_DIM, ACT_DIM, width=32) for _ in range(2)],
