@@ -18,9 +18,9 @@ Prints, with one torch thread by default:
   each with its FLOPs per update (forward + backward matrix products) and the
   achieved GFLOP/s as a fraction of the matmul peak. Each ``WCSACLoss`` variant is
   timed at each option set of ``--options`` (:data:`OPTION_SETS`): ``kit`` (what
-  ``python train.py`` runs, ``preset=kit``: the IQN safety critic, κ on the larger of
+  ``python train.py`` runs, ``conf/algo/wcsac.yaml``: the IQN safety critic, κ on the larger of
   its start-state CVaR and the empirical CVaR_α of the last training episodes),
-  ``defaults`` (``WCSACLoss``'s own defaults, = ``preset=kit_2026_11``: the Gaussian
+  ``defaults`` (``WCSACLoss``'s own defaults, ``SafetyOptions()``: the Gaussian
   critic, 10-step cost targets, κ on the tail statistic at episode start states) and
   ``paper`` (``PAPER_OPTIONS`` = ``algo=wcsac_paper``). Its batch comes through the
   kit's pipeline, as the trainer builds it: collected trajectories →
@@ -107,12 +107,20 @@ from wcsac_rl.training.runtime import retain_freed_memory
 OBS, ACT = 44, 2
 CONFIG_OVERRIDES = {
     "kit": ("algo=wcsac",),
-    "defaults": ("algo=wcsac", "preset=kit_2026_11"),
+    "defaults": (  # wcsac.yaml's recipe undone: SafetyOptions' and off_policy.yaml's values
+        "algo=wcsac",
+        "algo.safety_critic=gaussian",
+        "algo.kappa_signal=critic",
+        "algo.kappa_episode_window=30",
+        "algo.kappa_lr_scale=1.0",
+        "algo.alpha_init=1.0",
+        "algo.actor_lr=null",
+    ),
     "paper": ("algo=wcsac_paper",),
 }
 """The option sets each ``WCSACLoss`` variant is timed at (``--options``), as the config
 composes them: ``kit`` is ``python train.py``'s default, ``defaults`` the loss's own
-(``SafetyOptions()``; the preset before the training-safety change), ``paper``
+(``SafetyOptions()``), ``paper``
 ``PAPER_OPTIONS``. The end-to-end loop runs these configs."""
 OPTION_SETS = tuple(CONFIG_OVERRIDES)
 

@@ -388,7 +388,7 @@ def test_cli_writes_calibration_json_and_refuses_to_overwrite(runs, tmp_path, ca
     written = (run / "calibration.json").read_text()
     data = json.loads(written)
     assert data["algo"] == "wcsac" and data["episodes"] == 4
-    # the default preset's critic: quantiles, no variance network
+    # the recipe's critic (conf/algo/wcsac.yaml): quantiles, no variance network
     assert data["safety_critic"] == "iqn" and data["has_variance"] is False
     assert set(data["metrics"]) == {k.removeprefix("calib/") for k in CALIBRATION_KEYS}
     assert data["metrics"]["start_cvar_ratio"] is None or data["metrics"]["start_cvar_ratio"] > 0

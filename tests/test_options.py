@@ -97,19 +97,22 @@ def test_a_misspelt_loss_keyword_names_the_closest():
 
 
 # ------------------------------------------------------------------ the config
-def test_the_composed_config_starts_from_the_dataclass():
-    """The dataclass's defaults, then what the default preset sets (conf/algo/preset/kit.yaml;
-    test_config_defaults.py pins those to the measured candidate)."""
-    import yaml
+def _recipe(path: Path) -> dict:
+    """A recipe file's own values (its defaults list and the files' name left out)."""
+    node = yaml.safe_load(path.read_text()) or {}
+    return {k: v for k, v in node.items() if k not in ("defaults", "recipe")}
 
+
+def test_the_composed_config_starts_from_the_dataclass():
+    """The dataclass's defaults, then what the algorithm's recipe sets (conf/algo/wcsac.yaml;
+    test_config_defaults.py pins it to the measured candidate)."""
     defaults = config_defaults(SafetyOptions)
-    preset = yaml.safe_load((CONF / "algo" / "preset" / "kit.yaml").read_text())
-    preset.pop("defaults")  # (a layout's own κ advice: none on StaticEnv, the default)
+    recipe = _recipe(CONF / "algo" / "wcsac.yaml")
     algo = compose_config("algo=wcsac", small=False).algo
     for key, value in defaults.items():
         if key != "risk_level":  # (the run's α: ${risk_level})
-            assert algo[key] == preset.get(key, value), key
-    assert set(preset) - set(defaults) == {"alpha_init", "actor_lr"}  # (off_policy.yaml's)
+            assert algo[key] == recipe.get(key, value), key
+    assert set(recipe) - set(defaults) == {"name", "label", "alpha_init", "actor_lr"}
 
 
 def test_changing_a_default_changes_the_composed_config_and_the_loss_it_builds(monkeypatch):
@@ -181,30 +184,36 @@ def test_an_added_misspelt_option_names_the_closest_once_composed():
 
 
 def test_the_yaml_files_set_only_what_differs_from_the_schema():
-    """wcsac.yaml sets only what differs from the schema, the default preset only what
-    differs from the schema and off_policy.yaml, the variants built on wcsac (sac_lag and
-    the paper's) only what differs from both (they undo the preset where they differ)."""
+    """Each recipe file sets only what differs from what it starts from (the schema and
+    off_policy.yaml; the paper variants: PAPER_OPTIONS too, which they never repeat), and
+    each layout file only what differs from its algorithm's file."""
+    from wcsac_rl.recipes import layout_files
+
     defaults = config_defaults(SafetyOptions)
-    preset = yaml.safe_load((CONF / "algo" / "preset" / "kit.yaml").read_text())
-    preset.pop("defaults")  # (a layout's κ advice, checked below)
     off_policy = yaml.safe_load((CONF / "algo" / "off_policy.yaml").read_text())
-    for key, value in preset.items():
-        assert value != {**defaults, **off_policy}[key], f"preset/kit.yaml: {key} repeats"
-    advice = sorted((CONF / "algo" / "kappa_advice" / "kit").glob("*.yaml"))
-    assert [path.stem for path in advice] == ["dynamic"]
-    for path in advice:  # a layout's κ advice under the preset: only what differs from it
-        for key, value in yaml.safe_load(path.read_text()).items():
-            assert value != {**defaults, **preset}[key], f"{path.name}: {key} repeats"
     for name in ("wcsac", "sac_lag", "wcsac_paper", "sac_lag_paper"):  # (the schema's users)
-        inherited = defaults if name == "wcsac" else {**defaults, **preset}
-        path = CONF / "algo" / f"{name}.yaml"
-        node = yaml.safe_load(path.read_text()) or {}
-        for key, value in node.items():
+        paper = name.endswith("_paper")
+        inherited = {**off_policy, **defaults, **(PAPER_OPTIONS if paper else {})}
+        recipe = _recipe(CONF / "algo" / f"{name}.yaml")
+        for key, value in recipe.items():
             if key in inherited:
-                assert value != inherited[key], f"{path.name}: {key} repeats what it inherits"
-            assert key not in PAPER_OPTIONS, (
-                f"{path.name}: {key} is PAPER_OPTIONS' (/schema/paper_options)"
-            )
+                assert value != inherited[key], f"{name}.yaml: {key} repeats what it inherits"
+            if paper:
+                assert key not in PAPER_OPTIONS, f"{name}.yaml: {key} is PAPER_OPTIONS'"
+    for (name, _env), path in layout_files(CONF).items():
+        paper = name.endswith("_paper")
+        base = {
+            **off_policy,
+            **defaults,
+            **(PAPER_OPTIONS if paper else {}),
+            **_recipe(CONF / "algo" / f"{name}.yaml"),
+        }
+        for key, value in _recipe(path).items():
+            if isinstance(value, dict):  # (pid: each gain against the default's)
+                for sub, v in value.items():
+                    assert v != base[key][sub], f"{path.name}: {key}.{sub} repeats"
+            else:
+                assert value != base[key], f"{path.name}: {key} repeats"
 
 
 def test_the_saved_run_values_are_the_fields_metadata():
@@ -217,7 +226,7 @@ def test_the_saved_run_values_are_the_fields_metadata():
     assert SAVED_RUN_VALUES["cost_bootstrap_truncated"] is True  # (it bootstrapped then)
 
 
-def test_the_paper_preset_is_a_valid_replacement_of_the_fields():
+def test_the_paper_options_are_a_valid_replacement_of_the_fields():
     paper = dataclasses.replace(SafetyOptions(), **PAPER_OPTIONS)
     assert all(getattr(paper, k) == v for k, v in PAPER_OPTIONS.items())
     with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):

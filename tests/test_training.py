@@ -49,7 +49,7 @@ def _train(tmp_path: Path, *overrides: str, name: str = "run"):
     return trainer, run_dir
 
 
-# the default preset's: κ also reads the episode window (its CVaR, and the larger of both)
+# the recipes' (wcsac.yaml, sac_lag.yaml): κ also reads the episode window (its CVaR, and the larger of both)
 WINDOW_COLUMNS = {"loss/episode_cvar", "loss/constraint_cvar"}
 # the IQN critic's one TD loss (its cost_value / cost_variance: the quantiles' mean and variance)
 IQN_COLUMNS = WCSAC_COLUMNS - {"loss/loss_cost_value", "loss/loss_cost_variance"} | {
@@ -57,36 +57,42 @@ IQN_COLUMNS = WCSAC_COLUMNS - {"loss/loss_cost_value", "loss/loss_cost_variance"
 }
 
 
+# the loss's own safety critic and κ signal (the Gaussian critic on Γ alone), where the
+# recipes read the IQN critic and the episode window
+LOSS_DEFAULTS = ("algo.safety_critic=gaussian", "algo.kappa_signal=critic")
+
+
 @pytest.mark.parametrize(
-    ("algo", "preset", "extra_columns", "absent"),
+    ("algo", "overrides", "extra_columns", "absent"),
     [
-        ("wcsac", "kit", IQN_COLUMNS | WINDOW_COLUMNS, {"loss/loss_cost_value"}),
+        ("wcsac", (), IQN_COLUMNS | WINDOW_COLUMNS, {"loss/loss_cost_value"}),
         (
             "wcsac",
-            "kit_2026_11",
+            LOSS_DEFAULTS,
             WCSAC_COLUMNS,
             {"loss/constraint_cvar", "loss/loss_cost_quantile"},
         ),
         (
             "sac_lag",
-            "kit",
+            (),
             WCSAC_COLUMNS - {"loss/loss_cost_variance", "loss/cost_variance"} | WINDOW_COLUMNS,
             {"loss/cost_variance", "loss/loss_cost_quantile"},
         ),
         (
             "sac_lag",
-            "kit_2026_11",
+            LOSS_DEFAULTS,
             WCSAC_COLUMNS - {"loss/loss_cost_variance", "loss/cost_variance"},
             {"loss/cost_variance", "loss/constraint_cvar"},
         ),
-        ("sac", "kit", {"loss/loss_actor", "loss/loss_qvalue", "loss/alpha"}, {"loss/kappa"}),
-        ("random", "kit", set(), {"loss/loss_actor"}),
+        ("sac", (), {"loss/loss_actor", "loss/loss_qvalue", "loss/alpha"}, {"loss/kappa"}),
+        ("random", (), set(), {"loss/loss_actor"}),
     ],
+    ids=["wcsac", "wcsac-loss-defaults", "sac_lag", "sac_lag-loss-defaults", "sac", "random"],
 )
 def test_each_algorithm_trains_on_the_tiny_env_and_logs_the_documented_columns(
-    tmp_path, algo, preset, extra_columns, absent
+    tmp_path, algo, overrides, extra_columns, absent
 ):
-    trainer, run_dir = _train(tmp_path, f"algo={algo}", "env=tiny", f"preset={preset}")
+    trainer, run_dir = _train(tmp_path, f"algo={algo}", "env=tiny", *overrides)
     rows = _rows(run_dir)
     assert [int(r["frames"]) for r in rows] == [400, 800]
     columns = set(rows[0])
@@ -119,7 +125,7 @@ def test_wcsac_trains_on_static_env_with_the_paper_networks(tmp_path):
     # itself (the paper's per-step threshold 1.49994: tests/test_config_defaults.py)
     assert float(row["loss/cost_threshold"]) == 15.0
     assert float(row["eval/episode_length"]) <= 1000
-    # the default preset: the IQN critic, κ also held by the episode window
+    # the recipe (wcsac.yaml): the IQN critic, κ also held by the episode window
     assert trainer.loss.safety_critic_kind == "iqn" and trainer.loss.risk_level == 0.5
     # (no 1 000-step episode has ended in 400 frames: the window reads NaN, κ the critic)
     assert trainer.loss.kappa_signal == "max" and math.isnan(float(row["loss/episode_cvar"]))
@@ -401,7 +407,7 @@ def test_actor_lr_sets_the_actors_rate_only(tmp_path):
         }
     finally:
         trainer.close()
-    # κ's: lr × kappa_lr_scale (0.3 in the default preset)
+    # κ's: lr × kappa_lr_scale (0.3 in the recipe, wcsac.yaml)
     assert rates == {"actor": 5e-4, "critic": 1e-3, "alpha": 1e-3, "kappa": pytest.approx(3e-4)}
 
 

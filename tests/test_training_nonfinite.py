@@ -98,7 +98,7 @@ def test_skipped_updates_are_logged_and_a_streak_stops_the_run_with_one_line(tmp
     trainer.close()
     message = str(err.value)
     assert "\n" not in message
-    # (the default preset's IQN critic: its one TD loss)
+    # (the recipe's IQN critic, conf/algo/wcsac.yaml: its one TD loss)
     assert "5 updates in a row" in message and "loss_cost_quantile" in message
     assert "max_nonfinite_updates" in message
     with (tmp_path / "run" / "progress.csv").open(newline="") as f:

@@ -15,6 +15,10 @@ while ``algo`` also holds the SAC family's options (``off_policy.yaml``). The ty
 ranges are checked by :func:`~wcsac_rl.options.read_options`, from the same
 dataclass.
 
+It also registers the resolver ``${wcsac_rl.config_groups:}``: the groups a user picks
+(:func:`~wcsac_rl.recipes.config_groups`), which ``conf/config.yaml``'s help template
+lists in place of Hydra's list of every group.
+
 Importing this module registers the schema (once); ``import wcsac_rl`` does it, so
 every way of composing ``conf/`` (``wcsac-train``, ``compose_config``, Hydra's own
 ``compose``) finds it. It imports no torch.
@@ -23,8 +27,11 @@ every way of composing ``conf/`` (``wcsac-train``, ``compose_config``, Hydra's o
 from __future__ import annotations
 
 from hydra.core.config_store import ConfigStore
+from omegaconf import OmegaConf
 
+from wcsac_rl.config_dir import CONF_DIR
 from wcsac_rl.options import PAPER_OPTIONS, SafetyOptions, config_defaults
+from wcsac_rl.recipes import config_groups
 
 __all__ = ["SCHEMA_GROUP", "register_configs"]
 
@@ -34,7 +41,8 @@ SCHEMA_GROUP = "schema"
 
 def register_configs() -> None:
     """Store :class:`SafetyOptions`' defaults as ``schema/safety_options`` and
-    :data:`PAPER_OPTIONS` as ``schema/paper_options``, both at package ``algo``."""
+    :data:`PAPER_OPTIONS` as ``schema/paper_options``, both at package ``algo``, and
+    register the help template's resolver."""
     store = ConfigStore.instance()
     store.store(
         group=SCHEMA_GROUP,
@@ -43,6 +51,9 @@ def register_configs() -> None:
         package="algo",
     )
     store.store(group=SCHEMA_GROUP, name="paper_options", node=dict(PAPER_OPTIONS), package="algo")
+    OmegaConf.register_new_resolver(
+        "wcsac_rl.config_groups", lambda: config_groups(CONF_DIR), replace=True
+    )
 
 
 register_configs()

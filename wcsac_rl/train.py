@@ -164,6 +164,13 @@ def _build(cfg: DictConfig, run_dir: Path, overrides: Sequence[str] | None) -> T
     return make_trainer(cfg, run_dir, overrides=overrides)
 
 
+def _say_recipe(cfg: DictConfig) -> None:
+    """A run's first line: the recipe files that shaped its ``algo`` (``algo.recipe``,
+    also in its ``config.yaml``)."""
+    recipe = cfg.algo.get("recipe")
+    print(f"recipe: {recipe if recipe is not None else 'not recorded in the run config'}")
+
+
 def _finish(trainer: Trainer) -> tuple[Path, Path | None]:
     """Train, then draw the curves (while the run still holds its directory's lock)."""
     from wcsac_rl.evaluation.plots import plot_run_curves
@@ -193,6 +200,7 @@ def main(cfg: DictConfig) -> None:
             _discard(run_dir)  # a refused command leaves no directory behind
             _exit_with(f"error: {err}")
         log.attach(trainer.run_dir / LOG_FILE)
+        _say_recipe(trainer.cfg)
         try:
             run_dir, curves = _finish(trainer)
         except KeyboardInterrupt:
@@ -362,6 +370,7 @@ def run_training(
                 _discard(run_dir)
             raise
         log.attach(trainer.run_dir / LOG_FILE)
+        _say_recipe(trainer.cfg)
         try:
             done, curves = _finish(trainer)
         finally:

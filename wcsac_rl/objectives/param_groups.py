@@ -3,9 +3,8 @@
 ``torch.optim.Adam(loss.parameters(), lr)`` — the TorchRL habit — trains everything a
 :class:`~wcsac_rl.objectives.WCSACLoss` holds at one rate: the actor, the reward and
 safety critics, the entropy weight β and the Lagrange multiplier κ (``kappa_raw``). The
-kit trains κ at its own rate (``lr × kappa_lr_scale``: 0.3 in the config's default
-preset, per environment under ``preset=kit_2026_11``) and the actor at ``actor_lr`` when
-set (3e-4 in the default preset). :func:`param_groups`
+kit trains κ at its own rate (``lr × kappa_lr_scale``: 0.3 in ``conf/algo/wcsac.yaml``)
+and the actor at ``actor_lr`` when set (3e-4 there). :func:`param_groups`
 gives those groups for one optimizer::
 
     optim = torch.optim.Adam(param_groups(loss, lr=3e-4, kappa_lr_scale=5.0))

@@ -273,7 +273,8 @@ def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
     may be), before anything is built; and, with ``check_keys``, every key must be one
     of the chosen algorithm's, env's and logger's defaults
     (:func:`~wcsac_rl.training.config_keys.check_known_keys`: a typo names the closest
-    key). A resumed run's saved keys are checked against its checkpoint instead.
+    key), and ``algo.recipe`` must name the recipe files that shaped it. A resumed
+    run's saved keys are checked against its checkpoint instead.
     """
     algo = _validate_choices(cfg)
     _validate_risk(cfg, algo)
@@ -297,10 +298,28 @@ def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
         )
     _check_logger_package(str(cfg.logger.backend))
     _check_device(cfg.device)
+    _check_recipe_files(cfg, fresh=check_keys)
     if check_keys:
         from wcsac_rl.training.config_keys import check_known_keys
 
         check_known_keys(cfg)
+
+
+def _check_recipe_files(cfg: DictConfig, *, fresh: bool) -> None:
+    """Every layout recipe of ``conf/algo/layout/`` is one Hydra reads, and (``fresh``:
+    a config composed now, not a saved run's) ``algo.recipe`` names the files that
+    shaped ``algo`` (:mod:`wcsac_rl.recipes`)."""
+    from wcsac_rl.config_dir import CONF_DIR
+    from wcsac_rl.recipes import check_layouts, check_recipe
+
+    if not (CONF_DIR / "algo").is_dir():
+        return
+    try:
+        check_layouts(CONF_DIR)
+        if fresh and "recipe" in cfg.algo:
+            check_recipe(CONF_DIR, cfg.algo.recipe, cfg.env.name)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
 
 
 LOGGER_PACKAGES = {"tensorboard": "tensorboard", "wandb": "wandb"}
