@@ -32,6 +32,11 @@ groups them by Table-1 row (``algo.label``; seeds pooled) and writes
                                  stayed <= d (:mod:`~wcsac_rl.evaluation.training_safety_table`)
 ``runs/<run>/``                  (``archive=True``) each run's evaluation, config, session
                                  records and progress
+``run_values.md``/``.csv``,      the runs one by one, the IQM over runs with its bootstrap
+``run_statistics.md``/``.csv``,  interval, the probability of improvement of the
+``improvement.csv``,             ``improvement`` pairs, and their figures
+``fig_runs.png``,                (:mod:`~wcsac_rl.evaluation.run_report`)
+``fig_score_distribution.png``
 ===============================  ============================================================
 
 Below a sweep directory (``multirun.yaml``, from any launcher) every job of the sweep
@@ -70,6 +75,12 @@ from wcsac_rl.evaluation.evaluator import (
 from wcsac_rl.evaluation.intervals import INTERVAL_METRICS, seed_bootstrap
 from wcsac_rl.evaluation.metrics import RISK_LEVELS, aggregate_seeds, cvar_key
 from wcsac_rl.evaluation.paper import paper_comparison_markdown
+from wcsac_rl.evaluation.run_report import (
+    RunStatistics,
+    RunStatisticsError,
+    collect_run_statistics,
+    write_run_statistics,
+)
 from wcsac_rl.evaluation.runs import (
     display_text,
     env_title,
@@ -593,6 +604,8 @@ def build_report(
     fig6_ymax: float | None = None,
     stage_rows: Sequence[str] | None = None,
     archive: bool = False,
+    improvement: Sequence[tuple[str, str]] = (),
+    study: bool = False,
     log: Callable[[str], None] = print,
 ) -> Report:
     """Write Table 1 and Figures 4, 5, 6 for the runs below ``paths`` into ``out_dir``.
@@ -621,11 +634,18 @@ def build_report(
             the same Table 1 and Figures 4 and 6, e.g. in a repository that keeps
             results without checkpoints. A later report of the original paths does
             not count these copies again.
+        improvement: ``(A, B)`` row pairs: the probability that a run of A has a lower
+            C0.1 (and EC) than a run of B, with its interval (implies ``study``).
+        study: the statistics over runs (:mod:`~wcsac_rl.evaluation.run_report`) are
+            required: a run without an evaluation, runs of a row made with other
+            settings, a seed twice in a row, a row of one run are errors (a plain report
+            leaves those statistics out, in one warning line).
         log: where progress lines go.
 
     Raises:
         ReportError: nothing to report, mixed envs or budgets, existing files without
-            ``force``, or a video that cannot be made — before anything is written.
+            ``force``, a video that cannot be made, or (in a study) runs the statistics
+            over runs cannot pool — before anything is written.
     """
     out_dir = Path(out_dir).expanduser()
     report = Report(out_dir=out_dir)
@@ -642,9 +662,15 @@ def build_report(
         if not Path(raw).expanduser().is_dir():
             raise ReportError(f"{raw}: no such directory")
     archive_dir = (out_dir / ARCHIVE_DIR).resolve()
-    evaluations, runs, env, cost_limit = _read_records(paths, archive_dir, env, cost_limit, warn)
+    unreadable: list[str] = []
+    evaluations, runs, env, cost_limit = _read_records(
+        paths, archive_dir, env, cost_limit, warn, unreadable
+    )
     evaluations, runs = _split_rows(evaluations, runs, warn)
     _account_for_runs(paths, evaluations, runs, report, warn)
+    statistics = _run_statistics(
+        evaluations, runs, unreadable, env, cost_limit, improvement, study, warn
+    )
 
     sources: list[_TrajectorySource] = []
     if trajectories:
@@ -654,6 +680,7 @@ def build_report(
     rows, comparison, copies = _plan_outputs(
         out_dir, env, cost_limit, evaluations, runs, sources, archive_dir, archive, video,
         video_format, stage_rows, trajectory_runs, force, warn,
+        also=[] if statistics is None else [out_dir / n for n in statistics.file_names()],
     )  # fmt: skip
     out_dir.mkdir(parents=True, exist_ok=True)
     title_env = env_title(env) if env else "?"
@@ -663,6 +690,8 @@ def build_report(
             out_dir, rows, env, cost_limit, comparison, evaluations, report.incomplete,
             fig6_rows, fig6_ymax, title_env, warn,
         )  # fmt: skip
+        if statistics is not None:
+            report.files += write_run_statistics(statistics, out_dir, _write_text)
     else:
         warn("no evaluated runs: Table 1 and Figure 6 skipped")
     runs_with_progress = [r for r in runs if r.progress]
@@ -699,9 +728,11 @@ def _read_records(
     env: str | None,
     cost_limit: float | None,
     warn: Callable[[str], None],
+    unreadable: list[str] | None = None,
 ) -> tuple[list[Evaluation], list[RunRecord], str | None, float]:
     """The evaluations and training runs below ``paths`` (not those of an earlier
-    report's archive at ``archive_dir``) of ``env``, and the report's env and budget d."""
+    report's archive at ``archive_dir``) of ``env``, and the report's env and budget d;
+    the directories of evaluations that cannot be read are added to ``unreadable``."""
     if any(_within(Path(raw).expanduser().resolve(), archive_dir) for raw in paths):
         previous_archive = None  # reporting on an archive itself
     else:
@@ -713,6 +744,8 @@ def _read_records(
             evaluations.append(read_evaluation(directory))
         except ConfigError as err:
             warn(f"skipped: {err}")
+            if unreadable is not None:
+                unreadable.append(directory.name)
             continue
         reason = stale_evaluation(directory)
         if reason is not None:
@@ -781,6 +814,30 @@ def _split_rows(
     return evaluations, runs
 
 
+def _run_statistics(
+    evaluations: list[Evaluation],
+    runs: list[RunRecord],
+    unreadable: list[str],
+    env: str | None,
+    cost_limit: float,
+    improvement: Sequence[tuple[str, str]],
+    study: bool,
+    warn: Callable[[str], None],
+) -> RunStatistics | None:
+    """The statistics over runs (:func:`~wcsac_rl.evaluation.run_report.collect_run_statistics`):
+    every training run and evaluation below the paths is one of their runs."""
+    evaluated = {Path(e.directory).resolve() for e in evaluations}
+    unevaluated = [r.directory.name for r in runs if r.directory not in evaluated]
+    unevaluated += [name for name in unreadable if name not in unevaluated]
+    try:
+        return collect_run_statistics(
+            evaluations, unevaluated, env=env, cost_limit=cost_limit,
+            config_of=_session_config, improvement=improvement, study=study, warn=warn,
+        )  # fmt: skip
+    except RunStatisticsError as err:
+        raise ReportError(str(err)) from None
+
+
 def _account_for_runs(
     paths: Sequence[str | os.PathLike],
     evaluations: list[Evaluation],
@@ -826,11 +883,12 @@ def _plan_outputs(
     trajectory_runs: Sequence[str | os.PathLike] | None,
     force: bool,
     warn: Callable[[str], None],
+    also: Sequence[Path] = (),
 ) -> tuple[list[dict[str, Any]], str | None, list[tuple[Path, Path]]]:
     """Table 1's rows, the paper comparison and the archive copies; every output file
-    planned, refused if it exists without ``force``, and the video encoder checked —
-    before anything is written."""
-    planned: list[Path] = []
+    (and the files ``also`` planned elsewhere) planned, refused if it exists without
+    ``force``, and the video encoder checked — before anything is written."""
+    planned: list[Path] = list(also)
     rows: list[dict[str, Any]] = []
     comparison = None
     if evaluations:
