@@ -217,3 +217,68 @@ def test_a_plain_report_of_one_run_lists_it_and_says_it_has_no_statistics(study,
         in (out / RUN_STATISTICS_MD).read_text()
     )
     assert (out / FIG_RUNS).is_file() and (out / FIG_SCORE).is_file()
+
+
+# ------------------------------------------------------------- held-out runs, claims
+def _evaluation(tmp_path, label, seed, costs, machine=None):
+    """An evaluation of ``label`` at ``seed`` with these episode costs (return 1 - cost/100)."""
+    from wcsac_rl.evaluation.evaluator import Evaluation
+    from wcsac_rl.rollouts.episodes import EpisodeResult
+
+    directory = tmp_path / f"{label}_seed{seed}"
+    directory.mkdir()
+    if machine is not None:
+        record = {"machine": {"processor": machine[0], "cpu_capability": machine[1]}}
+        (directory / "provenance.json").write_text(json.dumps(record))
+    episodes = [EpisodeResult(1.0 - c / 100, c, 1000, 1, False) for c in costs]
+    meta = {"label": label, "env": "static", "seed": seed, "cost_limit": 15.0,
+            "env_seed": 2_000_003 + seed, "episodes": len(costs)}  # fmt: skip
+    return Evaluation(directory=directory, meta=meta, episodes=episodes)
+
+
+def _study(tmp_path, seeds, shift):
+    """Rows ``a`` (run i: ten episodes of cost i) and ``b`` (cost i + ``shift``) on ``seeds``,
+    their runs alternating between two machines."""
+    from wcsac_rl.evaluation.run_report import collect_run_statistics
+
+    xeon, epyc = ("Xeon", "AVX512"), ("EPYC", "AVX2")
+    evaluations = [
+        _evaluation(tmp_path, label, seed, [i + extra] * 10, machine=xeon if i % 2 else epyc)
+        for label, extra in (("a", 0.0), ("b", shift))
+        for i, seed in enumerate(seeds)
+    ]
+    return collect_run_statistics(
+        evaluations, [], env="static", cost_limit=15.0, config_of=lambda _: None,
+        improvement=[("a", "b")],
+    )  # fmt: skip
+
+
+def test_ten_held_out_runs_a_row_that_separate_make_a_claim(tmp_path):
+    stats = _study(tmp_path, range(100, 110), shift=50.0)
+    c01, ec = stats.improvements
+    assert (c01["metric"], c01["p_a_lower"], c01["lo"], c01["hi"]) == ("C0.1", 1.0, 1.0, 1.0)
+    assert c01["reading"] == ec["reading"] == "a lower"
+    row = stats.rows[0]
+    assert (row["runs"], row["held_out_runs"]) == (10, 10)
+    assert row["machines"] == "EPYC (AVX2): 5; Xeon (AVX512): 5"
+    assert [run["machine"] for run in stats.runs[:2]] == ["EPYC (AVX2)", "Xeon (AVX512)"]
+    # C0.1 of a run of ten equal episodes is that cost; IQM of 0..9: the middle 6, 2..7
+    assert row["C0.1_iqm"] == pytest.approx(4.5, abs=ABS)
+    assert row["EC_iqm"] == pytest.approx(4.5, abs=ABS)
+
+
+def test_orderings_of_few_or_in_sample_runs_are_no_claim_and_overlap_is_noise(tmp_path):
+    for name in ("few", "tuned", "noise"):
+        (tmp_path / name).mkdir()
+    few = _study(tmp_path / "few", range(100, 105), shift=50.0)
+    assert few.improvements[0]["reading"] == (
+        "a lower; not a claim: fewer than 10 held-out runs a row"
+    )
+    tuned = _study(tmp_path / "tuned", (0, 1, 10, 20, 30, 40, 50, 60, 70, 100), shift=50.0)
+    assert tuned.improvements[0]["reading"] == "a lower; not a claim: in-sample runs"
+    assert tuned.rows[0]["held_out_runs"] == 1
+    noise = _study(tmp_path / "noise", range(100, 110), shift=0.5)
+    entry = noise.improvements[0]
+    # run i of a is below run j of b (cost j + 0.5) for i <= j: 55 of 100 pairs
+    assert entry["p_a_lower"] == pytest.approx(0.55, abs=ABS)
+    assert entry["lo"] <= 0.5 <= entry["hi"] and entry["reading"] == "within noise"
