@@ -634,18 +634,15 @@ def build_report(
             the same Table 1 and Figures 4 and 6, e.g. in a repository that keeps
             results without checkpoints. A later report of the original paths does
             not count these copies again.
-        improvement: ``(A, B)`` row pairs: the probability that a run of A has a lower
-            C0.1 (and EC) than a run of B, with its interval (implies ``study``).
-        study: the statistics over runs (:mod:`~wcsac_rl.evaluation.run_report`) are
-            required: a run without an evaluation, runs of a row made with other
-            settings, a seed twice in a row, a row of one run are errors (a plain report
-            leaves those statistics out, in one warning line).
+        improvement: ``(A, B)`` row pairs for the probability of improvement (implies
+            ``study``; :mod:`~wcsac_rl.evaluation.run_report`).
+        study: runs the statistics over runs cannot pool are an error, not a warning.
         log: where progress lines go.
 
     Raises:
         ReportError: nothing to report, mixed envs or budgets, existing files without
-            ``force``, a video that cannot be made, or (in a study) runs the statistics
-            over runs cannot pool — before anything is written.
+            ``force``, a video that cannot be made, runs a study cannot pool — before
+            anything is written.
     """
     out_dir = Path(out_dir).expanduser()
     report = Report(out_dir=out_dir)
@@ -658,13 +655,9 @@ def build_report(
         report.warnings.append(message)
         log(f"warning: {message}")
 
-    for raw in paths:
-        if not Path(raw).expanduser().is_dir():
-            raise ReportError(f"{raw}: no such directory")
     archive_dir = (out_dir / ARCHIVE_DIR).resolve()
-    unreadable: list[str] = []
-    evaluations, runs, env, cost_limit = _read_records(
-        paths, archive_dir, env, cost_limit, warn, unreadable
+    evaluations, runs, env, cost_limit, unreadable = _read_records(
+        paths, archive_dir, env, cost_limit, warn
     )
     evaluations, runs = _split_rows(evaluations, runs, warn)
     _account_for_runs(paths, evaluations, runs, report, warn)
@@ -690,8 +683,7 @@ def build_report(
             out_dir, rows, env, cost_limit, comparison, evaluations, report.incomplete,
             fig6_rows, fig6_ymax, title_env, warn,
         )  # fmt: skip
-        if statistics is not None:
-            report.files += write_run_statistics(statistics, out_dir, _write_text)
+        report.files += write_run_statistics(statistics, out_dir, _write_text)
     else:
         warn("no evaluated runs: Table 1 and Figure 6 skipped")
     runs_with_progress = [r for r in runs if r.progress]
@@ -703,16 +695,10 @@ def build_report(
         warn("no training runs with progress.csv: Figure 4 skipped")
     if sources:
         report.files += _figure5(
-            sources,
-            out_dir,
-            episodes=trajectory_episodes,
-            max_steps=trajectory_max_steps,
-            env_seed=trajectory_seed,
-            video_format=video_format if video else None,
-            stage_rows=stage_rows,
-            title_env=title_env,
-            log=log,
-        )
+            sources, out_dir, episodes=trajectory_episodes, max_steps=trajectory_max_steps,
+            env_seed=trajectory_seed, video_format=video_format if video else None,
+            stage_rows=stage_rows, title_env=title_env, log=log,
+        )  # fmt: skip
     for source, target in copies:
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(source, target)
@@ -728,11 +714,14 @@ def _read_records(
     env: str | None,
     cost_limit: float | None,
     warn: Callable[[str], None],
-    unreadable: list[str] | None = None,
-) -> tuple[list[Evaluation], list[RunRecord], str | None, float]:
+) -> tuple[list[Evaluation], list[RunRecord], str | None, float, list[str]]:
     """The evaluations and training runs below ``paths`` (not those of an earlier
-    report's archive at ``archive_dir``) of ``env``, and the report's env and budget d;
-    the directories of evaluations that cannot be read are added to ``unreadable``."""
+    report's archive at ``archive_dir``) of ``env``, the report's env and budget d, and
+    the names of the directories whose evaluation cannot be read."""
+    for raw in paths:
+        if not Path(raw).expanduser().is_dir():
+            raise ReportError(f"{raw}: no such directory")
+    unreadable: list[str] = []
     if any(_within(Path(raw).expanduser().resolve(), archive_dir) for raw in paths):
         previous_archive = None  # reporting on an archive itself
     else:
@@ -744,8 +733,7 @@ def _read_records(
             evaluations.append(read_evaluation(directory))
         except ConfigError as err:
             warn(f"skipped: {err}")
-            if unreadable is not None:
-                unreadable.append(directory.name)
+            unreadable.append(directory.name)
             continue
         reason = stale_evaluation(directory)
         if reason is not None:
@@ -788,7 +776,7 @@ def _read_records(
     cost_limit = float(cost_limit)
     if not math.isfinite(cost_limit) or cost_limit < 0:
         raise ReportError(f"cost limit must be a number >= 0, got {cost_limit!r}")
-    return evaluations, runs, env, cost_limit
+    return evaluations, runs, env, cost_limit, unreadable
 
 
 def _split_rows(

@@ -2,19 +2,19 @@
 
 :func:`collect_run_statistics` turns a report's evaluations into
 
-===========================  ==============================================================
-``run_values.md`` / ``.csv``  one line per run: row, seed, held-out or in-sample
-                              (:data:`~wcsac_rl.evaluation.run_statistics.HELD_OUT_SEEDS`),
-                              machine (CPU model and kernel capability, its
-                              ``provenance.json``), EC, C0.1, ER, goals, episodes
-``run_statistics.md``         per row: runs, machines, the IQM over runs of EC, C0.1, ER and
-                              goals with its 95 % bootstrap interval; for each pair asked
-                              for, the probability of improvement on C0.1 and EC
-``run_statistics.csv``        the per-row numbers
-``improvement.csv``           the pairs' numbers (when pairs are asked for)
-``fig_runs.png``              one dot per run of EC, C0.1, ER; IQM and interval; d drawn
+==============================  ==============================================================
+``run_values.md`` / ``.csv``    one line per run: row, seed, held-out or in-sample
+                                (:data:`~wcsac_rl.evaluation.run_statistics.HELD_OUT_SEEDS`),
+                                machine (CPU model and kernel capability, its
+                                ``provenance.json``), EC, C0.1, ER, goals, episodes
+``run_statistics.md``           per row: runs, machines, the IQM over runs of EC, C0.1, ER and
+                                goals with its 95 % bootstrap interval; for each pair asked
+                                for, the probability of improvement on C0.1 and EC
+``run_statistics.csv``          the per-row numbers
+``improvement.csv``             the pairs' numbers (when pairs are asked for)
+``fig_runs.png``                one dot per run of EC, C0.1, ER; IQM and interval; d drawn
 ``fig_score_distribution.png``  fraction of runs with C0.1 <= x, one curve per row
-===========================  ==============================================================
+==============================  ==============================================================
 
 (definitions: :mod:`~wcsac_rl.evaluation.run_statistics`; figures:
 :mod:`~wcsac_rl.evaluation.run_plots`; the protocol: docs/evaluation_protocol.md).
@@ -73,6 +73,7 @@ __all__ = [
     "RunStatisticsError",
     "collect_run_statistics",
     "parse_improvement",
+    "write_run_statistics",
 ]
 
 RUN_VALUES_MD = "run_values.md"
@@ -505,10 +506,14 @@ def run_statistics_markdown(stats: RunStatistics) -> str:
 
 
 def write_run_statistics(
-    stats: RunStatistics, out_dir: Path, write_text: Callable[[Path, str], Path]
+    stats: RunStatistics | None, out_dir: Path, write_text: Callable[[Path, str], Path]
 ) -> list[Path]:
-    """Write the tables (with ``write_text``) and the two figures; return the paths."""
+    """Write the tables (with ``write_text``) and the two figures; return the paths (none
+    for ``None``: statistics left out)."""
     from wcsac_rl.evaluation.run_plots import plot_run_values, plot_score_distribution
+
+    if stats is None:
+        return []
 
     files = [write_text(out_dir / name, text) for name, text in stats.tables().items()]
     title = _title(stats)
