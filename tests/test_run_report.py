@@ -15,7 +15,7 @@ import shutil
 import pytest
 from _training_helpers import ROOT, tree_digests
 
-from wcsac_rl.evaluation.reporting import build_report
+from wcsac_rl.evaluation.reporting import ReportError, build_report
 from wcsac_rl.evaluation.run_report import (
     FIG_RUNS,
     FIG_SCORE,
@@ -61,6 +61,16 @@ def test_the_report_is_byte_identical_when_made_again(twice):
         assert (first / name).read_bytes() == (second / name).read_bytes(), name
     for name in (FIG_RUNS, FIG_SCORE):
         assert b"matplotlib" not in (first / name).read_bytes()  # no software stamp
+
+
+def test_the_new_files_are_not_overwritten_without_force(twice):
+    (first, _), _ = twice
+    before = tree_digests(first)
+    with pytest.raises(ReportError, match=r"already has .*run_values\.md.*fig_runs\.png"):
+        build_report(
+            [RUNS], first, cost_limit=15.0, trajectories=False, improvement=PAIRS, log=_quiet
+        )
+    assert tree_digests(first) == before
 
 
 def _rows(path):
