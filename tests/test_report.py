@@ -29,6 +29,15 @@ TRAJECTORY_EPISODES = 2
 FIG4_PX = (1500, 450)
 FIG6_PX = (1300, 480)
 PANEL_PX = 550
+# the runs one by one and the statistics over them (no --improvement: no improvement.csv)
+RUN_STATISTICS_FILES = (
+    "run_values.md",
+    "run_values.csv",
+    "run_statistics.md",
+    "run_statistics.csv",
+    "fig_runs.png",
+    "fig_score_distribution.png",
+)
 
 
 def _px(size_in: tuple[float, float]) -> tuple[int, int]:
@@ -75,6 +84,7 @@ def test_report_writes_every_file(report):
             "runs.md",
             "training_safety.md",
             "training_safety.csv",
+            *RUN_STATISTICS_FILES,
         ]
     )
     assert sorted(p.name for p in result.out_dir.iterdir()) == names
@@ -208,6 +218,7 @@ def test_existing_report_is_not_overwritten_without_force(report, sweep):
         "runs.md",
         "training_safety.md",
         "training_safety.csv",
+        *RUN_STATISTICS_FILES,
     }
     assert (result.out_dir / "table1.csv").read_bytes() == before[result.out_dir / "table1.csv"]
 
@@ -361,7 +372,7 @@ def test_report_cli(sweep, tmp_path, capsys):
     assert proc.returncode == 0, proc.stderr
     assert "# Table 1 — TinyHazard, budget d = 15" in proc.stdout
     assert "| WCSAC-0.5 |" in proc.stdout
-    assert len(list(out.glob("*.png"))) == 5
+    assert len(list(out.glob("*.png"))) == 7  # Figures 4, 5 (3 files), 6; runs, scores
     # the same again without --force: one error line, exit code 1 (in-process: fast)
     from wcsac_rl.report import main
 

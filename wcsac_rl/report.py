@@ -19,6 +19,16 @@ Table-1 row (``algo.label``, seeds pooled) and writes into ``--out`` (default
 * ``training_safety.md`` / ``training_safety.csv`` — how safely each row trained:
   cumulative training cost, epochs over d (all, after 50 k frames), peak epoch cost,
   frames from which every epoch stayed ≤ d (per seed and the mean over seeds);
+* ``run_values.md`` / ``.csv`` — the runs one by one: row, seed, held-out (seeds
+  100-109) or in-sample, machine (CPU, from ``provenance.json``), EC, C0.1, ER, goals;
+* ``run_statistics.md`` / ``.csv`` — per row, the interquartile mean over runs of EC,
+  C0.1, ER and goals with its 95 % bootstrap interval; with ``--improvement A:B`` (any
+  number of times) the probability that a run of A has a lower C0.1 (and EC) than a run
+  of B, with its interval (also ``improvement.csv``);
+* ``fig_runs.png`` — one dot per run of EC, C0.1, ER, the IQM and its interval, d drawn;
+  ``fig_score_distribution.png`` — the fraction of runs with C0.1 <= x per row
+  (docs/evaluation_protocol.md says how a study uses them; ``--study`` makes a run that
+  cannot be pooled an error instead of leaving these out with a warning);
 * with ``--archive``, ``runs/<run>/`` — each run's ``evaluation.json``/``.csv``,
   ``config*.yaml``, ``provenance*.json``, ``progress.csv`` (and ``calibration.json``
   when measured): results to commit
@@ -33,6 +43,8 @@ Examples::
     python -m wcsac_rl.report multirun/2026-11-22/10-00-00
     python -m wcsac_rl.report multirun/2026-11-22/10-00-00 evaluations/random_static --out report
     python -m wcsac_rl.report RUNS --trajectory-runs RUNS/3_wcsac_0.1_static_seed0 --video
+    python -m wcsac_rl.report study/runs --out study --no-trajectories \
+        --improvement wcsac_0.1:sac_lag --improvement wcsac_0.1:sac_lag_d1.5
 """
 
 from __future__ import annotations
@@ -122,6 +134,21 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     fig6.add_argument(
         "--fig6-ymax", type=float, default=None, help="upper view limit of the box plots"
     )
+    stats = parser.add_argument_group("statistics over runs")
+    stats.add_argument(
+        "--improvement",
+        action="append",
+        default=[],
+        metavar="A:B",
+        help="row pair: the probability that a run of row A has a lower C0.1 (and EC) than "
+        "a run of row B, with its interval; repeat for more pairs (implies --study)",
+    )
+    stats.add_argument(
+        "--study",
+        action="store_true",
+        help="require the statistics over runs: a run without an evaluation, runs of a row "
+        "with other settings or the same seed, a row of one run are errors",
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = parser.parse_args(argv)
     if args.trajectory_episodes < 1:
@@ -137,12 +164,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     import torch
 
     from wcsac_rl.evaluation.reporting import build_report
+    from wcsac_rl.evaluation.run_report import parse_improvement
     from wcsac_rl.evaluation.trajectories import TrajectoryError, VideoError
     from wcsac_rl.training.config import ConfigError
 
     torch.set_num_threads(max(1, args.threads))
     out = args.out if args.out is not None else args.paths[0] / "report"
     try:
+        pairs = [parse_improvement(text) for text in args.improvement]
         report = build_report(
             args.paths,
             out,
@@ -160,6 +189,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             fig6_ymax=args.fig6_ymax,
             stage_rows=args.stage_rows,
             archive=args.archive,
+            improvement=pairs,
+            study=args.study,
         )
     except (ConfigError, TrajectoryError, VideoError) as err:
         print(f"error: {err}", file=sys.stderr)

@@ -14,6 +14,9 @@
 * :mod:`~wcsac_rl.evaluation.plots` — per-run curves and the paper's Figures 4, 5, 6.
 * :mod:`~wcsac_rl.evaluation.reporting` — Table 1 + figures for a set of runs
   (``python -m wcsac_rl.report``).
+* :mod:`~wcsac_rl.evaluation.run_statistics` — statistics over runs (IQM, probability of
+  improvement, their bootstrap intervals); :mod:`~wcsac_rl.evaluation.run_report` and
+  :mod:`~wcsac_rl.evaluation.run_plots` — the report's runs one by one and their figures.
 """
 
 from wcsac_rl.evaluation.metrics import (

@@ -32,6 +32,11 @@ groups them by Table-1 row (``algo.label``; seeds pooled) and writes
                                  stayed <= d (:mod:`~wcsac_rl.evaluation.training_safety_table`)
 ``runs/<run>/``                  (``archive=True``) each run's evaluation, config, session
                                  records and progress
+``run_values.md``/``.csv``,      the runs one by one, the IQM over runs with its bootstrap
+``run_statistics.md``/``.csv``,  interval, the probability of improvement of the
+``improvement.csv``,             ``improvement`` pairs, and their figures
+``fig_runs.png``,                (:mod:`~wcsac_rl.evaluation.run_report`)
+``fig_score_distribution.png``
 ===============================  ============================================================
 
 Below a sweep directory (``multirun.yaml``, from any launcher) every job of the sweep
@@ -70,6 +75,12 @@ from wcsac_rl.evaluation.evaluator import (
 from wcsac_rl.evaluation.intervals import INTERVAL_METRICS, seed_bootstrap
 from wcsac_rl.evaluation.metrics import RISK_LEVELS, aggregate_seeds, cvar_key
 from wcsac_rl.evaluation.paper import paper_comparison_markdown
+from wcsac_rl.evaluation.run_report import (
+    RunStatistics,
+    RunStatisticsError,
+    collect_run_statistics,
+    write_run_statistics,
+)
 from wcsac_rl.evaluation.runs import (
     display_text,
     env_title,
@@ -593,6 +604,8 @@ def build_report(
     fig6_ymax: float | None = None,
     stage_rows: Sequence[str] | None = None,
     archive: bool = False,
+    improvement: Sequence[tuple[str, str]] = (),
+    study: bool = False,
     log: Callable[[str], None] = print,
 ) -> Report:
     """Write Table 1 and Figures 4, 5, 6 for the runs below ``paths`` into ``out_dir``.
@@ -621,11 +634,15 @@ def build_report(
             the same Table 1 and Figures 4 and 6, e.g. in a repository that keeps
             results without checkpoints. A later report of the original paths does
             not count these copies again.
+        improvement: ``(A, B)`` row pairs for the probability of improvement (implies
+            ``study``; :mod:`~wcsac_rl.evaluation.run_report`).
+        study: runs the statistics over runs cannot pool are an error, not a warning.
         log: where progress lines go.
 
     Raises:
         ReportError: nothing to report, mixed envs or budgets, existing files without
-            ``force``, or a video that cannot be made — before anything is written.
+            ``force``, a video that cannot be made, runs a study cannot pool — before
+            anything is written.
     """
     out_dir = Path(out_dir).expanduser()
     report = Report(out_dir=out_dir)
@@ -638,13 +655,15 @@ def build_report(
         report.warnings.append(message)
         log(f"warning: {message}")
 
-    for raw in paths:
-        if not Path(raw).expanduser().is_dir():
-            raise ReportError(f"{raw}: no such directory")
     archive_dir = (out_dir / ARCHIVE_DIR).resolve()
-    evaluations, runs, env, cost_limit = _read_records(paths, archive_dir, env, cost_limit, warn)
+    evaluations, runs, env, cost_limit, unreadable = _read_records(
+        paths, archive_dir, env, cost_limit, warn
+    )
     evaluations, runs = _split_rows(evaluations, runs, warn)
     _account_for_runs(paths, evaluations, runs, report, warn)
+    statistics = _run_statistics(
+        evaluations, runs, unreadable, env, cost_limit, improvement, study, warn
+    )
 
     sources: list[_TrajectorySource] = []
     if trajectories:
@@ -654,6 +673,7 @@ def build_report(
     rows, comparison, copies = _plan_outputs(
         out_dir, env, cost_limit, evaluations, runs, sources, archive_dir, archive, video,
         video_format, stage_rows, trajectory_runs, force, warn,
+        also=[] if statistics is None else [out_dir / n for n in statistics.file_names()],
     )  # fmt: skip
     out_dir.mkdir(parents=True, exist_ok=True)
     title_env = env_title(env) if env else "?"
@@ -663,6 +683,7 @@ def build_report(
             out_dir, rows, env, cost_limit, comparison, evaluations, report.incomplete,
             fig6_rows, fig6_ymax, title_env, warn,
         )  # fmt: skip
+        report.files += write_run_statistics(statistics, out_dir, _write_text)
     else:
         warn("no evaluated runs: Table 1 and Figure 6 skipped")
     runs_with_progress = [r for r in runs if r.progress]
@@ -674,16 +695,10 @@ def build_report(
         warn("no training runs with progress.csv: Figure 4 skipped")
     if sources:
         report.files += _figure5(
-            sources,
-            out_dir,
-            episodes=trajectory_episodes,
-            max_steps=trajectory_max_steps,
-            env_seed=trajectory_seed,
-            video_format=video_format if video else None,
-            stage_rows=stage_rows,
-            title_env=title_env,
-            log=log,
-        )
+            sources, out_dir, episodes=trajectory_episodes, max_steps=trajectory_max_steps,
+            env_seed=trajectory_seed, video_format=video_format if video else None,
+            stage_rows=stage_rows, title_env=title_env, log=log,
+        )  # fmt: skip
     for source, target in copies:
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(source, target)
@@ -699,9 +714,14 @@ def _read_records(
     env: str | None,
     cost_limit: float | None,
     warn: Callable[[str], None],
-) -> tuple[list[Evaluation], list[RunRecord], str | None, float]:
+) -> tuple[list[Evaluation], list[RunRecord], str | None, float, list[str]]:
     """The evaluations and training runs below ``paths`` (not those of an earlier
-    report's archive at ``archive_dir``) of ``env``, and the report's env and budget d."""
+    report's archive at ``archive_dir``) of ``env``, the report's env and budget d, and
+    the names of the directories whose evaluation cannot be read."""
+    for raw in paths:
+        if not Path(raw).expanduser().is_dir():
+            raise ReportError(f"{raw}: no such directory")
+    unreadable: list[str] = []
     if any(_within(Path(raw).expanduser().resolve(), archive_dir) for raw in paths):
         previous_archive = None  # reporting on an archive itself
     else:
@@ -713,6 +733,7 @@ def _read_records(
             evaluations.append(read_evaluation(directory))
         except ConfigError as err:
             warn(f"skipped: {err}")
+            unreadable.append(directory.name)
             continue
         reason = stale_evaluation(directory)
         if reason is not None:
@@ -755,7 +776,7 @@ def _read_records(
     cost_limit = float(cost_limit)
     if not math.isfinite(cost_limit) or cost_limit < 0:
         raise ReportError(f"cost limit must be a number >= 0, got {cost_limit!r}")
-    return evaluations, runs, env, cost_limit
+    return evaluations, runs, env, cost_limit, unreadable
 
 
 def _split_rows(
@@ -779,6 +800,30 @@ def _split_rows(
     for message in dict.fromkeys(split + run_split):
         warn(message)
     return evaluations, runs
+
+
+def _run_statistics(
+    evaluations: list[Evaluation],
+    runs: list[RunRecord],
+    unreadable: list[str],
+    env: str | None,
+    cost_limit: float,
+    improvement: Sequence[tuple[str, str]],
+    study: bool,
+    warn: Callable[[str], None],
+) -> RunStatistics | None:
+    """The statistics over runs (:func:`~wcsac_rl.evaluation.run_report.collect_run_statistics`):
+    every training run and evaluation below the paths is one of their runs."""
+    evaluated = {Path(e.directory).resolve() for e in evaluations}
+    unevaluated = [r.directory.name for r in runs if r.directory not in evaluated]
+    unevaluated += [name for name in unreadable if name not in unevaluated]
+    try:
+        return collect_run_statistics(
+            evaluations, unevaluated, env=env, cost_limit=cost_limit,
+            config_of=_session_config, improvement=improvement, study=study, warn=warn,
+        )  # fmt: skip
+    except RunStatisticsError as err:
+        raise ReportError(str(err)) from None
 
 
 def _account_for_runs(
@@ -826,11 +871,12 @@ def _plan_outputs(
     trajectory_runs: Sequence[str | os.PathLike] | None,
     force: bool,
     warn: Callable[[str], None],
+    also: Sequence[Path] = (),
 ) -> tuple[list[dict[str, Any]], str | None, list[tuple[Path, Path]]]:
     """Table 1's rows, the paper comparison and the archive copies; every output file
-    planned, refused if it exists without ``force``, and the video encoder checked —
-    before anything is written."""
-    planned: list[Path] = []
+    (and the files ``also`` planned elsewhere) planned, refused if it exists without
+    ``force``, and the video encoder checked — before anything is written."""
+    planned: list[Path] = list(also)
     rows: list[dict[str, Any]] = []
     comparison = None
     if evaluations:

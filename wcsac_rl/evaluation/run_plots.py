@@ -1,0 +1,187 @@
+"""Figures of the runs one by one (:mod:`~wcsac_rl.evaluation.run_report`).
+
+* :func:`plot_run_values` — ``fig_runs.png``: one panel each for EC, C0.1 and ER, one dot
+  per run (filled: held-out seed; hollow: in-sample), the row's IQM over runs (black
+  diamond) with its 95 % bootstrap interval, the budget d dashed on the cost panels;
+* :func:`plot_score_distribution` — ``fig_score_distribution.png``: the fraction of a row's
+  runs with C0.1 <= x against x, one step curve per row, with a 95 % bootstrap band over
+  runs (rliable's score distribution, for a cost: higher is better).
+
+Built on ``matplotlib.figure.Figure`` (no pyplot) and written as 256-colour palette PNGs
+without a software or time stamp: the same runs give the same bytes.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from wcsac_rl.evaluation.plots import DPI, row_color
+from wcsac_rl.evaluation.run_statistics import cdf_band
+
+__all__ = ["RUNS_PANEL_SIZE", "SCORE_SIZE", "plot_run_values", "plot_score_distribution"]
+
+RUNS_PANEL_SIZE = (5.5, 5.0)  # inches per panel of fig_runs.png
+SCORE_SIZE = (9.0, 4.5)  # inches: 900 × 450 px
+_PANELS = (
+    ("EC", "EC: mean episode cost"),
+    ("C0.1", "C0.1: CVaR$_{0.1}$ of episode cost"),
+    ("ER", "ER: mean episode return"),
+)
+_SPREAD = 0.25  # half the width over which a row's dots are spread
+
+
+def _save(fig: Figure, out: Path) -> Path:
+    """A palette PNG with no metadata (matplotlib's ``Software`` entry dropped)."""
+    from PIL import Image
+
+    out = Path(out)
+    buffer = io.BytesIO()
+    fig.savefig(buffer, dpi=DPI, format="png", metadata={"Software": None})
+    buffer.seek(0)
+    with Image.open(buffer) as image:
+        palette = image.convert("RGB").quantize(
+            colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE
+        )
+    palette.save(out, format="png", optimize=True)
+    return out
+
+
+def _rows(stats: Any) -> list[str]:
+    return list(dict.fromkeys(run["label"] for run in stats.runs))
+
+
+def _colors(labels: list[str]) -> dict[str, str]:
+    """Table-1 rows keep their colour (:func:`~wcsac_rl.evaluation.plots.row_color`); the
+    other rows take, in order, colours no row of the figure has."""
+    from wcsac_rl.evaluation.runs import ROW_ORDER
+
+    colors = {label: row_color(label) for label in labels if label in ROW_ORDER}
+    free = [f"C{i}" for i in range(10) if f"C{i}" not in colors.values()]
+    free += ["tab:olive", "tab:cyan", "navy", "maroon", "darkgoldenrod", "teal"]
+    for label in labels:
+        if label not in colors:
+            colors[label] = free[len([c for c in colors if c not in ROW_ORDER]) % len(free)]
+    return colors
+
+
+def plot_run_values(stats: Any, out: Path, *, title: str = "") -> Path:
+    """``fig_runs.png`` (see the module docstring) from a
+    :class:`~wcsac_rl.evaluation.run_report.RunStatistics`."""
+    labels = _rows(stats)
+    by_label = {row["label"]: row for row in stats.rows}
+    names = {run["label"]: run["algorithm"] for run in stats.runs}
+    colors = _colors(labels)
+    fig = Figure(
+        figsize=(RUNS_PANEL_SIZE[0] * len(_PANELS), RUNS_PANEL_SIZE[1]), layout="constrained"
+    )
+    axes = fig.subplots(1, len(_PANELS))
+    for ax, (metric, panel_title) in zip(axes, _PANELS):
+        for x, label in enumerate(labels):
+            runs = [run for run in stats.runs if run["label"] == label]
+            offsets = np.linspace(-_SPREAD, _SPREAD, len(runs)) if len(runs) > 1 else [0.0]
+            color = colors[label]
+            for offset, run in zip(offsets, runs):
+                held = run["split"] == "held-out"
+                ax.plot(
+                    x + offset,
+                    run[metric],
+                    marker="o",
+                    linestyle="none",
+                    markersize=6,
+                    markeredgecolor=color,
+                    markerfacecolor=color if held else "none",
+                    alpha=0.85,
+                )
+            row = by_label.get(label)
+            if row is not None:
+                point = row[f"{metric}_iqm"]
+                ax.errorbar(
+                    x,
+                    point,
+                    yerr=[[point - row[f"{metric}_lo"]], [row[f"{metric}_hi"] - point]],
+                    fmt="D",
+                    color="k",
+                    markersize=6,
+                    capsize=5,
+                    linewidth=1.5,
+                    zorder=3,
+                )
+        if metric != "ER":
+            ax.axhline(stats.cost_limit, color="k", linestyle="--", linewidth=1)
+        ax.set_xticks(range(len(labels)), [names[label] for label in labels])
+        for tick in ax.get_xticklabels():
+            tick.set_rotation(30)
+            tick.set_horizontalalignment("right")
+        ax.set_xlim(-0.6, len(labels) - 0.4)
+        ax.set_title(panel_title)
+        ax.grid(axis="y", alpha=0.3)
+    _legend(fig, stats.cost_limit)
+    fig.suptitle(f"Runs one by one — {title}")
+    return _save(fig, out)
+
+
+def _legend(fig: Figure, cost_limit: float) -> None:
+    from matplotlib.lines import Line2D
+
+    handles = [
+        Line2D([], [], marker="o", linestyle="none", color="0.4", label="run, held-out seed"),
+        Line2D(
+            [],
+            [],
+            marker="o",
+            linestyle="none",
+            color="0.4",
+            markerfacecolor="none",
+            label="run, in-sample seed",
+        ),
+        Line2D([], [], marker="D", color="k", label="IQM over runs, 95 % interval"),
+        Line2D([], [], color="k", linestyle="--", label=f"budget d = {cost_limit:g}"),
+    ]
+    fig.legend(handles=handles, fontsize=9, loc="outside lower center", ncol=len(handles))
+
+
+def plot_score_distribution(stats: Any, out: Path, *, title: str = "") -> Path:
+    """``fig_score_distribution.png`` (see the module docstring)."""
+    values = np.array([run["C0.1"] for run in stats.runs], dtype=np.float64)
+    right = max(float(values.max()), float(stats.cost_limit)) * 1.05 or 1.0
+    grid = np.unique(np.concatenate([[0.0, right], values, [float(stats.cost_limit)]]))
+    fig = Figure(figsize=SCORE_SIZE, layout="constrained")
+    ax = fig.subplots()
+    colors = _colors(_rows(stats))
+    for label in _rows(stats):
+        runs = [run["C0.1"] for run in stats.runs if run["label"] == label]
+        name = next(run["algorithm"] for run in stats.runs if run["label"] == label)
+        color = colors[label]
+        if len(runs) > 1:
+            share, low, high = cdf_band(runs, grid)
+            ax.fill_between(grid, low, high, step="post", color=color, alpha=0.12, linewidth=0)
+        else:
+            share = (np.asarray(runs)[:, None] <= grid).mean(axis=0)
+        ax.step(
+            grid,
+            share,
+            where="post",
+            color=color,
+            linewidth=1.8,
+            label=f"{name} ({len(runs)} run{'s' if len(runs) != 1 else ''})",
+        )
+    ax.axvline(
+        stats.cost_limit,
+        color="k",
+        linestyle="--",
+        linewidth=1,
+        label=f"budget d = {stats.cost_limit:g}",
+    )
+    ax.set_xlim(0.0, right)
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel("x: C0.1 of a run (mean cost of its worst 10 % of test episodes)")
+    ax.set_ylabel("fraction of runs with C0.1 <= x")
+    ax.grid(alpha=0.3)
+    fig.legend(fontsize=8, loc="outside right upper")
+    ax.set_title(f"Score distribution over runs — {title}", fontsize=10)
+    return _save(fig, out)
