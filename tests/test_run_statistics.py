@@ -136,16 +136,3 @@ def test_held_out_seeds_are_disjoint_from_every_tuning_seed():
     assert HELD_OUT_SEEDS == tuple(range(100, 110))
     assert not set(HELD_OUT_SEEDS) & set(TUNING_SEEDS)
     assert [is_held_out(s) for s in (0, 70, 99, 100, 109, 110)] == [0, 0, 0, 1, 1, 0]
-
-
-def test_the_same_numbers_as_rliable():
-    """Where rliable is installed (not a dependency): its IQM and probability of
-    improvement (higher is better: costs negated) equal the kit's."""
-    metrics = pytest.importorskip("rliable.metrics")
-    rng = np.random.default_rng(3)
-    a = np.round(rng.exponential(5.0, 10), 1)
-    b = np.round(rng.exponential(8.0, 7), 1)
-    assert iqm(a) == pytest.approx(metrics.aggregate_iqm(a[:, None]), abs=TOL)
-    assert probability_of_improvement(a, b) == pytest.approx(
-        metrics.probability_of_improvement(-a[:, None], -b[:, None]), abs=TOL
-    )
