@@ -25,6 +25,40 @@ from wcsac_rl.objectives.inputs import state_keys
 
 __all__ = ["NStepCost"]
 
+# NStepCost's key attributes and the loss's ``tensor_keys`` fields they follow
+_LOSS_KEY_FIELDS = {
+    "cost_key": "cost",
+    "done_key": "done",
+    "terminated_key": "terminated",
+    "out_key": "nstep",
+}
+
+
+class _Key:
+    """One of NStepCost's keys: its own, or (built by :meth:`NStepCost.for_loss`) the
+    loss's current one, read at each call as TorchRL's value estimators follow
+    ``loss.set_keys``."""
+
+    def __set_name__(self, owner, name: str) -> None:
+        self.name = name
+
+    def __get__(self, obj, objtype=None):
+        if obj is None:
+            return self
+        loss_keys = obj.__dict__.get("_loss_keys")
+        if loss_keys is not None:
+            return getattr(loss_keys, _LOSS_KEY_FIELDS[self.name])
+        return obj.__dict__["_own_keys"][self.name]
+
+    def __set__(self, obj, value) -> None:
+        if obj.__dict__.get("_loss_keys") is not None:
+            field = _LOSS_KEY_FIELDS[self.name]
+            raise AttributeError(
+                f"NStepCost.{self.name} follows the loss it was built for; "
+                f"change it with loss.set_keys({field}=...)"
+            )
+        obj.__dict__.setdefault("_own_keys", {})[self.name] = value
+
 
 class NStepCost(nn.Module):
     """Collector postproc adding n-step cost returns under ``out_key`` (default ``"nstep"``).
@@ -48,6 +82,9 @@ class NStepCost(nn.Module):
     ``NStepCost`` first: it reads each step's own cost and flags, which ``MultiStep``
     replaces by those n steps on (a batch it has seen is refused).
 
+    Built by :meth:`for_loss`, the cost / done / terminated and out keys are the loss's,
+    read at each call: a later ``loss.set_keys(cost=...)`` is followed.
+
     Example:
         >>> import torch
         >>> from tensordict import TensorDict
@@ -60,6 +97,11 @@ class NStepCost(nn.Module):
         >>> out["cost"].squeeze(-1), out["steps"], out["observation"].squeeze(-1)
         (tensor([[0.5000, 1.0000, 0.0000, 1.0000]]), tensor([[3, 2, 1, 1]]), tensor([[2., 2., 2., 3.]]))
     """
+
+    cost_key = _Key()
+    done_key = _Key()
+    terminated_key = _Key()
+    out_key = _Key()
 
     def __init__(
         self,
@@ -80,24 +122,20 @@ class NStepCost(nn.Module):
         self.n_steps = int(n_steps)
         self.gamma = float(gamma)
         self.observation_keys = tuple(observation_keys)
+        self._loss_keys = None
         self.cost_key, self.done_key, self.terminated_key = cost_key, done_key, terminated_key
         self.out_key = out_key
 
     @classmethod
     def for_loss(cls, loss) -> NStepCost:
-        """The postproc a loss with ``cost_n_steps > 1`` reads: its ``n`` and γ_c, its
-        cost / done / terminated and n-step keys, and the state entries its networks
-        read from the env (:func:`~wcsac_rl.objectives.inputs.state_keys`)."""
-        keys = loss.tensor_keys
-        return cls(
-            loss.cost_n_steps,
-            loss.cost_gamma,
-            observation_keys=tuple(state_keys(loss)),
-            cost_key=keys.cost,
-            done_key=keys.done,
-            terminated_key=keys.terminated,
-            out_key=keys.nstep,
-        )
+        """The postproc a loss with ``cost_n_steps > 1`` reads: its ``n`` and γ_c, the
+        state entries its networks read from the env
+        (:func:`~wcsac_rl.objectives.inputs.state_keys`), and its cost / done /
+        terminated and n-step keys, which follow ``loss.set_keys`` made after this call
+        (the postproc reads them from ``loss.tensor_keys`` each time it runs)."""
+        nstep = cls(loss.cost_n_steps, loss.cost_gamma, observation_keys=tuple(state_keys(loss)))
+        nstep._loss_keys = loss.tensor_keys  # the dataclass set_keys changes in place
+        return nstep
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if tensordict.ndim == 0:
