@@ -80,7 +80,8 @@ class NStepCost(nn.Module):
     The batch's last dimension must be time (TorchRL collectors' layout, e.g.
     ``[num_envs, frames_per_env]``). With TorchRL's ``MultiStep`` postproc too, put
     ``NStepCost`` first: it reads each step's own cost and flags, which ``MultiStep``
-    replaces by those n steps on (a batch it has seen is refused).
+    replaces by those n steps on (a batch it has seen with ``n > 1`` is refused;
+    ``MultiStep(n_steps=1)`` changes nothing).
 
     Built by :meth:`for_loss`, the cost / done / terminated and out keys are the loss's,
     read at each call: a later ``loss.set_keys(cost=...)`` is followed.
@@ -140,7 +141,8 @@ class NStepCost(nn.Module):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if tensordict.ndim == 0:
             raise ValueError("NStepCost needs a batch whose last dimension is time")
-        if "steps_to_next_obs" in tensordict.keys():
+        steps_ahead = tensordict.get("steps_to_next_obs", None)
+        if steps_ahead is not None and bool((steps_ahead > 1).any()):
             raise ValueError(
                 "NStepCost got a batch from TorchRL's MultiStep (it has 'steps_to_next_obs'), "
                 "whose 'next' entries are n steps on; put NStepCost before MultiStep"
