@@ -22,42 +22,9 @@ from tensordict.utils import NestedKey
 from torch import nn
 
 from wcsac_rl.objectives.inputs import state_keys
+from wcsac_rl.objectives.loss_keys import LossKey, follow_loss_keys
 
 __all__ = ["NStepCost"]
-
-# NStepCost's key attributes and the loss's ``tensor_keys`` fields they follow
-_LOSS_KEY_FIELDS = {
-    "cost_key": "cost",
-    "done_key": "done",
-    "terminated_key": "terminated",
-    "out_key": "nstep",
-}
-
-
-class _Key:
-    """One of NStepCost's keys: its own, or (built by :meth:`NStepCost.for_loss`) the
-    loss's current one, read at each call as TorchRL's value estimators follow
-    ``loss.set_keys``."""
-
-    def __set_name__(self, owner, name: str) -> None:
-        self.name = name
-
-    def __get__(self, obj, objtype=None):
-        if obj is None:
-            return self
-        loss_keys = obj.__dict__.get("_loss_keys")
-        if loss_keys is not None:
-            return getattr(loss_keys, _LOSS_KEY_FIELDS[self.name])
-        return obj.__dict__["_own_keys"][self.name]
-
-    def __set__(self, obj, value) -> None:
-        if obj.__dict__.get("_loss_keys") is not None:
-            field = _LOSS_KEY_FIELDS[self.name]
-            raise AttributeError(
-                f"NStepCost.{self.name} follows the loss it was built for; "
-                f"change it with loss.set_keys({field}=...)"
-            )
-        obj.__dict__.setdefault("_own_keys", {})[self.name] = value
 
 
 class NStepCost(nn.Module):
@@ -99,10 +66,10 @@ class NStepCost(nn.Module):
         (tensor([[0.5000, 1.0000, 0.0000, 1.0000]]), tensor([[3, 2, 1, 1]]), tensor([[2., 2., 2., 3.]]))
     """
 
-    cost_key = _Key()
-    done_key = _Key()
-    terminated_key = _Key()
-    out_key = _Key()
+    cost_key = LossKey("cost")
+    done_key = LossKey("done")
+    terminated_key = LossKey("terminated")
+    out_key = LossKey("nstep")
 
     def __init__(
         self,
@@ -123,7 +90,6 @@ class NStepCost(nn.Module):
         self.n_steps = int(n_steps)
         self.gamma = float(gamma)
         self.observation_keys = tuple(observation_keys)
-        self._loss_keys = None
         self.cost_key, self.done_key, self.terminated_key = cost_key, done_key, terminated_key
         self.out_key = out_key
 
@@ -135,8 +101,7 @@ class NStepCost(nn.Module):
         terminated and n-step keys, which follow ``loss.set_keys`` made after this call
         (the postproc reads them from ``loss.tensor_keys`` each time it runs)."""
         nstep = cls(loss.cost_n_steps, loss.cost_gamma, observation_keys=tuple(state_keys(loss)))
-        nstep._loss_keys = loss.tensor_keys  # the dataclass set_keys changes in place
-        return nstep
+        return follow_loss_keys(nstep, loss)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if tensordict.ndim == 0:
