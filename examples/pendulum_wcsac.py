@@ -1,12 +1,17 @@
-"""WCSAC on gymnasium's Pendulum in a TorchRL user's own SAC loop (issue 28).
+"""WCSAC on gymnasium's Pendulum in a TorchRL user's own SAC loop.
 
 TorchRL's SAC example flow — env, collector, replay buffer, ``SACLoss``, ``SoftUpdate``,
 one optimizer — with ``SACLoss`` swapped for ``WCSACLoss`` and a made-up cost: 1 at every
 step where the pendulum spins faster than ``speed_limit`` rad/s. What the swap adds
-(marked ``# WCSAC`` below): the cost transform, a safety critic, ``NStepCost`` as the
-collector's postproc and a ``StartStateBuffer`` (the loss's defaults read n-step cost
-targets and episode start states; ``WCSACLoss(..., **PAPER_OPTIONS)`` needs neither) and
-the optimizer's parameter groups (κ at its own learning rate).
+(marked ``# WCSAC`` below, each line or block): the cost transform, a safety critic,
+``NStepCost`` as the collector's postproc and a ``StartStateBuffer`` (the loss's defaults
+read n-step cost targets and episode start states; ``WCSACLoss(..., **PAPER_OPTIONS)``
+needs neither), the optimizer's parameter groups (κ at its own learning rate) and the
+episodes' cost in the log.
+
+Each iteration collects one 200-step episode (Pendulum's time limit) and prints its
+return and cost; the last line is a verdict: whether the policy's last episodes return
+more than the random warm-up's best, and whether their cost is within the limit d.
 
     python examples/pendulum_wcsac.py --frames 20000
 """
@@ -19,7 +24,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer, Unbounded
-from torchrl.envs import GymEnv, StepCounter, Transform, TransformedEnv
+from torchrl.envs import GymEnv, RewardSum, StepCounter, Transform, TransformedEnv
 from torchrl.objectives import SoftUpdate
 
 from wcsac_rl import WCSACLoss, make_actor, make_qvalue, make_safety_critic
@@ -45,11 +50,37 @@ class SpeedCost(Transform):  # WCSAC: the made-up cost, ("next", "cost") = 1 abo
         return reward_spec
 
 
+EPISODE_STEPS = 200  # Pendulum-v1's time limit: one episode per iteration
+COST_LIMIT = 20.0  # WCSAC: d, fast steps allowed per episode
+
+
 def make_env(seed: int) -> TransformedEnv:
     env = TransformedEnv(GymEnv("Pendulum-v1"), StepCounter())
     env.append_transform(SpeedCost())  # WCSAC
+    env.append_transform(RewardSum(in_keys=["reward", "cost"]))  # episode sums (+ cost: WCSAC)
     env.set_seed(seed)
     return env
+
+
+def verdict(returns: list[float], random_episodes: int, costs: list[float] | None = None) -> str:
+    """One line: is the mean return of the last quarter of the policy's episodes above
+    the best of the first ``random_episodes`` (the warm-up's random actions), and (given
+    ``costs``) is their mean cost within d?"""
+    policy = len(returns) - random_episodes
+    if random_episodes == 0 or policy <= 0:
+        return "verdict: no episode of both the random warm-up and the policy; run more frames"
+    k = max(1, policy // 4)
+    best_random, last = max(returns[:random_episodes]), sum(returns[-k:]) / k
+    line = (
+        f"verdict: {'learned' if last > best_random else 'did not learn'} (mean return of "
+        f"the last {k} episodes {last:.1f}, best of {random_episodes} random-action "
+        f"episodes {best_random:.1f})"
+    )
+    if costs is not None:  # WCSAC: the last episodes' mean cost against d
+        cost = sum(costs[-k:]) / k
+        within = "within" if cost <= COST_LIMIT else "over"
+        line += f", {within} the cost limit (their mean cost {cost:.1f}, d = {COST_LIMIT:g})"
+    return line
 
 
 def main(frames: int = 20_000, seed: int = 0, init_random_frames: int = 1_000) -> dict:
@@ -63,8 +94,8 @@ def main(frames: int = 20_000, seed: int = 0, init_random_frames: int = 1_000) -
         [make_qvalue(obs_dim, act_dim, width=64) for _ in range(2)],
         make_safety_critic(obs_dim, act_dim, width=64),  # WCSAC
         risk_level=0.5,  # WCSAC: α
-        cost_limit=20.0,  # WCSAC: d, fast steps per 200-step episode
-        max_episode_steps=200,
+        cost_limit=COST_LIMIT,  # WCSAC: d, fast steps per 200-step episode
+        max_episode_steps=EPISODE_STEPS,  # WCSAC: the episodes' length
     )
     loss.make_value_estimator(gamma=0.99)
     nstep = NStepCost.for_loss(loss)  # WCSAC
@@ -75,24 +106,42 @@ def main(frames: int = 20_000, seed: int = 0, init_random_frames: int = 1_000) -
     collector = Collector(
         env,
         actor,
-        frames_per_batch=100,
+        frames_per_batch=EPISODE_STEPS,
         total_frames=frames,
         init_random_frames=init_random_frames,
+        auto_register_policy_transforms=True,  # TorchRL appends the InitTracker it asks for
     )
-    out = None
-    for data in collector:
+    out, returns, frames_done, random_episodes = None, [], 0, 0
+    costs = []  # WCSAC: each episode's cost
+    for iteration, data in enumerate(collector, 1):
         buffer.extend(nstep(data).reshape(-1))  # WCSAC: nstep(...)
         starts.add_starts(data)  # WCSAC
+        frames_done += data.numel()
+        done = data["next", "done"].squeeze(-1)
+        returns += data["next", "episode_reward"][done].squeeze(-1).tolist()
+        costs += data["next", "episode_cost"][done].squeeze(-1).tolist()  # WCSAC
+        warm_up = frames_done - data.numel() < init_random_frames  # random actions
+        random_episodes += int(done.sum()) if warm_up else 0
+        episode = f"return {returns[-1]:8.1f}" if done.any() else "-"
+        episode += f"  cost {costs[-1]:5.1f}" if done.any() else ""  # WCSAC
+        note = "  (random actions)" if warm_up else ""
+        print(f"iteration {iteration:3d}  frames {frames_done:6d}  {episode}{note}", flush=True)
         if len(buffer) < init_random_frames:
             continue
-        for _ in range(25):
+        for _ in range(50):
             out = loss(starts.attach(buffer.sample()))  # WCSAC: starts.attach(...)
             sum(v for k, v in out.items() if k.startswith("loss_")).backward()
             optim.step()
             optim.zero_grad()
             updater.step()
     collector.shutdown()
-    return {} if out is None else {k: float(v) for k, v in out.items() if not k.startswith("loss_")}
+    stats = (
+        {} if out is None else {k: float(v) for k, v in out.items() if not k.startswith("loss_")}
+    )
+    print({k: round(v, 3) for k, v in stats.items() if k in ("alpha", "kappa", "cvar")})
+    stats["verdict"] = verdict(returns, random_episodes, costs)  # WCSAC: costs
+    print(stats["verdict"])
+    return {**stats, "returns": returns, "costs": costs}  # WCSAC: costs
 
 
 if __name__ == "__main__":
@@ -100,4 +149,4 @@ if __name__ == "__main__":
     parser.add_argument("--frames", type=int, default=20_000)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
-    print(main(args.frames, args.seed))
+    main(args.frames, args.seed)

@@ -332,9 +332,10 @@ def test_each_epoch_logs_calibration_of_its_test_episodes(runs):
         held = row.get("loss/constraint_cvar") or row["loss/cvar"]
         slack = float(row["loss/cost_threshold"]) - float(held)
         assert float(row["loss/constraint_slack"]) == pytest.approx(slack, rel=F64, abs=F64)
-    # its curves: the four usual panels and the two new ones, 4 inches × 100 dpi each
+    # its curves: the four usual panels, κ, β and the two calibration ones, in a grid of
+    # 4 × 2 panels of 4 × 3.6 inches at 100 dpi
     curves = plot_run_curves(runs["wcsac"] / "progress.csv", runs["wcsac"] / "curves.png")
-    assert png_size(curves)[0] == 6 * 400
+    assert png_size(curves) == (4 * 400, 2 * 360)
 
 
 def test_calibration_changes_neither_the_episodes_nor_the_training(runs, tmp_path, monkeypatch):
@@ -353,7 +354,8 @@ def test_runs_without_a_safety_critic_have_no_calibration_columns(runs):
     assert not any(c.startswith("calib/") for c in columns)
     assert "loss/constraint_slack" not in columns
     curves = plot_run_curves(runs["sac"] / "progress.csv", runs["sac"] / "curves.png")
-    assert png_size(curves)[0] == 4 * 400  # return, cost, cost rate, cumulative cost
+    # return, cost, cost rate, cumulative cost, β: a 4 × 2 grid
+    assert png_size(curves) == (4 * 400, 2 * 360)
 
 
 def test_curves_figure_gets_calibration_and_slack_panels_only_when_logged():

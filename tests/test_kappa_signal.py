@@ -152,6 +152,17 @@ def test_for_loss_reads_the_rate_over_the_loss_episode_limit():
     assert window.horizon == 200 and window.risk_level == 1.0
 
 
+def test_for_loss_follows_the_loss_s_episode_cvar_key_set_after_it():
+    loss = make_loss(risk_level=0.1, kappa_states="initial", kappa_signal="max")
+    window = EpisodeCostWindow.for_loss(loss)
+    loss.set_keys(episode_cvar="held")
+    window.add_episodes(_ends_with_lengths([4.0, 2.0], [10, 10]))
+    batch = window.attach(TensorDict({}, [3]))
+    assert window.out_key == "held" and set(batch.keys()) == {"held"}
+    assert batch["held"].squeeze(-1).tolist() == [4.0] * 3  # the worst of two at α = 0.1
+    assert EpisodeCostWindow(0.5, out_key="mine").out_key == "mine"  # its own: kept
+
+
 # -------------------------------------------------------------------- the loss
 def _kappa_grad(signal: str, episode_cvar: float | None, seed: int = 0):
     """∂loss_kappa/∂κ_raw and the loss outputs on a batch with start states."""

@@ -85,6 +85,30 @@ def test_bad_arguments_are_refused(kwargs, message):
         NStepCost(**{"n_steps": 3, "gamma": 0.9, **kwargs})
 
 
+def test_for_loss_follows_keys_the_loss_is_given_after_it():
+    """``NStepCost.for_loss(loss)`` built before ``loss.set_keys(...)`` reads the new keys
+    (from the loss at each call), not the ones of the moment it was built."""
+    loss = make_loss(cost_n_steps=3)
+    nstep = NStepCost.for_loss(loss)
+    assert (nstep.n_steps, nstep.gamma) == (3, loss.cost_gamma)
+    td = _trajectories(seed=4)
+    renamed = _trajectories(seed=5)  # other costs and flags under the new names
+    for old, new in (("cost", "my_cost"), ("done", "my_done"), ("terminated", "my_term")):
+        td["next", new] = renamed["next", old]
+    td["next", "observation"] = renamed["next", "observation"]
+    loss.set_keys(cost="my_cost", done="my_done", terminated="my_term", nstep="ahead")
+    assert (nstep.cost_key, nstep.out_key) == ("my_cost", "ahead")
+    out = nstep(td.clone())
+    assert "nstep" not in out.keys()
+    expected = NStepCost(3, loss.cost_gamma)(renamed.clone())["nstep"]
+    assert (out["ahead"] == expected).all()
+    with pytest.raises(AttributeError, match=r"loss\.set_keys\(cost=\.\.\.\)"):
+        nstep.cost_key = "other"
+    own = NStepCost(3, 0.9, cost_key="c")  # an NStepCost built on its own keeps its keys
+    own.cost_key = "c2"
+    assert own.cost_key == "c2" and own.out_key == "nstep"
+
+
 def test_loss_bootstraps_the_safety_critic_from_the_nstep_state():
     torch.manual_seed(0)
     loss = make_loss(cost_n_steps=3, variance_target="td")

@@ -98,3 +98,17 @@ def test_for_loss_feeds_a_kappa_at_start_states_loss():
     assert torch.isfinite(out["loss_kappa"]) and torch.isfinite(out["cvar"])
     out["loss_kappa"].backward()
     assert loss.kappa_raw.grad is not None and loss.kappa_raw.grad != 0
+
+
+def test_for_loss_follows_the_loss_s_initial_states_key_set_after_it():
+    loss = make_loss(risk_level=0.1, kappa_states="initial", cost_limit=15.0)
+    buffer = StartStateBuffer.for_loss(loss)
+    loss.set_keys(initial_states="starts")
+    starts = _collected(torch.tensor([[0, 1, 2, 0]]))
+    starts["observation"] = torch.randn(1, 4, OBS_DIM)
+    buffer.add_starts(starts)
+    batch = buffer.attach(make_batch(16))
+    assert buffer.out_key == "starts" and "starts" in batch.keys() and "initial" not in batch
+    assert torch.isfinite(loss(batch)["loss_kappa"])
+    with pytest.raises(AttributeError, match=r"loss\.set_keys\(initial_states=\.\.\.\)"):
+        buffer.out_key = "other"

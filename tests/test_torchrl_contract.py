@@ -544,8 +544,9 @@ def nstep_cost_target(loss, traj, n):
     return ref.get("cost").squeeze(-1) + gamma * (~stop).float() * q_next
 
 
-# D5: MultiStep with a one-step cost target is refused in one line (the cost of one
-# step would be bootstrapped from the state n steps on); the n-step cost entries
+# D5: MultiStep (n > 1) with a one-step cost target is refused in one line (the cost of
+# one step would be bootstrapped from the state n steps on), MultiStep(n_steps=1) gives
+# the raw batch's losses bit for bit (TestSAC.test_sac_batcher); the n-step cost entries
 # (NStepCost, written before MultiStep) give the correct target
 MULTISTEP_CASES = [
     pytest.param(cls, options, n, id=f"{cls}-{options}-n{n}")
@@ -574,7 +575,20 @@ def test_multistep_batches_are_correct_or_refused(cls, options, n):
         starts = StartStateBuffer.for_loss(loss)
         starts.add_starts(traj)
         flat = starts.attach(flat)
-    if loss.cost_n_steps == 1:  # refused whatever n: the loss sees keys, not values
+    if loss.cost_n_steps == 1 and n == 1:  # MultiStep(n_steps=1) is a no-op: accepted
+        raw = traj.reshape(-1)
+        if loss.kappa_states == "initial":
+            raw = starts.attach(raw)
+        outputs = []
+        for batch in (raw, flat):
+            torch.manual_seed(0)
+            with check_td_steady(batch):
+                outputs.append(loss(batch))
+        assert set(outputs[0].keys()) == set(outputs[1].keys())
+        for key, value in outputs[0].items():
+            assert torch.equal(value, outputs[1][key]), key  # bit for bit, as SACLoss
+        return
+    if loss.cost_n_steps == 1:  # n > 1 with one-step cost targets: refused
         for call in (loss.compute_targets, loss):
             with check_td_steady(flat), pytest.raises(ValueError) as err:
                 call(flat)
@@ -598,6 +612,10 @@ def test_nstep_cost_refuses_a_batch_multistep_has_seen():
     with pytest.raises(ValueError) as err:
         NStepCost(3, 1.0)(ms)
     assert "\n" not in err.value.args[0] and "before MultiStep" in err.value.args[0]
+    # MultiStep(n_steps=1) changes nothing NStepCost reads: the same entries as without it
+    traj = trajectories()
+    once = NStepCost(3, 1.0)(MultiStep(gamma=0.9, n_steps=1)(traj.clone()))
+    assert (once["nstep"] == NStepCost(3, 1.0)(traj.clone())["nstep"]).all()
 
 
 def test_multistep_reference_changes_the_reward_target():

@@ -6,6 +6,11 @@ A training run from Python (the same code as ``wcsac-train``; :mod:`wcsac_rl.tra
 
 >>> from wcsac_rl import compose_config, run_training
 
+A trained run's policy, a test env and its config in one call
+(:func:`~wcsac_rl.training.restore.load_run`):
+
+>>> from wcsac_rl import load_run
+
 The names below are imported on first use (PEP 562), so that ``import wcsac_rl`` (and
 ``wcsac-train --help``) does not load torch until something needs it.
 """
@@ -26,6 +31,7 @@ __all__ = [
     "empirical_cvar",
     "gaussian_cvar",
     "gaussian_cvar_multiplier",
+    "load_run",
     "make_actor",
     "make_qvalue",
     "make_safety_critic",
@@ -43,6 +49,7 @@ _OBJECTIVES = (
     "per_step_cost_threshold",
 )
 _TRAIN = ("compose_config", "run_training")
+_RESTORE = ("load_run",)
 
 
 def __getattr__(name: str):
@@ -52,6 +59,8 @@ def __getattr__(name: str):
         from wcsac_rl import objectives as source
     elif name in _TRAIN:
         from wcsac_rl import train as source
+    elif name in _RESTORE:
+        from wcsac_rl.training import restore as source
     else:
         raise AttributeError(f"module 'wcsac_rl' has no attribute {name!r}")
     value = getattr(source, name)

@@ -2,12 +2,21 @@
 
 Figures are built with ``matplotlib.figure.Figure`` (no pyplot), so they render
 headless and never change the caller's matplotlib backend.
+
+Every figure of a report draws a row (a Table-1 label) in one style: call
+:func:`row_styles` once with all the report's row labels and pass the result to each
+figure (``styles=``); the colours are colour-blind safe (Okabe-Ito, then Paul Tol's
+muted scheme). :func:`save_figure` writes a figure as PNG and PDF (``formats=``), with
+no timestamp in either: the same figure gives the same bytes.
 """
 
 from __future__ import annotations
 
 import io
 import math
+import textwrap
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -22,14 +31,118 @@ __all__ = [
     "DPI",
     "FIG4_SIZE",
     "FIG6_SIZE",
+    "FIGURE_FORMATS",
+    "ROW_MARKERS",
+    "ROW_PALETTE",
+    "RowStyle",
+    "box_view",
+    "curve_panels",
+    "figure_paths",
     "plot_cost_distribution",
     "plot_run_curves",
     "plot_training_curves",
     "plot_trajectories",
     "row_color",
+    "row_styles",
     "run_curves_figure",
+    "save_figure",
     "trajectory_figure_size",
 ]
+
+# ------------------------------------------------------------------- rows' styles
+ROW_PALETTE: tuple[str, ...] = (
+    # Okabe & Ito (2008), without black (the limit d) ...
+    "#0072B2",  # blue
+    "#E69F00",  # orange
+    "#009E73",  # bluish green
+    "#D55E00",  # vermillion
+    "#CC79A7",  # reddish purple
+    "#56B4E9",  # sky blue
+    "#F0E442",  # yellow
+    # ... then Paul Tol's muted scheme, without its pale grey
+    "#332288",  # indigo
+    "#CC6677",  # rose
+    "#44AA99",  # teal
+    "#882255",  # wine
+    "#117733",  # green
+    "#999933",  # olive
+    "#88CCEE",  # cyan
+    "#AA4499",  # purple
+    "#DDCC77",  # sand
+)
+"""16 colour-blind-safe colours, one per row (black and grey stay for d and notes)."""
+ROW_MARKERS: tuple[str, ...] = (
+    "o",
+    "s",
+    "^",
+    "D",
+    "v",
+    "P",
+    "X",
+    "*",
+    "<",
+    ">",
+    "h",
+    "p",
+    "d",
+    "H",
+    "8",
+)
+"""15 markers: with 16 colours, 240 rows get distinct (colour, marker) pairs."""
+
+
+@dataclass(frozen=True)
+class RowStyle:
+    """How a row is drawn in every figure of a report."""
+
+    color: str
+    marker: str
+
+
+def row_styles(labels: Iterable[str]) -> dict[str, RowStyle]:
+    """One style per row label: the labels in Table 1's order
+    (:func:`~wcsac_rl.evaluation.runs.row_sort_key`), the i-th drawn in
+    ``ROW_PALETTE[i % 16]`` with ``ROW_MARKERS[i % 15]``: distinct colours for up to 16
+    rows, distinct (colour, marker) pairs for up to 240. Give it every row of a report
+    and pass the result to each figure, so that a row looks the same in all of them."""
+    from wcsac_rl.evaluation.runs import row_sort_key
+
+    ordered = sorted(set(labels), key=row_sort_key)
+    return {
+        label: RowStyle(ROW_PALETTE[i % len(ROW_PALETTE)], ROW_MARKERS[i % len(ROW_MARKERS)])
+        for i, label in enumerate(ordered)
+    }
+
+
+def _styles_for(labels: Iterable[str], styles: Mapping[str, RowStyle] | None) -> dict:
+    """``styles`` where given (a report's), else :func:`row_styles` of ``labels``; a
+    label ``styles`` lacks is refused (it would be drawn in another row's colour)."""
+    labels = list(labels)
+    if styles is None:
+        return row_styles(labels)
+    missing = [label for label in labels if label not in styles]
+    if missing:
+        raise ValueError(f"styles has no entry for row(s) {', '.join(missing)}")
+    return dict(styles)
+
+
+TICK_ROTATION = 45  # degrees: the x labels' tilt when a figure has many rows
+
+
+def _set_row_ticks(ax: Any, names: Sequence[str]) -> None:
+    """Row names under their boxes or bars: up to 4 rows level, wrapped to 14
+    characters a line; more rows tilted by :data:`TICK_ROTATION`, one line each
+    (``tests/test_figures.py`` checks that no two overlap)."""
+    if len(names) <= 4:
+        wrapped = [textwrap.fill(name, width=14, break_on_hyphens=False) for name in names]
+        ax.set_xticks(range(len(names)), wrapped)
+        ax.tick_params(axis="x", labelsize=9)
+        return
+    ax.set_xticks(range(len(names)), list(names))
+    ax.tick_params(axis="x", labelsize=8)
+    for label in ax.get_xticklabels():
+        label.set(rotation=TICK_ROTATION, horizontalalignment="right", rotation_mode="anchor")
+
 
 _PANELS = (
     ("episode return", ("train/episode_return", "eval/episode_return")),
@@ -37,6 +150,12 @@ _PANELS = (
     ("cost rate", ("train/cost_rate",)),
 )
 PANEL_SIZE = (4.0, 3.6)  # inches per panel of a run's curves
+CURVE_COLUMNS = 4  # panels per row of a run's curves
+# the multipliers' panels of a run's curves: (title, progress.csv column)
+_WEIGHT_PANELS = (
+    (r"safety weight $\kappa$", "loss/kappa"),
+    (r"entropy weight $\beta$", "loss/alpha"),
+)
 
 # The safety critic at the test episodes' start states: (column, label, colour, style).
 _CALIBRATION_LINES = (
@@ -55,49 +174,96 @@ def _has_values(columns: dict[str, list[float]], key: str) -> bool:
     return values is not None and not all(math.isnan(v) for v in values)
 
 
-def run_curves_figure(
-    columns: dict[str, list[float]], *, cost_limit: float | None = None, title: str = ""
-) -> Figure:
-    """The figure of :func:`plot_run_curves` from ``read_progress`` columns.
+def _smoothed(values: Sequence[float], window: int) -> np.ndarray:
+    """Trailing mean over the last ``window`` epochs, skipping NaN (NaN where all are)."""
+    values = np.asarray(values, dtype=np.float64)
+    if window <= 1:
+        return values
+    out = np.full_like(values, np.nan)
+    for i in range(len(values)):
+        chunk = values[max(0, i - window + 1) : i + 1]
+        if not np.isnan(chunk).all():
+            out[i] = np.nanmean(chunk)
+    return out
 
-    Panels: return, cost (training and test, the limit d dashed), cost rate, the
-    cumulative training cost (:mod:`~wcsac_rl.training.training_safety`); then, when
-    the run logged them, the safety critic's calibration at the test episodes' start
-    states (predicted Γ_α and Q^c against the realised CVaR_α and mean of the
-    discounted cost-to-go, ``calib/*``) and the constraint slack the κ loss sees
-    (``loss/constraint_slack``).
-    """
+
+def curve_panels(columns: dict[str, list[float]]) -> list[str]:
+    """The panels of :func:`run_curves_figure` for these columns, in order: return,
+    cost, cost rate; then each of the cumulative training cost, κ, the entropy weight
+    β, the safety critic's calibration and the κ loss's slack the run logged."""
     panels: list[str] = [title for title, _ in _PANELS]
     if _has_values(columns, "train/cumulative_cost") or _has_values(columns, "train/cost_rate"):
         panels.append(CUMULATIVE_PANEL)
+    for panel, key in _WEIGHT_PANELS:
+        if _has_values(columns, key):
+            panels.append(panel)
     if any(_has_values(columns, key) for key, *_ in _CALIBRATION_LINES):
         panels.append(CALIBRATION_PANEL)
     if _has_values(columns, "loss/constraint_slack"):
         panels.append(SLACK_PANEL)
-    fig = Figure(figsize=(PANEL_SIZE[0] * len(panels), PANEL_SIZE[1]), layout="constrained")
-    axes = fig.subplots(1, len(panels))
-    for ax, panel in zip(axes, panels):
-        _draw_run_panel(ax, panel, columns, cost_limit)
+    return panels
+
+
+def run_curves_figure(
+    columns: dict[str, list[float]],
+    *,
+    cost_limit: float | None = None,
+    title: str = "",
+    smooth: int = 1,
+) -> Figure:
+    """The figure of :func:`plot_run_curves` from ``read_progress`` columns.
+
+    A grid of up to :data:`CURVE_COLUMNS` panels per row (:func:`curve_panels`):
+    return, cost (training and test, the limit d dashed), cost rate, the cumulative
+    training cost (:mod:`~wcsac_rl.training.training_safety`); then, when the run
+    logged them, the safety weight κ (``loss/kappa``), the entropy weight β
+    (``loss/alpha``), the safety critic's reading at the test episodes' start states
+    against the cost they realised (predicted Γ_α and Q^c against the realised CVaR_α
+    and mean of the discounted cost-to-go, ``calib/*``) and the constraint slack the κ
+    loss sees (``loss/constraint_slack``). ``smooth`` > 1: each curve is the trailing
+    mean over that many epochs, the epochs' own values drawn faint beneath it.
+    """
+    if int(smooth) != smooth or smooth < 1:
+        raise ValueError(f"smooth must be a whole number of epochs >= 1, got {smooth!r}")
+    panels = curve_panels(columns)
+    cols = min(CURVE_COLUMNS, len(panels))
+    rows = math.ceil(len(panels) / cols)
+    fig = Figure(figsize=(PANEL_SIZE[0] * cols, PANEL_SIZE[1] * rows), layout="constrained")
+    grid = np.asarray(fig.subplots(rows, cols, squeeze=False)).reshape(-1)
+    for ax in grid[len(panels) :]:
+        ax.remove()
+    for ax, panel in zip(grid, panels):
+        _draw_run_panel(ax, panel, columns, cost_limit, int(smooth))
         ax.set_title(panel)
         ax.set_xlabel("env steps")
         ax.grid(alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=8)
-    fig.suptitle(title, fontsize=10)
+    suffix = f" (trailing mean over {int(smooth)} epochs)" if smooth > 1 else ""
+    fig.suptitle(f"{title}{suffix}", fontsize=10)
     return fig
 
 
+def _curve(ax: Any, frames, values, smooth: int, **style) -> None:
+    """One curve of a run's panel; smoothed, over its epochs' own values drawn faint."""
+    if smooth > 1:
+        ax.plot(frames, values, color=style.get("color"), alpha=0.25, linewidth=0.8)
+        values = _smoothed(values, smooth)
+    ax.plot(frames, values, marker="o", markersize=3, **style)
+
+
 def _draw_run_panel(
-    ax: Any, panel: str, columns: dict[str, list[float]], cost_limit: float | None
+    ax: Any, panel: str, columns: dict[str, list[float]], cost_limit: float | None, smooth: int
 ) -> None:
     """One panel of :func:`run_curves_figure`."""
     frames = columns["frames"]
     keys_of = dict(_PANELS)
+    weights = dict(_WEIGHT_PANELS)
     if panel in keys_of:
-        for key in keys_of[panel]:
+        for key, color in zip(keys_of[panel], ("C0", "C1")):
             if _has_values(columns, key):
                 label = "test (deterministic)" if key.startswith("eval/") else "training"
-                ax.plot(frames, columns[key], marker="o", markersize=3, label=label)
+                _curve(ax, frames, columns[key], smooth, color=color, label=label)
         if panel == "episode cost" and cost_limit is not None:
             ax.axhline(
                 cost_limit,
@@ -108,30 +274,31 @@ def _draw_run_panel(
             )
     elif panel == CUMULATIVE_PANEL:
         ax.plot(frames, cumulative_cost(columns), color="C3", marker="o", markersize=3)
+    elif panel in weights:
+        _curve(ax, frames, columns[weights[panel]], smooth, color="C4")
     elif panel == CALIBRATION_PANEL:
         for key, label, color, style in _CALIBRATION_LINES:
             if _has_values(columns, key):
-                ax.plot(
-                    frames,
-                    columns[key],
-                    color=color,
-                    linestyle=style,
-                    marker="o",
-                    markersize=3,
-                    label=label,
-                )
+                _curve(ax, frames, columns[key], smooth, color=color, linestyle=style, label=label)
     else:
-        ax.plot(frames, columns["loss/constraint_slack"], color="C2", marker="o", markersize=3)
+        _curve(ax, frames, columns["loss/constraint_slack"], smooth, color="C2")
         ax.axhline(0.0, color="k", linestyle="--", linewidth=1)
 
 
-def plot_run_curves(progress_csv: Path, out: Path, *, cost_limit: float | None = None) -> Path:
-    """Return, cost, cost rate and cumulative training cost of one run against env steps
-    (``progress.csv`` → PNG).
+def plot_run_curves(
+    progress_csv: Path,
+    out: Path,
+    *,
+    cost_limit: float | None = None,
+    smooth: int = 1,
+    formats: Sequence[str] = ("png",),
+) -> Path:
+    """The curves of one run against env steps (``progress.csv`` → PNG; ``formats``:
+    the files written, :func:`save_figure`).
 
     Training curves are means over the episodes that ended in each epoch; test
     curves are the deterministic test episodes. A dashed line marks ``cost_limit``.
-    Runs with a safety critic get two more panels (:func:`run_curves_figure`).
+    The panels and ``smooth``: :func:`run_curves_figure`.
     """
     columns = read_progress(progress_csv)
     if not columns:
@@ -139,10 +306,9 @@ def plot_run_curves(progress_csv: Path, out: Path, *, cost_limit: float | None =
     from wcsac_rl.evaluation.runs import display_text
 
     title = display_text(Path(progress_csv).parent.name)  # (a name that is not UTF-8 too)
-    fig = run_curves_figure(columns, cost_limit=cost_limit, title=title)
-    out = Path(out)
-    fig.savefig(out, dpi=100)
-    return out
+    fig = run_curves_figure(columns, cost_limit=cost_limit, title=title, smooth=smooth)
+    paths = save_figure(fig, out, formats=formats)
+    return Path(out) if Path(out) in paths else paths[0]
 
 
 # ---------------------------------------------------------------- the paper's figures
@@ -161,23 +327,50 @@ _CURVE_PANELS = (
 
 
 def row_color(label: str) -> str:
-    """A fixed colour per Table-1 row, the same in every figure."""
+    """The colour of ``label`` among Table 1's rows (:data:`~wcsac_rl.evaluation.runs.ROW_ORDER`
+    and ``label``): the same in every figure. A report with other rows draws them in
+    the colours of :func:`row_styles` of its own rows."""
     from wcsac_rl.evaluation.runs import ROW_ORDER
 
-    palette = ("C0", "C1", "C2", "C3", "C4", "C5", "C7", "C6", "C8", "C9")
-    if label in ROW_ORDER:
-        return palette[ROW_ORDER.index(label)]
-    return palette[len(ROW_ORDER) + sum(map(ord, label)) % (len(palette) - len(ROW_ORDER))]
+    return row_styles([*ROW_ORDER, label])[label].color
 
 
-def _save(fig: Figure, out: Path) -> Path:
-    """Write ``fig`` as a 256-colour palette PNG: these are line, box and scatter plots
-    on white, so the palette keeps them visually the same at about a third of the
-    RGBA file's size (what makes a report's figures viewable in a repository)."""
+FIGURE_FORMATS: tuple[str, ...] = ("png", "pdf")
+"""The formats :func:`save_figure` writes by default: a PNG to view, a PDF to print."""
+
+
+def figure_paths(out: Path, formats: Sequence[str] = FIGURE_FORMATS) -> list[Path]:
+    """The files :func:`save_figure` writes for ``out``: ``out`` with each format's suffix."""
+    return [Path(out).with_suffix(f".{fmt}") for fmt in formats]
+
+
+def save_figure(fig: Figure, out: Path, *, formats: Sequence[str] = FIGURE_FORMATS) -> list[Path]:
+    """Write ``fig`` as each of ``formats`` (``"png"``, ``"pdf"``, ``"svg"``) beside
+    ``out`` (its suffix replaced); returns the paths (:func:`figure_paths`).
+
+    PNG: a 256-colour palette image at :data:`DPI` (line, box and scatter plots on
+    white: visually the same at about a third of the RGBA file's size, what makes a
+    report's figures viewable in a repository). PDF and SVG: vector, with the fonts
+    embedded as TrueType (editable text) and no creation date, so the same figure
+    gives the same bytes."""
+    unknown = sorted(set(formats) - {"png", "pdf", "svg"})
+    if unknown or not formats:
+        raise ValueError(f"formats must be among png, pdf, svg, got {list(formats)!r}")
+    paths = figure_paths(out, formats)
+    paths[0].parent.mkdir(parents=True, exist_ok=True)
+    for fmt, path in zip(formats, paths, strict=True):
+        if fmt == "png":
+            _save_palette_png(fig, path)
+            continue
+        metadata = {"CreationDate": None} if fmt == "pdf" else {"Date": None}
+        with matplotlib.rc_context({"pdf.fonttype": 42, "svg.hashsalt": "wcsac_rl"}):
+            fig.savefig(path, dpi=DPI, format=fmt, metadata=metadata)
+    return paths
+
+
+def _save_palette_png(fig: Figure, out: Path) -> None:
     from PIL import Image
 
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     fig.savefig(buffer, dpi=DPI, format="png")
     buffer.seek(0)
@@ -186,7 +379,12 @@ def _save(fig: Figure, out: Path) -> Path:
             colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE
         )
     palette.save(out, format="png", optimize=True)
-    return out
+
+
+def _save(fig: Figure, out: Path, formats: Sequence[str] = ("png",)) -> Path:
+    """:func:`save_figure`, returning ``out`` (a report figure's own path)."""
+    save_figure(fig, out, formats=formats)
+    return Path(out)
 
 
 def plot_training_curves(
@@ -195,6 +393,8 @@ def plot_training_curves(
     *,
     cost_limit: float | None = None,
     title: str = "Training curves",
+    styles: Mapping[str, RowStyle] | None = None,
+    formats: Sequence[str] = ("png",),
 ) -> Path:
     """Figure 4: episodic return, episodic cost and cost rate against env steps.
 
@@ -205,12 +405,17 @@ def plot_training_curves(
         out: PNG path (``FIG4_SIZE`` × ``DPI`` pixels).
         cost_limit: the budget d, a dashed line on the cost panel.
         title: the figure's title.
+        styles: each row's colour and marker (:func:`row_styles` of the report's rows;
+            default: of ``rows``).
+        formats: the files written (:func:`save_figure`), e.g. :data:`FIGURE_FORMATS`.
     """
     from wcsac_rl.evaluation.metrics import curve_mean_std
     from wcsac_rl.evaluation.runs import row_name
 
+    styles = _styles_for(rows, styles)
     fig = Figure(figsize=FIG4_SIZE, layout="constrained")
     axes = fig.subplots(1, len(_CURVE_PANELS))
+    handles: dict[str, Any] = {}
     for ax, (panel_title, key, ylabel) in zip(axes, _CURVE_PANELS):
         for label, runs in rows.items():
             curves = [(run["frames"], run[key]) for run in runs if key in run and "frames" in run]
@@ -220,33 +425,58 @@ def plot_training_curves(
             ok = ~np.isnan(mean)
             if not ok.any():
                 continue
-            color = row_color(label)
+            style = styles[label]
             seeds = f"{len(curves)} seed{'s' if len(curves) != 1 else ''}"
-            ax.plot(
+            (line,) = ax.plot(
                 x[ok],
                 mean[ok],
-                color=color,
-                marker="o",
-                markersize=2.5,
+                color=style.color,
+                marker=style.marker,
+                markersize=3.5,
+                markevery=max(1, int(ok.sum()) // 12),
                 label=f"{row_name(label)} ({seeds})",
             )
-            ax.fill_between(x[ok], (mean - std)[ok], (mean + std)[ok], color=color, alpha=0.2)
-        if key == "train/episode_cost" and cost_limit is not None:
-            ax.axhline(
-                cost_limit,
-                color="k",
-                linestyle="--",
-                linewidth=1.2,
-                label=f"budget d = {cost_limit:g}",
+            handles.setdefault(line.get_label(), line)
+            ax.fill_between(
+                x[ok], (mean - std)[ok], (mean + std)[ok], color=style.color, alpha=0.15
             )
+        if key == "train/episode_cost" and cost_limit is not None:
+            line = ax.axhline(cost_limit, color="k", linestyle="--", linewidth=1.2)
+            handles.setdefault(f"budget d = {cost_limit:g}", line)
         ax.set_title(panel_title)
         ax.set_xlabel("env steps")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=8)
+    if handles:  # one legend for the three panels, under them (never over a curve)
+        fig.legend(
+            list(handles.values()),
+            list(handles),
+            loc="outside lower center",
+            ncol=min(len(handles), 6),
+            fontsize=8,
+        )
     fig.suptitle(f"{title} — mean ± std over seeds (training episodes)")
-    return _save(fig, out)
+    return _save(fig, out, formats)
+
+
+def box_view(
+    costs: Sequence[Sequence[float]], cost_limit: float, ymax: float | None = None
+) -> tuple[float, float]:
+    """Figure 6(a)'s y-range: every row's interquartile box and d in view. All the data
+    when it fits within 3 × the highest box top (or d), else up to 2 × that (the
+    episodes above are marked with their count); ``ymax`` (the paper clips its view so
+    d stays readable) where it still shows every box."""
+    rows = [np.asarray(c, dtype=np.float64) for c in costs if len(c)]
+    if not rows:
+        return (0.0, max(1.0, 1.1 * cost_limit))
+    need = max(max(float(np.percentile(c, 75)) for c in rows), float(cost_limit))
+    full = max(float(c.max()) for c in rows)
+    need = need if need > 0 else max(full, 1.0)
+    top = 1.05 * max(full, need) if full <= 3 * need else 2 * need
+    if ymax is not None:
+        top = max(float(ymax), 1.05 * need)
+    low = min(0.0, min(float(np.percentile(c, 25)) for c in rows))
+    return (low - 0.03 * (top - low), top)
 
 
 def plot_cost_distribution(
@@ -256,6 +486,8 @@ def plot_cost_distribution(
     cost_limit: float,
     title: str = "Evaluation after training",
     ymax: float | None = None,
+    styles: Mapping[str, RowStyle] | None = None,
+    formats: Sequence[str] = ("png",),
 ) -> Path:
     """Figure 6: (a) box plots of episodic cost, (b) proportion of episodes over budget.
 
@@ -264,20 +496,30 @@ def plot_cost_distribution(
         out: PNG path (``FIG6_SIZE`` × ``DPI`` pixels).
         cost_limit: the budget d: dashed line in (a); (b) counts costs strictly above it.
         title: the figure's title.
-        ymax: upper view limit of (a) (the paper clips it so d stays readable);
-            ``None`` shows all the data.
+        ymax: upper view limit of (a), kept where it shows every box (:func:`box_view`);
+            ``None``: the view :func:`box_view` chooses.
+        styles: each row's colour and marker (:func:`row_styles` of the report's rows).
+        formats: the files written (:func:`save_figure`), e.g. :data:`FIGURE_FORMATS`.
+
+    Boxes span the quartiles, whiskers the 1st and 99th percentiles (the paper's);
+    episodes above the view are counted over their row (``↑ n``).
     """
     from wcsac_rl.evaluation.metrics import exceedance_proportion
     from wcsac_rl.evaluation.runs import row_name
 
     labels = list(costs)
+    styles = _styles_for(labels, styles)
     names = [row_name(label) for label in labels]
-    colors = [row_color(label) for label in labels]
+    colors = [styles[label].color for label in labels]
+    data = [np.asarray(costs[label], dtype=np.float64) for label in labels]
     fig = Figure(figsize=FIG6_SIZE, layout="constrained")
     ax_box, ax_bar = fig.subplots(1, 2)
+    bottom, top = box_view(data, cost_limit, ymax)
+    handles, legend_labels = [], []
     if labels:
         box = ax_box.boxplot(
-            [np.asarray(costs[label], dtype=np.float64) for label in labels],
+            data,
+            positions=range(len(labels)),
             whis=(1, 99),
             showmeans=True,
             patch_artist=True,
@@ -285,24 +527,36 @@ def plot_cost_distribution(
             meanprops={"marker": "^", "markerfacecolor": "white", "markeredgecolor": "k"},
             medianprops={"color": "k"},
         )
-        ax_box.set_xticks(range(1, len(labels) + 1), names)
         for patch, color in zip(box["boxes"], colors):
             patch.set_facecolor(color)
             patch.set_alpha(0.6)
-        handles = [box["medians"][0], box["means"][0]]
-        legend_labels = ["median", "mean"]
-    else:
-        handles, legend_labels = [], []
+        for i, values in enumerate(data):
+            above = int((values > top).sum())
+            if above:
+                ax_box.annotate(
+                    f"↑ {above}",
+                    (i, top),
+                    xytext=(3, -3),  # (beside the whisker running up to the edge)
+                    textcoords="offset points",
+                    ha="left",
+                    va="top",
+                    fontsize=9,
+                    fontweight="bold",
+                    color="0.2",
+                )
+        handles, legend_labels = [box["medians"][0], box["means"][0]], ["median", "mean"]
     line = ax_box.axhline(cost_limit, color="k", linestyle="--", linewidth=1.2)
-    ax_box.legend(
+    fig.legend(  # under the panels: never over a box, a bar or a count
         [*handles, line],
         [*legend_labels, f"budget d = {cost_limit:g}"],
+        loc="outside lower center",
+        ncol=3,
         fontsize=8,
-        title="box: quartiles; whiskers: 1st/99th pct.",
+        title="(a) box: quartiles; whiskers: 1st and 99th percentiles; ↑ n: n episodes "
+        "above the view",
         title_fontsize=8,
     )
-    if ymax is not None:
-        ax_box.set_ylim(top=ymax)
+    ax_box.set_ylim(bottom, top)
     ax_box.set_title("(a) Episodic cost of the test episodes")
     ax_box.set_ylabel("episodic cost")
     ax_box.grid(axis="y", alpha=0.3)
@@ -310,15 +564,14 @@ def plot_cost_distribution(
     shares = [100.0 * exceedance_proportion(costs[label], cost_limit) for label in labels]
     bars = ax_bar.bar(range(len(labels)), shares, color=colors, alpha=0.8)
     ax_bar.bar_label(bars, labels=[f"{s:.1f}%" for s in shares], fontsize=8)
-    ax_bar.set_xticks(range(len(labels)), names)
     ax_bar.set_ylim(0, max([*shares, 1.0]) * 1.15)
     ax_bar.set_title(f"(b) Budget exceedance: episodes with cost > d = {cost_limit:g}")
     ax_bar.set_ylabel("episodes over budget (%)")
     ax_bar.grid(axis="y", alpha=0.3)
     for ax in (ax_box, ax_bar):
-        ax.tick_params(axis="x", labelrotation=15)
+        _set_row_ticks(ax, names)
     fig.suptitle(title)
-    return _save(fig, out)
+    return _save(fig, out, formats)
 
 
 def trajectory_figure_size(panels: int, columns: int = TRAJECTORY_COLUMNS) -> tuple[float, float]:
@@ -447,13 +700,16 @@ def plot_trajectories(
     *,
     title: str = "Trajectories of deterministic test episodes",
     columns: int = TRAJECTORY_COLUMNS,
+    formats: Sequence[str] = ("png",),
 ) -> Path:
     """Figure 5: top-down robot paths, one panel per ``(title, layout, trajectories)``.
 
     Each panel draws the layout (placement area, hazards with their radius, goal,
     vases) and every trajectory (start ``o``, end ``X``, legend with its cost and
     return), from :func:`~wcsac_rl.evaluation.trajectories.collect_trajectories`.
-    Panels fill rows of ``columns``; a ``None`` panel is left blank. Size: :func:`trajectory_figure_size` × ``DPI``.
+    Panels fill rows of ``columns``; a ``None`` panel is left blank. Size:
+    :func:`trajectory_figure_size` × ``DPI``; ``formats``: the files written
+    (:func:`save_figure`).
     """
     if not any(panel is not None for panel in panels):
         raise ValueError("plot_trajectories needs at least one panel")
@@ -472,4 +728,4 @@ def plot_trajectories(
     for ax in axes[len(panels) :]:
         ax.set_axis_off()
     fig.suptitle(title)
-    return _save(fig, out)
+    return _save(fig, out, formats)

@@ -134,8 +134,7 @@ class CostTarget:
             self.keys.nstep,
             f"cost_n_steps={self.n_steps} needs the n-step cost entries (cost, steps, "
             f"terminated and the state after them)",
-            f"Add them to collected data with "
-            f"wcsac_rl.objectives.NStepCost({self.n_steps}, gamma=loss.cost_gamma).",
+            "Add them to collected data with wcsac_rl.objectives.NStepCost.for_loss(loss).",
         )
 
     def bootstrap(

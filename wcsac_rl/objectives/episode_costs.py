@@ -22,6 +22,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
+from wcsac_rl.objectives.loss_keys import LossKey, follow_loss_keys
 from wcsac_rl.objectives.risk import empirical_cvar, validate_risk_level
 from wcsac_rl.options import EPISODE_STATISTICS
 
@@ -57,6 +58,9 @@ class EpisodeCostWindow:
         length_key: the episode length in collected data, read where episodes end
             (TorchRL's ``StepCounter`` writes it). Default ``("next", "step_count")``.
 
+    Built by :meth:`for_loss`, ``out_key`` is the loss's ``episode_cvar`` key, read at
+    each call: a later ``loss.set_keys(episode_cvar=...)`` is followed.
+
     Example:
         >>> import torch
         >>> from tensordict import TensorDict
@@ -71,6 +75,8 @@ class EpisodeCostWindow:
         >>> window.attach(TensorDict({}, [3]))["episode_cvar"].squeeze(-1)
         tensor([8., 8., 8.])
     """
+
+    out_key = LossKey("episode_cvar")
 
     def __init__(
         self,
@@ -126,7 +132,9 @@ class EpisodeCostWindow:
         if statistic == "rate":
             kwargs["horizon"] = int(loss.max_episode_steps)
         kwargs.setdefault("test_risk_level", loss.risk_level)
-        return cls(risk_level, out_key=loss.tensor_keys.episode_cvar, **kwargs)
+        if "out_key" in kwargs:
+            return cls(risk_level, **kwargs)
+        return follow_loss_keys(cls(risk_level, **kwargs), loss)
 
     def __len__(self) -> int:
         return len(self._costs)

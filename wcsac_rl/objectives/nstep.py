@@ -22,6 +22,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 
 from wcsac_rl.objectives.inputs import state_keys
+from wcsac_rl.objectives.loss_keys import LossKey, follow_loss_keys
 
 __all__ = ["NStepCost"]
 
@@ -46,7 +47,11 @@ class NStepCost(nn.Module):
     The batch's last dimension must be time (TorchRL collectors' layout, e.g.
     ``[num_envs, frames_per_env]``). With TorchRL's ``MultiStep`` postproc too, put
     ``NStepCost`` first: it reads each step's own cost and flags, which ``MultiStep``
-    replaces by those n steps on (a batch it has seen is refused).
+    replaces by those n steps on (a batch it has seen with ``n > 1`` is refused;
+    ``MultiStep(n_steps=1)`` changes nothing).
+
+    Built by :meth:`for_loss`, the cost / done / terminated and out keys are the loss's,
+    read at each call: a later ``loss.set_keys(cost=...)`` is followed.
 
     Example:
         >>> import torch
@@ -60,6 +65,11 @@ class NStepCost(nn.Module):
         >>> out["cost"].squeeze(-1), out["steps"], out["observation"].squeeze(-1)
         (tensor([[0.5000, 1.0000, 0.0000, 1.0000]]), tensor([[3, 2, 1, 1]]), tensor([[2., 2., 2., 3.]]))
     """
+
+    cost_key = LossKey("cost")
+    done_key = LossKey("done")
+    terminated_key = LossKey("terminated")
+    out_key = LossKey("nstep")
 
     def __init__(
         self,
@@ -85,24 +95,19 @@ class NStepCost(nn.Module):
 
     @classmethod
     def for_loss(cls, loss) -> NStepCost:
-        """The postproc a loss with ``cost_n_steps > 1`` reads: its ``n`` and γ_c, its
-        cost / done / terminated and n-step keys, and the state entries its networks
-        read from the env (:func:`~wcsac_rl.objectives.inputs.state_keys`)."""
-        keys = loss.tensor_keys
-        return cls(
-            loss.cost_n_steps,
-            loss.cost_gamma,
-            observation_keys=tuple(state_keys(loss)),
-            cost_key=keys.cost,
-            done_key=keys.done,
-            terminated_key=keys.terminated,
-            out_key=keys.nstep,
-        )
+        """The postproc a loss with ``cost_n_steps > 1`` reads: its ``n`` and γ_c, the
+        state entries its networks read from the env
+        (:func:`~wcsac_rl.objectives.inputs.state_keys`), and its cost / done /
+        terminated and n-step keys, which follow ``loss.set_keys`` made after this call
+        (the postproc reads them from ``loss.tensor_keys`` each time it runs)."""
+        nstep = cls(loss.cost_n_steps, loss.cost_gamma, observation_keys=tuple(state_keys(loss)))
+        return follow_loss_keys(nstep, loss)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if tensordict.ndim == 0:
             raise ValueError("NStepCost needs a batch whose last dimension is time")
-        if "steps_to_next_obs" in tensordict.keys():
+        steps_ahead = tensordict.get("steps_to_next_obs", None)
+        if steps_ahead is not None and bool((steps_ahead > 1).any()):
             raise ValueError(
                 "NStepCost got a batch from TorchRL's MultiStep (it has 'steps_to_next_obs'), "
                 "whose 'next' entries are n steps on; put NStepCost before MultiStep"

@@ -20,6 +20,7 @@ from tensordict.utils import NestedKey
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 
 from wcsac_rl.objectives.inputs import state_keys
+from wcsac_rl.objectives.loss_keys import LossKey, follow_loss_keys
 
 __all__ = ["StartStateBuffer"]
 
@@ -46,7 +47,12 @@ class StartStateBuffer(TensorDictReplayBuffer):
         ...     replay.extend(data.reshape(-1))
         ...     buffer.add_starts(data)
         ...     out = loss(buffer.attach(replay.sample()))
+
+    Built by :meth:`for_loss`, ``out_key`` is the loss's ``initial_states`` key, read at
+    each call: a later ``loss.set_keys(initial_states=...)`` is followed.
     """
+
+    out_key = LossKey("initial_states")
 
     def __init__(
         self,
@@ -70,7 +76,9 @@ class StartStateBuffer(TensorDictReplayBuffer):
         """The buffer a loss with ``kappa_states="initial"`` reads (its out key, and the
         state entries its networks read from the env: not the keys a composite actor
         writes between its modules, see :func:`~wcsac_rl.objectives.inputs.state_keys`)."""
-        return cls(state_keys(loss), out_key=loss.tensor_keys.initial_states, **kwargs)
+        if "out_key" in kwargs:
+            return cls(state_keys(loss), **kwargs)
+        return follow_loss_keys(cls(state_keys(loss), **kwargs), loss)
 
     @staticmethod
     def start_mask(batch: TensorDictBase) -> torch.Tensor:

@@ -1,7 +1,8 @@
 """What :class:`~wcsac_rl.objectives.WCSACLoss` does to keep TorchRL's ``LossModule``
 contract where its safety critic makes it differ from :class:`~torchrl.objectives.SACLoss`
 (``docs/torchrl_contract.md``): the TD(0) forms it accepts, the ``MultiStep`` batches it
-refuses, ``skip_done_states``' row selection, γ as the user wrote it."""
+refuses (n > 1 with one-step cost targets), ``skip_done_states``' row selection, γ as the
+user wrote it."""
 
 from __future__ import annotations
 
@@ -76,16 +77,26 @@ def as_given(gamma) -> float:
 
 def refuse_multistep(owner: str, tensordict: TensorDictBase, key: NestedKey) -> None:
     """A one-step cost target on a batch from TorchRL's ``MultiStep`` (``key``: its
-    ``steps_to_next_obs`` entry) would pair one step's cost with the state n steps on:
-    refused in one line (keys only)."""
-    if tensordict.get(key, None) is not None:
-        raise ValueError(
-            f"{owner}: the batch has {key!r}, written by TorchRL's "
-            "MultiStep: its reward target is n-step but the cost target with "
-            "cost_n_steps=1 is one step's, which would bootstrap from the state n steps "
-            "on; drop MultiStep, or construct the loss with cost_n_steps=n and add "
-            "NStepCost.for_loss(loss) to the collector's postproc before MultiStep"
-        )
+    ``steps_to_next_obs`` entry) with ``n > 1`` would pair one step's cost with the state
+    n steps on: refused in one line. ``MultiStep(n_steps=1)`` is a no-op (every entry 1,
+    ``"next"`` and the reward unchanged): accepted, as :class:`~torchrl.objectives.SACLoss`
+    accepts it. Reading the entry costs one host sync, only for batches that have it;
+    under ``torch.compile`` its values cannot be read, and any such batch is refused."""
+    steps = tensordict.get(key, None)
+    if steps is None:
+        return
+    compiling = torch.compiler.is_compiling()
+    if not compiling and not bool((steps > 1).any()):
+        return
+    where = " (under torch.compile the loss cannot read n: even n=1 is refused)"
+    raise ValueError(
+        f"{owner}: the batch has {key!r}, written by TorchRL's "
+        "MultiStep: its reward target is n-step but the cost target with "
+        "cost_n_steps=1 is one step's, which would bootstrap from the state n steps "
+        f"on{where if compiling else ''}; drop MultiStep, or construct the loss with "
+        "cost_n_steps=n and add NStepCost.for_loss(loss) to the collector's postproc "
+        "before MultiStep"
+    )
 
 
 def sample_alive(

@@ -191,7 +191,7 @@ class WCSACLoss(SACLoss):
         ...              "cost": torch.bernoulli(torch.full((1, 8, 1), 0.1)),
         ...              "done": torch.zeros(1, 8, 1, dtype=torch.bool),
         ...              "terminated": torch.zeros(1, 8, 1, dtype=torch.bool)}}, [1, 8])
-        >>> traj = NStepCost(loss.cost_n_steps, loss.cost_gamma)(traj)  # n-step cost targets
+        >>> traj = NStepCost.for_loss(loss)(traj)  # n-step cost targets
         >>> starts = StartStateBuffer.for_loss(loss)  # κ looks at episode start states
         >>> starts.add_starts(traj)
         1

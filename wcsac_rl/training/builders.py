@@ -344,14 +344,7 @@ def make_postproc(loss: LossModule) -> NStepCost | None:
     n_steps = getattr(loss, "cost_n_steps", 1)
     if n_steps <= 1:
         return None
-    return NStepCost(
-        n_steps,
-        loss.cost_gamma,
-        observation_keys=tuple(loss.initial_state_keys),
-        cost_key=loss.tensor_keys.cost,
-        terminated_key=loss.tensor_keys.terminated,
-        out_key=loss.tensor_keys.nstep,
-    )
+    return NStepCost.for_loss(loss)
 
 
 INITIAL_STATE_CAPACITY = 10_000

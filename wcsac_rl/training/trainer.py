@@ -15,6 +15,7 @@ import errno
 import math
 import random
 import signal
+import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -33,7 +34,7 @@ from wcsac_rl.envs import CostKeyError, EnvSourceError, NonFiniteStepError
 from wcsac_rl.objectives.inputs import nonfinite_entry
 from wcsac_rl.rollouts import critic_calibration as calibration
 from wcsac_rl.rollouts.episodes import run_episodes, summarize_episodes
-from wcsac_rl.training import builders
+from wcsac_rl.training import builders, schedule
 from wcsac_rl.training.checkpoint import (
     CHECKPOINT_DIR,
     LAST_CHECKPOINT,
@@ -125,19 +126,6 @@ def _resumes_a_path(cfg: DictConfig) -> bool:
     return bool(cfg.get("resume")) and cfg.resume != AUTO_RESUME
 
 
-def _say_rounding(cfg: DictConfig, frames: int, remaining: int) -> None:
-    """Say once that the collector trains whole batches: ``total_frames`` not a multiple
-    of ``algo.collector.frames_per_batch`` is rounded up (TorchRL's collector does)."""
-    batch = int(cfg.algo.collector.frames_per_batch)
-    if remaining > 0 and remaining % batch:
-        rounded = frames + math.ceil(remaining / batch) * batch
-        print(
-            f"total_frames={int(cfg.total_frames)} is rounded up to {rounded} (whole collector "
-            f"batches of {batch} frames)",
-            flush=True,
-        )
-
-
 class Trainer:
     """A training run built from a Hydra config; ``run()`` trains and returns the run dir.
 
@@ -219,7 +207,11 @@ class Trainer:
                     f"checkpoint (epoch {self.epoch}, {self.tracker.frames} frames)"
                 )
         remaining = max(0, int(cfg.total_frames) - self.tracker.frames)
-        _say_rounding(cfg, self.tracker.frames, remaining)
+        notes = schedule.schedule_notes(
+            cfg, frames_done=self.tracker.frames, init_random_frames=self.init_random_frames
+        )
+        for note in notes:  # whole collector batches (stdout); a warm-up-only budget (stderr)
+            print(note, file=sys.stderr if note.startswith("warning:") else sys.stdout, flush=True)
         self.collector = (
             builders.make_collector(
                 cfg,
@@ -418,7 +410,7 @@ class Trainer:
         """The loop of :meth:`run`: collect, learn, log and checkpoint each epoch; after a
         stop signal, checkpoint at the next batch boundary and stop (:class:`Preempted`)."""
         cfg = self.cfg
-        epoch_frames = int(cfg.epoch_frames)
+        epoch_frames = schedule.epoch_frames(cfg)  # whole collector batches
         next_epoch_end = (self.tracker.frames // epoch_frames + 1) * epoch_frames
         collector_iter = iter(self.collector)
         while True:
