@@ -31,6 +31,7 @@ from typing import Any
 
 __all__ = [
     "CONSTRAINT_RULES",
+    "ENSEMBLE_READINGS",
     "ENSEMBLE_TARGETS",
     "EPISODE_STATISTICS",
     "KAPPA_ACTIONS",
@@ -49,6 +50,7 @@ __all__ = [
     "PIDGains",
     "SafetyOptions",
     "ShieldOptions",
+    "check_ensemble_reading",
     "check_ensemble_target",
     "check_fields",
     "check_kappa_bound",
@@ -66,7 +68,8 @@ __all__ = [
 SAFETY_CRITIC_KINDS = ("gaussian", "iqn")
 """What :func:`~wcsac_rl.modules.make_safety_critic` builds (``kind``)."""
 ENSEMBLE_TARGETS = ("own", "max")
-"""Where several safety critics bootstrap from
+ENSEMBLE_READINGS = ("max", "ucb", "tqc")
+"""Where several safety critics bootstrap from, and how their Γ is read
 (:class:`~wcsac_rl.objectives.safety_head.EnsembleHead`)."""
 VARIANCE_LOSSES = ("w2", "mse", "glm")
 """The Gaussian head's variance TD losses (:mod:`~wcsac_rl.objectives.variance`)."""
@@ -442,7 +445,7 @@ class SafetyOptions:
     num_safety_nets: int = option(
         1,
         "how many safety critics (each its own initialisation, target and TD loss); "
-        "the actor and κ read the largest Γ among them",
+        "the actor, κ and the shield read them as ensemble_reading says",
         "integer",
         low=1,
         saved_run=1,
@@ -455,6 +458,30 @@ class SafetyOptions:
         "choice",
         choices=ENSEMBLE_TARGETS,
         saved_run="own",
+    )
+    ensemble_reading: str = option(
+        "max",
+        "num_safety_nets > 1: the Γ the actor, κ and the shield read: max (the largest "
+        "member's), ucb (mean + k_ucb·std over the members, CAL) or tqc (IQN critics: "
+        "the CVaR_α of every member's quantiles merged, COX-Q)",
+        "choice",
+        choices=ENSEMBLE_READINGS,
+        saved_run="max",
+    )
+    k_ucb: float = option(
+        0.5,
+        "ensemble_reading=ucb: the weight of the members' standard deviation (CAL's k)",
+        "number",
+        low=0.0,
+        saved_run=0.5,
+    )
+    prior_scale: float = option(
+        0.0,
+        "num_safety_nets > 1: a fixed random network per member, times this, added to "
+        "its cost value (randomized prior functions; 0: none)",
+        "number",
+        low=0.0,
+        saved_run=0.0,
     )
     iqn: IQNOptions = field(
         default_factory=IQNOptions,
@@ -751,6 +778,43 @@ def check_ensemble_target(ensemble_target: str, num_safety_nets: int, prefix: st
         raise ValueError(
             f"{prefix}ensemble_target={ensemble_target} picks among several safety critics: "
             f"it needs {prefix}num_safety_nets >= 2"
+        )
+
+
+def check_ensemble_reading(
+    reading: str,
+    num_safety_nets: int,
+    *,
+    ensemble_target: str = "own",
+    prior_scale: float = 0.0,
+    kind: str | None = None,
+    prefix: str = "",
+) -> None:
+    """``ensemble_reading`` and ``prior_scale`` beside the ensemble they read: a reading
+    other than ``"max"``, or a prior, needs several safety critics; ``"ucb"`` reads
+    their disagreement, so each bootstraps from its own target; ``"tqc"`` merges
+    quantiles, so the critics are IQN ones (``kind``: the critic's, unchecked when
+    ``None``). One ``ValueError`` line naming the options with ``prefix``, for the
+    config and the loss."""
+    check_value(
+        f"{prefix}ensemble_reading", reading, option_spec(SafetyOptions, "ensemble_reading")
+    )
+    check_value(f"{prefix}prior_scale", prior_scale, option_spec(SafetyOptions, "prior_scale"))
+    if num_safety_nets < 2 and (reading != "max" or prior_scale > 0):
+        what = f"ensemble_reading={reading}" if reading != "max" else "prior_scale > 0"
+        raise ValueError(
+            f"{prefix}{what} reads an ensemble of safety critics: it needs "
+            f"{prefix}num_safety_nets >= 2, got {num_safety_nets}"
+        )
+    if reading == "ucb" and ensemble_target != "own":
+        raise ValueError(
+            f"{prefix}ensemble_reading=ucb reads the members' disagreement: each bootstraps "
+            f"from its own target ({prefix}ensemble_target=own), got {ensemble_target}"
+        )
+    if reading == "tqc" and kind is not None and kind != "iqn":
+        raise ValueError(
+            f"{prefix}ensemble_reading=tqc merges the members' quantiles: it needs "
+            f"{prefix}safety_critic=iqn, got a {kind} critic"
         )
 
 

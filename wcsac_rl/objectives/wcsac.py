@@ -113,16 +113,13 @@ class WCSACLoss(SACLoss):
             adds to collected data.
         nonnegative_cost (bool): ``max(Q^c, 0)`` wherever Q^c is *used* (targets, Γ),
             not where it is fitted.
-        num_safety_nets (int): how many safety critics (default 1, the paper). With more,
-            each has its own target network and TD loss (summed over them), and the actor
-            and κ read the largest Γ among them
-            (:class:`~wcsac_rl.objectives.safety_head.EnsembleHead`): pessimism where
-            the critics disagree. Given one module, the others are re-drawn from it as
-            TorchRL's ``expand_dim`` does; given a list, each keeps its own initialisation.
-        ensemble_target (str): with ``num_safety_nets`` > 1, where the critics bootstrap:
-            ``"own"`` (each from its own target critic) or ``"max"`` (per row, all from
-            the member whose target value is largest: TD3's clipped double-Q, turned
-            pessimistic for a cost).
+        num_safety_nets (int): how many safety critics (default 1, the paper), each with
+            its own target network and TD loss (summed over them); given one module, the
+            others are re-drawn from it as TorchRL's ``expand_dim`` does.
+        ensemble_target, ensemble_reading (str), k_ucb, prior_scale (float): with
+            ``num_safety_nets`` > 1, where the critics bootstrap, how the actor, κ and the
+            shield read them (the largest Γ, mean + k_ucb·std, merged quantiles) and
+            their random priors (:class:`~wcsac_rl.objectives.ensemble_head.EnsembleHead`).
         variance_loss, variance_target (str): the Gaussian head's variance TD loss and
             target (:class:`~wcsac_rl.objectives.safety_head.GaussianHead`).
         num_quantiles, num_target_quantiles (int), huber_kappa (float): the IQN head's
@@ -278,6 +275,9 @@ class WCSACLoss(SACLoss):
         num_qvalue_nets: int = 2,
         num_safety_nets: int = SafetyOptions.num_safety_nets,
         ensemble_target: str = SafetyOptions.ensemble_target,
+        ensemble_reading: str = SafetyOptions.ensemble_reading,
+        k_ucb: float = SafetyOptions.k_ucb,
+        prior_scale: float = SafetyOptions.prior_scale,
         loss_function: str = "l2",
         check_finite: bool = False,
         **sac_kwargs,
@@ -334,7 +334,11 @@ class WCSACLoss(SACLoss):
             huber_kappa=huber_kappa,
             members=self.num_safety_nets,
             ensemble_target=ensemble_target,
+            ensemble_reading=ensemble_reading,
+            k_ucb=k_ucb,
+            prior_scale=prior_scale,
         )
+        self.safety_prior = getattr(self.safety_head, "prior", None)  # (buffers: no training)
         self.constraint_signal = ConstraintSignal(
             self.safety_head,
             self.tensor_keys,

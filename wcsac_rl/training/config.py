@@ -12,6 +12,7 @@ from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
 from wcsac_rl.options import (
     SafetyOptions,
+    check_ensemble_reading,
     check_ensemble_target,
     check_kappa_bound,
     check_shield_candidates,
@@ -372,6 +373,14 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int)
         )
     try:
         check_ensemble_target(options.ensemble_target, options.num_safety_nets, prefix="algo.")
+        check_ensemble_reading(
+            options.ensemble_reading,
+            options.num_safety_nets,
+            ensemble_target=options.ensemble_target,
+            prior_scale=options.prior_scale,
+            kind=options.safety_critic,
+            prefix="algo.",
+        )
         check_signal_every(
             options.kappa_signal_every, options.kappa_states, options.kappa_statistic, "algo."
         )
