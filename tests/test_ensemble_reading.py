@@ -24,6 +24,7 @@ from wcsac_rl.training import ConfigError, make_trainer
 from wcsac_rl.training.config_keys import check_override_keys
 
 PLAIN = {"cost_n_steps": 1, "kappa_states": "replay", "risk_level": 0.5}
+ENSEMBLE_ONLY = ("ensemble_reading", "prior_scale", "k_ucb", "k_ucb_lr", "k_ucb_max")
 
 
 def _losses(members=3, kind="gaussian", **kwargs):
@@ -34,7 +35,7 @@ def _losses(members=3, kind="gaussian", **kwargs):
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=32) for _ in range(2)]
     critics = [make_safety_critic(OBS_DIM, ACT_DIM, kind=kind, width=32) for _ in range(members)]
     options = {**PLAIN, "fuse_critics": False, **kwargs}
-    singles = {k: v for k, v in options.items() if k not in ("ensemble_reading", "prior_scale")}
+    singles = {k: v for k, v in options.items() if k not in ENSEMBLE_ONLY}
     ensemble = WCSACLoss(actor, qvalues, critics, num_safety_nets=members, **options)
     return ensemble, [WCSACLoss(actor, qvalues, critic, **singles) for critic in critics]
 
@@ -345,5 +346,113 @@ def test_the_config_reaches_the_reading_and_the_prior(tmp_path):
         head = trainer.loss.safety_head
         assert (head.reading, head.k_ucb, head.members) == ("ucb", 0.25, 4)
         assert head.prior is trainer.loss.safety_prior and head.prior.scale == 1.5
+    finally:
+        trainer.close()
+
+
+# ------------------------------------------------------- CAL's rectification and dual
+@pytest.mark.parametrize(
+    ("signal", "clamped", "unclamped"),
+    [
+        # slack 0.4: c·0.4 = 4 > λ = 0.5, CAL's weight λ − min(4, λ) = 0; the authors' −3.5
+        ([1.0, 1.2], 0.0, 0.5 - 4.0),
+        # slack 0.01: 0.1 < λ, both 0.4
+        ([1.48, 1.50], 0.4, 0.4),
+        # violated by 1: the weight rises to λ + 10 either way
+        ([2.0, 3.0], 10.5, 10.5),
+    ],
+)
+def test_damping_is_cals_rectification_only_when_clamped(signal, clamped, unclamped):
+    """CAL: ``λ − clamp(c · mean(d̂ − Q̂(s, a_buffer)), max=λ)``, c = 10; the kit's
+    ``damp_scale`` alone is the authors' unclamped MDMM term."""
+    from wcsac_rl.objectives.constraint import make_constraint
+
+    threshold, signal = torch.tensor(1.5), torch.tensor(signal)
+    for damp_clamp, expected in ((True, clamped), (False, unclamped)):
+        constraint = make_constraint(
+            "gradient",
+            kappa_init=0.5,
+            parametrization="log",
+            damp_scale=10.0,
+            damp_clamp=damp_clamp,
+        )
+        weight = constraint.penalty_weight(signal, threshold)
+        assert_close_f32(weight, torch.tensor(expected), ops=8, magnitude=11.0, msg=str(damp_clamp))
+
+
+# ------------------------------------------------------ adaptive pessimism (CAP)
+def test_adaptive_k_ucb_follows_a_known_cost_sequence():
+    """k ← clip(k + lr·(C − d), 0, k_max) per update; NaN (no episode yet) holds it."""
+    from wcsac_rl.objectives.ensemble_reading import AdaptivePessimism
+
+    cap = AdaptivePessimism(0.5, lr=0.01, k_max=1.0)
+    limit, expected = torch.tensor(15.0), []
+    k = 0.5
+    for cost in (math.nan, 25.0, 45.0, 45.0, 15.0, 5.0, 0.0, 0.0, 0.0, 0.0, 0.0):
+        cap.step(torch.tensor([[cost]]), limit)
+        if not math.isnan(cost):
+            k = min(max(k + 0.01 * (cost - 15.0), 0.0), 1.0)
+        expected.append(k)
+        assert_close_f32(cap.k, torch.tensor(k), ops=16, magnitude=1.0, msg=str(cost))
+    # 0.5 → 0.6 → 0.9 → 1 (capped) → 1 → 0.9 → 0.75 → 0.6 ... → 0.15
+    assert expected[3] == 1.0 and abs(expected[-1] - 0.15) < 1e-12
+
+
+def test_the_loss_adapts_k_ucb_from_the_batchs_episode_costs_and_reads_it():
+    ensemble, singles = _losses(ensemble_reading="ucb", k_ucb=0.5, k_ucb_lr=0.02, k_ucb_max=3.0)
+    assert ensemble.safety_pessimism is ensemble.safety_head.pessimism
+    batch = make_batch(16)
+    with pytest.raises(KeyError, match=re.escape("k_ucb_lr > 0 reads the recent episodes' cost")):
+        ensemble(batch.clone())
+    batch["episode_cvar"] = torch.full((16, 1), 40.0)  # d = 15: 25 over, k + 0.02·25
+    ensemble.train()
+    ensemble(batch.clone())
+    assert_close_f32(ensemble.safety_pessimism.k, torch.tensor(1.0), ops=8, magnitude=1.0)
+    ensemble.eval()  # (evaluation mode reads, and does not move, k)
+    ensemble(batch.clone())
+    assert_close_f32(ensemble.safety_pessimism.k, torch.tensor(1.0), ops=8, magnitude=1.0)
+    action = torch.rand(16, ACT_DIM) * 2 - 1
+    each = torch.stack([single.action_cvar(batch, action) for single in singles])
+    magnitude = 1.0 + each.abs().max()
+    assert_close_f32(
+        ensemble.action_cvar(batch, action), ucb(each, 1.0), ops=64, magnitude=magnitude
+    )
+    assert "safety_pessimism.k" in ensemble.state_dict()
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "line"),
+    [
+        (
+            {"k_ucb_lr": 0.1},
+            "k_ucb_lr=0.1 adapts the UCB reading's k_ucb: it needs ensemble_reading=ucb, got max",
+        ),
+        (
+            {"ensemble_reading": "ucb", "k_ucb_lr": 0.1, "k_ucb": 3.0},
+            "k_ucb must be <= k_ucb_max (2) with k_ucb_lr > 0, got 3",
+        ),
+        (
+            {"ensemble_reading": "ucb", "k_ucb_lr": -0.1},
+            "k_ucb_lr must be >= 0 (a number), got -0.1",
+        ),
+    ],
+)
+def test_a_bad_adaptive_option_is_one_line(kwargs, line):
+    with pytest.raises(ValueError, match=f"^{re.escape(line)}$"):
+        _losses(members=2, **kwargs)
+
+
+def test_the_trainer_attaches_the_episode_window_for_an_adaptive_k_ucb(tmp_path):
+    cfg = compose_config(
+        "env=tiny",
+        "algo.num_safety_nets=2",
+        "algo.ensemble_reading=ucb",
+        "algo.k_ucb_lr=0.01",
+        "algo.kappa_episode_statistic=mean",
+    )
+    trainer = make_trainer(cfg, tmp_path / "r")
+    try:
+        assert trainer.episode_window is not None
+        assert trainer.loss.safety_head.pessimism.k_max == 2.0
     finally:
         trainer.close()

@@ -434,6 +434,13 @@ class SafetyOptions:
     damp_scale: float = option(
         0.0, "MDMM damping of κ in the actor loss (kappa_rule=gradient)", "number", low=0.0
     )
+    damp_clamp: bool = option(
+        False,
+        "the damping term at most κ, so the actor's weight stays >= 0 (CAL's rectification; "
+        "false: the authors' unclamped damp)",
+        "flag",
+        saved_run=False,
+    )
     safety_critic: str = option(
         "gaussian",
         "gaussian (mean and variance networks) or iqn (implicit quantile network)",
@@ -474,6 +481,21 @@ class SafetyOptions:
         "number",
         low=0.0,
         saved_run=0.5,
+    )
+    k_ucb_lr: float = option(
+        0.0,
+        "ensemble_reading=ucb: adaptive pessimism (CAP): k_ucb moves by this × (the "
+        "episode window's cost − d) per update, within [0, k_ucb_max]; 0: k_ucb fixed",
+        "number",
+        low=0.0,
+        saved_run=0.0,
+    )
+    k_ucb_max: float = option(
+        2.0,
+        "k_ucb_lr > 0: the largest k_ucb",
+        "number",
+        low=0.0,
+        saved_run=2.0,
     )
     prior_scale: float = option(
         0.0,
@@ -676,7 +698,7 @@ class SafetyOptions:
         kwargs = {f.name: getattr(self, f.name) for f in _loss_fields(self)}
         kwargs.update({f.name: getattr(self.iqn, f.name) for f in _loss_fields(self.iqn)})
         if self.kappa_rule == "pid":
-            kwargs["damp_scale"] = 0.0
+            kwargs["damp_scale"], kwargs["damp_clamp"] = 0.0, False
         else:
             del kwargs["pid"]
         iqn = self.safety_critic == "iqn"
@@ -788,23 +810,43 @@ def check_ensemble_reading(
     ensemble_target: str = "own",
     prior_scale: float = 0.0,
     kind: str | None = None,
+    k_ucb: float = 0.5,
+    k_ucb_lr: float = 0.0,
+    k_ucb_max: float = 2.0,
     prefix: str = "",
 ) -> None:
     """``ensemble_reading`` and ``prior_scale`` beside the ensemble they read: a reading
     other than ``"max"``, or a prior, needs several safety critics; ``"ucb"`` reads
     their disagreement, so each bootstraps from its own target; ``"tqc"`` merges
     quantiles, so the critics are IQN ones (``kind``: the critic's, unchecked when
-    ``None``). One ``ValueError`` line naming the options with ``prefix``, for the
+    ``None``); ``k_ucb_lr`` > 0 adapts the UCB reading's ``k_ucb`` within
+    ``[0, k_ucb_max]``. One ``ValueError`` line naming the options with ``prefix``, for the
     config and the loss."""
     check_value(
         f"{prefix}ensemble_reading", reading, option_spec(SafetyOptions, "ensemble_reading")
     )
-    check_value(f"{prefix}prior_scale", prior_scale, option_spec(SafetyOptions, "prior_scale"))
+    for name, value in (
+        ("prior_scale", prior_scale),
+        ("k_ucb", k_ucb),
+        ("k_ucb_lr", k_ucb_lr),
+        ("k_ucb_max", k_ucb_max),
+    ):
+        check_value(f"{prefix}{name}", value, option_spec(SafetyOptions, name))
     if num_safety_nets < 2 and (reading != "max" or prior_scale > 0):
         what = f"ensemble_reading={reading}" if reading != "max" else "prior_scale > 0"
         raise ValueError(
             f"{prefix}{what} reads an ensemble of safety critics: it needs "
             f"{prefix}num_safety_nets >= 2, got {num_safety_nets}"
+        )
+    if k_ucb_lr > 0 and reading != "ucb":
+        raise ValueError(
+            f"{prefix}k_ucb_lr={k_ucb_lr:g} adapts the UCB reading's k_ucb: it needs "
+            f"{prefix}ensemble_reading=ucb, got {reading}"
+        )
+    if k_ucb_lr > 0 and not k_ucb <= k_ucb_max:
+        raise ValueError(
+            f"{prefix}k_ucb must be <= {prefix}k_ucb_max ({k_ucb_max:g}) with "
+            f"{prefix}k_ucb_lr > 0, got {k_ucb:g}"
         )
     if reading == "ucb" and ensemble_target != "own":
         raise ValueError(

@@ -12,20 +12,19 @@ import torch
 from tensordict import TensorDictBase
 from torch import Tensor
 
-from wcsac_rl.objectives.ensemble_reading import StackedMembers, ucb, upper_tail_mean
+from wcsac_rl.objectives.ensemble_reading import (
+    AdaptivePessimism,
+    StackedMembers,
+    ucb,
+    upper_tail_mean,
+)
 from wcsac_rl.objectives.risk import quantile_mixture_cvar
 from wcsac_rl.objectives.safety_head import (
     SafetyHead,
     SafetyValues,
     _check_count,
 )
-from wcsac_rl.options import (
-    SafetyOptions,
-    check_ensemble_reading,
-    check_ensemble_target,
-    check_value,
-    option_spec,
-)
+from wcsac_rl.options import check_ensemble_reading, check_ensemble_target
 
 __all__ = ["EnsembleHead"]
 
@@ -93,14 +92,22 @@ class EnsembleHead(SafetyHead):
         reading: str = "max",
         k_ucb: float = 0.5,
         prior_scale: float = 0.0,
+        k_ucb_lr: float = 0.0,
+        k_ucb_max: float = 2.0,
     ) -> None:
         _check_count("members", members)
         if members < 2:
             raise ValueError(f"an ensemble needs members >= 2, got {members}")
         check_ensemble_target(target, members)
-        check_value("k_ucb", k_ucb, option_spec(SafetyOptions, "k_ucb"))
         check_ensemble_reading(
-            reading, members, ensemble_target=target, prior_scale=prior_scale, kind=member.kind
+            reading,
+            members,
+            ensemble_target=target,
+            prior_scale=prior_scale,
+            kind=member.kind,
+            k_ucb=k_ucb,
+            k_ucb_lr=k_ucb_lr,
+            k_ucb_max=k_ucb_max,
         )
         super().__init__(
             member.network,
@@ -110,6 +117,9 @@ class EnsembleHead(SafetyHead):
         )
         self.member, self.members, self.target = member, int(members), target
         self.reading, self.k_ucb = reading, float(k_ucb)
+        self.pessimism = (
+            AdaptivePessimism(k_ucb, lr=k_ucb_lr, k_max=k_ucb_max) if k_ucb_lr > 0 else None
+        )
         self.stacked = None
         if reading != "max" or prior_scale > 0:
             keys = member.keys
@@ -134,6 +144,20 @@ class EnsembleHead(SafetyHead):
             f"fuse_critics=True: {self.members} safety critics (num_safety_nets) are "
             "read apart from the reward critics, not fused with them; use fuse_critics=None"
         )
+
+    @property
+    def reads_episode_costs(self) -> bool:
+        """Whether :meth:`adapt` reads the recent episodes' cost (``k_ucb_lr`` > 0)."""
+        return self.pessimism is not None
+
+    def adapt(self, tensordict: TensorDictBase, cost_limit: float) -> None:
+        """One step of the adaptive ``k_ucb`` (:attr:`pessimism`, if any) on the episode
+        window's cost the batch carries (``keys.episode_cvar``) against ``cost_limit``."""
+        if self.pessimism is not None:
+            self.pessimism.step(tensordict.get(self.keys.episode_cvar), cost_limit)
+
+    def _k(self):
+        return self.k_ucb if self.pessimism is None else self.pessimism.k
 
     def read_through_module(self) -> None:
         self.member.read_through_module()
@@ -256,7 +280,7 @@ class EnsembleHead(SafetyHead):
         if self.reading == "tqc":
             return upper_tail_mean(self.merged_quantiles(values), self.risk_level)
         if self.reading == "ucb":
-            return ucb(self.member_cvars(values), self.k_ucb)
+            return ucb(self.member_cvars(values), self._k())
         return self.member_cvars(values).max(0)[0]
 
     def mixture_cvar(self, values: SafetyValues, weights: Tensor | None = None) -> Tensor:
@@ -266,7 +290,7 @@ class EnsembleHead(SafetyHead):
                 self.merged_quantiles(values), self.risk_level, weights=weights
             )
         each = torch.stack([self.member.mixture_cvar(v, weights) for v in self._each(values)])
-        return ucb(each, self.k_ucb) if self.reading == "ucb" else each.max()
+        return ucb(each, self._k()) if self.reading == "ucb" else each.max()
 
     def row_shape(self, values: SafetyValues) -> torch.Size:
         return values.mean.shape[1:]

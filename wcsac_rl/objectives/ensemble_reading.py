@@ -21,7 +21,9 @@ with their parameters stacked ``[E, ...]``. This module gives it
   ICLR 2024; the sample standard deviation over the members, Bessel-corrected, as
   ``torch.std_mean`` in CAL's code) — and :func:`upper_tail_mean`, the mean of the
   upper ``α`` share of atoms (the merged-quantile, TQC reading of an IQN ensemble:
-  COX-Q, Li, Spaan & Kooij ICLR 2026).
+  COX-Q, Li, Spaan & Kooij ICLR 2026);
+* :class:`AdaptivePessimism` — CAP (Ma et al., AAAI 2022): ``k_ucb`` moved by the
+  realised cost of the recent training episodes against the limit ``d``.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from wcsac_rl.modules.quantile_critic import IQNSafetyCritic, _cosines
 from wcsac_rl.modules.safety_critic import GaussianSafetyCritic, softplus_variance
 from wcsac_rl.objectives.critic_ensemble import EnsembleMember, evaluate_ensemble, stack_layers
 
-__all__ = ["RandomPrior", "StackedMembers", "ucb", "upper_tail_mean"]
+__all__ = ["AdaptivePessimism", "RandomPrior", "StackedMembers", "ucb", "upper_tail_mean"]
 
 
 def ucb(values: Tensor, k_ucb: float) -> Tensor:
@@ -71,6 +73,41 @@ def upper_tail_mean(atoms: Tensor, risk_level: float) -> Tensor:
     if top.shape[-1] > whole:
         weights[whole] = mass - whole
     return (top * weights).sum(-1) / mass
+
+
+class AdaptivePessimism(nn.Module):
+    """``k_ucb`` adapted from the realised episode cost (CAP, Ma et al. AAAI 2022).
+
+    At every :meth:`step` with the recent training episodes' cost ``C`` (the episode
+    window's statistic, :class:`~wcsac_rl.objectives.EpisodeCostWindow`) and the limit
+    ``d``: ``k ← clip(k + lr · (C − d), 0, k_max)`` — more pessimism while the episodes
+    cost more than the limit, less while they cost less; no change while ``C`` is NaN
+    (no episode has finished). ``k`` is a buffer: it is checkpointed with the loss, and
+    the step reads no value on the host (``torch.compile`` keeps one graph).
+
+    Example:
+        >>> cap = AdaptivePessimism(0.5, lr=0.01, k_max=1.0)
+        >>> for cost in (float("nan"), 45.0, 45.0, 0.0):
+        ...     cap.step(torch.tensor(cost), torch.tensor(15.0))
+        >>> cap.k  # 0.5, then + 0.3 twice (capped at 1), then − 0.15
+        tensor(0.8500)
+    """
+
+    def __init__(self, k_ucb: float, *, lr: float, k_max: float) -> None:
+        super().__init__()
+        if not 0.0 <= k_ucb <= k_max:
+            raise ValueError(f"k_ucb must be in [0, k_ucb_max = {k_max:g}], got {k_ucb:g}")
+        self.lr, self.k_max = float(lr), float(k_max)
+        self.register_buffer("k", torch.tensor(float(k_ucb)))
+
+    @torch.no_grad()
+    def step(self, cost: Tensor, limit: Tensor) -> None:
+        cost = cost.reshape(-1)[0].to(self.k.dtype)
+        moved = (self.k + self.lr * (cost - limit)).clamp(0.0, self.k_max)
+        self.k.copy_(torch.where(cost.isnan(), self.k, moved))
+
+    def extra_repr(self) -> str:
+        return f"lr={self.lr}, k_max={self.k_max}"
 
 
 class RandomPrior(nn.Module):

@@ -142,6 +142,13 @@ class SafetyHead:
         reward critics and this one at once, or ``None`` (call the modules)."""
         return None
 
+    reads_episode_costs = False
+    """Whether :meth:`adapt` reads the recent episodes' cost (an ensemble's adaptive
+    ``k_ucb``)."""
+
+    def adapt(self, tensordict: TensorDictBase, cost_limit: float) -> None:
+        """Adapt the head's reading to the batch's episode costs (none here)."""
+
     def read_through_module(self) -> None:
         """Evaluate the network through its module call from now on (a head that reads
         it from its parameters instead: the same values; see ``Critics.read_through_modules``)."""
@@ -597,6 +604,8 @@ def make_safety_head(
     ensemble_reading: str = "max",
     k_ucb: float = 0.5,
     prior_scale: float = 0.0,
+    k_ucb_lr: float = 0.0,
+    k_ucb_max: float = 2.0,
 ) -> GaussianHead | IQNHead | EnsembleHead:
     """The head for ``network``: the one place that decides the safety critic's kind.
 
@@ -607,13 +616,19 @@ def make_safety_head(
     critic unless left at their defaults. ``members`` > 1: that many critics of the
     kind, read by an :class:`EnsembleHead` (their parameters stacked), bootstrapping
     as ``ensemble_target`` says (``"max"`` needs ``members`` > 1), read as
-    ``ensemble_reading`` says (with ``k_ucb``), each with a random prior of
-    ``prior_scale`` (0: none).
+    ``ensemble_reading`` says (with ``k_ucb``, adapted by ``k_ucb_lr`` within
+    ``[0, k_ucb_max]``), each with a random prior of ``prior_scale`` (0: none).
     """
     _check_count("num_safety_nets", members)
     check_ensemble_target(ensemble_target, members)
     check_ensemble_reading(
-        ensemble_reading, members, ensemble_target=ensemble_target, prior_scale=prior_scale
+        ensemble_reading,
+        members,
+        ensemble_target=ensemble_target,
+        prior_scale=prior_scale,
+        k_ucb=k_ucb,
+        k_ucb_lr=k_ucb_lr,
+        k_ucb_max=k_ucb_max,
     )
     head = _make_member_head(
         network,
@@ -637,6 +652,8 @@ def make_safety_head(
         reading=ensemble_reading,
         k_ucb=k_ucb,
         prior_scale=prior_scale,
+        k_ucb_lr=k_ucb_lr,
+        k_ucb_max=k_ucb_max,
     )
 
 

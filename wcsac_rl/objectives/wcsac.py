@@ -116,10 +116,10 @@ class WCSACLoss(SACLoss):
         num_safety_nets (int): how many safety critics (default 1, the paper), each with
             its own target network and TD loss (summed over them); given one module, the
             others are re-drawn from it as TorchRL's ``expand_dim`` does.
-        ensemble_target, ensemble_reading (str), k_ucb, prior_scale (float): with
-            ``num_safety_nets`` > 1, where the critics bootstrap, how the actor, κ and the
-            shield read them (the largest Γ, mean + k_ucb·std, merged quantiles) and
-            their random priors (:class:`~wcsac_rl.objectives.ensemble_head.EnsembleHead`).
+        ensemble_target, ensemble_reading (str), k_ucb, k_ucb_lr, k_ucb_max, prior_scale
+            (float): with ``num_safety_nets`` > 1, where the critics bootstrap, how the
+            actor, κ and the shield read them (the largest Γ, mean + k_ucb·std adapted
+            by k_ucb_lr, merged quantiles) and their random priors (:class:`~wcsac_rl.objectives.ensemble_head.EnsembleHead`).
         variance_loss, variance_target (str): the Gaussian head's variance TD loss and
             target (:class:`~wcsac_rl.objectives.safety_head.GaussianHead`).
         num_quantiles, num_target_quantiles (int), huber_kappa (float): the IQN head's
@@ -133,9 +133,9 @@ class WCSACLoss(SACLoss):
             training update of this many and hold it in the others
             (:class:`~wcsac_rl.objectives.constraint_signal.HeldStatistic`; 1: every
             update).
-        kappa_init (float), kappa_parametrization (str), damp_scale (float), kappa_max
-            (float, optional), kappa_min (float), kappa_rule (str), pid (PIDGains or
-            dict): κ and how it moves
+        kappa_init (float), kappa_parametrization (str), damp_scale (float), damp_clamp
+            (bool), kappa_max (float, optional), kappa_min (float), kappa_rule (str), pid
+            (PIDGains or dict): κ and how it moves
             (:mod:`wcsac_rl.objectives.constraint`); ``pid=None``: the default gains. The
             PID rule steps in :meth:`forward` while the loss is in training mode.
 
@@ -261,6 +261,7 @@ class WCSACLoss(SACLoss):
         kappa_signal: str = SafetyOptions.kappa_signal,
         kappa_signal_every: int = SafetyOptions.kappa_signal_every,
         damp_scale: float = SafetyOptions.damp_scale,
+        damp_clamp: bool = SafetyOptions.damp_clamp,
         kappa_max: float | None = SafetyOptions.kappa_max,
         kappa_min: float = SafetyOptions.kappa_min,
         kappa_rule: str = SafetyOptions.kappa_rule,
@@ -277,6 +278,8 @@ class WCSACLoss(SACLoss):
         ensemble_target: str = SafetyOptions.ensemble_target,
         ensemble_reading: str = SafetyOptions.ensemble_reading,
         k_ucb: float = SafetyOptions.k_ucb,
+        k_ucb_lr: float = SafetyOptions.k_ucb_lr,
+        k_ucb_max: float = SafetyOptions.k_ucb_max,
         prior_scale: float = SafetyOptions.prior_scale,
         loss_function: str = "l2",
         check_finite: bool = False,
@@ -337,8 +340,11 @@ class WCSACLoss(SACLoss):
             ensemble_reading=ensemble_reading,
             k_ucb=k_ucb,
             prior_scale=prior_scale,
+            k_ucb_lr=k_ucb_lr,
+            k_ucb_max=k_ucb_max,
         )
-        self.safety_prior = getattr(self.safety_head, "prior", None)  # (buffers: no training)
+        for name in ("prior", "pessimism"):  # (buffers: no optimizer trains them)
+            setattr(self, f"safety_{name}", getattr(self.safety_head, name, None))
         self.constraint_signal = ConstraintSignal(
             self.safety_head,
             self.tensor_keys,
@@ -351,6 +357,7 @@ class WCSACLoss(SACLoss):
         constraint = make_constraint(
             kappa_rule, kappa_init=kappa_init, parametrization=kappa_parametrization,
             damp_scale=damp_scale, kappa_max=kappa_max, kappa_min=kappa_min, pid=pid,
+            damp_clamp=damp_clamp,
         )  # fmt: skip
         device = self.log_alpha.device
         self.constraint = constraint.to(device)
@@ -463,7 +470,7 @@ class WCSACLoss(SACLoss):
             if self.kappa_states == "initial":
                 initial = self.tensor_keys.initial_states
                 keys.update(nested_key(initial, key) for key in states)
-            if self.kappa_signal != "critic":
+            if self.kappa_signal != "critic" or head.reads_episode_costs:
                 keys.add(self.tensor_keys.episode_cvar)
             self._in_keys = list(keys)
 
@@ -856,6 +863,7 @@ class WCSACLoss(SACLoss):
             # a controller's update (the PID rule's; the gradient rule's does nothing),
             # after this batch's actor loss used the current κ
             self.constraint.step(signal.detach(), self.cost_threshold)
+            self.safety_head.adapt(tensordict, self.cost_limit)  # (an adaptive k_ucb)
         if self.reduction == "none":
             td_out = TensorDict(out, batch_size=tensordict.batch_size)
             if self.scalar_output_mode == "non_tensor":

@@ -379,6 +379,9 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int)
             ensemble_target=options.ensemble_target,
             prior_scale=options.prior_scale,
             kind=options.safety_critic,
+            k_ucb=options.k_ucb,
+            k_ucb_lr=options.k_ucb_lr,
+            k_ucb_max=options.k_ucb_max,
             prefix="algo.",
         )
         check_signal_every(
