@@ -317,7 +317,7 @@ def test_the_config_refuses_a_bad_ensemble_option_in_one_line(tmp_path, override
 
 SAC_LINE = (
     "unknown config key algo.{key}: an option of the safety critic and κ, which the "
-    "algo=sac{where} config does not have (algo=wcsac and algo=sac_lag do)"
+    "algo=sac{where} config does not have (algo=wcsac, sac_lag and cal do)"
 )
 
 
@@ -456,3 +456,50 @@ def test_the_trainer_attaches_the_episode_window_for_an_adaptive_k_ucb(tmp_path)
         assert trainer.loss.safety_head.pessimism.k_max == 2.0
     finally:
         trainer.close()
+
+
+# ----------------------------------------------------------------------- algo=cal
+def test_algo_cal_trains_with_cals_critic_rectification_and_dual(tmp_path):
+    """``algo=cal``: SAC-Lag's mean critic as a UCB ensemble (E = 4, k = 0.5), CAL's
+    rectification (c = 10, clamped), the dual on replay states at the buffer's actions
+    against d̂ = d(1 − γ^T)/((1 − γ)T); its κ statistic and loss against hand values."""
+    from wcsac_rl import SACLagLoss
+
+    trainer = make_trainer(compose_config("env=tiny", "algo=cal"), tmp_path / "r")
+    try:
+        loss = trainer.loss
+        assert isinstance(loss, SACLagLoss) and loss.safety_critic_kind == "mean"
+        head = loss.safety_head
+        assert (head.members, head.reading, head.k_ucb, head.target) == (4, "ucb", 0.5, "own")
+        assert (loss.damp_scale, loss.constraint.damp_clamp) == (10.0, True)
+        assert (loss.kappa_states, loss.kappa_actions, loss.kappa_statistic) == (
+            "replay",
+            "replay",
+            "mean",
+        )
+        assert loss.constraint.parametrization == "log"
+        gamma, steps, d = 0.99, loss.max_episode_steps, 15.0
+        assert loss.cost_gamma == gamma
+        threshold = d * (1 - gamma**steps) / ((1 - gamma) * steps)
+        assert float(loss.cost_threshold) == pytest.approx(threshold, rel=1e-6)
+        trainer.run()
+        batch = trainer.sample()
+        with torch.no_grad():
+            members = head.values(batch, loss.safety_network_params).mean  # [4, B], buffer a
+        centred = members - members.mean(0)
+        by_hand = members.mean(0) + 0.5 * (centred.pow(2).sum(0) / 3).sqrt()
+        loss.eval()
+        out = loss(batch.clone())
+        magnitude = 1.0 + by_hand.abs().max()
+        assert_close_f32(out["cvar"], by_hand.mean(), ops=64, magnitude=magnitude)
+        expected = (loss.kappa * (threshold - by_hand)).mean()
+        assert_close_f32(out["loss_kappa"], expected, ops=64, magnitude=magnitude)
+    finally:
+        trainer.close()
+
+
+def test_algo_cal_is_risk_neutral(tmp_path):
+    line = "algo=cal is risk-neutral (algo.risk_level=1); use algo=wcsac for α < 1"
+    with pytest.raises(ConfigError, match=f"^{re.escape(line)}$"):
+        make_trainer(compose_config("env=tiny", "algo=cal", "algo.risk_level=0.5"), tmp_path / "r")
+    assert not (tmp_path / "r").exists()

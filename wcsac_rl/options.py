@@ -41,6 +41,7 @@ __all__ = [
     "KAPPA_STATISTICS",
     "LOSS_OPTIONS",
     "PAPER_OPTIONS",
+    "SAFETY_ALGOS",
     "SAFETY_CRITIC_KINDS",
     "SAVED_RUN_VALUES",
     "VARIANCE_LOSSES",
@@ -65,6 +66,8 @@ __all__ = [
 ]
 
 # ------------------------------------------------------------------ allowed values
+SAFETY_ALGOS = ("wcsac", "sac_lag", "cal")
+"""The algorithms (``algo.name``) with a safety critic and κ: these options are theirs."""
 SAFETY_CRITIC_KINDS = ("gaussian", "iqn")
 """What :func:`~wcsac_rl.modules.make_safety_critic` builds (``kind``)."""
 ENSEMBLE_TARGETS = ("own", "max")

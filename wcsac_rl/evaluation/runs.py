@@ -42,6 +42,7 @@ EVALUATION_JSON = "evaluation.json"
 ROW_ORDER: tuple[str, ...] = (
     "sac",
     "sac_lag",
+    "cal",
     "wcsac_0.9",
     "wcsac_0.5",
     "wcsac_0.1",
@@ -60,6 +61,7 @@ ROW_NAMES: dict[str, str] = {
     "sac": "SAC",
     "sac_lag": "SAC-Lag",
     "sac_lag_paper": "SAC-Lag-paper",
+    "cal": "CAL",
     "cpo": "CPO",
     "random": "Random Policy",
 }

@@ -157,7 +157,7 @@ def _unknown_message(key: str, known: Iterable[str], where: str) -> str:
     ):
         return (
             f"unknown config key {key}: an option of the safety critic and κ, which the "
-            f"{where} config does not have (algo=wcsac and algo=sac_lag do)"
+            f"{where} config does not have (algo=wcsac, sac_lag and cal do)"
         )
     return (
         f"unknown config key {key}{_suggestion(key, known)}: not a key of the {where} config "
