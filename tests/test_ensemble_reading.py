@@ -503,3 +503,20 @@ def test_algo_cal_is_risk_neutral(tmp_path):
     with pytest.raises(ConfigError, match=f"^{re.escape(line)}$"):
         make_trainer(compose_config("env=tiny", "algo=cal", "algo.risk_level=0.5"), tmp_path / "r")
     assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("target", [False, True])
+def test_a_batched_iqn_ensembles_skipped_reading_draws_what_its_reading_draws(target):
+    """The members share one draw of fractions per reading, and so does a skip (the
+    n-step targets' at ``(s', a')``): the random stream after it is the reading's."""
+    ensemble, _ = _losses(kind="iqn", ensemble_reading="ucb")
+    params = ensemble.target_safety_network_params if target else ensemble.safety_network_params
+    torch.manual_seed(3)
+    values = ensemble.safety_head.values(make_batch(8), params, target=target)
+    after_reading = torch.get_rng_state()
+    torch.manual_seed(3)
+    ensemble.safety_head.skip_reading(params, target=target)
+    assert torch.equal(torch.get_rng_state(), after_reading)
+    assert values.fractions.shape == (3, 20) and torch.equal(
+        values.fractions[0], values.fractions[2]
+    )

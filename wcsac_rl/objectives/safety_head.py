@@ -126,6 +126,17 @@ class SafetyHead:
         result is not needed keeps the random stream, and every result after it, as they
         were when it was made."""
 
+    def action_cvar(
+        self, tensordict: TensorDictBase, params: TensorDictBase, action: Tensor
+    ) -> Tensor:
+        """Γ at the states of ``tensordict`` and ``action`` ``[*B, A]``, shaped ``[*B]``,
+        no gradient, deterministic (an IQN head's midpoints): what a shield reads."""
+        batch, flat = tensordict.batch_size, tensordict.reshape(-1)
+        with torch.no_grad():
+            action = action.reshape(flat.numel(), action.shape[-1])
+            values = self.values(flat, params.detach(), action, stratified=False)
+            return self.cvar(values).reshape(batch)
+
     @property
     def in_keys(self) -> list:
         """What the critic reads from a batch (the entries the loss does not write)."""

@@ -326,23 +326,14 @@ class WCSACLoss(SACLoss):
             bootstrap_truncated=cost_bootstrap_truncated,
         )
         self.safety_head = make_safety_head(
-            self.safety_network,
-            self.tensor_keys,
-            risk_level=self.risk_level,
-            nonnegative_cost=self.nonnegative_cost,
-            variance_loss=variance_loss,
-            variance_target=variance_target,
-            num_quantiles=num_quantiles,
-            num_target_quantiles=num_target_quantiles,
-            huber_kappa=huber_kappa,
-            members=self.num_safety_nets,
-            ensemble_target=ensemble_target,
-            ensemble_reading=ensemble_reading,
-            k_ucb=k_ucb,
-            prior_scale=prior_scale,
-            k_ucb_lr=k_ucb_lr,
-            k_ucb_max=k_ucb_max,
-        )
+            self.safety_network, self.tensor_keys, risk_level=self.risk_level,
+            nonnegative_cost=self.nonnegative_cost, variance_loss=variance_loss,
+            variance_target=variance_target, num_quantiles=num_quantiles,
+            num_target_quantiles=num_target_quantiles, huber_kappa=huber_kappa,
+            members=self.num_safety_nets, ensemble_target=ensemble_target,
+            ensemble_reading=ensemble_reading, k_ucb=k_ucb, k_ucb_lr=k_ucb_lr,
+            k_ucb_max=k_ucb_max, prior_scale=prior_scale,
+        )  # fmt: skip
         for name in ("prior", "pessimism"):  # (buffers: no optimizer trains them)
             setattr(self, f"safety_{name}", getattr(self.safety_head, name, None))
         self.constraint_signal = ConstraintSignal(
@@ -615,16 +606,7 @@ class WCSACLoss(SACLoss):
         (:class:`~wcsac_rl.modules.CriticShield`): deterministic (an IQN critic is
         read at the midpoints of its tail strata) and, with several safety critics,
         the largest Γ among them, as the actor and κ read it."""
-        batch = tensordict.batch_size
-        flat = tensordict.reshape(-1)
-        with torch.no_grad():
-            values = self.safety_head.values(
-                flat,
-                self.safety_network_params.detach(),
-                action.reshape(flat.numel(), action.shape[-1]),
-                stratified=False,
-            )
-            return self.safety_head.cvar(values).reshape(batch)
+        return self.safety_head.action_cvar(tensordict, self.safety_network_params, action)
 
     # ---------------------------------------------------------------- targets
     def compute_targets(self, tensordict: TensorDictBase) -> dict[str, Tensor]:
