@@ -24,7 +24,14 @@ from wcsac_rl.training import ConfigError, make_trainer
 from wcsac_rl.training.config_keys import check_override_keys
 
 PLAIN = {"cost_n_steps": 1, "kappa_states": "replay", "risk_level": 0.5}
-ENSEMBLE_ONLY = ("ensemble_reading", "prior_scale", "k_ucb", "k_ucb_lr", "k_ucb_max")
+ENSEMBLE_ONLY = (
+    "ensemble_reading",
+    "ensemble_target",
+    "prior_scale",
+    "k_ucb",
+    "k_ucb_lr",
+    "k_ucb_max",
+)
 
 
 def _losses(members=3, kind="gaussian", **kwargs):
@@ -520,3 +527,28 @@ def test_a_batched_iqn_ensembles_skipped_reading_draws_what_its_reading_draws(ta
     assert values.fractions.shape == (3, 20) and torch.equal(
         values.fractions[0], values.fractions[2]
     )
+
+
+def test_merged_targets_pool_every_members_target_quantiles_by_hand():
+    """``ensemble_target="merged"`` (TQC, COX-Q): each member regresses on all the
+    members' target quantiles, pooled and sorted: ``c + γ·sort(Z̄_0 ∪ Z̄_1)``."""
+    member = make_safety_head(
+        linear_quantile_critic(), WCSACLoss.default_keys(), risk_level=0.5, nonnegative_cost=False
+    )
+    head = EnsembleHead(member, members=2, target="merged", reading="tqc")
+    quantiles = torch.tensor([[[0.0, 2.0], [5.0, 6.0]], [[1.0, 3.0], [4.0, 7.0]]])  # [E, B, N']
+    ahead = SafetyValues(quantiles.mean(-1), None, quantiles)
+    cost, gamma, alive = torch.tensor([1.0, 0.0]), torch.tensor(0.5), torch.tensor([1.0, 0.0])
+    targets = head.targets(cost, gamma, alive, ahead)["cost_target_quantiles"]
+    # row 0: 1 + 0.5·[0, 1, 2, 3]; row 1: terminated, the cost alone
+    expected = torch.tensor([[1.0, 1.5, 2.0, 2.5], [0.0, 0.0, 0.0, 0.0]])
+    assert targets.shape == (2, 2, 4) and torch.equal(targets, expected.expand(2, 2, 4))
+    line = (
+        "ensemble_target=merged pools the members' target quantiles: it needs "
+        "safety_critic=iqn, got a gaussian critic"
+    )
+    with pytest.raises(ValueError, match=f"^{re.escape(line)}$"):
+        _losses(members=2, ensemble_target="merged")
+    loss, _ = _losses(kind="iqn", ensemble_target="merged", ensemble_reading="tqc")
+    out = loss(make_batch(8))  # (each member's loss against the 3·20 pooled targets)
+    assert torch.isfinite(out["loss_cost_quantile"])

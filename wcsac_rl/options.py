@@ -70,7 +70,7 @@ SAFETY_ALGOS = ("wcsac", "sac_lag", "cal")
 """The algorithms (``algo.name``) with a safety critic and κ: these options are theirs."""
 SAFETY_CRITIC_KINDS = ("gaussian", "iqn")
 """What :func:`~wcsac_rl.modules.make_safety_critic` builds (``kind``)."""
-ENSEMBLE_TARGETS = ("own", "max")
+ENSEMBLE_TARGETS = ("own", "max", "merged")
 ENSEMBLE_READINGS = ("max", "ucb", "tqc")
 """Where several safety critics bootstrap from, and how their Γ is read
 (:class:`~wcsac_rl.objectives.safety_head.EnsembleHead`)."""
@@ -462,9 +462,10 @@ class SafetyOptions:
     )
     ensemble_target: str = option(
         "own",
-        "num_safety_nets > 1: own (each critic bootstraps from its own target critic) or "
+        "num_safety_nets > 1: own (each critic bootstraps from its own target critic), "
         "max (all bootstrap, per row, from the member whose target value is largest: "
-        "TD3's clipped double-Q, turned pessimistic for a cost)",
+        "TD3's clipped double-Q, turned pessimistic for a cost) or merged (IQN critics: "
+        "all from every member's target quantiles pooled, TQC's and COX-Q's)",
         "choice",
         choices=ENSEMBLE_TARGETS,
         saved_run="own",
@@ -855,6 +856,11 @@ def check_ensemble_reading(
         raise ValueError(
             f"{prefix}ensemble_reading=ucb reads the members' disagreement: each bootstraps "
             f"from its own target ({prefix}ensemble_target=own), got {ensemble_target}"
+        )
+    if ensemble_target == "merged" and kind is not None and kind != "iqn":
+        raise ValueError(
+            f"{prefix}ensemble_target=merged pools the members' target quantiles: it needs "
+            f"{prefix}safety_critic=iqn, got a {kind} critic"
         )
     if reading == "tqc" and kind is not None and kind != "iqn":
         raise ValueError(

@@ -43,7 +43,8 @@ class EnsembleHead(SafetyHead):
       target value (Q̄^c, the mean) is largest there — TD3's clipped double-Q, which
       bootstraps from the smaller reward value, turned pessimistic for a cost, so
       that an under-estimate the actor has found in one member is not copied back
-      through the bootstrap;
+      through the bootstrap; ``"merged"`` (IQN members): every member's from all the
+      members' target quantiles pooled (TQC's target, COX-Q's);
     * :meth:`loss`: each member's TD loss, summed over the members (TorchRL's SAC
       sums its reward critics' losses the same way), so with ``target="own"`` each
       member's gradient is exactly its own single-critic gradient;
@@ -237,15 +238,21 @@ class EnsembleHead(SafetyHead):
         self, cost: Tensor, gamma: Tensor, alive: Tensor, ahead: SafetyValues
     ) -> dict[str, Tensor | None]:
         """Each member's targets, stacked ``[members, *B, ...]``: from its own target
-        critic (``target="own"``), or all from the member whose target value is the
-        largest, row by row (``"max"``; the rows' picks among ``ahead``'s members)."""
+        critic (``target="own"``), all from the member whose target value is the
+        largest, row by row (``"max"``; the rows' picks among ``ahead``'s members), or
+        (IQN members) all from every member's target quantiles pooled and sorted, ``[*B,
+        members · N']`` (``"merged"``: TQC's target, COX-Q's)."""
         if self.target == "own":
             return self._stack_dicts(
                 [self.member.targets(cost, gamma, alive, v) for v in self._each(ahead)]
             )
-        rows = {"mean": ahead.mean, "variance": ahead.variance, "quantiles": ahead.quantiles}
-        pessimistic = SafetyValues(**self._pick(ahead.mean.argmax(0), rows))
-        shared = self.member.targets(cost, gamma, alive, pessimistic)
+        if self.target == "merged":
+            pooled = self._pool(ahead.quantiles).sort(-1).values
+            shared = self.member.targets(cost, gamma, alive, SafetyValues(quantiles=pooled))
+        else:
+            rows = {"mean": ahead.mean, "variance": ahead.variance, "quantiles": ahead.quantiles}
+            pessimistic = SafetyValues(**self._pick(ahead.mean.argmax(0), rows))
+            shared = self.member.targets(cost, gamma, alive, pessimistic)
         return {
             key: None if value is None else value.expand(self.members, *value.shape)
             for key, value in shared.items()
@@ -267,11 +274,16 @@ class EnsembleHead(SafetyHead):
         """Each member's Γ, ``[members, *B]``."""
         return torch.stack([self.member.cvar(v) for v in self._each(values)])
 
+    @staticmethod
+    def _pool(quantiles: Tensor) -> Tensor:
+        """``[members, *B, N]`` as one pool per row, ``[*B, members · N]``."""
+        quantiles = quantiles.movedim(0, -2)
+        return quantiles.reshape(*quantiles.shape[:-2], -1)
+
     def merged_quantiles(self, values: SafetyValues) -> Tensor:
         """Every member's quantiles of a row in one pool, ``[*B, members · N]`` (each
         at least 0 with ``nonnegative_cost``)."""
-        quantiles = values.quantiles.movedim(0, -2)
-        quantiles = quantiles.reshape(*quantiles.shape[:-2], -1)
+        quantiles = self._pool(values.quantiles)
         return quantiles.clamp(min=0.0) if self.nonnegative_cost else quantiles
 
     def cvar(self, values: SafetyValues) -> Tensor:
