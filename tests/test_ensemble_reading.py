@@ -413,8 +413,9 @@ def test_the_loss_adapts_k_ucb_from_the_batchs_episode_costs_and_reads_it():
         ensemble(batch.clone())
     batch["episode_cvar"] = torch.full((16, 1), 40.0)  # d = 15: 25 over, k + 0.02·25
     ensemble.train()
-    ensemble(batch.clone())
+    out = ensemble(batch.clone())
     assert_close_f32(ensemble.safety_pessimism.k, torch.tensor(1.0), ops=8, magnitude=1.0)
+    sum(v for k, v in out.items() if k.startswith("loss_")).backward()  # (k moved after use)
     ensemble.eval()  # (evaluation mode reads, and does not move, k)
     ensemble(batch.clone())
     assert_close_f32(ensemble.safety_pessimism.k, torch.tensor(1.0), ops=8, magnitude=1.0)

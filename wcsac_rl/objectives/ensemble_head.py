@@ -158,7 +158,8 @@ class EnsembleHead(SafetyHead):
             self.pessimism.step(tensordict.get(self.keys.episode_cvar), cost_limit)
 
     def _k(self):
-        return self.k_ucb if self.pessimism is None else self.pessimism.k
+        # (a copy: the adaptive k moves in place after the actor loss has read it)
+        return self.k_ucb if self.pessimism is None else self.pessimism.k.clone()
 
     def read_through_module(self) -> None:
         self.member.read_through_module()

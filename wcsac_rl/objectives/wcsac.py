@@ -334,8 +334,10 @@ class WCSACLoss(SACLoss):
             ensemble_reading=ensemble_reading, k_ucb=k_ucb, k_ucb_lr=k_ucb_lr,
             k_ucb_max=k_ucb_max, prior_scale=prior_scale,
         )  # fmt: skip
-        for name in ("prior", "pessimism"):  # (buffers: no optimizer trains them)
-            setattr(self, f"safety_{name}", getattr(self.safety_head, name, None))
+        for name in ("prior", "pessimism"):  # (buffers, moved in place: no optimizer's)
+            part = getattr(self.safety_head, name, None)
+            part = None if part is None else part.to(self.log_alpha.device)
+            setattr(self, f"safety_{name}", part)
         self.constraint_signal = ConstraintSignal(
             self.safety_head,
             self.tensor_keys,
