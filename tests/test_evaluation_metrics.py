@@ -140,11 +140,13 @@ def test_cvar_key_and_row_names_and_order():
         "Random Policy",
     ]
     shuffled = ["random", "mine", "wcsac_0.1", "cpo", "wcsac_0.7", "sac", "wcsac_0.5"]
-    shuffled += ["wcsac_0.9", "sac_lag_paper", "sac_lag"]
+    shuffled += ["wcsac_0.9", "sac_lag_paper", "cal", "sac_lag", "sac_lag_d7.5"]
     assert sorted(shuffled, key=row_sort_key) == [
         "sac",
         "sac_lag",
         "sac_lag_paper",
+        "sac_lag_d7.5",
+        "cal",
         "wcsac_0.9",
         "wcsac_0.7",
         "wcsac_0.5",

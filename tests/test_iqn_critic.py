@@ -615,10 +615,15 @@ def test_kappa_loss_holds_the_documented_statistic_under_the_threshold(
 
 # ----------------------------------------------------------------- compile
 @pytest.mark.slow
-def test_forward_compiles_with_fullgraph_and_matches_eager():
+@pytest.mark.parametrize(
+    "options",
+    [{}, {"num_safety_nets": 3, "ensemble_reading": "tqc", "prior_scale": 1.0}],
+    ids=["single", "tqc_ensemble"],
+)
+def test_forward_compiles_with_fullgraph_and_matches_eager(options):
     import torch._inductor.config as inductor_config
 
-    loss = make_loss(width=16)
+    loss = make_loss(width=16, **options)
     batch = make_batch()
     compiled = torch.compile(loss, fullgraph=True)
     with inductor_config.patch(fallback_random=True):

@@ -262,7 +262,7 @@ def test_max_target_needs_several_critics_and_a_known_name(tmp_path):
     with pytest.raises(ValueError, match=re.escape(message)):
         WCSACLoss(actor, qvalues, critic, ensemble_target="max", **PLAIN)
     with pytest.raises(
-        ValueError, match=re.escape("ensemble_target must be one of own, max, got 'min'")
+        ValueError, match=re.escape("ensemble_target must be one of own, max, merged, got 'min'")
     ):
         WCSACLoss(actor, qvalues, critic, num_safety_nets=2, ensemble_target="min", **PLAIN)
     for overrides, line in (
@@ -272,7 +272,7 @@ def test_max_target_needs_several_critics_and_a_known_name(tmp_path):
         ),
         (
             ["algo.num_safety_nets=2", "algo.ensemble_target=mean"],
-            "algo.ensemble_target must be one of own, max, got 'mean'",
+            "algo.ensemble_target must be one of own, max, merged, got 'mean'",
         ),
     ):
         with pytest.raises(ConfigError, match=re.escape(line)):

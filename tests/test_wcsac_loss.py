@@ -566,25 +566,49 @@ def test_multi_step_value_estimators_are_refused():
 
 
 # ------------------------------------------------------------------ compile
+# the UCB ensemble (CAL's reading) with random priors, an adaptive k_ucb and the
+# clamped rectification: every new part of the loss inside the one graph
+UCB_ENSEMBLE = {
+    "num_safety_nets": 4,
+    "ensemble_reading": "ucb",
+    "prior_scale": 1.0,
+    "k_ucb_lr": 0.01,
+    "damp_scale": 10.0,
+    "damp_clamp": True,
+}
+
+
 @pytest.mark.slow
-def test_forward_compiles_with_fullgraph_and_matches_eager():
+@pytest.mark.parametrize("options", [{}, UCB_ENSEMBLE], ids=["single", "ucb_ensemble"])
+def test_forward_compiles_with_fullgraph_and_matches_eager(options):
     import torch._inductor.config as inductor_config
 
-    loss = make_loss(risk_level=0.1, width=16)
+    loss = make_loss(risk_level=0.1, width=16, **options)
     batch = make_batch()
+    if options:
+        batch["episode_cvar"] = torch.full((16, 1), 30.0)  # (k_ucb moves by 0.01·15)
+        k_ucb = loss.safety_pessimism.k.clone()
     compiled = torch.compile(loss, fullgraph=True)
     with inductor_config.patch(fallback_random=True):
         torch.manual_seed(0)
         got = compiled(batch.clone())
+        if options:
+            # the compiled backward first (as a training step does, before k moves again)
+            sum(v for k, v in got.items() if k.startswith("loss_")).backward()
+            stepped = loss.safety_pessimism.k.clone()
+            loss.safety_pessimism.k.copy_(k_ucb)  # (the eager update starts where it did)
         torch.manual_seed(0)
         expected = loss(batch.clone())
+    if options:
+        assert_close_f32(stepped, k_ucb + 0.15, ops=4, magnitude=1.0)
+        assert torch.equal(stepped, loss.safety_pessimism.k)
     for key in expected.keys():
         # inductor fuses and reorders the whole update (3 layers of width 16 over a batch
         # of 16, the losses' sums and means): a few hundred roundings of terms of order
         # 1 + |value| for these small networks, and terms cancel in e.g. κ(d − Γ)
         assert_close_f32(got[key], expected[key], ops=512, magnitude=1.0 + expected[key].abs())
-    total = sum(v for k, v in got.items() if k.startswith("loss_"))
-    total.backward()
+    if not options:
+        sum(v for k, v in got.items() if k.startswith("loss_")).backward()
     assert loss.kappa_raw.grad is not None
 
 

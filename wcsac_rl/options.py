@@ -31,6 +31,7 @@ from typing import Any
 
 __all__ = [
     "CONSTRAINT_RULES",
+    "ENSEMBLE_READINGS",
     "ENSEMBLE_TARGETS",
     "EPISODE_STATISTICS",
     "KAPPA_ACTIONS",
@@ -40,6 +41,7 @@ __all__ = [
     "KAPPA_STATISTICS",
     "LOSS_OPTIONS",
     "PAPER_OPTIONS",
+    "SAFETY_ALGOS",
     "SAFETY_CRITIC_KINDS",
     "SAVED_RUN_VALUES",
     "VARIANCE_LOSSES",
@@ -49,6 +51,7 @@ __all__ = [
     "PIDGains",
     "SafetyOptions",
     "ShieldOptions",
+    "check_ensemble_reading",
     "check_ensemble_target",
     "check_fields",
     "check_kappa_bound",
@@ -63,10 +66,13 @@ __all__ = [
 ]
 
 # ------------------------------------------------------------------ allowed values
+SAFETY_ALGOS = ("wcsac", "sac_lag", "cal")
+"""The algorithms (``algo.name``) with a safety critic and κ: these options are theirs."""
 SAFETY_CRITIC_KINDS = ("gaussian", "iqn")
 """What :func:`~wcsac_rl.modules.make_safety_critic` builds (``kind``)."""
-ENSEMBLE_TARGETS = ("own", "max")
-"""Where several safety critics bootstrap from
+ENSEMBLE_TARGETS = ("own", "max", "merged")
+ENSEMBLE_READINGS = ("max", "ucb", "tqc")
+"""Where several safety critics bootstrap from, and how their Γ is read
 (:class:`~wcsac_rl.objectives.safety_head.EnsembleHead`)."""
 VARIANCE_LOSSES = ("w2", "mse", "glm")
 """The Gaussian head's variance TD losses (:mod:`~wcsac_rl.objectives.variance`)."""
@@ -431,6 +437,13 @@ class SafetyOptions:
     damp_scale: float = option(
         0.0, "MDMM damping of κ in the actor loss (kappa_rule=gradient)", "number", low=0.0
     )
+    damp_clamp: bool = option(
+        False,
+        "the damping term at most κ, so the actor's weight stays >= 0 (CAL's rectification; "
+        "false: the authors' unclamped damp)",
+        "flag",
+        saved_run=False,
+    )
     safety_critic: str = option(
         "gaussian",
         "gaussian (mean and variance networks) or iqn (implicit quantile network)",
@@ -442,19 +455,59 @@ class SafetyOptions:
     num_safety_nets: int = option(
         1,
         "how many safety critics (each its own initialisation, target and TD loss); "
-        "the actor and κ read the largest Γ among them",
+        "the actor, κ and the shield read them as ensemble_reading says",
         "integer",
         low=1,
         saved_run=1,
     )
     ensemble_target: str = option(
         "own",
-        "num_safety_nets > 1: own (each critic bootstraps from its own target critic) or "
+        "num_safety_nets > 1: own (each critic bootstraps from its own target critic), "
         "max (all bootstrap, per row, from the member whose target value is largest: "
-        "TD3's clipped double-Q, turned pessimistic for a cost)",
+        "TD3's clipped double-Q, turned pessimistic for a cost) or merged (IQN critics: "
+        "all from every member's target quantiles pooled, TQC's and COX-Q's)",
         "choice",
         choices=ENSEMBLE_TARGETS,
         saved_run="own",
+    )
+    ensemble_reading: str = option(
+        "max",
+        "num_safety_nets > 1: the Γ the actor, κ and the shield read: max (the largest "
+        "member's), ucb (mean + k_ucb·std over the members, CAL) or tqc (IQN critics: "
+        "the CVaR_α of every member's quantiles merged, COX-Q)",
+        "choice",
+        choices=ENSEMBLE_READINGS,
+        saved_run="max",
+    )
+    k_ucb: float = option(
+        0.5,
+        "ensemble_reading=ucb: the weight of the members' standard deviation (CAL's k)",
+        "number",
+        low=0.0,
+        saved_run=0.5,
+    )
+    k_ucb_lr: float = option(
+        0.0,
+        "ensemble_reading=ucb: adaptive pessimism (CAP): k_ucb moves by this × (the "
+        "episode window's cost − d) per update, within [0, k_ucb_max]; 0: k_ucb fixed",
+        "number",
+        low=0.0,
+        saved_run=0.0,
+    )
+    k_ucb_max: float = option(
+        2.0,
+        "k_ucb_lr > 0: the largest k_ucb",
+        "number",
+        low=0.0,
+        saved_run=2.0,
+    )
+    prior_scale: float = option(
+        0.0,
+        "num_safety_nets > 1: a fixed random network per member, times this, added to "
+        "its cost value (randomized prior functions; 0: none)",
+        "number",
+        low=0.0,
+        saved_run=0.0,
     )
     iqn: IQNOptions = field(
         default_factory=IQNOptions,
@@ -649,7 +702,7 @@ class SafetyOptions:
         kwargs = {f.name: getattr(self, f.name) for f in _loss_fields(self)}
         kwargs.update({f.name: getattr(self.iqn, f.name) for f in _loss_fields(self.iqn)})
         if self.kappa_rule == "pid":
-            kwargs["damp_scale"] = 0.0
+            kwargs["damp_scale"], kwargs["damp_clamp"] = 0.0, False
         else:
             del kwargs["pid"]
         iqn = self.safety_critic == "iqn"
@@ -751,6 +804,68 @@ def check_ensemble_target(ensemble_target: str, num_safety_nets: int, prefix: st
         raise ValueError(
             f"{prefix}ensemble_target={ensemble_target} picks among several safety critics: "
             f"it needs {prefix}num_safety_nets >= 2"
+        )
+
+
+def check_ensemble_reading(
+    reading: str,
+    num_safety_nets: int,
+    *,
+    ensemble_target: str = "own",
+    prior_scale: float = 0.0,
+    kind: str | None = None,
+    k_ucb: float = 0.5,
+    k_ucb_lr: float = 0.0,
+    k_ucb_max: float = 2.0,
+    prefix: str = "",
+) -> None:
+    """``ensemble_reading`` and ``prior_scale`` beside the ensemble they read: a reading
+    other than ``"max"``, or a prior, needs several safety critics; ``"ucb"`` reads
+    their disagreement, so each bootstraps from its own target; ``"tqc"`` merges
+    quantiles, so the critics are IQN ones (``kind``: the critic's, unchecked when
+    ``None``); ``k_ucb_lr`` > 0 adapts the UCB reading's ``k_ucb`` within
+    ``[0, k_ucb_max]``. One ``ValueError`` line naming the options with ``prefix``, for the
+    config and the loss."""
+    check_value(
+        f"{prefix}ensemble_reading", reading, option_spec(SafetyOptions, "ensemble_reading")
+    )
+    for name, value in (
+        ("prior_scale", prior_scale),
+        ("k_ucb", k_ucb),
+        ("k_ucb_lr", k_ucb_lr),
+        ("k_ucb_max", k_ucb_max),
+    ):
+        check_value(f"{prefix}{name}", value, option_spec(SafetyOptions, name))
+    if num_safety_nets < 2 and (reading != "max" or prior_scale > 0):
+        what = f"ensemble_reading={reading}" if reading != "max" else "prior_scale > 0"
+        raise ValueError(
+            f"{prefix}{what} reads an ensemble of safety critics: it needs "
+            f"{prefix}num_safety_nets >= 2, got {num_safety_nets}"
+        )
+    if k_ucb_lr > 0 and reading != "ucb":
+        raise ValueError(
+            f"{prefix}k_ucb_lr={k_ucb_lr:g} adapts the UCB reading's k_ucb: it needs "
+            f"{prefix}ensemble_reading=ucb, got {reading}"
+        )
+    if k_ucb_lr > 0 and not k_ucb <= k_ucb_max:
+        raise ValueError(
+            f"{prefix}k_ucb must be <= {prefix}k_ucb_max ({k_ucb_max:g}) with "
+            f"{prefix}k_ucb_lr > 0, got {k_ucb:g}"
+        )
+    if reading == "ucb" and ensemble_target != "own":
+        raise ValueError(
+            f"{prefix}ensemble_reading=ucb reads the members' disagreement: each bootstraps "
+            f"from its own target ({prefix}ensemble_target=own), got {ensemble_target}"
+        )
+    if ensemble_target == "merged" and kind is not None and kind != "iqn":
+        raise ValueError(
+            f"{prefix}ensemble_target=merged pools the members' target quantiles: it needs "
+            f"{prefix}safety_critic=iqn, got a {kind} critic"
+        )
+    if reading == "tqc" and kind is not None and kind != "iqn":
+        raise ValueError(
+            f"{prefix}ensemble_reading=tqc merges the members' quantiles: it needs "
+            f"{prefix}safety_critic=iqn, got a {kind} critic"
         )
 
 

@@ -304,7 +304,7 @@ def table1_rows(evaluations: Sequence[Evaluation], cost_limit: float) -> list[di
 def _constrained_column(label: str) -> str | None:
     """The column the row's agent constrains (bold in the paper's Table 1)."""
     label, _ = split_row_label(label)
-    if label == "sac_lag" or label.startswith("sac_lag_d"):
+    if label in ("sac_lag", "cal") or label.startswith("sac_lag_d"):
         return "EC"
     if label.startswith("wcsac_"):
         try:

@@ -19,6 +19,7 @@ from typing import Any
 
 import torch
 
+from wcsac_rl.options import SAFETY_ALGOS  # (the conf/algo entries with a safety critic)
 from wcsac_rl.rollouts.critic_calibration import (
     CALIBRATION_KEYS,
     PREFIX,
@@ -53,8 +54,6 @@ __all__ = [
 ]
 
 CALIBRATION_JSON = "calibration.json"
-SAFETY_ALGOS = ("wcsac", "sac_lag")
-"""The ``conf/algo`` entries whose loss has a safety critic."""
 
 
 class CalibrationExistsError(ConfigError):

@@ -60,6 +60,7 @@ ROW_NAMES: dict[str, str] = {
     "sac": "SAC",
     "sac_lag": "SAC-Lag",
     "sac_lag_paper": "SAC-Lag-paper",
+    "cal": "CAL",
     "cpo": "CPO",
     "random": "Random Policy",
 }
@@ -140,6 +141,8 @@ def row_sort_key(label: str) -> tuple[int, float, str]:
         return (ROW_ORDER.index(label), 0.0, label)
     if label == "sac_lag_paper":
         return (ROW_ORDER.index("sac_lag"), 1.0, label)
+    if label == "cal":  # (not a row of the paper: after SAC-Lag's)
+        return (ROW_ORDER.index("sac_lag"), 3.0, label)
     at = _SAC_LAG_AT.fullmatch(label)
     if at:  # after SAC-Lag-paper, the largest limit first
         try:

@@ -64,7 +64,12 @@ class GradientLagrangian(nn.Module):
         parametrization (str): ``"softplus"`` (κ = softplus(raw), the authors' code) or
             ``"log"`` (κ = exp(raw)).
         damp_scale (float): MDMM damping: the actor's penalty weight is
-            ``κ − damp_scale · mean(threshold − signal)``. ``0``: none.
+            ``κ − damp_scale · mean(threshold − signal)`` (the authors' ``damp``).
+            ``0``: none.
+        damp_clamp (bool): the damping term at most κ, so the weight is
+            ``κ − min(damp_scale · mean(threshold − signal), κ) ≥ 0``: CAL's
+            rectification (Wu et al. 2024, ``clamp(c·mean(d̂ − Q̂), max=λ)``). ``False``:
+            unclamped, the authors' (a large slack then makes the weight negative).
         kappa_max (float, optional): an upper bound of κ (``None``: none, the paper).
             κ never exceeds it, and ``kappa_raw`` is projected back under it at every
             :meth:`step` (OmniSafe's ``lagrangian_upper_bound``), so a long violation
@@ -95,6 +100,7 @@ class GradientLagrangian(nn.Module):
         damp_scale: float = 0.0,
         kappa_max: float | None = None,
         kappa_min: float = 0.0,
+        damp_clamp: bool = False,
     ) -> None:
         super().__init__()
         if parametrization not in KAPPA_PARAMETRIZATIONS:
@@ -106,7 +112,7 @@ class GradientLagrangian(nn.Module):
             raise ValueError(f"damp_scale must be >= 0, got {damp_scale}")
         check_kappa_bound(kappa_init, kappa_max, self.rule, kappa_min=kappa_min)
         self.parametrization = parametrization
-        self.damp_scale = float(damp_scale)
+        self.damp_scale, self.damp_clamp = float(damp_scale), bool(damp_clamp)
         self.kappa_max = None if kappa_max is None else float(kappa_max)
         self.kappa_min = float(kappa_min)
         self.kappa_raw = nn.Parameter(torch.tensor(self._raw(kappa_init)))
@@ -153,11 +159,13 @@ class GradientLagrangian(nn.Module):
             return self.multiplier()
 
     def penalty_weight(self, signal: Tensor, threshold: Tensor) -> Tensor:
-        """κ's weight on Γ in the actor loss (detached): κ, minus the damping term."""
+        """κ's weight on Γ in the actor loss (detached): κ, minus the damping term
+        (with ``damp_clamp``, at most κ)."""
         kappa = self.kappa
         if self.damp_scale == 0.0:
             return kappa
-        return kappa - self.damp_scale * (threshold - signal).mean()
+        damp = self.damp_scale * (threshold - signal).mean()
+        return kappa - (torch.minimum(damp, kappa) if self.damp_clamp else damp)
 
     def loss(self, signal: Tensor, threshold: Tensor) -> Tensor:
         """``κ · (threshold − signal)`` per row (signal detached): descending it raises κ
@@ -182,7 +190,8 @@ class GradientLagrangian(nn.Module):
         bound = "" if self.kappa_max is None else f", kappa_max={self.kappa_max}"
         floor = "" if not self.kappa_min else f", kappa_min={self.kappa_min}"
         return (
-            f"parametrization={self.parametrization!r}, damp_scale={self.damp_scale}{bound}{floor}"
+            f"parametrization={self.parametrization!r}, damp_scale={self.damp_scale}"
+            f"{', damp_clamp=True' if self.damp_clamp else ''}{bound}{floor}"
         )
 
 
@@ -295,6 +304,7 @@ def make_constraint(
     kappa_max: float | None = None,
     kappa_min: float = 0.0,
     pid: PIDGains | dict | None = None,
+    damp_clamp: bool = False,
 ) -> GradientLagrangian | PIDLagrangian:
     """The constraint for ``rule`` (``"gradient"`` or ``"pid"``) with its options.
 
@@ -307,7 +317,9 @@ def make_constraint(
     if rule == "gradient":
         if pid is not None:
             raise ValueError("pid gains apply to kappa_rule='pid' only (kappa_rule='gradient')")
-        return GradientLagrangian(kappa_init, parametrization, damp_scale, kappa_max, kappa_min)
+        return GradientLagrangian(
+            kappa_init, parametrization, damp_scale, kappa_max, kappa_min, damp_clamp
+        )
     check_kappa_bound(kappa_init, kappa_max, rule)  # (the floor: PIDLagrangian checks it)
     if damp_scale:
         raise ValueError(

@@ -208,10 +208,11 @@ def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
             )
         )
     signal = loss.tensor_keys.episode_cvar
-    if getattr(loss, "kappa_signal", "critic") != "critic" and signal not in keys:
+    adaptive = getattr(getattr(loss, "safety_head", None), "reads_episode_costs", False)
+    if (getattr(loss, "kappa_signal", "critic") != "critic" or adaptive) and signal not in keys:
         wanted.append(
             (
-                f"kappa_signal={loss.kappa_signal!r}",
+                "k_ucb_lr > 0" if adaptive else f"kappa_signal={loss.kappa_signal!r}",
                 "the recent episodes' cost",
                 signal,
                 "window = EpisodeCostWindow.for_loss(loss); window.add_episodes(data); "

@@ -14,7 +14,8 @@ the kind) through a small interface:
   the CVaR_α of the critic's distribution mixed over the rows;
 * :meth:`~SafetyHead.estimates` — its outputs for diagnostics (calibration).
 
-Two heads:
+Two heads, and an ensemble of either
+(:class:`~wcsac_rl.objectives.ensemble_head.EnsembleHead`, in its own module):
 
 * :class:`GaussianHead` — the paper's ``C(s, a) ~ N(Q^c, V^c)`` (a mean and a variance
   network; Eq. 7–9), or the mean alone (SAC-Lagrangian, where Γ = Q^c);
@@ -27,7 +28,7 @@ their targets, which ``SoftUpdate`` finds by name) and hands them to every call.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -48,11 +49,18 @@ from wcsac_rl.objectives.risk import (
     quantile_mixture_cvar,
 )
 from wcsac_rl.objectives.variance import variance_regression_loss
-from wcsac_rl.options import VARIANCE_LOSSES, VARIANCE_TARGETS, check_ensemble_target
+from wcsac_rl.options import (
+    VARIANCE_LOSSES,
+    VARIANCE_TARGETS,
+    check_ensemble_reading,
+    check_ensemble_target,
+)
+
+if TYPE_CHECKING:
+    from wcsac_rl.objectives.ensemble_head import EnsembleHead
 
 __all__ = [
     "VARIANCE_TARGETS",
-    "EnsembleHead",
     "GaussianHead",
     "IQNHead",
     "SafetyHead",
@@ -118,6 +126,17 @@ class SafetyHead:
         result is not needed keeps the random stream, and every result after it, as they
         were when it was made."""
 
+    def action_cvar(
+        self, tensordict: TensorDictBase, params: TensorDictBase, action: Tensor
+    ) -> Tensor:
+        """Γ at the states of ``tensordict`` and ``action`` ``[*B, A]``, shaped ``[*B]``,
+        no gradient, deterministic (an IQN head's midpoints): what a shield reads."""
+        batch, flat = tensordict.batch_size, tensordict.reshape(-1)
+        with torch.no_grad():
+            action = action.reshape(flat.numel(), action.shape[-1])
+            values = self.values(flat, params.detach(), action, stratified=False)
+            return self.cvar(values).reshape(batch)
+
     @property
     def in_keys(self) -> list:
         """What the critic reads from a batch (the entries the loss does not write)."""
@@ -133,6 +152,13 @@ class SafetyHead:
         """A :class:`~wcsac_rl.objectives.critic_ensemble.FusedCritics` evaluating the
         reward critics and this one at once, or ``None`` (call the modules)."""
         return None
+
+    reads_episode_costs = False
+    """Whether :meth:`adapt` reads the recent episodes' cost (an ensemble's adaptive
+    ``k_ucb``)."""
+
+    def adapt(self, tensordict: TensorDictBase, cost_limit: float) -> None:
+        """Adapt the head's reading to the batch's episode costs (none here)."""
 
     def read_through_module(self) -> None:
         """Evaluate the network through its module call from now on (a head that reads
@@ -559,182 +585,13 @@ class IQNHead(SafetyHead):
         }
 
 
-class EnsembleHead(SafetyHead):
-    """``members`` safety critics of one kind, read pessimistically: the largest Γ.
+def __getattr__(name: str):
+    # EnsembleHead lives in its own module, which builds on this one
+    if name == "EnsembleHead":
+        from wcsac_rl.objectives.ensemble_head import EnsembleHead
 
-    Each member is an independent critic of the ``member`` head's kind (its own
-    initialisation, its own target network, its own TD loss against its own targets);
-    the loss holds their parameters stacked along a leading dimension of size
-    ``members`` (TorchRL's convention for the twin reward critics). Every reading
-    returns the members' :class:`SafetyValues` stacked the same way, ``[members, *B]``.
-
-    * :meth:`targets`: ``target="own"``: each member's from its own target critic;
-      ``"max"``: per row, every member's from the target critic of the member whose
-      target value (Q̄^c, the mean) is largest there — TD3's clipped double-Q, which
-      bootstraps from the smaller reward value, turned pessimistic for a cost, so
-      that an under-estimate the actor has found in one member is not copied back
-      through the bootstrap;
-    * :meth:`loss`: each member's TD loss, summed over the members (TorchRL's SAC
-      sums its reward critics' losses the same way), so with ``target="own"`` each
-      member's gradient is exactly its own single-critic gradient;
-    * :meth:`cvar`: Γ(s, a, α) = ``max_k Γ_k(s, a, α)``, the actor's and κ's reading:
-      where the members disagree (state-actions the data has not pinned down, e.g. a
-      route the policy has just found), the most pessimistic one counts;
-    * :meth:`mixture_cvar`: the largest member's CVaR of its own mixture over the rows;
-    * :meth:`diagnostics` and :meth:`estimates`: per row, the member whose Γ is the
-      largest (so ``cost_value``, ``cost_variance`` and ``cvar`` belong together).
-
-    Example:
-        >>> import torch
-        >>> from wcsac_rl.modules import make_safety_critic
-        >>> from wcsac_rl.objectives import WCSACLoss
-        >>> member = GaussianHead(make_safety_critic(3, 1), WCSACLoss.default_keys(),
-        ...                       risk_level=0.5, nonnegative_cost=False)
-        >>> head = EnsembleHead(member, members=2)
-        >>> mean, variance = torch.tensor([[1.0, 5.0], [3.0, 0.0]]), torch.ones(2, 2)
-        >>> head.cvar(SafetyValues(mean, variance))  # max(1.80, 3.80), max(5.80, 0.80)
-        tensor([3.7979, 5.7979])
-    """
-
-    def __init__(self, member: SafetyHead, *, members: int, target: str = "own") -> None:
-        _check_count("members", members)
-        if members < 2:
-            raise ValueError(f"an ensemble needs members >= 2, got {members}")
-        check_ensemble_target(target, members)
-        super().__init__(
-            member.network,
-            member.keys,
-            risk_level=member.risk_level,
-            nonnegative_cost=member.nonnegative_cost,
-        )
-        self.member, self.members, self.target = member, int(members), target
-
-    kind = property(lambda self: self.member.kind)
-    has_variance = property(lambda self: self.member.has_variance)
-    loss_names = property(lambda self: self.member.loss_names)
-    diagnostic_names = property(lambda self: self.member.diagnostic_names)
-    in_keys = property(lambda self: self.member.in_keys)
-
-    def unfused_reason(self) -> str:
-        return (
-            f"fuse_critics=True: {self.members} safety critics (num_safety_nets) are "
-            "read one after the other, not fused with the reward critics; use "
-            "fuse_critics=None"
-        )
-
-    def _each(self, values: SafetyValues) -> list[SafetyValues]:
-        return [
-            SafetyValues(*(None if v is None else v[k] for v in values))
-            for k in range(self.members)
-        ]
-
-    @staticmethod
-    def _stack(readings: list) -> SafetyValues:
-        return SafetyValues(*(None if v[0] is None else torch.stack(v) for v in zip(*readings)))
-
-    @staticmethod
-    def _stack_dicts(each: list[dict]) -> dict:
-        """The members' dicts of tensors (``None`` where a head has none) stacked per key."""
-        return {
-            key: None if each[0][key] is None else torch.stack([d[key] for d in each])
-            for key in each[0]
-        }
-
-    def values(
-        self,
-        tensordict: TensorDictBase,
-        params: TensorDictBase,
-        action: Tensor | None = None,
-        *,
-        target: bool = False,
-        stratified: bool = True,
-    ) -> SafetyValues:
-        """Every member's values (``params``: stacked ``[members, ...]``), ``[members, *B]``."""
-        return self._stack(
-            [
-                self.member.values(
-                    tensordict, params[k], action, target=target, stratified=stratified
-                )
-                for k in range(self.members)
-            ]
-        )
-
-    def skip_reading(
-        self, params: TensorDictBase, *, target: bool = False, stratified: bool = True
-    ) -> None:
-        for k in range(self.members):
-            self.member.skip_reading(params[k], target=target, stratified=stratified)
-
-    def targets(
-        self, cost: Tensor, gamma: Tensor, alive: Tensor, ahead: SafetyValues
-    ) -> dict[str, Tensor | None]:
-        """Each member's targets, stacked ``[members, *B, ...]``: from its own target
-        critic (``target="own"``), or all from the member whose target value is the
-        largest, row by row (``"max"``; the rows' picks among ``ahead``'s members)."""
-        if self.target == "own":
-            return self._stack_dicts(
-                [self.member.targets(cost, gamma, alive, v) for v in self._each(ahead)]
-            )
-        rows = {"mean": ahead.mean, "variance": ahead.variance, "quantiles": ahead.quantiles}
-        pessimistic = SafetyValues(**self._pick(ahead.mean.argmax(0), rows))
-        shared = self.member.targets(cost, gamma, alive, pessimistic)
-        return {
-            key: None if value is None else value.expand(self.members, *value.shape)
-            for key, value in shared.items()
-        }
-
-    def loss(self, values: SafetyValues, targets: dict[str, Tensor]) -> dict[str, Tensor]:
-        """Per row: each term summed over the members."""
-        each = [
-            self.member.loss(v, {k: None if t is None else t[m] for k, t in targets.items()})
-            for m, v in enumerate(self._each(values))
-        ]
-        return {name: sum(terms[name] for terms in each) for name in each[0]}
-
-    def variance_target(self, targets: dict[str, Tensor], cost_value: Tensor) -> Tensor:
-        """The member head's variance target, member by member (stacked in, stacked out)."""
-        return self.member.variance_target(targets, cost_value)
-
-    def member_cvars(self, values: SafetyValues) -> Tensor:
-        """Each member's Γ, ``[members, *B]``."""
-        return torch.stack([self.member.cvar(v) for v in self._each(values)])
-
-    def cvar(self, values: SafetyValues) -> Tensor:
-        """Γ = the largest member's Γ per row, ``[*B]``."""
-        return self.member_cvars(values).max(0)[0]
-
-    def mixture_cvar(self, values: SafetyValues, weights: Tensor | None = None) -> Tensor:
-        """The largest of the members' mixture CVaRs (0-dim)."""
-        return torch.stack([self.member.mixture_cvar(v, weights) for v in self._each(values)]).max()
-
-    def row_shape(self, values: SafetyValues) -> torch.Size:
-        return values.mean.shape[1:]
-
-    @staticmethod
-    def _pick(pick: Tensor, readings: dict) -> dict:
-        """``readings`` (each ``[members, *B, ...]``) of member ``pick`` (``[*B]``) per row."""
-        out = {}
-        for name, value in readings.items():
-            if value is None:
-                out[name] = None
-                continue
-            index = pick.reshape(1, *pick.shape, *([1] * (value.dim() - 1 - pick.dim())))
-            out[name] = value.gather(0, index.expand(1, *value.shape[1:])).squeeze(0)
-        return out
-
-    def diagnostics(self, values: SafetyValues) -> dict[str, Tensor | None]:
-        """The detached ``cost_value`` and ``cost_variance`` of the member with the
-        largest Γ, per row."""
-        values = values.detach()
-        return self._pick(self.member_cvars(values).argmax(0), self.member.diagnostics(values))
-
-    def estimates(self, tensordict: TensorDictBase, params: TensorDictBase) -> dict[str, Tensor]:
-        """The member head's estimates of the member with the largest Γ per row
-        (``cvar`` is then :meth:`cvar`)."""
-        stacked = self._stack_dicts(
-            [self.member.estimates(tensordict, params[k]) for k in range(self.members)]
-        )
-        return self._pick(stacked["cvar"].argmax(0), stacked)
+        return EnsembleHead
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _check_count(name: str, count) -> None:
@@ -755,6 +612,11 @@ def make_safety_head(
     huber_kappa: float = 1.0,
     members: int = 1,
     ensemble_target: str = "own",
+    ensemble_reading: str = "max",
+    k_ucb: float = 0.5,
+    prior_scale: float = 0.0,
+    k_ucb_lr: float = 0.0,
+    k_ucb_max: float = 2.0,
 ) -> GaussianHead | IQNHead | EnsembleHead:
     """The head for ``network``: the one place that decides the safety critic's kind.
 
@@ -764,10 +626,21 @@ def make_safety_head(
     Gaussian head's ``variance_loss`` / ``variance_target`` are refused for an IQN
     critic unless left at their defaults. ``members`` > 1: that many critics of the
     kind, read by an :class:`EnsembleHead` (their parameters stacked), bootstrapping
-    as ``ensemble_target`` says (``"max"`` needs ``members`` > 1).
+    as ``ensemble_target`` says (``"max"`` needs ``members`` > 1), read as
+    ``ensemble_reading`` says (with ``k_ucb``, adapted by ``k_ucb_lr`` within
+    ``[0, k_ucb_max]``), each with a random prior of ``prior_scale`` (0: none).
     """
     _check_count("num_safety_nets", members)
     check_ensemble_target(ensemble_target, members)
+    check_ensemble_reading(
+        ensemble_reading,
+        members,
+        ensemble_target=ensemble_target,
+        prior_scale=prior_scale,
+        k_ucb=k_ucb,
+        k_ucb_lr=k_ucb_lr,
+        k_ucb_max=k_ucb_max,
+    )
     head = _make_member_head(
         network,
         keys,
@@ -779,7 +652,20 @@ def make_safety_head(
         num_target_quantiles=num_target_quantiles,
         huber_kappa=huber_kappa,
     )
-    return head if members == 1 else EnsembleHead(head, members=members, target=ensemble_target)
+    if members == 1:
+        return head
+    from wcsac_rl.objectives.ensemble_head import EnsembleHead  # (it builds on this module)
+
+    return EnsembleHead(
+        head,
+        members=members,
+        target=ensemble_target,
+        reading=ensemble_reading,
+        k_ucb=k_ucb,
+        prior_scale=prior_scale,
+        k_ucb_lr=k_ucb_lr,
+        k_ucb_max=k_ucb_max,
+    )
 
 
 def _make_member_head(

@@ -113,16 +113,13 @@ class WCSACLoss(SACLoss):
             adds to collected data.
         nonnegative_cost (bool): ``max(Q^c, 0)`` wherever Q^c is *used* (targets, Γ),
             not where it is fitted.
-        num_safety_nets (int): how many safety critics (default 1, the paper). With more,
-            each has its own target network and TD loss (summed over them), and the actor
-            and κ read the largest Γ among them
-            (:class:`~wcsac_rl.objectives.safety_head.EnsembleHead`): pessimism where
-            the critics disagree. Given one module, the others are re-drawn from it as
-            TorchRL's ``expand_dim`` does; given a list, each keeps its own initialisation.
-        ensemble_target (str): with ``num_safety_nets`` > 1, where the critics bootstrap:
-            ``"own"`` (each from its own target critic) or ``"max"`` (per row, all from
-            the member whose target value is largest: TD3's clipped double-Q, turned
-            pessimistic for a cost).
+        num_safety_nets (int): how many safety critics (default 1, the paper), each with
+            its own target network and TD loss (summed over them); given one module, the
+            others are re-drawn from it as TorchRL's ``expand_dim`` does.
+        ensemble_target, ensemble_reading (str), k_ucb, k_ucb_lr, k_ucb_max, prior_scale
+            (float): with ``num_safety_nets`` > 1, where the critics bootstrap, how the
+            actor, κ and the shield read them (the largest Γ, mean + k_ucb·std adapted
+            by k_ucb_lr, merged quantiles) and their random priors (:class:`~wcsac_rl.objectives.ensemble_head.EnsembleHead`).
         variance_loss, variance_target (str): the Gaussian head's variance TD loss and
             target (:class:`~wcsac_rl.objectives.safety_head.GaussianHead`).
         num_quantiles, num_target_quantiles (int), huber_kappa (float): the IQN head's
@@ -136,9 +133,9 @@ class WCSACLoss(SACLoss):
             training update of this many and hold it in the others
             (:class:`~wcsac_rl.objectives.constraint_signal.HeldStatistic`; 1: every
             update).
-        kappa_init (float), kappa_parametrization (str), damp_scale (float), kappa_max
-            (float, optional), kappa_min (float), kappa_rule (str), pid (PIDGains or
-            dict): κ and how it moves
+        kappa_init (float), kappa_parametrization (str), damp_scale (float), damp_clamp
+            (bool), kappa_max (float, optional), kappa_min (float), kappa_rule (str), pid
+            (PIDGains or dict): κ and how it moves
             (:mod:`wcsac_rl.objectives.constraint`); ``pid=None``: the default gains. The
             PID rule steps in :meth:`forward` while the loss is in training mode.
 
@@ -264,6 +261,7 @@ class WCSACLoss(SACLoss):
         kappa_signal: str = SafetyOptions.kappa_signal,
         kappa_signal_every: int = SafetyOptions.kappa_signal_every,
         damp_scale: float = SafetyOptions.damp_scale,
+        damp_clamp: bool = SafetyOptions.damp_clamp,
         kappa_max: float | None = SafetyOptions.kappa_max,
         kappa_min: float = SafetyOptions.kappa_min,
         kappa_rule: str = SafetyOptions.kappa_rule,
@@ -278,6 +276,11 @@ class WCSACLoss(SACLoss):
         num_qvalue_nets: int = 2,
         num_safety_nets: int = SafetyOptions.num_safety_nets,
         ensemble_target: str = SafetyOptions.ensemble_target,
+        ensemble_reading: str = SafetyOptions.ensemble_reading,
+        k_ucb: float = SafetyOptions.k_ucb,
+        k_ucb_lr: float = SafetyOptions.k_ucb_lr,
+        k_ucb_max: float = SafetyOptions.k_ucb_max,
+        prior_scale: float = SafetyOptions.prior_scale,
         loss_function: str = "l2",
         check_finite: bool = False,
         **sac_kwargs,
@@ -323,18 +326,18 @@ class WCSACLoss(SACLoss):
             bootstrap_truncated=cost_bootstrap_truncated,
         )
         self.safety_head = make_safety_head(
-            self.safety_network,
-            self.tensor_keys,
-            risk_level=self.risk_level,
-            nonnegative_cost=self.nonnegative_cost,
-            variance_loss=variance_loss,
-            variance_target=variance_target,
-            num_quantiles=num_quantiles,
-            num_target_quantiles=num_target_quantiles,
-            huber_kappa=huber_kappa,
-            members=self.num_safety_nets,
-            ensemble_target=ensemble_target,
-        )
+            self.safety_network, self.tensor_keys, risk_level=self.risk_level,
+            nonnegative_cost=self.nonnegative_cost, variance_loss=variance_loss,
+            variance_target=variance_target, num_quantiles=num_quantiles,
+            num_target_quantiles=num_target_quantiles, huber_kappa=huber_kappa,
+            members=self.num_safety_nets, ensemble_target=ensemble_target,
+            ensemble_reading=ensemble_reading, k_ucb=k_ucb, k_ucb_lr=k_ucb_lr,
+            k_ucb_max=k_ucb_max, prior_scale=prior_scale,
+        )  # fmt: skip
+        for name in ("prior", "pessimism"):  # (buffers, moved in place: no optimizer's)
+            part = getattr(self.safety_head, name, None)
+            part = None if part is None else part.to(self.log_alpha.device)
+            setattr(self, f"safety_{name}", part)
         self.constraint_signal = ConstraintSignal(
             self.safety_head,
             self.tensor_keys,
@@ -347,6 +350,7 @@ class WCSACLoss(SACLoss):
         constraint = make_constraint(
             kappa_rule, kappa_init=kappa_init, parametrization=kappa_parametrization,
             damp_scale=damp_scale, kappa_max=kappa_max, kappa_min=kappa_min, pid=pid,
+            damp_clamp=damp_clamp,
         )  # fmt: skip
         device = self.log_alpha.device
         self.constraint = constraint.to(device)
@@ -459,7 +463,7 @@ class WCSACLoss(SACLoss):
             if self.kappa_states == "initial":
                 initial = self.tensor_keys.initial_states
                 keys.update(nested_key(initial, key) for key in states)
-            if self.kappa_signal != "critic":
+            if self.kappa_signal != "critic" or head.reads_episode_costs:
                 keys.add(self.tensor_keys.episode_cvar)
             self._in_keys = list(keys)
 
@@ -604,16 +608,7 @@ class WCSACLoss(SACLoss):
         (:class:`~wcsac_rl.modules.CriticShield`): deterministic (an IQN critic is
         read at the midpoints of its tail strata) and, with several safety critics,
         the largest Γ among them, as the actor and κ read it."""
-        batch = tensordict.batch_size
-        flat = tensordict.reshape(-1)
-        with torch.no_grad():
-            values = self.safety_head.values(
-                flat,
-                self.safety_network_params.detach(),
-                action.reshape(flat.numel(), action.shape[-1]),
-                stratified=False,
-            )
-            return self.safety_head.cvar(values).reshape(batch)
+        return self.safety_head.action_cvar(tensordict, self.safety_network_params, action)
 
     # ---------------------------------------------------------------- targets
     def compute_targets(self, tensordict: TensorDictBase) -> dict[str, Tensor]:
@@ -852,6 +847,7 @@ class WCSACLoss(SACLoss):
             # a controller's update (the PID rule's; the gradient rule's does nothing),
             # after this batch's actor loss used the current κ
             self.constraint.step(signal.detach(), self.cost_threshold)
+            self.safety_head.adapt(tensordict, self.cost_limit)  # (an adaptive k_ucb)
         if self.reduction == "none":
             td_out = TensorDict(out, batch_size=tensordict.batch_size)
             if self.scalar_output_mode == "non_tensor":

@@ -41,7 +41,7 @@ from wcsac_rl.objectives import (
     WCSACLoss,
     param_groups,
 )
-from wcsac_rl.options import SafetyOptions
+from wcsac_rl.options import SAFETY_ALGOS, SafetyOptions
 from wcsac_rl.training.config import safety_options
 from wcsac_rl.training.devices import RunDevices, run_devices
 from wcsac_rl.training.replay import NStepReplayBuffer, nested_key
@@ -163,7 +163,7 @@ def make_agent(cfg: DictConfig, env: EnvBase, devices: RunDevices | None = None)
     )
     qvalues = [make_qvalue(obs_dim, act_dim, **shape) for _ in range(2)]
     safety = None
-    if cfg.algo.name in ("wcsac", "sac_lag"):
+    if cfg.algo.name in SAFETY_ALGOS:
         options = safety_options(cfg.algo)
         kwargs = safety_critic_kwargs(options)
         # one module, or num_safety_nets of them, each initialised on its own
@@ -200,12 +200,12 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
     if algo.name == "sac":
         loss = SACLoss(agent.actor, agent.qvalues, num_qvalue_nets=2, **common)
     else:
-        cls = SACLagLoss if algo.name == "sac_lag" else WCSACLoss
+        cls = SACLagLoss if algo.name in ("sac_lag", "cal") else WCSACLoss
         # every option the loss reads, from the one definition (wcsac_rl/options.py):
         # checked, typed, what a run saved before an option existed did where it lacks one
         options = safety_options(algo).loss_kwargs()
         if algo.name != "wcsac":
-            del options["risk_level"]  # (SAC-Lag is α = 1)
+            del options["risk_level"]  # (SAC-Lag and CAL are α = 1)
         loss = cls(
             agent.actor,
             agent.qvalues,
@@ -225,7 +225,7 @@ def make_collection_policy(cfg: DictConfig, loss: LossModule, policy: TanhNormal
     ``algo.shield.candidates >= 2`` (WCSAC, SAC-Lag), ``policy`` behind a
     :class:`~wcsac_rl.modules.CriticShield` reading ``loss``'s safety critic, its
     threshold ``algo.shield.scale`` × the loss's ``cost_threshold`` (read at each step)."""
-    if cfg.algo.name not in ("wcsac", "sac_lag"):
+    if cfg.algo.name not in SAFETY_ALGOS:
         return policy
     shield = safety_options(cfg.algo).shield
     if not shield.candidates:

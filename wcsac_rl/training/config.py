@@ -11,7 +11,9 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
 from wcsac_rl.options import (
+    SAFETY_ALGOS,
     SafetyOptions,
+    check_ensemble_reading,
     check_ensemble_target,
     check_kappa_bound,
     check_shield_candidates,
@@ -31,7 +33,7 @@ __all__ = [
     "validate_config",
 ]
 
-OFF_POLICY_ALGOS = ("wcsac", "sac_lag", "sac")
+OFF_POLICY_ALGOS = (*SAFETY_ALGOS, "sac")
 ON_POLICY_ALGOS = ("cpo",)
 ALGOS = (*OFF_POLICY_ALGOS, *ON_POLICY_ALGOS, "random")
 
@@ -206,13 +208,13 @@ def _validate_user_env(cfg: DictConfig) -> None:
 def _validate_risk(cfg: DictConfig, algo: str) -> None:
     try:
         validate_risk_level(cfg.risk_level)
-        if algo in ("wcsac", "sac_lag"):
+        if algo in SAFETY_ALGOS:
             validate_risk_level(cfg.algo.risk_level, name="algo.risk_level")
     except ValueError as err:
         raise ConfigError(str(err)) from None
-    if algo == "sac_lag" and float(cfg.algo.risk_level) != 1.0:
+    if algo in ("sac_lag", "cal") and float(cfg.algo.risk_level) != 1.0:
         raise ConfigError(
-            "algo=sac_lag is risk-neutral (algo.risk_level=1); use algo=wcsac for α < 1"
+            f"algo={algo} is risk-neutral (algo.risk_level=1); use algo=wcsac for α < 1"
         )
     try:
         validate_cost_limit(cfg.cost_limit)
@@ -282,7 +284,7 @@ def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
     _validate_collector(cfg)
     if algo in OFF_POLICY_ALGOS:
         _validate_off_policy(cfg)
-    if algo in ("wcsac", "sac_lag"):
+    if algo in SAFETY_ALGOS:
         collector = cfg.algo.collector
         learning_frames = max(0, cfg.total_frames - collector.init_random_frames)
         _validate_safety_keys(
@@ -391,6 +393,17 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int)
         )
     try:
         check_ensemble_target(options.ensemble_target, options.num_safety_nets, prefix="algo.")
+        check_ensemble_reading(
+            options.ensemble_reading,
+            options.num_safety_nets,
+            ensemble_target=options.ensemble_target,
+            prior_scale=options.prior_scale,
+            kind=options.safety_critic,
+            k_ucb=options.k_ucb,
+            k_ucb_lr=options.k_ucb_lr,
+            k_ucb_max=options.k_ucb_max,
+            prefix="algo.",
+        )
         check_signal_every(
             options.kappa_signal_every, options.kappa_states, options.kappa_statistic, "algo."
         )

@@ -146,6 +146,19 @@ def _suggestion(key: str, known: Iterable[str]) -> str:
 
 
 def _unknown_message(key: str, known: Iterable[str], where: str) -> str:
+    from wcsac_rl.options import SafetyOptions  # (no torch: --help stays light)
+
+    parts, known = key.split("."), set(known)
+    if (
+        len(parts) > 1
+        and parts[0] == "algo"
+        and parts[1] in SafetyOptions.__dataclass_fields__
+        and f"algo.{parts[1]}" not in known  # (the algorithm has no safety critic)
+    ):
+        return (
+            f"unknown config key {key}: an option of the safety critic and κ, which the "
+            f"{where} config does not have (algo=wcsac, sac_lag and cal do)"
+        )
     return (
         f"unknown config key {key}{_suggestion(key, known)}: not a key of the {where} config "
         f"(see {CONF_DIR.name}/ for the keys)"

@@ -74,7 +74,10 @@ class OffPolicyTrainer(Trainer):
         if getattr(self.loss, "kappa_states", "replay") == "initial":
             self.initial_state_buffer = builders.make_initial_state_buffer(cfg, self.loss)
         self.episode_window = None
-        if getattr(self.loss, "kappa_signal", "critic") != "critic":
+        head = getattr(self.loss, "safety_head", None)
+        if getattr(self.loss, "kappa_signal", "critic") != "critic" or (
+            getattr(head, "reads_episode_costs", False)  # (an adaptive k_ucb)
+        ):
             self.episode_window = builders.make_episode_window(cfg, self.loss)
         self.updates_per_batch = max(
             1, round(int(collector_cfg.frames_per_batch) * float(collector_cfg.utd_ratio))

@@ -25,6 +25,7 @@ TRAINERS = MappingProxyType(
     {
         "wcsac": OffPolicyTrainer,
         "sac_lag": OffPolicyTrainer,
+        "cal": OffPolicyTrainer,
         "sac": OffPolicyTrainer,
         "cpo": OnPolicyTrainer,
         "random": RandomPolicyTrainer,
