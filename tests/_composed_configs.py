@@ -22,6 +22,8 @@ CONF = Path(__file__).resolve().parents[1] / "conf"
 FIXTURE = Path(__file__).parent / "data" / "composed_configs.json"
 
 ALGOS = ("wcsac", "wcsac_paper", "sac", "sac_lag", "sac_lag_paper", "cpo", "random")
+# every selectable algorithm: the recorded ones and those added after the recording
+ALL_ALGOS = (*ALGOS, "cal")
 ENVS = ("static", "dynamic", "tiny", "point_goal1", "point_goal2", "gymnasium")
 GYMNASIUM_ID = "env.id=MyTask-v0"  # (env=gymnasium needs an id; none is imported here)
 

@@ -18,7 +18,7 @@ import sys
 import pytest
 import yaml
 from _composed_configs import (
-    ALGOS,
+    ALL_ALGOS,
     CONF,
     ENVS,
     FIXTURE,
@@ -42,6 +42,11 @@ NEW_KEYS = {
     # key into the job config, only its choice into Hydra's runtime node.)
     "algo.recipe",
 }
+ADDED_OPTIONS = ("ensemble_reading", "k_ucb", "k_ucb_lr", "k_ucb_max", "prior_scale", "damp_clamp")
+# ... and the safety-critic options added after the recording (the ensemble's readings,
+# random priors, adaptive pessimism, the clamped damping): present wherever the safety
+# options are, each at SafetyOptions' default, which reads the ensemble and damps κ as
+# before they existed.
 PAPER_VARIANTS = ("wcsac_paper", "sac_lag_paper")
 PAPER_LEAKED = {
     # the kit's recipe leaked into the paper variants: the episode window of κ's
@@ -79,7 +84,10 @@ def test_the_fixture_records_every_combination():
 @pytest.mark.parametrize("overrides", combinations(), ids=key)
 def test_each_combination_composes_what_was_recorded(overrides):
     then, now = RECORDED[key(overrides)], compose_leaves(overrides)
-    assert set(now) - set(then) == NEW_KEYS
+    added = {f"algo.{name}" for name in ADDED_OPTIONS} if "algo.num_safety_nets" in then else set()
+    assert set(now) - set(then) == NEW_KEYS | added
+    defaults = leaves(config_defaults(SafetyOptions))
+    assert {k: now[k] for k in added} == {k: defaults[k.removeprefix("algo.")] for k in added}
     assert set(then) - set(now) == set()
     changed = {k for k in then if now[k] != then[k]}
     if overrides[0].removeprefix("experiment=") in EARLIER_RECIPE_EXPERIMENTS:
@@ -101,7 +109,9 @@ def test_the_evidence_runs_in_progress_compose_as_they_began():
     for row in ("wcsac_0.1", "sac_lag", "sac_lag_d1.5"):
         overrides = ("experiment=evidence_static", f"+row={row}")
         now = compose_leaves(overrides)
-        assert {k: v for k, v in now.items() if k not in NEW_KEYS} == RECORDED[key(overrides)]
+        added = {f"algo.{name}" for name in ADDED_OPTIONS}
+        kept = {k: v for k, v in now.items() if k not in NEW_KEYS | added}
+        assert kept == RECORDED[key(overrides)]
 
 
 # ---------------------------------------------------------------- the paper's, everywhere
@@ -166,8 +176,8 @@ def test_every_recipe_is_at_most_two_files_and_says_which():
     """algo.recipe names the algorithm's file and, where it has one, its layout file,
     and both exist; a layout file is read by its own algorithm only."""
     layouts = layout_files(CONF)
-    assert algorithm_files(CONF) == sorted(ALGOS)
-    for algo in ALGOS:
+    assert algorithm_files(CONF) == sorted(ALL_ALGOS)
+    for algo in ALL_ALGOS:
         for env in ENVS:
             recipe = compose_leaves((f"algo={algo}", *env_overrides(env)))["algo.recipe"]
             files = recipe.split(" + ")
@@ -201,7 +211,7 @@ def test_help_lists_only_the_groups_a_user_picks(tmp_path):
     groups = result.stdout.split("== Configuration groups ==")[1].split("== Config ==")[0]
     lines = [line for line in groups.splitlines() if ": " in line]
     assert [line.split(":")[0] for line in lines] == ["algo", "env", "experiment", "logger", "row"]
-    assert lines[0] == f"algo: {', '.join(sorted(ALGOS))}"
+    assert lines[0] == f"algo: {', '.join(sorted(ALL_ALGOS))}"
     for internal in ("schema", "preset", "kappa_advice", "layout", "off_policy"):
         assert internal not in groups
 
@@ -252,7 +262,7 @@ def conf_copy(tmp_path, monkeypatch):
         (
             "wcsca_dynamic.yaml",
             "conf/algo/layout/wcsca_dynamic.yaml is a recipe for no algorithm: 'wcsca_dynamic' "
-            "does not start with one of cpo, random, sac, sac_lag, sac_lag_paper, wcsac, "
+            "does not start with one of cal, cpo, random, sac, sac_lag, sac_lag_paper, wcsac, "
             "wcsac_paper (a layout recipe is named <algorithm>_<env>.yaml)",
         ),
         (
@@ -290,7 +300,7 @@ def test_a_recipe_naming_an_unknown_algorithm_or_other_files_is_refused(tmp_path
         (
             "conf/algo/wcsac2.yaml",
             "error: algo.recipe must start with the algorithm's file (conf/algo/<one of "
-            "cpo, random, sac, sac_lag, sac_lag_paper, wcsac, wcsac_paper>.yaml), got "
+            "cal, cpo, random, sac, sac_lag, sac_lag_paper, wcsac, wcsac_paper>.yaml), got "
             "'conf/algo/wcsac2.yaml'",
         ),
         (
@@ -319,7 +329,7 @@ def test_a_recipe_naming_an_unknown_algorithm_or_other_files_is_refused(tmp_path
 
 
 def test_check_recipe_accepts_what_composes():
-    for algo in ALGOS:
+    for algo in ALL_ALGOS:
         for env in ENVS:
             check_recipe(CONF, recipe_of(CONF, algo, env), env)
 
