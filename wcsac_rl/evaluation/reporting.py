@@ -64,6 +64,7 @@ from wcsac_rl.evaluation.archive import ARCHIVED_FILES, archived_records, needs_
 from wcsac_rl.evaluation.evaluator import (
     DEFAULT_SEED_OFFSET,
     Evaluation,
+    check_env_code_allowed,
     read_evaluation,
     stale_evaluation,
 )
@@ -649,6 +650,9 @@ def build_report(
     sources: list[_TrajectorySource] = []
     if trajectories:
         sources = _trajectory_sources(trajectory_runs, runs, evaluations)
+        for source in sources:  # env code a run names: refused before anything is written
+            if has_checkpoint(source.directory):
+                check_env_code_allowed(source.directory)
         if not sources and trajectory_runs is None:
             warn("no run with a checkpoint: Figure 5 (trajectories) skipped")
     rows, comparison, copies = _plan_outputs(
