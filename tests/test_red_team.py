@@ -110,6 +110,7 @@ TRAIN_PY = [
         "hydra.run.dir=${oc.env:WCSAC_UNSET}/x: the environment variable WCSAC_UNSET is not set",
     ),
     ("seed=${seed}", "seed=${seed} refers to itself; give seed a value"),
+    ("run_name=../../../x", "run_name must be a name without '/'"),
 ]
 
 
@@ -132,6 +133,7 @@ def test_train_py(runs, tmp_path, override, message):
     assert len(errors) == 1
     _one_line(errors[0], message)
     assert not session.exists()  # a refused command leaves no run directory
+    assert list(tmp_path.iterdir()) == []  # nor any other (run_name=../../../x: none outside)
 
 
 # ------------------------------------------------------------- train (in process)
@@ -186,6 +188,7 @@ CONFIG = [
     ),
     ("seed=${seed}", "seed=${seed} cannot be resolved: Recursive interpolation detected"),
     ("+env.kwargs.foo=1", "env.kwargs.foo: env tiny has no option 'foo' (its options: goal_size"),
+    ("run_name=../x", "run_name must be a name without '/' (it names the run's directory"),
 ]
 
 

@@ -393,6 +393,10 @@ def check_interpolations(overrides: list[str]) -> None:
 
     for override in overrides:
         key, sep, value = override.lstrip("+~").partition("=")
+        if sep and key == "run_name" and "${" not in value:
+            from wcsac_rl.training.config import check_run_name  # (imports torch)
+
+            check_run_name(value.strip("'\""))  # (before Hydra makes outputs/<date>/<name>)
         if not sep or "${" not in value:
             continue
         for name, default in re.findall(r"\$\{oc\.env:\s*([^,}\s]+)\s*(,[^}]*)?\}", value):

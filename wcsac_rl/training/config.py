@@ -230,8 +230,21 @@ def machine_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def check_run_name(value: Any) -> None:
+    """``run_name`` names a directory inside ``outputs/<date>/`` and the logger's
+    ``logs/<run_name>/``: a name, not a path (``../../../x`` would put them elsewhere)."""
+    text = str(value)
+    if not text.strip() or "/" in text or "\\" in text or text in (".", "..") or "\n" in text:
+        raise ConfigError(
+            f"run_name must be a name without '/' (it names the run's directory and its "
+            f"logs/<run_name>/), got {value!r}; choose where the run goes with hydra.run.dir"
+        )
+
+
 def _validate_run(cfg: DictConfig) -> None:
     """The run's schedule, checkpoints and switches (the top-level keys)."""
+    if cfg.get("run_name") is not None:
+        check_run_name(cfg.run_name)
     seed = _get(cfg, "seed")
     _positive_int(cfg, "seed", allow_zero=True)  # gymnasium and NumPy need seeds >= 0
     if seed > SEED_MAX:
