@@ -469,6 +469,20 @@ def test_report_reads_only_valid_evaluations(runs, tmp_path, capsys, case, messa
     assert snapshot(tmp_path) == before
 
 
+def test_report_resolves_nothing_in_a_runs_config(runs, tmp_path, capsys, monkeypatch):
+    """A config.yaml whose seed is ``${oc.env:WCSAC_SECRET}``: the report reads no
+    environment variable for it; the run's curves are skipped with one warning."""
+    run = _copy(runs, "wcsac", tmp_path)
+    config = run / "config.yaml"
+    config.write_text(config.read_text().replace("seed: 0", "seed: ${oc.env:WCSAC_SECRET}"))
+    monkeypatch.setenv("WCSAC_SECRET", "0")
+    code = report_main([str(run), "--out", str(tmp_path / "report"), "--no-trajectories"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    (warning,) = [line for line in captured.out.splitlines() if "interpolation" in line]
+    _one_line(warning, "warning: skipped ", "its config holds an interpolation at seed")
+
+
 def test_calibration_of_a_run_whose_env_module_is_gone(runs, tmp_path, capsys):
     """A run of an own env whose module no longer imports: one line naming the module."""
     run = _copy(runs, "wcsac", tmp_path)

@@ -262,16 +262,16 @@ def _stage_hydra_records(argv: list[str]) -> list[str]:
 
     from hydra._internal.utils import get_args_parser
 
-    from wcsac_rl.training.run_dir import HYDRA_STAGING
-
     try:
         args, _ = get_args_parser().parse_known_args(argv)
     except SystemExit:  # a malformed flag: Hydra answers it
         return argv
     if args.help or args.hydra_help or args.info or args.cfg or args.shell_completion:
-        return argv  # (nothing runs: Hydra's answers show the config as it is)
+        return argv  # (nothing runs: Hydra's answers show the config as it is; no torch)
     if any(arg.lstrip("+").startswith("hydra.output_subdir=") for arg in argv):
         return argv
+    from wcsac_rl.training.run_dir import HYDRA_STAGING
+
     return [*argv, f"hydra.output_subdir={HYDRA_STAGING}{os.getpid()}"]
 
 

@@ -88,6 +88,7 @@ from wcsac_rl.training.checkpoint import IDENTITY_KEYS, kept_checkpoints
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
 from wcsac_rl.training.provenance import read_provenance
+from wcsac_rl.training.trust import interpolation_in, plain_select, stored_config
 
 __all__ = [
     "ARCHIVED_FILES",
@@ -173,7 +174,7 @@ class Report:
 
 
 def _read_run(directory: Path) -> RunRecord:
-    cfg = OmegaConf.load(directory / "config.yaml")
+    cfg = stored_config(OmegaConf.load(directory / "config.yaml"), directory / "config.yaml")
     progress_csv = directory / "progress.csv"
     progress = read_progress(progress_csv) if progress_csv.is_file() else None
     return RunRecord(
@@ -426,13 +427,9 @@ def _identity(directory: Path, meta: dict[str, Any] | None = None) -> dict[str, 
     identity: dict[str, str] = {}
     cfg = _session_config(Path(directory))
     for key in POOLED_KEYS:
-        try:
-            value = None if cfg is None else OmegaConf.select(cfg, key, default=None)
-        except Exception:  # an interpolation that does not resolve: not compared
-            value = None
-        if value is not None:
-            plain = OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
-            identity[key] = repr(plain)
+        value = None if cfg is None else plain_select(cfg, key)  # (nothing resolved)
+        if value is not None and interpolation_in(value) is None:
+            identity[key] = repr(value)
     if meta is not None:
         identity["cost_limit"] = repr(float(meta["cost_limit"]))
         identity["evaluation max_episode_steps"] = repr(meta.get("max_episode_steps"))
