@@ -483,6 +483,21 @@ def test_report_resolves_nothing_in_a_runs_config(runs, tmp_path, capsys, monkey
     _one_line(warning, "warning: skipped ", "its config holds an interpolation at seed")
 
 
+def test_report_refuses_a_progress_csv_that_logs_an_epoch_twice(runs, tmp_path, capsys):
+    """Epochs 1, 2, 1: the run's curves and runs.md entry are skipped with one warning
+    (its frames and time would be read from a repeated row)."""
+    run = _copy(runs, "wcsac", tmp_path)
+    progress = run / "progress.csv"
+    lines = progress.read_text().splitlines(keepends=True)
+    progress.write_text("".join([*lines, lines[1]]))
+    code = report_main([str(run), "--out", str(tmp_path / "report"), "--no-trajectories"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    (warning,) = [line for line in captured.out.splitlines() if "logs epoch" in line]
+    _one_line(warning, "warning: skipped ", "progress.csv: line 4 logs epoch 1 again")
+    assert not (tmp_path / "report" / "runs.md").exists()  # (its only run was skipped)
+
+
 def test_calibration_of_a_run_whose_env_module_is_gone(runs, tmp_path, capsys):
     """A run of an own env whose module no longer imports: one line naming the module."""
     run = _copy(runs, "wcsac", tmp_path)

@@ -88,6 +88,7 @@ from wcsac_rl.training.checkpoint import IDENTITY_KEYS, kept_checkpoints
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
 from wcsac_rl.training.provenance import read_provenance
+from wcsac_rl.training.run_dir import check_progress_rows
 from wcsac_rl.training.trust import interpolation_in, plain_select, stored_config
 
 __all__ = [
@@ -176,6 +177,7 @@ class Report:
 def _read_run(directory: Path) -> RunRecord:
     cfg = stored_config(OmegaConf.load(directory / "config.yaml"), directory / "config.yaml")
     progress_csv = directory / "progress.csv"
+    check_progress_rows(directory)  # (an epoch logged twice: its frames would be wrong)
     progress = read_progress(progress_csv) if progress_csv.is_file() else None
     return RunRecord(
         directory=directory,

@@ -318,10 +318,11 @@ def check_own_files(run_dir: Path) -> None:
             )
 
 
-def check_progress_rows(run_dir: Path, epoch: int) -> None:
-    """Refuse (one line naming the epoch) to continue a run whose ``progress.csv`` rows up
-    to the checkpoint's ``epoch`` are not epochs 1, 2, ... once each and in order: a
-    duplicated or missing row would stay in its records (and in a report's frames)."""
+def check_progress_rows(run_dir: Path, epoch: int | None = None) -> None:
+    """Refuse (one line naming the epoch) a run whose ``progress.csv`` rows (up to the
+    checkpoint's ``epoch``; ``None``: all of them) are not epochs 1, 2, ... once each
+    and in order: a resume would keep a duplicated or missing row in its records, and a
+    report would read its frames and time from it."""
     path = Path(run_dir) / "progress.csv"
     if not path.is_file():
         return
@@ -337,14 +338,14 @@ def check_progress_rows(run_dir: Path, epoch: int) -> None:
         if len(row) != len(header):
             continue  # a row cut short by a kill: dropped on resume
         value = _number(row[col])
-        if value is None or value > epoch:
+        if value is None or (epoch is not None and value > epoch):
             continue
         if value != expected:
             what = "again" if value < expected else f"where epoch {expected} belongs"
+            upto = "" if epoch is None else f" up to the checkpoint's epoch {epoch}"
             raise ConfigError(
-                f"{path}: line {number} logs epoch {value:g} {what} (its rows up to the "
-                f"checkpoint's epoch {epoch} must be epochs 1 to {epoch} once each, in order); "
-                "a resume would keep them: restore the run's own progress.csv"
+                f"{path}: line {number} logs epoch {value:g} {what} (its rows{upto} must be "
+                "epochs 1, 2, ... once each, in order): restore the run's own progress.csv"
             )
         expected += 1
 
