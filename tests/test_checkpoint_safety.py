@@ -427,3 +427,21 @@ def test_a_resume_with_its_saved_buffers_still_works(buffered_run, tmp_path):
     finally:
         trainer.close()
     assert load_checkpoint(trainer.checkpoint_path)["frames"] == 1200
+
+
+def test_a_file_beside_the_saved_buffers_is_refused(buffered_run, tmp_path):
+    """``buffers-<frames>/`` holds the directories of the buffers it saved, nothing else:
+    an ``evil.pkl`` beside them (which no manifest lists) is refused, naming it."""
+    run = shutil.copytree(buffered_run, tmp_path / "run")
+    marker = tmp_path / "MARKER"
+    target = next((run / "checkpoints").glob("buffers-*")) / "evil.pkl"
+    _pickle_file(target, {"x": _Touch(marker)})
+    before = tree_digests(run, skip=())
+    cfg = compose_config(*BUFFER_OPTIONS, "total_frames=1200", f"resume={run}")
+    with pytest.raises(ConfigError) as err:
+        make_trainer(cfg, run)
+    message = str(err.value)
+    assert not marker.exists()
+    assert tree_digests(run, skip=()) == before
+    assert "\n" not in message
+    assert f"{target} is not one of its buffers" in message and "to resume without it" in message

@@ -153,7 +153,11 @@ def test_installed_wcsac_train_trains_your_env_from_any_directory(venv, tmp_path
     assert "total_frames=450 is rounded up to 500" in log
     assert log.count("rounded up") == 1
 
-    evaluate = _run([str(bin_dir / "wcsac-evaluate"), str(run_dir), "--episodes", "5"], work, env)
+    evaluate = _run(
+        [str(bin_dir / "wcsac-evaluate"), str(run_dir), "--episodes", "5", "--trust-env-code"],
+        work,
+        env,
+    )
     assert evaluate.returncode == 0, evaluate.stderr[-3000:]
     evaluation = json.loads((run_dir / "evaluation.json").read_text())
     assert evaluation["episodes"] == 5 and evaluation["env"] == "gymnasium"

@@ -15,25 +15,31 @@ that table in step with this file.
 from __future__ import annotations
 
 import csv
+import errno
+import hashlib
 import json
 import math
+import os
 import re
 import shutil
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import pytest
 import torch
 from _loss_helpers import make_batch, make_loss
 from _training_helpers import ROOT, compose_config, tree_digests
+from omegaconf import OmegaConf
 
 from wcsac_rl.calibration import main as calibration_main
 from wcsac_rl.evaluate import main as evaluate_main
 from wcsac_rl.evaluation.evaluator import evaluate_run
 from wcsac_rl.report import main as report_main
-from wcsac_rl.training import ConfigError, make_trainer
+from wcsac_rl.training import ConfigError, TrainingError, make_trainer
 from wcsac_rl.training.checkpoint import load_checkpoint, resume_config
+from wcsac_rl.training.restore import load_run
 
 TINY = ("env=tiny", "env.max_episode_steps=50")
 
@@ -99,6 +105,12 @@ TRAIN_PY = [
     ("algo.batchsize=64", "unknown config key algo.batchsize (did you mean algo.batch_size?)"),
     ("seed=18446744073709551616", "seed must be at most 2**63 - 1"),
     ("resume=KEPT", "is at 400 frames but the run"),
+    (
+        "hydra.run.dir=${oc.env:WCSAC_UNSET}/x",
+        "hydra.run.dir=${oc.env:WCSAC_UNSET}/x: the environment variable WCSAC_UNSET is not set",
+    ),
+    ("seed=${seed}", "seed=${seed} refers to itself; give seed a value"),
+    ("run_name=../../../x", "run_name must be a name without '/'"),
 ]
 
 
@@ -106,9 +118,11 @@ TRAIN_PY = [
 def test_train_py(runs, tmp_path, override, message):
     override = override.replace("KEPT", str(runs / "wcsac" / "checkpoints" / "frames-400.pt"))
     session = tmp_path / "session"
+    environment = {k: v for k, v in os.environ.items() if k != "WCSAC_UNSET"}
     result = subprocess.run(
         [sys.executable, str(ROOT / "train.py"), *TINY, override, f"hydra.run.dir={session}"],
         cwd=tmp_path,
+        env=environment,
         capture_output=True,
         text=True,
         timeout=600,
@@ -119,6 +133,7 @@ def test_train_py(runs, tmp_path, override, message):
     assert len(errors) == 1
     _one_line(errors[0], message)
     assert not session.exists()  # a refused command leaves no run directory
+    assert list(tmp_path.iterdir()) == []  # nor any other (run_name=../../../x: none outside)
 
 
 # ------------------------------------------------------------- train (in process)
@@ -159,6 +174,7 @@ CONFIG = [
     ("total_frames=0", "total_frames must be an integer > 0, got 0"),
     ("epoch_frames=abc", "epoch_frames must be an integer > 0, got 'abc'"),
     ("threads=0", "threads must be an integer > 0, got 0"),
+    ("threads=1000", "threads=1000 is more than this machine's"),
     ("eval_episodes=-1", "eval_episodes must be an integer >= 0, got -1"),
     ("keep_checkpoints_at=[0]", "keep_checkpoints_at must be a list of epochs >= 1"),
     ("compile=yes", "compile must be true or false, got 'yes'"),
@@ -166,11 +182,19 @@ CONFIG = [
     ("device=tpu", "device must be cpu, cuda[:N] or mps, got 'tpu'"),
     ("logger.backend=nope", "logger.backend must be csv, wandb, tensorboard or none"),
     ("+algo.batchsize=64", "unknown config key algo.batchsize (did you mean algo.batch_size?)"),
+    (
+        "cost_limit=${oc.env:WCSAC_UNSET}",
+        "cost_limit=${oc.env:WCSAC_UNSET} cannot be resolved: Environment variable 'WCSAC_UNSET'",
+    ),
+    ("seed=${seed}", "seed=${seed} cannot be resolved: Recursive interpolation detected"),
+    ("+env.kwargs.foo=1", "env.kwargs.foo: env tiny has no option 'foo' (its options: goal_size"),
+    ("run_name=../x", "run_name must be a name without '/' (it names the run's directory"),
 ]
 
 
 @pytest.mark.parametrize(("override", "message"), CONFIG, ids=[o for o, _ in CONFIG])
-def test_train_config(tmp_path, override, message):
+def test_train_config(tmp_path, monkeypatch, override, message):
+    monkeypatch.delenv("WCSAC_UNSET", raising=False)
     with pytest.raises(ConfigError) as err:
         make_trainer(compose_config(*TINY, override), tmp_path / "run")
     _one_line(str(err.value), message)
@@ -207,7 +231,32 @@ RESUME = [
     ("resume=OUTSIDE.pt", "is not inside a run's checkpoints/ directory"),
     ("resume=TRUNCATED", "cannot read checkpoint"),
     ("resume=FOREIGN", "does not belong to the run"),
+    ("resume=CONFIG_5", "last.pt: its config is not a mapping of settings (got int)"),
+    ("resume=CONFIG_TEXT", "last.pt: its config is not a mapping of settings (got str)"),
+    ("resume=FRAMES_ABC", "its 'frames' entry must be a whole number >= 0, got 'abc'"),
+    ("resume=NAN_WEIGHTS", "its networks hold non-finite weights: actor_network_params"),
+    ("resume=PROGRESS_SYMLINK", "progress.csv is a symbolic link (to "),
+    ("resume=DUPLICATE_EPOCHS", "progress.csv: line 4 logs epoch 1 again"),
 ]
+
+CRAFTED = {
+    "CONFIG_5": lambda state: state.update(config=5),
+    "CONFIG_TEXT": lambda state: state.update(config="algo: {name: wcsac"),
+    "FRAMES_ABC": lambda state: state.update(frames="abc"),
+    "NAN_WEIGHTS": lambda state: next(
+        v for k, v in state["learner"]["loss"].items() if k.startswith("actor_network_params")
+    ).fill_(math.nan),
+}
+"""Checkpoint fields a hostile or careless hand edited (``CRAFTED[kind](state)``)."""
+
+
+def _crafted(runs: Path, tmp_path: Path, kind: str) -> Path:
+    run = _copy(runs, "wcsac", tmp_path)
+    path = run / "checkpoints" / "last.pt"
+    state = load_checkpoint(path)
+    CRAFTED[kind](state)
+    torch.save(state, path)
+    return run
 
 
 @pytest.mark.parametrize(("command", "message"), RESUME, ids=[c for c, _ in RESUME])
@@ -226,6 +275,19 @@ def test_resume(runs, tmp_path, command, message):
         target = str(copy)
     elif target == "FOREIGN":
         target = str(_foreign_checkpoint(runs, tmp_path))
+    elif target in CRAFTED:
+        target = str(_crafted(runs, tmp_path, target))
+    elif target in ("PROGRESS_SYMLINK", "DUPLICATE_EPOCHS"):
+        copy = _copy(runs, "wcsac", tmp_path)
+        progress = copy / "progress.csv"
+        if target == "PROGRESS_SYMLINK":  # (a resume would append to the outside file)
+            outside = tmp_path / "outside.csv"
+            progress.rename(outside)
+            progress.symlink_to(outside)
+        else:  # epochs 1, 2, 1: a row logged twice
+            lines = progress.read_text().splitlines(keepends=True)
+            progress.write_text("".join([*lines, lines[1]]))
+        target = str(copy)
     else:
         target = target.replace("RUN", str(run))
     before = snapshot(tmp_path)
@@ -363,6 +425,100 @@ def test_report(runs, tmp_path, capsys, kind, args, message):
     assert not out.exists() or not [p for p in out.rglob("*") if p.name.endswith(".tmp")]
 
 
+EVALUATION_FILES = [
+    ("evaluation.json: 5", "evaluation.json: not an evaluation (a JSON object), got int"),
+    ('"env": ["tiny"]', "evaluation.json: 'env' must be a string, got ['tiny']"),
+    ('"cost_limit": "abc"', "evaluation.json: 'cost_limit' must be a number >= 0, got 'abc'"),
+    ("evaluation.csv: a NaN cost", "evaluation.csv: episode row 0: cost must be a finite number"),
+]
+
+
+def _edit_evaluation(run: Path, case: str) -> None:
+    meta_path, rows_path = run / "evaluation.json", run / "evaluation.csv"
+    meta = json.loads(meta_path.read_text())
+    if case.startswith("evaluation.json"):
+        meta_path.write_text("5")
+    elif case.startswith('"env"'):
+        meta_path.write_text(json.dumps({**meta, "env": ["tiny"]}))
+    elif case.startswith('"cost_limit"'):
+        meta_path.write_text(json.dumps({**meta, "cost_limit": "abc"}))
+    else:
+        header, first, *rest = rows_path.read_text().splitlines()
+        cells = first.split(",")
+        cells[header.split(",").index("cost")] = "nan"
+        rows_path.write_text("\n".join([header, ",".join(cells), *rest]) + "\n")
+
+
+@pytest.mark.parametrize(
+    ("case", "message"), EVALUATION_FILES, ids=[c for c, _ in EVALUATION_FILES]
+)
+def test_report_reads_only_valid_evaluations(runs, tmp_path, capsys, case, message):
+    """An evaluation whose fields are not what ``wcsac-evaluate`` writes is skipped with one
+    warning naming the file and the field; with nothing else to report, one error line."""
+    run = _copy(runs, "wcsac", tmp_path)
+    _edit_evaluation(run, case)
+    (run / "progress.csv").unlink()  # (the evaluation alone: nothing else to report)
+    before = snapshot(tmp_path)
+    code = report_main([str(run), "--out", str(tmp_path / "report"), "--no-trajectories"])
+    captured = capsys.readouterr()
+    assert code == 1 and "Traceback" not in captured.err + captured.out
+    (error,) = _error_lines(captured.err)
+    _one_line(error, "nothing to report under")
+    (warning,) = [line for line in captured.out.splitlines() if line.startswith("warning:")]
+    _one_line(warning, "warning: skipped: ", message)
+    assert snapshot(tmp_path) == before
+
+
+def test_report_resolves_nothing_in_a_runs_config(runs, tmp_path, capsys, monkeypatch):
+    """A config.yaml whose seed is ``${oc.env:WCSAC_SECRET}``: the report reads no
+    environment variable for it; the run's curves are skipped with one warning."""
+    run = _copy(runs, "wcsac", tmp_path)
+    config = run / "config.yaml"
+    config.write_text(config.read_text().replace("seed: 0", "seed: ${oc.env:WCSAC_SECRET}"))
+    monkeypatch.setenv("WCSAC_SECRET", "0")
+    code = report_main([str(run), "--out", str(tmp_path / "report"), "--no-trajectories"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    (warning,) = [line for line in captured.out.splitlines() if "interpolation" in line]
+    _one_line(warning, "warning: skipped ", "its config holds an interpolation at seed")
+
+
+def test_report_refuses_a_progress_csv_that_logs_an_epoch_twice(runs, tmp_path, capsys):
+    """Epochs 1, 2, 1: the run's curves and runs.md entry are skipped with one warning
+    (its frames and time would be read from a repeated row)."""
+    run = _copy(runs, "wcsac", tmp_path)
+    progress = run / "progress.csv"
+    lines = progress.read_text().splitlines(keepends=True)
+    progress.write_text("".join([*lines, lines[1]]))
+    code = report_main([str(run), "--out", str(tmp_path / "report"), "--no-trajectories"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    (warning,) = [line for line in captured.out.splitlines() if "logs epoch" in line]
+    _one_line(warning, "warning: skipped ", "progress.csv: line 4 logs epoch 1 again")
+    assert not (tmp_path / "report" / "runs.md").exists()  # (its only run was skipped)
+
+
+def test_calibration_of_a_run_whose_env_module_is_gone(runs, tmp_path, capsys):
+    """A run of an own env whose module no longer imports: one line naming the module."""
+    run = _copy(runs, "wcsac", tmp_path)
+    path = run / "checkpoints" / "last.pt"
+    state = load_checkpoint(path)
+    state["config"]["env"] = {
+        "name": "gymnasium",
+        "id": "gone_envs:make",
+        "cost_key": "cost",
+        "max_episode_steps": 50,
+        "kwargs": {},
+    }
+    torch.save(state, path)
+    before = snapshot(tmp_path)
+    args = [str(run), "--episodes", "1", "--no-progress", "--trust-env-code"]
+    code, lines, text = _cli(calibration_main, args, capsys)
+    assert code == 1 and "Traceback" not in text and len(lines) == 1, text
+    _one_line(lines[0], "env.id=gone_envs:make: no module named 'gone_envs' on the Python path")
+    assert snapshot(tmp_path) == before
+
+
 def test_report_splits_a_label_whose_runs_differ_in_a_setting(runs, tmp_path, capsys):
     """Runs of one label made with two budgets are two rows, said in one warning line."""
     target = _two_cost_limits(runs, tmp_path)
@@ -410,6 +566,370 @@ def test_report_does_not_overwrite_without_force(runs, tmp_path, capsys):
     assert snapshot(tmp_path) == before
 
 
+# ------------------------------------------- code named by a run's files (env.id)
+OWN_ENV = textwrap.dedent(
+    """
+    import gymnasium as gym
+    import numpy as np
+
+
+    class Walk(gym.Env):
+        # x moves by the action; every step costs 0.1
+
+        def __init__(self, limit=20):
+            self.limit = self.max_episode_steps = limit
+            self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+            self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(3,), dtype=np.float64)
+            self.t = 0
+
+        def reset(self, *, seed=None, options=None):
+            super().reset(seed=seed)
+            self.t = 0
+            return np.zeros(3), {}
+
+        def step(self, action):
+            self.t += 1
+            obs = np.full(3, float(self.t))
+            return obs, 1.0, False, self.t >= self.limit, {"cost": 0.1}
+
+
+    def make(limit=20):
+        return Walk(limit=limit)
+    """
+)
+
+
+def _name_os_system(run: Path, marker: Path) -> None:
+    """Make ``run`` (a copy of a finished tiny run) say, in its checkpoints, config.yaml
+    and .hydra/config.yaml, that its env is ``os:system`` called with a shell command;
+    its evaluation.json names the edited checkpoint's hash (as a hostile sender would)."""
+    env = {
+        "name": "gymnasium",
+        "id": "os:system",
+        "cost_key": "cost",
+        "max_episode_steps": 50,
+        "kwargs": {"command": f"touch {marker}"},
+    }
+    last = run / "checkpoints" / "last.pt"
+    for path in [last, *(run / "checkpoints").glob("frames-*.pt")]:
+        state = load_checkpoint(path)
+        state["config"]["env"] = env
+        torch.save(state, path)
+    for name in ("config.yaml", ".hydra/config.yaml"):
+        path = run / name
+        if path.is_file():
+            cfg = OmegaConf.load(path)
+            cfg.env = env
+            path.write_text(OmegaConf.to_yaml(cfg))
+    meta = json.loads((run / "evaluation.json").read_text())
+    meta["env"] = "gymnasium"
+    meta["checkpoint_sha256"] = hashlib.sha256(last.read_bytes()).hexdigest()
+    (run / "evaluation.json").write_text(json.dumps(meta))
+
+
+@pytest.fixture
+def hostile(runs, tmp_path) -> tuple[Path, Path]:
+    """A run directory whose files name ``env.id=os:system``, and the marker file its
+    command would create."""
+    run = _copy(runs, "wcsac", tmp_path)
+    marker = tmp_path / "MARKER"
+    _name_os_system(run, marker)
+    return run, marker
+
+
+UNTRUSTED = "the run's config names code to run (env.id=os:system imports the module 'os'"
+
+
+def _cli(main, args: list[str], capsys) -> tuple[int, list[str], str]:
+    code = main(args)
+    err = capsys.readouterr().err
+    return code, _error_lines(err), err
+
+
+CODE_FROM_RUN_FILES = [
+    (
+        "evaluate --force",
+        "nothing was imported. If you trust this run's code, pass --trust-env-code",
+    ),
+    ("calibration", "pass --trust-env-code"),
+    ("report", "pass --trust-env-code"),
+    ("resume", "add trust_env_code=true to the command line"),
+    ("load_run", "(in Python: trust_env_code=True)"),
+]
+
+
+@pytest.mark.parametrize(
+    ("command", "message"), CODE_FROM_RUN_FILES, ids=[c for c, _ in CODE_FROM_RUN_FILES]
+)
+def test_code_named_by_a_run_is_not_run(hostile, tmp_path, capsys, command, message):
+    """No command imports or calls the env a run's files name without the user's word:
+    the shell command never runs (no marker file), one line says how to allow it, and
+    no file changes."""
+    run, marker = hostile
+    before = snapshot(tmp_path)
+    if command in ("resume", "load_run"):
+        with pytest.raises(ConfigError) as err:
+            _resume(run) if command == "resume" else load_run(run)
+        lines, text = [str(err.value)], str(err.value)
+    else:
+        main, args = {
+            "evaluate --force": (evaluate_main, [str(run), "--force", "--episodes", "1"]),
+            "calibration": (calibration_main, [str(run), "--episodes", "1"]),
+            "report": (report_main, [str(run), "--out", str(tmp_path / "report")]),
+        }[command]
+        code, lines, text = _cli(main, args, capsys)
+        assert code == 1 and "Traceback" not in text
+    assert not marker.exists(), "the command in the run's files ran"
+    assert len(lines) == 1, text
+    _one_line(lines[0], UNTRUSTED, message)
+    assert snapshot(tmp_path) == before
+
+
+def test_train_py_resume_of_a_run_naming_code_runs_nothing(hostile, tmp_path):
+    """``train.py resume=RUN`` (a subprocess: what a user types) refuses in one line."""
+    run, marker = hostile
+    before = snapshot(tmp_path)
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "train.py"), f"resume={run}"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    errors = _error_lines(result.stderr)
+    assert len(errors) == 1, result.stderr
+    _one_line(errors[0], UNTRUSTED, "add trust_env_code=true to the command line")
+    assert not marker.exists()
+    assert snapshot(tmp_path) == before  # (and no outputs/ directory)
+
+
+def test_a_stored_config_is_never_resolved(runs, tmp_path, monkeypatch):
+    """``${oc.env:...}`` in a checkpoint's config is refused naming the key: no
+    environment variable is read because a file says so."""
+    run = _copy(runs, "wcsac", tmp_path)
+    path = run / "checkpoints" / "last.pt"
+    state = load_checkpoint(path)
+    state["config"]["cost_limit"] = "${oc.env:WCSAC_SECRET}"
+    torch.save(state, path)
+    monkeypatch.setenv("WCSAC_SECRET", "15.0")
+    before = snapshot(tmp_path)
+    for call in (lambda: _resume(run), lambda: load_run(run)):
+        with pytest.raises(ConfigError) as err:
+            call()
+        _one_line(
+            str(err.value),
+            "its config holds an interpolation at cost_limit ('${oc.env:WCSAC_SECRET}')",
+        )
+    assert snapshot(tmp_path) == before
+
+
+@pytest.fixture
+def own_env_run(tmp_path, monkeypatch) -> Path:
+    """A finished run of the user's own env (``own_envs:make``, on the Python path)."""
+    module_dir = tmp_path / "own"
+    module_dir.mkdir()
+    (module_dir / "own_envs.py").write_text(OWN_ENV)
+    monkeypatch.syspath_prepend(str(module_dir))
+    sys.modules.pop("own_envs", None)
+    run = tmp_path / "run"
+    trainer = make_trainer(
+        compose_config("env=gymnasium", "env.id=own_envs:make", "total_frames=400"), run
+    )
+    try:
+        trainer.run()
+    finally:
+        trainer.close()
+    yield run
+    sys.modules.pop("own_envs", None)
+
+
+def test_the_users_own_env_runs_with_the_flag(own_env_run, tmp_path, capsys):
+    """Without the user's word a run of their own env is refused like any other; with
+    it (the flag, or the same env.id on resume's command line) the run evaluates,
+    calibrates, reports, resumes and loads."""
+    run = own_env_run
+    for main, args in (
+        (evaluate_main, [str(run), "--episodes", "2", "--no-progress"]),
+        (calibration_main, [str(run), "--episodes", "2", "--no-progress"]),
+        (report_main, [str(run), "--out", str(tmp_path / "report"), "--no-trajectories"]),
+    ):
+        if main is not report_main:  # (a report without Figure 5 reads records only)
+            code, lines, text = _cli(main, args, capsys)
+            assert code == 1 and len(lines) == 1, text
+            _one_line(lines[0], "env.id=own_envs:make imports the module 'own_envs'")
+        code, lines, text = _cli(main, [*args, "--trust-env-code"], capsys)
+        assert code == 0, text
+    assert json.loads((run / "evaluation.json").read_text())["env"] == "gymnasium"
+    assert (run / "calibration.json").is_file()
+    restored = load_run(run, trust_env_code=True)
+    try:
+        assert restored.cfg.env.id == "own_envs:make" and restored.frames == 400
+    finally:
+        restored.env.close()
+    for overrides in (["trust_env_code=true"], ["env=gymnasium", "env.id=own_envs:make"]):
+        _resume(run, *overrides).close()
+    with pytest.raises(ConfigError, match="add trust_env_code=true"):
+        _resume(run)
+
+
+FAILING_ENV = textwrap.dedent(
+    """
+    import gymnasium as gym
+    import numpy as np
+
+
+    class Fails(gym.Env):
+        # fails (how: "step", "reset" or "shape") once it has taken `after` steps in all
+        steps = 0
+
+        def __init__(self, how="step", after=250):
+            self.how, self.after, self.max_episode_steps = how, after, 20
+            self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+            self.observation_space = gym.spaces.Box(-np.inf, np.inf, shape=(3,), dtype=np.float64)
+            self.t = 0
+
+        def _late(self):
+            return Fails.steps >= self.after
+
+        def reset(self, *, seed=None, options=None):
+            super().reset(seed=seed)
+            if self.how == "reset" and self._late():
+                raise RuntimeError("the simulator lost its licence")
+            self.t = 0
+            return np.zeros(3), {}
+
+        def step(self, action):
+            Fails.steps += 1
+            self.t += 1
+            if self.how == "step" and self._late():
+                raise RuntimeError("the simulator lost its licence")
+            size = 4 if self.how == "shape" and self._late() else 3
+            return np.zeros(size), 1.0, False, self.t >= 20, {"cost": 0.1}
+
+
+    def make(how="step", after=250):
+        Fails.steps = 0
+        return Fails(how, after)
+    """
+)
+
+OWN_ENV_FAILS = [
+    (
+        "step",
+        "env.id=failing_envs:make: step() raised RuntimeError: the simulator lost its licence",
+    ),
+    (
+        "reset",
+        "env.id=failing_envs:make: reset() raised RuntimeError: the simulator lost its licence",
+    ),
+    ("shape", "env.id=failing_envs:make: an observation has 4 numbers (shape (4,))"),
+]
+
+
+@pytest.mark.parametrize(("how", "message"), OWN_ENV_FAILS, ids=[h for h, _ in OWN_ENV_FAILS])
+def test_an_own_env_that_fails_mid_run_stops_in_one_line(tmp_path, monkeypatch, how, message):
+    """Your env raising in step or reset, or changing its observation's shape, during
+    training: one line naming the env, the call and the frames (never a traceback)."""
+    (tmp_path / "failing_envs.py").write_text(FAILING_ENV)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    sys.modules.pop("failing_envs", None)
+    cfg = compose_config(
+        "env=gymnasium", "env.id=failing_envs:make", f"+env.kwargs.how={how}", "total_frames=800"
+    )
+    trainer = make_trainer(cfg, tmp_path / "run")
+    try:
+        with pytest.raises(TrainingError) as err:
+            trainer.run()
+    finally:
+        trainer.close()
+        sys.modules.pop("failing_envs", None)
+    _one_line(str(err.value), message, "training stopped ")
+
+
+# ------------------------------------- a refused command changes nothing that existed
+def _train_py(cwd: Path, *overrides: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "train.py"), *overrides],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+def _everything(root: Path) -> tuple[list[str], dict[str, str]]:
+    """Every path below ``root`` (directories too) and every file's SHA-256 (the lock too)."""
+    return sorted(str(p.relative_to(root)) for p in root.rglob("*")), tree_digests(root, skip=())
+
+
+def _hydra_records(run: Path) -> None:
+    """What Hydra wrote into ``run`` when it was started (the shared runs are trained in
+    process, without Hydra)."""
+    (run / ".hydra").mkdir(exist_ok=True)
+    for name in ("config.yaml", "hydra.yaml", "overrides.yaml"):
+        (run / ".hydra" / name).write_text(f"# the first command's {name}\nseed: 0\n")
+
+
+KEEPS_WHAT_EXISTED = [
+    ("algo.lr=abc hydra.run.dir=D", "D: a user's directory holding notes.log"),
+    ("seed=5 hydra.run.dir=RUN", "RUN: a finished run"),
+    ("seed=5 hydra.run.dir=RUN", "RUN: a run still training (its lock held)"),
+]
+"""train.py command lines refused in a directory that existed (the tests below)."""
+
+
+def test_a_refused_run_keeps_a_directory_it_did_not_create(tmp_path):
+    """``mkdir D && echo precious > D/notes.log``, then a refused ``train.py ...
+    hydra.run.dir=D``: D and notes.log are as they were (no lock, no log, no records)."""
+    directory = tmp_path / "D"
+    directory.mkdir()
+    (directory / "notes.log").write_text("precious\n")
+    before = _everything(directory)
+    result = _train_py(tmp_path, *TINY, "algo.lr=abc", f"hydra.run.dir={directory}")
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    (error,) = _error_lines(result.stderr)
+    _one_line(error, "algo.lr must be > 0 (a number), got 'abc'")
+    assert _everything(directory) == before
+
+
+@pytest.mark.parametrize("live", [False, True], ids=["finished", "still training"])
+def test_a_refused_run_writes_no_records_into_another_run(runs, tmp_path, live):
+    """A new run pointed at a finished run's directory, or at one still training (its
+    lock held), is refused, and that run's Hydra records still say what they said."""
+    from wcsac_rl.training.run_dir import RunLock
+
+    run = _copy(runs, "wcsac", tmp_path)
+    _hydra_records(run)
+    lock = RunLock(run) if live else None
+    try:
+        before = snapshot(run)
+        result = _train_py(tmp_path, *TINY, "seed=5", f"hydra.run.dir={run}")
+    finally:
+        if lock is not None:
+            lock.release()
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr[-2000:]
+    (error,) = _error_lines(result.stderr)
+    _one_line(error, "is in use by another run" if live else "already holds a run")
+    assert snapshot(run) == before
+    assert not [p for p in run.iterdir() if p.name.startswith(".hydra-")]
+
+
+def test_an_accepted_run_keeps_hydras_records(tmp_path):
+    """The records Hydra writes for a run that starts are in its ``.hydra/`` (staged
+    while the command could still be refused)."""
+    session = tmp_path / "session"
+    result = _train_py(
+        tmp_path, *TINY, "algo=random", "total_frames=200", "epoch_frames=200",
+        "eval_episodes=0", "progress_bar=false", f"hydra.run.dir={session}",
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    records = sorted(p.name for p in (session / ".hydra").iterdir())
+    assert records == ["config.yaml", "hydra.yaml", "overrides.yaml"]
+    assert "seed: 0" in (session / ".hydra" / "config.yaml").read_text()
+    assert not [p for p in session.iterdir() if p.name.startswith(".hydra-")]
+
+
 # ------------------------------------------------------------------------ loss API
 LOSS_ARGUMENTS = [
     ("cost_threshold=nan", {"cost_threshold": math.nan}, "cost_threshold must be >= 0"),
@@ -444,6 +964,12 @@ LOSS_BATCHES = [
     ("('next', 'cost')=nan", (("next", "cost"), math.nan), "batch entry ('next', 'cost')"),
     ("('next', 'reward')=inf", (("next", "reward"), math.inf), "batch entry ('next', 'reward')"),
     ("observation=nan", (("observation",), math.nan), "batch entry 'observation'"),
+    (
+        "('next', 'cost')=1e30",
+        (("next", "cost"), 1e30),
+        "loss_cost_value is inf although the batch is finite; its largest magnitudes:",
+    ),
+    ("('next', 'cost')=3e38", (("next", "cost"), 3e38), "('next', 'cost') 3e+38"),
 ]
 
 
@@ -464,8 +990,113 @@ def test_loss_batch(name, poison, message):
     assert all(torch.equal(before[k], v) for k, v in loss.state_dict().items())
 
 
+def _without_next_observation():
+    batch = make_batch(16)
+    del batch["next", "observation"]
+    return batch
+
+
+def _float_done():
+    batch = make_batch(16)
+    batch["next", "done"] = batch["next", "done"].float()
+    return batch
+
+
+LOSS_BATCH_ENTRIES = [
+    (
+        "no ('next', 'observation')",
+        _without_next_observation,
+        KeyError,
+        "WCSACLoss: the batch has no ('next', 'observation') entry, which the loss reads",
+    ),
+    (
+        "a float ('next', 'done')",
+        _float_done,
+        TypeError,
+        "WCSACLoss: batch entry ('next', 'done') must be boolean (torch.bool), got torch.float32",
+    ),
+]
+
+
+@pytest.mark.parametrize(
+    ("name", "make", "kind", "message"), LOSS_BATCH_ENTRIES, ids=[n for n, *_ in LOSS_BATCH_ENTRIES]
+)
+def test_loss_batch_entries(name, make, kind, message):
+    """A batch without an entry the loss reads, or with a done flag that is not bool,
+    is one error naming the entry (keys and dtypes only: no host synchronisation)."""
+    loss = make_loss()
+    with pytest.raises(kind) as err:
+        loss(make())
+    assert message in str(err.value)
+
+
+# ------------------------------------------------------------------- minor ones
+def _full_disk_first_checkpoint(tmp_path, monkeypatch, capsys) -> str:
+    from wcsac_rl.training.checkpoint import save_checkpoint
+    from wcsac_rl.training.config import TrainingError
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(torch, "save", full)
+    with pytest.raises(TrainingError) as err:
+        save_checkpoint(tmp_path / "checkpoints" / "last.pt", {"frames": 400})
+    assert list((tmp_path / "checkpoints").iterdir()) == []
+    return str(err.value)
+
+
+def _unreadable_path(tmp_path, monkeypatch, capsys) -> str:
+    from wcsac_rl.train import check_command_line
+
+    with pytest.raises(SystemExit) as stop:
+        check_command_line([*TINY, f"hydra.run.dir={tmp_path}/runü"])
+    return str(stop.value)
+
+
+def _seed_overflow(tmp_path, monkeypatch, capsys) -> str:
+    with pytest.raises(SystemExit):
+        evaluate_main([str(tmp_path), "--seed", "99999999999999999999999"])
+    return capsys.readouterr().err.strip().splitlines()[-1]
+
+
+def _stopped_under_wcsac_train(tmp_path, monkeypatch, capsys) -> str:
+    from wcsac_rl.training.preemption import Preempted
+
+    monkeypatch.setattr(sys, "argv", ["/venv/bin/wcsac-train", "env=tiny"])
+    return str(Preempted(15, tmp_path / "run" / "checkpoints" / "last.pt", 400))
+
+
+MINOR = [
+    (
+        "a full disk at the first checkpoint",
+        _full_disk_first_checkpoint,
+        "no checkpoint had been written yet",
+    ),
+    ("hydra.run.dir=runü", _unreadable_path, "error: cannot read the override 'hydra.run.dir="),
+    (
+        "--seed 99999999999999999999999",
+        _seed_overflow,
+        "error: --seed must be a whole number in [0, 2**63 - 1]",
+    ),
+    (
+        "SIGTERM under wcsac-train",
+        _stopped_under_wcsac_train,
+        "continue it with: wcsac-train resume=",
+    ),
+]
+
+
+@pytest.mark.parametrize(("name", "case", "message"), MINOR, ids=[n for n, *_ in MINOR])
+def test_minor(tmp_path, monkeypatch, capsys, name, case, message):
+    """The full-disk message says what is kept, Hydra's lexer errors and a seed that
+    overflows are one line naming the option, a stopped run names the command it ran."""
+    _one_line(case(tmp_path, monkeypatch, capsys), message)
+
+
 # ----------------------------------------------------- the table in docs/guarantees.md
 CATEGORIES = {
+    "env code in a run's files": CODE_FROM_RUN_FILES,
+    "a directory that existed": KEEPS_WHAT_EXISTED,
     "train.py": TRAIN_PY,
     "train (config)": CONFIG,
     "resume": RESUME,
@@ -474,6 +1105,10 @@ CATEGORIES = {
     "report": REPORT,
     "loss arguments": LOSS_ARGUMENTS,
     "loss batches": LOSS_BATCHES,
+    "loss batch entries": LOSS_BATCH_ENTRIES,
+    "report readers": EVALUATION_FILES,
+    "minor": MINOR,
+    "own env mid-run": OWN_ENV_FAILS,
 }
 
 

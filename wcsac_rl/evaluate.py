@@ -93,6 +93,15 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
             "what `wcsac-report --archive` keeps, for run directories that may not last"
         ),
     )
+    parser.add_argument(
+        "--trust-env-code",
+        action="store_true",
+        help=(
+            "import and call the env code (env.id=module:callable, with env.kwargs) that a "
+            "run of env=gymnasium names in its files; without it such a run is refused, "
+            "nothing imported (a run directory is untrusted input: docs/guarantees.md)"
+        ),
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     random_group = parser.add_argument_group("random policy (no training run needed)")
@@ -122,6 +131,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help="budget d recorded with its evaluation (default 15)",
     )
     args = parser.parse_args(argv)
+    if not 0 <= args.seed <= 2**63 - 1:
+        parser.error(f"--seed must be a whole number in [0, 2**63 - 1], got {args.seed}")
     if not args.paths and args.random_policy is None:
         parser.error("give run or sweep directories, or --random-policy ENV")
     if args.episodes < 1:
@@ -184,6 +195,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         force=args.force,
                         progress=not args.no_progress,
                         max_episode_steps=args.max_episode_steps,
+                        trust_env_code=args.trust_env_code,
                     ),
                 )
             )

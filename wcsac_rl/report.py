@@ -149,8 +149,21 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help="require the statistics over runs: a run without an evaluation, runs of a row "
         "with other settings or the same seed, a row of one run are errors",
     )
+    parser.add_argument(
+        "--trust-env-code",
+        action="store_true",
+        help=(
+            "import and call the env code (env.id=module:callable, with env.kwargs) that a "
+            "run of env=gymnasium names in its files; without it such a run is refused, "
+            "nothing imported (a run directory is untrusted input: docs/guarantees.md)"
+        ),
+    )
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = parser.parse_args(argv)
+    if not 0 <= args.trajectory_seed <= 2**63 - 1:
+        parser.error(
+            f"--trajectory-seed must be a whole number in [0, 2**63 - 1], got {args.trajectory_seed}"
+        )
     if args.trajectory_episodes < 1:
         parser.error(f"--trajectory-episodes must be >= 1, got {args.trajectory_episodes}")
     if args.trajectory_max_steps is not None and args.trajectory_max_steps < 1:
@@ -167,31 +180,33 @@ def main(argv: Sequence[str] | None = None) -> int:
     from wcsac_rl.evaluation.run_report import parse_improvement
     from wcsac_rl.evaluation.trajectories import TrajectoryError, VideoError
     from wcsac_rl.training.config import ConfigError
+    from wcsac_rl.training.trust import allow_env_code
 
     torch.set_num_threads(max(1, args.threads))
     out = args.out if args.out is not None else args.paths[0] / "report"
     try:
         pairs = [parse_improvement(text) for text in args.improvement]
-        report = build_report(
-            args.paths,
-            out,
-            env=args.env,
-            cost_limit=args.cost_limit,
-            force=args.force,
-            trajectory_runs=args.trajectory_runs,
-            trajectories=not args.no_trajectories,
-            trajectory_episodes=args.trajectory_episodes,
-            trajectory_max_steps=args.trajectory_max_steps,
-            trajectory_seed=args.trajectory_seed,
-            video=args.video,
-            video_format=args.video_format,
-            fig6_rows=args.fig6_rows,
-            fig6_ymax=args.fig6_ymax,
-            stage_rows=args.stage_rows,
-            archive=args.archive,
-            improvement=pairs,
-            study=args.study,
-        )
+        with allow_env_code(args.trust_env_code):  # the policies Figure 5 loads
+            report = build_report(
+                args.paths,
+                out,
+                env=args.env,
+                cost_limit=args.cost_limit,
+                force=args.force,
+                trajectory_runs=args.trajectory_runs,
+                trajectories=not args.no_trajectories,
+                trajectory_episodes=args.trajectory_episodes,
+                trajectory_max_steps=args.trajectory_max_steps,
+                trajectory_seed=args.trajectory_seed,
+                video=args.video,
+                video_format=args.video_format,
+                fig6_rows=args.fig6_rows,
+                fig6_ymax=args.fig6_ymax,
+                stage_rows=args.stage_rows,
+                archive=args.archive,
+                improvement=pairs,
+                study=args.study,
+            )
     except (ConfigError, TrajectoryError, VideoError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1

@@ -36,7 +36,15 @@ from wcsac_rl.config_dir import CONF_DIR
 if TYPE_CHECKING:
     from wcsac_rl.training.trainer import Trainer
 
-__all__ = ["check_command_line", "cli", "compose_config", "main", "run_training"]
+__all__ = [
+    "check_command_line",
+    "check_interpolations",
+    "check_override_syntax",
+    "cli",
+    "compose_config",
+    "main",
+    "run_training",
+]
 
 LOG_FILE = "train.log"
 """The console's lines of a run, in its run directory."""
@@ -192,13 +200,19 @@ def main(cfg: DictConfig) -> None:
     from wcsac_rl.training.preemption import Preempted
 
     user_errors = _user_errors()
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    hydra_cfg = HydraConfig.get()
+    run_dir = Path(hydra_cfg.runtime.output_dir)
+    staged = _staged_records(run_dir, hydra_cfg.output_subdir)
     with ConsoleLog() as log:
         try:
-            trainer = _build(cfg, run_dir, HydraConfig.get().overrides.task)
+            trainer = _build(cfg, run_dir, hydra_cfg.overrides.task)
         except user_errors as err:
-            _discard(run_dir)  # a refused command leaves no directory behind
+            _discard(run_dir, staged)  # a refused command leaves nothing behind
             _exit_with(f"error: {err}")
+        except BaseException:
+            _discard(run_dir, staged)
+            raise
+        _keep_records(run_dir, staged)
         log.attach(trainer.run_dir / LOG_FILE)
         _say_recipe(trainer.cfg)
         try:
@@ -224,12 +238,90 @@ DEFAULT_ROOTS = ("outputs", "multirun")
 """Where Hydra puts runs by default (``conf/config.yaml``), below the current directory."""
 
 
-def _discard(run_dir: Path) -> None:
-    """Remove a refused command's run directory, and the date directory above it that
-    Hydra made for it (``outputs/<date>/``) if that is now empty."""
+_BEFORE: dict[str, Any] = {}
+"""What :func:`cli` noted before Hydra ran: when (``since``), and the run directory a
+literal ``hydra.run.dir=`` names (``dir``) with its entries then (``existed``; ``None``:
+it did not exist)."""
+
+
+def _note_before(argv: Sequence[str]) -> None:
+    import os
+    import time
+
+    _BEFORE.clear()
+    _BEFORE["since"] = time.time()
+    for arg in argv:
+        key, sep, value = arg.lstrip("+").partition("=")
+        value = value.strip("'\"")
+        if sep and key == "hydra.run.dir" and "${" not in value and value:
+            path = Path(os.path.abspath(Path(value).expanduser()))  # (as Hydra makes it)
+            _BEFORE["dir"] = path
+            _BEFORE["existed"] = (
+                frozenset(p.name for p in path.iterdir()) if path.is_dir() else None
+            )
+
+
+def _stage_hydra_records(argv: list[str]) -> list[str]:
+    """``argv`` with Hydra's records of this command sent to a staging directory
+    (:data:`~wcsac_rl.training.run_dir.HYDRA_STAGING`; not when the line sets
+    ``hydra.output_subdir`` itself): an existing run's ``.hydra/`` is written only once
+    this command's run is accepted."""
+    import os
+
+    from hydra._internal.utils import get_args_parser
+
+    try:
+        args, _ = get_args_parser().parse_known_args(argv)
+    except SystemExit:  # a malformed flag: Hydra answers it
+        return argv
+    if args.help or args.hydra_help or args.info or args.cfg or args.shell_completion:
+        return argv  # (nothing runs: Hydra's answers show the config as it is; no torch)
+    if any(arg.lstrip("+").startswith("hydra.output_subdir=") for arg in argv):
+        return argv
+    from wcsac_rl.training.run_dir import HYDRA_STAGING
+
+    return [*argv, f"hydra.output_subdir={HYDRA_STAGING}{os.getpid()}"]
+
+
+def _staged_records(run_dir: Path, subdir: str | None) -> Path | None:
+    from wcsac_rl.training.run_dir import HYDRA_STAGING
+
+    if subdir is None or not Path(str(subdir)).name.startswith(HYDRA_STAGING):
+        return None
+    return run_dir / str(subdir)
+
+
+def _keep_records(run_dir: Path, staged: Path | None) -> None:
+    """The accepted run's Hydra records: from the staging directory into ``.hydra/``."""
+    import os
+
+    if staged is None or not staged.is_dir():
+        return
+    target = run_dir / ".hydra"
+    target.mkdir(exist_ok=True)
+    for path in staged.iterdir():
+        os.replace(path, target / path.name)
+    staged.rmdir()
+
+
+def _discard(run_dir: Path, staged: Path | None = None) -> None:
+    """Remove what a refused command made: Hydra's staged records, and its run
+    directory if the command created it (with the date directory above it that Hydra
+    made for it, ``outputs/<date>/``, if that is now empty); a directory that existed
+    keeps everything it held (:func:`~wcsac_rl.training.run_dir.discard_unused_run_dir`)."""
+    import os
+    import shutil
+
     from wcsac_rl.training.run_dir import discard_unused_run_dir
 
-    if not discard_unused_run_dir(run_dir):
+    if staged is not None:
+        shutil.rmtree(staged, ignore_errors=True)
+    noted = _BEFORE.get("dir") == Path(os.path.abspath(run_dir))
+    existed = _BEFORE.get("existed") if noted else None
+    created = noted and existed is None
+    if not discard_unused_run_dir(
+        run_dir, existed=existed, since=_BEFORE.get("since"), created=created
+    ):
         return
     cwd = Path.cwd().resolve()
     parent = run_dir.resolve().parent
@@ -265,10 +357,64 @@ def check_command_line(argv: list[str]) -> None:
     from wcsac_rl.training.errors import ConfigError
 
     try:
+        check_override_syntax(list(args.overrides))
+        check_interpolations(list(args.overrides))
         check_override_keys(list(args.overrides))
         check_output_dirs(list(args.overrides))
     except ConfigError as err:
         sys.exit(f"error: {err}")
+
+
+def check_override_syntax(overrides: list[str]) -> None:
+    """Refuse, in one line naming it, an override Hydra's grammar cannot read (a path
+    with a newline, a character outside its lexer's such as ``ü``): Hydra's own refusal
+    is a stack of lines pointing at a column."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    from wcsac_rl.training.errors import ConfigError
+
+    parser = OverridesParser.create()
+    for override in overrides:
+        try:
+            parser.parse_overrides([override])
+        except HydraException as err:
+            reason = (str(err).strip().splitlines() or [type(err).__name__])[0]
+            reason = reason.split(":", 1)[0] if reason.startswith("Lexer") else reason
+            key = override.split("=", 1)[0]
+            raise ConfigError(
+                f"cannot read the override {override!r} ({reason}): quote its value inside "
+                f"the argument, e.g. \"{key}='...'\", or choose a value without newlines or "
+                "characters outside ASCII"
+            ) from None
+
+
+def check_interpolations(overrides: list[str]) -> None:
+    """Refuse, in one line naming the key and the variable, an override whose
+    interpolation cannot resolve: ``${oc.env:NAME}`` of an unset variable without a
+    default, or a key that refers to itself (``seed=${seed}``). Hydra would resolve
+    them while making the run's directory, in its own stack of lines."""
+    import os
+    import re
+
+    from wcsac_rl.training.errors import ConfigError
+
+    for override in overrides:
+        key, sep, value = override.lstrip("+~").partition("=")
+        if sep and key == "run_name" and "${" not in value:
+            from wcsac_rl.training.config import check_run_name  # (imports torch)
+
+            check_run_name(value.strip("'\""))  # (before Hydra makes outputs/<date>/<name>)
+        if not sep or "${" not in value:
+            continue
+        for name, default in re.findall(r"\$\{oc\.env:\s*([^,}\s]+)\s*(,[^}]*)?\}", value):
+            if not default and name not in os.environ:
+                raise ConfigError(
+                    f"{key}={value}: the environment variable {name} is not set (set it, "
+                    f"or give a default: ${{oc.env:{name},<default>}})"
+                )
+        if re.search(r"\$\{\s*" + re.escape(key) + r"\s*\}", value):
+            raise ConfigError(f"{key}={value} refers to itself; give {key} a value")
 
 
 def check_output_dirs(overrides: list[str]) -> None:
@@ -301,6 +447,8 @@ def cli(argv: Sequence[str] | None = None) -> None:
     if argv is not None:
         sys.argv = [sys.argv[0], *argv]
     check_command_line(sys.argv[1:])
+    _note_before(sys.argv[1:])
+    sys.argv = [sys.argv[0], *_stage_hydra_records(sys.argv[1:])]
     main()
 
 
@@ -360,14 +508,19 @@ def run_training(
     if run_dir is None:
         now = datetime.datetime.now()
         run_dir = Path("outputs") / f"{now:%Y-%m-%d}" / f"{now:%H-%M-%S}_{cfg.run_name}"
+    from wcsac_rl.training.run_dir import discard_unused_run_dir
+
     run_dir = Path(run_dir).absolute()
     existed = run_dir.exists()
+    entries = frozenset(p.name for p in run_dir.iterdir()) if run_dir.is_dir() else None
     with ConsoleLog() as log:
         try:
             trainer = _build(cfg, run_dir, overrides)
         except BaseException:
             if not existed:
                 _discard(run_dir)
+            elif entries is not None:  # (only what the refused call made: its lock file)
+                discard_unused_run_dir(run_dir, existed=entries)
             raise
         log.attach(trainer.run_dir / LOG_FILE)
         _say_recipe(trainer.cfg)

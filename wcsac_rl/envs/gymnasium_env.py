@@ -172,8 +172,9 @@ class FlatFloat32Observation(gym.ObservationWrapper):
     """A ``Box`` observation flattened to one dimension and cast to float32 (the kit's
     MLPs read ``observation`` as ``[*B, n]`` float32)."""
 
-    def __init__(self, env: gym.Env) -> None:
+    def __init__(self, env: gym.Env, name: str | None = None) -> None:
         super().__init__(env)
+        self.name = name or type(env.unwrapped).__name__
         space = env.observation_space
         self.observation_space = gym.spaces.Box(
             low=np.asarray(space.low, dtype=np.float32).reshape(-1),
@@ -182,7 +183,14 @@ class FlatFloat32Observation(gym.ObservationWrapper):
         )
 
     def observation(self, observation: Any) -> np.ndarray:
-        return np.asarray(observation, dtype=np.float32).reshape(-1)
+        flat = np.asarray(observation, dtype=np.float32).reshape(-1)
+        if flat.shape != self.observation_space.shape:
+            raise EnvSourceError(
+                f"env.id={self.name}: an observation has {flat.size} numbers (shape "
+                f"{np.shape(observation)}), its observation space "
+                f"{self.observation_space.shape[0]}; the kit's networks read a fixed-size one"
+            )
+        return flat
 
 
 class CostFromStep(gym.Wrapper):
@@ -206,10 +214,19 @@ class CostFromStep(gym.Wrapper):
 
     def reset(self, **kwargs: Any):
         self._steps = 0
-        return self.env.reset(**kwargs)
+        try:
+            return self.env.reset(**kwargs)
+        except Exception as err:  # your env's own error: one line naming it and the call
+            raise EnvSourceError(f"env.id={self.name}: reset() raised {_first_line(err)}") from None
 
     def step(self, action: Any):
-        result = self.env.step(action)
+        try:
+            result = self.env.step(action)
+        except Exception as err:  # your env's own error: one line naming it and the call
+            raise EnvSourceError(
+                f"env.id={self.name}: step() raised {_first_line(err)} at step "
+                f"{self._steps + 1} of an episode"
+            ) from None
         self._steps += 1
         if len(result) == 6:  # safety-gymnasium: (obs, reward, cost, terminated, truncated, info)
             observation, reward, cost, terminated, truncated, info = result
@@ -271,7 +288,7 @@ def make_user_gym_env(
                 f"env.id={env_id} has no episode length of its own (no TimeLimit, no "
                 "max_episode_steps); set env.max_episode_steps=<steps>"
             )
-        env = FlatFloat32Observation(CostFromStep(env, cost_key=cost_key, name=env_id))
+        env = FlatFloat32Observation(CostFromStep(env, cost_key=cost_key, name=env_id), env_id)
         if max_episode_steps is not None or own is None or registered is not None:
             env = TimeLimit(env, max_episode_steps=int(limit))
     except BaseException:

@@ -41,6 +41,7 @@ __all__ = [
     "env_title",
     "get_preset",
     "make_gym_env",
+    "preset_options",
     "register_envs",
 ]
 
@@ -197,6 +198,22 @@ def register_envs() -> None:
             kwargs=dict(preset.kwargs),
             disable_env_checker=False,
         )
+
+
+def preset_options(name: str) -> frozenset[str] | None:
+    """The keyword arguments a preset's env takes (``env.kwargs``): its constructor's
+    and, for the point-goal presets, every :class:`PointGoalConfig` field; ``None``
+    when they cannot be listed."""
+    import inspect
+
+    preset = get_preset(name)
+    params = inspect.signature(load_env_creator(preset.entry_point)).parameters.values()
+    names = {p.name for p in params if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
+    if any(p.kind is p.VAR_KEYWORD for p in params):
+        if preset.config is None:
+            return None
+        names |= {f.name for f in dataclasses.fields(preset.config)}
+    return frozenset(names - {"config"})
 
 
 def make_gym_env(name: str, *, max_episode_steps: int | None = None, **kwargs: Any) -> gym.Env:

@@ -54,6 +54,7 @@ __all__ = [
     "DEFAULT_SEED_OFFSET",
     "Evaluation",
     "EvaluationExistsError",
+    "check_env_code_allowed",
     "evaluate_random_policy",
     "evaluate_run",
     "load_policy",
@@ -207,28 +208,65 @@ def read_evaluation(directory: str | os.PathLike) -> Evaluation:
         data = json.loads(json_path.read_text())
         with csv_path.open(newline="") as f:
             rows = list(csv.DictReader(f))
-        episodes = [
-            EpisodeResult(
-                ret=float(r["return"]),
-                cost=float(r["cost"]),
-                length=int(r["length"]),
-                goal_reached=int(r["goals"]),
-                numerical_failure=bool(int(r["numerical_failure"])),
-            )
-            for r in rows
-        ]
+        episodes = [_episode(r, i, csv_path) for i, r in enumerate(rows)]
     except FileNotFoundError as err:
         raise ConfigError(f"{directory}: incomplete evaluation ({err.filename} missing)") from None
     except (ValueError, KeyError, TypeError) as err:
+        if isinstance(err, ConfigError):
+            raise
         raise ConfigError(f"{directory}: cannot read the evaluation files ({err!r})") from None
     if not episodes:
         raise ConfigError(f"{directory}: {EVALUATION_CSV} has no episodes")
+    if not isinstance(data, dict):
+        raise ConfigError(
+            f"{json_path}: not an evaluation (a JSON object), got {type(data).__name__}"
+        )
     summary_keys = ("metrics", "mean_length", "goals_per_episode", "numerical_failures")
     summary = {k: data.pop(k) for k in summary_keys if k in data}
     for key in ("label", "env", "cost_limit"):
         if key not in data:
             raise ConfigError(f"{json_path}: missing {key!r}")
+    _check_meta(data, json_path)
     return Evaluation(directory=directory, meta=data, episodes=episodes, summary=summary)
+
+
+def _episode(row: dict[str, Any], index: int, path: Path) -> EpisodeResult:
+    """One row of ``evaluation.csv``, each cell a finite number of its kind."""
+
+    def cell(column: str, kind: type) -> Any:
+        text = row.get(column)
+        try:
+            value = float(text)
+        except (TypeError, ValueError):
+            value = math.nan
+        if not math.isfinite(value) or (kind is int and value != int(value)):
+            what = "a whole number" if kind is int else "a finite number"
+            raise ConfigError(f"{path}: episode row {index}: {column} must be {what}, got {text!r}")
+        return kind(value)
+
+    return EpisodeResult(
+        ret=cell("return", float),
+        cost=cell("cost", float),
+        length=cell("length", int),
+        goal_reached=cell("goals", int),
+        numerical_failure=bool(cell("numerical_failure", int)),
+    )
+
+
+def _check_meta(meta: dict[str, Any], path: Path) -> None:
+    """The fields a report reads have their types (one line naming the field)."""
+    for key in ("label", "env", "algo"):
+        if key in meta and not isinstance(meta[key], str):
+            raise ConfigError(f"{path}: {key!r} must be a string, got {meta[key]!r}")
+    limit = meta["cost_limit"]
+    if isinstance(limit, bool) or not isinstance(limit, (int, float)) or not limit >= 0:
+        raise ConfigError(f"{path}: 'cost_limit' must be a number >= 0, got {limit!r}")
+    if not math.isfinite(limit):
+        raise ConfigError(f"{path}: 'cost_limit' must be a number >= 0, got {limit!r}")
+    for key in ("seed", "trained_frames", "max_episode_steps"):
+        value = meta.get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int)):
+            raise ConfigError(f"{path}: {key!r} must be a whole number, got {value!r}")
 
 
 def _progress(total: int, desc: str, enabled: bool) -> tuple[tqdm, Callable[[EpisodeResult], None]]:
@@ -285,14 +323,21 @@ def _now() -> str:
     return _dt.datetime.now().astimezone().isoformat(timespec="seconds")
 
 
-def load_policy(run_dir: str | os.PathLike, env_seed: int, num_envs: int = 1) -> RestoredRun:
+def load_policy(
+    run_dir: str | os.PathLike,
+    env_seed: int,
+    num_envs: int = 1,
+    *,
+    trust_env_code: bool = False,
+) -> RestoredRun:
     """:func:`~wcsac_rl.training.restore.load_run` with its env seeded ``env_seed``
-    (``num_envs`` sub-envs side by side),
+    (``num_envs`` sub-envs side by side; ``trust_env_code``: import the env code the
+    run names, see there),
     refusing a checkpoint that restores no policy for a learning algorithm (it
     would silently be evaluated as the random policy)."""
     from wcsac_rl.training.restore import load_run
 
-    restored = load_run(run_dir, seed=env_seed, num_envs=num_envs)
+    restored = load_run(run_dir, seed=env_seed, num_envs=num_envs, trust_env_code=trust_env_code)
     algo = str(restored.cfg.algo.name)
     if restored.policy is None and algo != "random":
         restored.env.close()
@@ -302,19 +347,41 @@ def load_policy(run_dir: str | os.PathLike, env_seed: int, num_envs: int = 1) ->
     return restored
 
 
+def check_env_code_allowed(run_dir: str | os.PathLike) -> None:
+    """Refuse, before any work, a run whose checkpoints (``last.pt`` and the kept ones)
+    name env code the command has not allowed
+    (:func:`~wcsac_rl.training.trust.allow_env_code`: a report's ``--trust-env-code``);
+    one line, nothing imported."""
+    from wcsac_rl.training.checkpoint import find_checkpoint, kept_checkpoints, load_checkpoint
+    from wcsac_rl.training.trust import TRUST_FLAG, check_env_code
+
+    last = find_checkpoint(run_dir)
+    for path in [last, *(kept for _, kept in kept_checkpoints(last.parent.parent))]:
+        check_env_code(
+            load_checkpoint(path)["config"], path, trusted=False, allow=f"pass {TRUST_FLAG}"
+        )
+
+
 def _training_seed(run_dir: Path) -> int:
     """The run's training seed: from ``config.yaml``, else from its checkpoint."""
     from omegaconf import OmegaConf
 
     from wcsac_rl.training.checkpoint import find_checkpoint, load_checkpoint
+    from wcsac_rl.training.trust import plain_select
 
     checkpoint = find_checkpoint(run_dir)  # a clear error first if there is none
     config_yaml = run_dir / "config.yaml"
-    if config_yaml.is_file():
-        seed = OmegaConf.select(OmegaConf.load(config_yaml), "seed")
-        if isinstance(seed, int):
+    if config_yaml.is_file() and not config_yaml.is_symlink():
+        try:  # (read as data: nothing in it is resolved)
+            seed = plain_select(OmegaConf.load(config_yaml), "seed")
+        except Exception:  # a damaged config.yaml: the checkpoint says it too
+            seed = None
+        if isinstance(seed, int) and not isinstance(seed, bool):
             return seed
-    return int(load_checkpoint(checkpoint)["config"]["seed"])
+    seed = plain_select(load_checkpoint(checkpoint)["config"], "seed")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ConfigError(f"{checkpoint}: its config's seed must be an integer >= 0, got {seed!r}")
+    return seed
 
 
 def evaluate_run(
@@ -326,6 +393,7 @@ def evaluate_run(
     progress: bool = True,
     max_episode_steps: int | None = None,
     log: Callable[[str], None] | None = None,
+    trust_env_code: bool = False,
 ) -> Evaluation:
     """Evaluate a run's final policy on ``episodes`` deterministic test episodes and save them.
 
@@ -338,6 +406,8 @@ def evaluate_run(
         max_episode_steps: bound on episode length (default: the run's env's).
         log: where the note about re-evaluating a stale evaluation goes (default:
             ``print`` when ``progress``).
+        trust_env_code: import and call the env code a run of ``env=gymnasium`` names
+            (:func:`~wcsac_rl.training.restore.load_run`; refused by default).
 
     Raises:
         ConfigError: no checkpoint / unreadable checkpoint (one line), or an
@@ -355,7 +425,9 @@ def evaluate_run(
             (log or print)(f"{run_dir}: evaluating again ({reason})")
         force = True
     env_seed = _training_seed(run_dir) + int(seed_offset)
-    restored = load_policy(run_dir, env_seed, num_envs=_side_by_side(episodes))
+    restored = load_policy(
+        run_dir, env_seed, num_envs=_side_by_side(episodes), trust_env_code=trust_env_code
+    )
     cfg = restored.cfg
     steps = int(max_episode_steps or env_max_episode_steps(cfg))
     label = str(cfg.algo.get("label", cfg.algo.name))

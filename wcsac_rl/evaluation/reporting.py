@@ -69,6 +69,7 @@ from wcsac_rl.evaluation.archive import ARCHIVED_FILES, archived_records, needs_
 from wcsac_rl.evaluation.evaluator import (
     DEFAULT_SEED_OFFSET,
     Evaluation,
+    check_env_code_allowed,
     read_evaluation,
     stale_evaluation,
 )
@@ -98,6 +99,8 @@ from wcsac_rl.training.checkpoint import IDENTITY_KEYS, kept_checkpoints
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
 from wcsac_rl.training.provenance import read_provenance
+from wcsac_rl.training.run_dir import check_progress_rows
+from wcsac_rl.training.trust import interpolation_in, plain_select, stored_config
 
 __all__ = [
     "ARCHIVED_FILES",
@@ -183,8 +186,9 @@ class Report:
 
 
 def _read_run(directory: Path) -> RunRecord:
-    cfg = OmegaConf.load(directory / "config.yaml")
+    cfg = stored_config(OmegaConf.load(directory / "config.yaml"), directory / "config.yaml")
     progress_csv = directory / "progress.csv"
+    check_progress_rows(directory)  # (an epoch logged twice: its frames would be wrong)
     progress = read_progress(progress_csv) if progress_csv.is_file() else None
     return RunRecord(
         directory=directory,
@@ -436,13 +440,9 @@ def _identity(directory: Path, meta: dict[str, Any] | None = None) -> dict[str, 
     identity: dict[str, str] = {}
     cfg = _session_config(Path(directory))
     for key in POOLED_KEYS:
-        try:
-            value = None if cfg is None else OmegaConf.select(cfg, key, default=None)
-        except Exception:  # an interpolation that does not resolve: not compared
-            value = None
-        if value is not None:
-            plain = OmegaConf.to_container(value) if OmegaConf.is_config(value) else value
-            identity[key] = repr(plain)
+        value = None if cfg is None else plain_select(cfg, key)  # (nothing resolved)
+        if value is not None and interpolation_in(value) is None:
+            identity[key] = repr(value)
     if meta is not None:
         identity["cost_limit"] = repr(float(meta["cost_limit"]))
         identity["evaluation max_episode_steps"] = repr(meta.get("max_episode_steps"))
@@ -668,6 +668,9 @@ def build_report(
     sources: list[_TrajectorySource] = []
     if trajectories:
         sources = _trajectory_sources(trajectory_runs, runs, evaluations)
+        for source in sources:  # env code a run names: refused before anything is written
+            if has_checkpoint(source.directory):
+                check_env_code_allowed(source.directory)
         if not sources and trajectory_runs is None:
             warn("no run with a checkpoint: Figure 5 (trajectories) skipped")
     rows, comparison, copies = _plan_outputs(

@@ -60,12 +60,17 @@ class CalibrationExistsError(ConfigError):
     """The run already has ``calibration.json`` and ``force`` was not given."""
 
 
-def load_safety_run(run_dir: str | os.PathLike, *, seed: int, num_envs: int = 1):
+def load_safety_run(
+    run_dir: str | os.PathLike, *, seed: int, num_envs: int = 1, trust_env_code: bool = False
+):
     """A run's config, test env, policy and whole loss (safety critic included).
 
     The loss is built like the trainer's (``builders.make_agent`` /
     ``builders.make_loss``) and loaded from the checkpoint; the policy acts through
     the loss's actor as in training and evaluation.
+
+    A run of your own env (``env=gymnasium``) names code: it is imported only with
+    ``trust_env_code=True`` (as :func:`~wcsac_rl.training.restore.load_run`).
 
     Returns:
         ``(cfg, env, policy, loss, frames)``; ``env`` has ``num_envs`` sub-envs
@@ -75,8 +80,7 @@ def load_safety_run(run_dir: str | os.PathLike, *, seed: int, num_envs: int = 1)
         ConfigError: no or unreadable checkpoint, a run without a safety critic (SAC,
             CPO, random), or a checkpoint whose networks do not fit its config.
     """
-    from omegaconf import OmegaConf
-
+    from wcsac_rl.envs import CostKeyError, EnvSourceError
     from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
     from wcsac_rl.training import builders
     from wcsac_rl.training.checkpoint import (
@@ -87,22 +91,29 @@ def load_safety_run(run_dir: str | os.PathLike, *, seed: int, num_envs: int = 1)
     )
     from wcsac_rl.training.devices import on_cpu
     from wcsac_rl.training.trainer import env_max_episode_steps
+    from wcsac_rl.training.trust import TRUST_FLAG, check_env_code, plain_select, stored_config
 
     path = find_checkpoint(run_dir)
     checkpoint = load_checkpoint(path)
-    try:
-        cfg = on_cpu(OmegaConf.create(checkpoint["config"]))  # whatever it trained on
-        algo = str(cfg.algo.name)
-        learner = checkpoint["learner"]
-        frames = int(checkpoint["frames"])
-    except (KeyError, TypeError, ValueError) as err:
-        raise ConfigError(f"{path}: not a training checkpoint ({err!r})") from None
+    cfg = on_cpu(stored_config(checkpoint["config"], path))  # whatever it trained on
+    algo = plain_select(cfg, "algo.name")
+    learner = checkpoint["learner"]
+    frames = int(checkpoint["frames"])
     if algo not in SAFETY_ALGOS:
         raise ConfigError(
             f"{path.parent.parent}: algo {algo!r} has no safety critic to calibrate "
             f"(calibration needs one of {', '.join(SAFETY_ALGOS)})"
         )
-    env = builders.make_eval_env(cfg, seed=seed, num_envs=num_envs)
+    check_env_code(
+        cfg,
+        path,
+        trusted=trust_env_code,
+        allow=f"pass {TRUST_FLAG} (in Python: trust_env_code=True)",
+    )
+    try:  # (your env: a module that no longer imports, an env that fails to build)
+        env = builders.make_eval_env(cfg, seed=seed, num_envs=num_envs)
+    except (EnvSourceError, CostKeyError) as err:
+        raise ConfigError(f"{path}: {err}") from None
     try:
         agent = builders.make_agent(cfg, env)
         loss = builders.make_loss(cfg, agent, env_max_episode_steps(cfg))
@@ -153,11 +164,14 @@ def calibrate_run(
     force: bool = False,
     max_episode_steps: int | None = None,
     on_episode: Callable[[EpisodeResult], None] | None = None,
+    trust_env_code: bool = False,
 ) -> tuple[Path, dict[str, Any]]:
     """Calibrate a run's final safety critic on deterministic test episodes; write
     ``calibration.json`` beside the run.
 
-    ``run_dir`` is a run directory (or a checkpoint in its ``checkpoints/``).
+    ``run_dir`` is a run directory (or a checkpoint in its ``checkpoints/``);
+    ``trust_env_code``: import the env code a run of ``env=gymnasium`` names
+    (:func:`load_safety_run`).
 
     The test env is seeded like :func:`~wcsac_rl.evaluation.evaluator.evaluate_run`'s
     (training seed + ``seed_offset``, default
@@ -192,7 +206,7 @@ def calibrate_run(
     seed_offset = DEFAULT_SEED_OFFSET if seed_offset is None else int(seed_offset)
     env_seed = _training_seed(run_dir) + seed_offset
     cfg, env, policy, loss, frames = load_safety_run(
-        run_dir, seed=env_seed, num_envs=_side_by_side(episodes)
+        run_dir, seed=env_seed, num_envs=_side_by_side(episodes), trust_env_code=trust_env_code
     )
     limit = env_max_episode_steps(cfg)  # the env truncates there whatever max_steps is
     steps = min(int(max_episode_steps or limit), limit)

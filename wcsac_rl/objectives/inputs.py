@@ -21,7 +21,9 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 
 __all__ = [
+    "check_batch_entries",
     "check_finite_entries",
+    "check_finite_losses",
     "check_nonempty_batch",
     "collected_keys",
     "finite_number",
@@ -64,6 +66,30 @@ def check_nonempty_batch(tensordict: TensorDictBase, what: str) -> None:
         )
 
 
+def check_batch_entries(
+    tensordict: TensorDictBase,
+    keys: Iterable[NestedKey],
+    flags: Iterable[NestedKey],
+    what: str,
+) -> None:
+    """A ``KeyError`` naming the first of ``keys`` the batch lacks, or a ``TypeError``
+    naming an entry of ``flags`` (done, terminated) that is not boolean. Looks at keys
+    and dtypes only (no host synchronisation; the same under ``torch.compile``)."""
+    for key in keys:
+        if tensordict.get(key, None) is None:
+            raise KeyError(
+                f"{what}: the batch has no {key!r} entry, which the loss reads (its "
+                "in_keys); add it, or name your entry with loss.set_keys(...)"
+            )
+    for key in flags:
+        value = tensordict.get(key, None)
+        if isinstance(value, torch.Tensor) and value.dtype != torch.bool:
+            raise TypeError(
+                f"{what}: batch entry {key!r} must be boolean (torch.bool), got {value.dtype}; "
+                "convert it with .bool() (TorchRL's envs write done and terminated as bool)"
+            )
+
+
 def nonfinite_entry(
     tensordict: TensorDictBase, keys: Iterable[NestedKey]
 ) -> tuple[NestedKey, int, int, float] | None:
@@ -93,6 +119,31 @@ def check_finite_entries(tensordict: TensorDictBase, keys: Iterable[NestedKey], 
             f"(e.g. {first}); a NaN or infinite cost, reward or observation makes every "
             "loss term NaN and, after one optimizer step, every parameter. Drop or fix "
             "those transitions before they reach the replay buffer"
+        )
+
+
+def check_finite_losses(
+    losses: dict[str, torch.Tensor],
+    tensordict: TensorDictBase,
+    keys: Iterable[NestedKey],
+    what: str,
+) -> None:
+    """A ``ValueError`` naming the first loss term that is not finite although its batch
+    is (:func:`check_finite_entries` ran first), and the largest magnitude of each
+    floating-point entry the loss read: finite inputs too large for float32 (a cost of
+    1e30) overflow in the targets and losses. Reads the values (a host synchronisation)."""
+    for name, value in losses.items():
+        if bool(torch.isfinite(value).all()):
+            continue
+        sizes = []
+        for key in keys:
+            entry = tensordict.get(key, None)
+            if isinstance(entry, torch.Tensor) and entry.is_floating_point() and entry.numel():
+                sizes.append(f"{key!r} {float(entry.detach().abs().max()):.3g}")
+        raise ValueError(
+            f"{what}: {name} is {float(value.detach().reshape(-1)[0])} although the batch is "
+            f"finite; its largest magnitudes: {', '.join(sizes)}. Values this large overflow "
+            "float32 in the targets and losses: scale the rewards, costs or observations down"
         )
 
 

@@ -43,11 +43,14 @@ from wcsac_rl.objectives.cost_target import CostTarget
 from wcsac_rl.objectives.critic_ensemble import Layers
 from wcsac_rl.objectives.critics import CriticParams, Critics, CriticValues
 from wcsac_rl.objectives.inputs import (
+    check_batch_entries,
     check_finite_entries,
+    check_finite_losses,
     check_nonempty_batch,
     finite_number,
     missing_inputs,
     nested_key,
+    produced_keys,
     state_keys,
 )
 from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
@@ -798,12 +801,37 @@ class WCSACLoss(SACLoss):
         check_nonempty_batch(tensordict, type(self).__name__)
         check_finite_entries(tensordict, self.in_keys, type(self).__name__)
 
+    def _data_keys(self) -> list[NestedKey]:
+        """The entries of ``in_keys`` a batch must hold: not those the loss's own networks
+        write (a composite actor's ``params``, a shared trunk's features), not the end
+        flags (``terminated`` falls back to ``done``), not the cost (its own message)."""
+        in_keys = tuple(self.in_keys)
+        cached = self.__dict__.get("_data_keys_cache")
+        if cached is not None and cached[0] == in_keys:
+            return cached[1]
+        networks = (self.actor_network, self.qvalue_network, self.safety_network)
+        produced = produced_keys(*networks)
+        optional = {
+            nested_key("next", getattr(self.tensor_keys, name))
+            for name in ("done", "terminated", "cost")
+        }
+        keys = []
+        for key in in_keys:
+            key = nested_key(key)
+            inner = key[1:] if key[0] == "next" else key
+            if key not in optional and not any(out[: len(inner)] == inner for out in produced):
+                keys.append(key)
+        self.__dict__["_data_keys_cache"] = (in_keys, keys)  # (set_keys changes in_keys)
+        return keys
+
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         check_nonempty_batch(tensordict, type(self).__name__)  # (shapes only: no sync)
         missing = missing_inputs(self, tensordict)  # (keys only: no sync)
         if missing is not None:
             raise KeyError(missing)
+        flags = [("next", self.tensor_keys.done), ("next", self.tensor_keys.terminated)]
+        check_batch_entries(tensordict, self._data_keys(), flags, type(self).__name__)
         if self.check_finite:
             self.check_inputs(tensordict)
         targets = self.compute_targets(tensordict)
@@ -831,6 +859,8 @@ class WCSACLoss(SACLoss):
         out.update(zip(self.safety_head.loss_names, safety_terms))  # (the first or both)
         if loss_kappa is not None:
             out["loss_kappa"] = loss_kappa
+        if self.check_finite:
+            check_finite_losses(out, tensordict, self.in_keys, type(self).__name__)
         scalars = {
             "alpha": self._alpha,
             "kappa": self.kappa,

@@ -17,6 +17,13 @@ from wcsac_rl.envs.presets import env_title
 from wcsac_rl.training.config import ConfigError, TrainingError
 from wcsac_rl.training.preemption import DeferredSignals
 from wcsac_rl.training.safe_load import check_buffer_files, load_data
+from wcsac_rl.training.trust import (
+    TRUST_KEY,
+    check_env_code,
+    interpolation_in,
+    plain_select,
+    stored_config,
+)
 
 __all__ = [
     "CHECKPOINT_DIR",
@@ -111,6 +118,11 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
     """
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(path.suffix + ".tmp")
+    kept = (
+        "the previous checkpoint is kept"
+        if path.is_file()
+        else "no checkpoint had been written yet"
+    )
     try:
         with DeferredSignals():  # a stop signal waits until the file is in place
             with tmp.open("wb") as f:
@@ -124,8 +136,7 @@ def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
             raise
         hint = f" (free some space, then resume={path.parent.parent})" if is_disk_full(err) else ""
         raise TrainingError(
-            f"cannot write checkpoint {path}: {write_error_reason(err, path.parent)}; the "
-            f"previous checkpoint is kept{hint}"
+            f"cannot write checkpoint {path}: {write_error_reason(err, path.parent)}; {kept}{hint}"
         ) from None
     fsync_directory(path.parent)
 
@@ -272,6 +283,15 @@ def load_buffers(
     (:func:`~wcsac_rl.training.safe_load.check_buffer_files`: TorchRL unpickles some of
     a saved buffer's files). A refusal (one line) says to delete ``remove`` (default: the
     buffer's own directory) and loads nothing."""
+    if remove is not None and Path(remove) == Path(directory):  # a buffers-<frames>/ of its own
+        for path in sorted(Path(directory).iterdir()):
+            if path.name not in buffers or not path.is_dir() or path.is_symlink():
+                raise ConfigError(
+                    f"cannot load the replay buffer saved with {checkpoint}: {path} is not one "
+                    f"of its buffers ({', '.join(sorted(buffers))}); nothing of it was loaded "
+                    f"or executed; delete {remove} to resume without it (the buffer is then "
+                    "refilled)"
+                )
     saved = {name: directory / name for name in buffers if (directory / name).is_dir()}
     for path in saved.values():
         check_buffer_files(path, checkpoint, remove=path if remove is None else remove)
@@ -383,7 +403,26 @@ def read_checkpoint(
             f"{path} is not a wcsac_rl training checkpoint (no {', '.join(map(repr, missing))} "
             "entry); pass a run directory written by train.py"
         )
+    _check_entries(state, path)
     return state, hashlib.sha256(data).hexdigest()
+
+
+def _check_entries(state: dict[str, Any], path: Path) -> None:
+    """The entries every reader uses have the types :meth:`Trainer.state_dict` writes (a
+    crafted file's ``config: 5`` or ``frames: "abc"`` is one line, not a traceback)."""
+    if "config" in state:
+        stored_config(state["config"], path)  # a mapping of resolved values
+    frames = state.get("frames", 0)
+    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 0:
+        raise ConfigError(
+            f"{path}: its 'frames' entry must be a whole number >= 0, got {frames!r}; "
+            "pass a checkpoint written by train.py"
+        )
+    if "learner" in state and not isinstance(state["learner"], dict):
+        raise ConfigError(
+            f"{path}: its 'learner' entry must hold the networks' states, got "
+            f"{type(state['learner']).__name__}; pass a checkpoint written by train.py"
+        )
 
 
 def checkpoint_digest(path: Path) -> str:
@@ -500,17 +539,19 @@ resolved ``config.yaml`` first; Hydra's composed one when the run died before wr
 
 def run_config_record(run_dir: Path) -> tuple[Path, dict] | None:
     """The configuration ``run_dir`` records for itself, and the file it came from
-    (``None``: no readable record). Read as YAML data (OmegaConf's safe loader)."""
+    (``None``: no readable record). Read as YAML data (OmegaConf's safe loader) and
+    returned as a plain container: nothing in it is resolved (Hydra's record keeps its
+    ``${...}`` as written)."""
     for name in RUN_CONFIG_RECORDS:
         path = Path(run_dir) / name
-        if not path.is_file():
+        if not path.is_file() or path.is_symlink():
             continue
         try:
             record = OmegaConf.load(path)
         except Exception:  # a damaged record says nothing: try the next one
             continue
         if isinstance(record, DictConfig):
-            return path, record
+            return path, OmegaConf.to_container(record, resolve=False)
     return None
 
 
@@ -525,10 +566,9 @@ def check_run_config(saved_config: dict, run_dir: Path, path: Path) -> None:
     record_path, record = found
     diffs = []
     for key in IDENTITY_KEYS:
-        try:
-            recorded = _select(record, key)
-        except Exception:  # an interpolation Hydra alone resolves (${hydra:...})
-            continue
+        recorded = plain_select(record, key)
+        if interpolation_in(recorded) is not None:
+            continue  # Hydra's record, as composed: an interpolation is never resolved here
         saved = _select(saved_config, key)
         if recorded is not None and saved is not None and recorded != saved:
             diffs.append(f"{key}: checkpoint={saved!r}, run={recorded!r}")
@@ -602,6 +642,7 @@ RESUME_CHANGEABLE = (
     "algo.lr",
     "algo.actor_lr",
     "algo.kappa_lr_scale",
+    TRUST_KEY,
 )
 """What a resumed session may change (a key or a whole config group): extending the
 run, where and how it logs, how the process runs, and the learning rates (Adam's
@@ -663,8 +704,22 @@ def resume_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     path = find_checkpoint(cfg.resume)
-    run = OmegaConf.create(load_checkpoint(path)["config"])
-    for override in OverridesParser.create().parse_overrides(list(overrides)):
+    run = stored_config(load_checkpoint(path)["config"], path)  # nothing in it resolved
+    parsed = OverridesParser.create().parse_overrides(list(overrides))
+    given = {override.key_or_group for override in parsed}
+    trusted = OmegaConf.select(cfg, TRUST_KEY, default=False) is True  # this command's word
+    check_env_code(
+        run,
+        path,
+        trusted=trusted,
+        given_id=OmegaConf.select(cfg, "env.id") if "env.id" in given else None,
+        allow=(
+            f"add {TRUST_KEY}=true to the command line (or name the same env=gymnasium "
+            f"env.id={plain_select(run, 'env.id')} on it)"
+        ),
+    )
+    run[TRUST_KEY] = trusted  # (the run's own value is not this command's word)
+    for override in parsed:
         key = override.key_or_group
         if key == "hydra" or key.startswith("hydra.") or key == "resume":
             continue
@@ -710,6 +765,16 @@ def load_module_state(module: torch.nn.Module, state: Any, what: str = "loss") -
                 f"its networks do not fit its config: {key} is {_shape(saved)} in the "
                 f"checkpoint, {_shape(value)} as configured"
             )
+    for key, _ in module.named_parameters():
+        saved = state.get(key)
+        if isinstance(saved, torch.Tensor) and saved.is_floating_point():
+            bad = ~torch.isfinite(saved)
+            if bool(bad.any()):
+                raise StateMismatch(
+                    f"its networks hold non-finite weights: {key} has {int(bad.sum())} NaN "
+                    f"or infinite value(s) of {saved.numel()}; a policy or critic with them "
+                    "acts and learns on NaN (resume from an earlier checkpoint, or start over)"
+                )
     try:
         module.load_state_dict(state)
     except (RuntimeError, ValueError, KeyError, TypeError) as err:

@@ -222,14 +222,43 @@ def _validate_risk(cfg: DictConfig, algo: str) -> None:
         raise ConfigError(str(err)) from None
 
 
+def machine_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the OS tells it)."""
+    import os
+
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # (not Linux)
+        return max(1, os.cpu_count() or 1)
+
+
+def check_run_name(value: Any) -> None:
+    """``run_name`` names a directory inside ``outputs/<date>/`` and the logger's
+    ``logs/<run_name>/``: a name, not a path (``../../../x`` would put them elsewhere)."""
+    text = str(value)
+    if not text.strip() or "/" in text or "\\" in text or text in (".", "..") or "\n" in text:
+        raise ConfigError(
+            f"run_name must be a name without '/' (it names the run's directory and its "
+            f"logs/<run_name>/), got {value!r}; choose where the run goes with hydra.run.dir"
+        )
+
+
 def _validate_run(cfg: DictConfig) -> None:
     """The run's schedule, checkpoints and switches (the top-level keys)."""
+    if cfg.get("run_name") is not None:
+        check_run_name(cfg.run_name)
     seed = _get(cfg, "seed")
     _positive_int(cfg, "seed", allow_zero=True)  # gymnasium and NumPy need seeds >= 0
     if seed > SEED_MAX:
         raise ConfigError(f"seed must be at most 2**63 - 1 = {SEED_MAX}, got {seed!r}")
     for key in ("total_frames", "epoch_frames", "threads", "checkpoint_every_epochs"):
         _positive_int(cfg, key)
+    cores = machine_cores()
+    if cfg.threads > cores:
+        raise ConfigError(
+            f"threads={cfg.threads} is more than this machine's {cores} cores (torch threads "
+            f"beyond them only wait for each other); choose threads <= {cores}"
+        )
     if cfg.get("max_nonfinite_updates") is not None:
         _positive_int(cfg, "max_nonfinite_updates")
     _positive_int(cfg, "eval_episodes", allow_zero=True)
@@ -240,7 +269,13 @@ def _validate_run(cfg: DictConfig) -> None:
         raise ConfigError(
             f"keep_checkpoints_at must be a list of epochs >= 1 (e.g. [1,5]), got {keep!r}"
         )
-    for key in ("compile", "retain_freed_memory", "save_replay_buffer", "progress_bar"):
+    for key in (
+        "compile",
+        "retain_freed_memory",
+        "save_replay_buffer",
+        "progress_bar",
+        "trust_env_code",
+    ):
         if key in cfg:
             _boolean(cfg, key)
     resume = cfg.get("resume")
@@ -251,6 +286,22 @@ def _validate_run(cfg: DictConfig) -> None:
     kwargs = cfg.env.get("kwargs")
     if kwargs is not None and not isinstance(kwargs, Mapping):
         raise ConfigError(f"env.kwargs must be a mapping of env arguments, got {kwargs!r}")
+    if kwargs and cfg.env.name != "gymnasium":
+        _validate_preset_kwargs(str(cfg.env.name), kwargs)
+
+
+def _validate_preset_kwargs(env: str, kwargs: Mapping) -> None:
+    """A built-in env's ``env.kwargs`` are options its constructor takes (your own
+    env's are yours: passed to it as they are)."""
+    from wcsac_rl.envs.presets import preset_options  # local: importing envs loads MuJoCo
+
+    options = preset_options(env)
+    unknown = sorted(str(key) for key in kwargs if options is not None and key not in options)
+    if unknown:
+        raise ConfigError(
+            f"env.kwargs.{unknown[0]}: env {env} has no option {unknown[0]!r} (its options: "
+            f"{', '.join(sorted(options))})"
+        )
 
 
 def _validate_collector(cfg: DictConfig) -> None:
@@ -268,6 +319,31 @@ def _validate_collector(cfg: DictConfig) -> None:
         )
 
 
+def _validate_interpolations(cfg: DictConfig) -> None:
+    """Every ``${...}`` of the run's config resolves (Hydra's own node aside): one line
+    naming the key, what it holds and why it does not (an unset environment variable, a
+    key that refers to itself)."""
+    raw = OmegaConf.to_container(cfg, resolve=False)
+
+    def walk(node: Any, prefix: str) -> None:
+        items = node.items() if isinstance(node, dict) else enumerate(node)
+        for key, value in items:
+            path = f"{prefix}{key}"
+            if path == "hydra":
+                continue
+            if isinstance(value, (dict, list)):
+                walk(value, f"{path}.")
+            elif isinstance(value, str) and "${" in value:
+                try:
+                    OmegaConf.select(cfg, path, throw_on_resolution_failure=True)
+                except Exception as err:
+                    first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+                    first = first.split("resolving interpolation: ", 1)[-1].strip("\"'. ")
+                    raise ConfigError(f"{path}={value} cannot be resolved: {first}") from None
+
+    walk(raw, "")
+
+
 def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
     """Raise :class:`ConfigError` if ``cfg`` cannot give a sensible run. Does no work.
 
@@ -278,6 +354,7 @@ def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
     key), and ``algo.recipe`` must name the recipe files that shaped it. A resumed
     run's saved keys are checked against its checkpoint instead.
     """
+    _validate_interpolations(cfg)
     algo = _validate_choices(cfg)
     _validate_risk(cfg, algo)
     _validate_run(cfg)

@@ -42,6 +42,19 @@ DEFERRED_SIGNALS: tuple[str, ...] = (*STOP_SIGNALS, "SIGINT", "SIGHUP")
 """The signals :class:`DeferredSignals` holds back while a file is written."""
 
 
+def train_command() -> str:
+    """How the user started this run: ``wcsac-train``, ``python -m wcsac_rl.train`` or
+    (in a checkout, and from Python) ``python train.py``."""
+    import sys
+
+    started = Path(sys.argv[0]) if sys.argv and sys.argv[0] else Path()
+    if started.name == "wcsac-train":
+        return "wcsac-train"
+    if started.name == "train.py" and started.parent.name == "wcsac_rl":
+        return "python -m wcsac_rl.train"
+    return "python train.py"
+
+
 class Preempted(Exception):
     """The run stopped on a signal after writing its checkpoint.
 
@@ -62,7 +75,7 @@ class Preempted(Exception):
         how = (
             "run the same command again to continue it (it has resume=auto)"
             if resume_auto
-            else f"continue it with: python train.py resume={run_dir}"
+            else f"continue it with: {train_command()} resume={run_dir}"
         )
         super().__init__(
             f"stopped by {self.signal_name} at {self.frames} frames; checkpoint written to "

@@ -7,15 +7,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from tensordict.nn import TensorDictModule
 from torchrl.envs import EnvBase
 
+from wcsac_rl.envs import CostKeyError, EnvSourceError
 from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import StateMismatch, find_checkpoint, read_checkpoint
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.devices import on_cpu
 from wcsac_rl.training.registry import trainer_class
+from wcsac_rl.training.trust import TRUST_FLAG, check_env_code, stored_config
 
 __all__ = ["RestoredRun", "load_run"]
 
@@ -46,7 +48,13 @@ class RestoredRun:
     checkpoint_sha256: str = ""
 
 
-def load_run(path: str | os.PathLike, *, seed: int | None = None, num_envs: int = 1) -> RestoredRun:
+def load_run(
+    path: str | os.PathLike,
+    *,
+    seed: int | None = None,
+    num_envs: int = 1,
+    trust_env_code: bool = False,
+) -> RestoredRun:
     """Rebuild a run's policy from ``path`` (a run dir or a checkpoint file).
 
     ``seed`` seeds the returned env (default: the eval seed of the run's trainer);
@@ -54,13 +62,29 @@ def load_run(path: str | os.PathLike, *, seed: int | None = None, num_envs: int 
     ``seed + 1``, ...) for :func:`~wcsac_rl.rollouts.episodes.run_episodes` to
     run episodes side by side.
 
+    A run of your own env (``env=gymnasium``) names code in its checkpoint
+    (``env.id=module:callable``): it is imported and called only with
+    ``trust_env_code=True`` (a run directory is untrusted input:
+    :mod:`~wcsac_rl.training.trust`); the built-in envs need nothing.
+
     Raises :class:`~wcsac_rl.training.ConfigError` with one clear line when the
-    directory holds no checkpoint or the checkpoint cannot be read.
+    directory holds no checkpoint, the checkpoint cannot be read, or it names env code
+    that was not allowed (:class:`~wcsac_rl.training.trust.UntrustedEnvCode`, nothing
+    imported).
     """
     checkpoint_path = find_checkpoint(path)
     checkpoint, digest = read_checkpoint(checkpoint_path)
-    cfg = on_cpu(OmegaConf.create(checkpoint["config"]))  # whatever it trained on
-    env = builders.make_eval_env(cfg, seed=seed, num_envs=num_envs)
+    cfg = on_cpu(stored_config(checkpoint["config"], checkpoint_path))  # whatever it trained on
+    check_env_code(
+        cfg,
+        checkpoint_path,
+        trusted=trust_env_code,
+        allow=f"pass {TRUST_FLAG} (in Python: trust_env_code=True)",
+    )
+    try:  # (your env: a module that no longer imports, an env that fails to build)
+        env = builders.make_eval_env(cfg, seed=seed, num_envs=num_envs)
+    except (EnvSourceError, CostKeyError) as err:
+        raise ConfigError(f"{checkpoint_path}: {err}") from None
     try:
         policy = trainer_class(cfg.algo.name).restore_policy(
             cfg, checkpoint.get("learner", {}), env

@@ -35,6 +35,8 @@ __all__ = [
     "LOCK_FILE",
     "RunLock",
     "check_new_run_dir",
+    "check_own_files",
+    "check_progress_rows",
     "check_restartable_run_dir",
     "cut_records_to",
     "discard_unused_run_dir",
@@ -57,10 +59,18 @@ RUN_ENTRIES = (
 """What a run writes into its directory before (or without) a checkpoint."""
 HYDRA_ENTRIES = (".hydra",)
 """What Hydra writes into a run directory before the trainer starts (and ``*.log``)."""
+HYDRA_STAGING = ".hydra-pending-"
+"""``wcsac-train`` has Hydra write a command's records to ``.hydra-pending-<pid>/``
+(``hydra.output_subdir``): they become ``.hydra/`` once the run is accepted, and are
+removed when it is refused (another run's records are never written over)."""
 
 
 def _is_hydra_entry(path: Path) -> bool:
-    return path.name in HYDRA_ENTRIES or (path.is_file() and path.suffix == ".log")
+    return (
+        path.name in HYDRA_ENTRIES
+        or path.name.startswith(HYDRA_STAGING)
+        or (path.is_file() and path.suffix == ".log")
+    )
 
 
 def _is_resumed_session_record(path: Path) -> bool:
@@ -176,20 +186,58 @@ def unwritable_reason(directory: str | os.PathLike) -> str | None:
     return None
 
 
-def discard_unused_run_dir(run_dir: Path) -> bool:
-    """Remove ``run_dir`` if it holds nothing but what Hydra writes before the trainer
-    starts (``.hydra/``, ``*.log``) and a lock file: a command refused before it could
-    train leaves no directory behind. A directory with anything else in it (a run, a
-    user's files) is left as it is. Returns whether it was removed."""
+def discard_unused_run_dir(
+    run_dir: Path,
+    *,
+    existed: frozenset[str] | None = None,
+    since: float | None = None,
+    created: bool = False,
+) -> bool:
+    """Undo what a refused command wrote into ``run_dir``: only what it created itself.
+
+    ``created``: the command made the directory (it is removed). Otherwise ``existed``
+    names the directory's entries before the command (``None``: not known). The
+    entries the command may have made are Hydra's staged records
+    (:data:`HYDRA_STAGING`), an empty job log (``*.log``) and the lock file; those not
+    in ``existed`` are removed. When it is not known whether the directory existed, it
+    is removed if it holds nothing else (a log in it empty and newer than ``since``). A
+    directory with anything else in it (a run, a user's files) keeps it all. Returns
+    whether the directory was removed."""
     import shutil
 
     run_dir = Path(run_dir)
-    if not run_dir.is_dir():
+    if not run_dir.is_dir() or run_dir.is_symlink():
         return False
-    if any(p.name != LOCK_FILE and not _is_hydra_entry(p) for p in run_dir.iterdir()):
-        return False
-    shutil.rmtree(run_dir, ignore_errors=True)
-    return True
+    if created:
+        shutil.rmtree(run_dir, ignore_errors=True)
+        return True
+
+    def made_here(path: Path) -> bool:
+        if existed is not None and path.name in existed:
+            return False
+        if path.name.startswith(HYDRA_STAGING):
+            return path.is_dir() and not path.is_symlink()
+        if path.is_symlink() or not path.is_file():
+            return False
+        if path.name == LOCK_FILE:
+            return True
+        stat = path.stat()  # Hydra's job log, opened (and so created) before the job
+        new = since is None or stat.st_ctime >= since - 1  # (coarse file clocks)
+        return path.suffix == ".log" and stat.st_size == 0 and new
+
+    entries = list(run_dir.iterdir())
+    ours = [p for p in entries if made_here(p)]
+    if existed is None:  # (not known to have existed: all of it, or nothing)
+        if len(ours) < len(entries):
+            return False
+        shutil.rmtree(run_dir, ignore_errors=True)
+        return True
+    for path in ours:
+        if path.is_dir():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+    return False
 
 
 def check_new_run_dir(run_dir: Path) -> None:
@@ -248,6 +296,58 @@ def check_restartable_run_dir(run_dir: Path) -> None:
             f"{run_dir}: no checkpoint to continue; starting the run over (dropped "
             f"{dropped} progress.csv row(s) of a session that ended before its first checkpoint)"
         )
+
+
+def check_own_files(run_dir: Path) -> None:
+    """Refuse (one line) to continue a run one of whose entries is a symbolic link: a
+    resume appends to ``progress.csv`` and the logger's files and writes over its
+    checkpoints, and through a link it would write outside the run."""
+    run_dir = Path(run_dir)
+    paths = list(run_dir.iterdir())  # its records, and below checkpoints/ and logs/
+    for top in ("checkpoints", "logs"):
+        if (run_dir / top).is_dir() and not (run_dir / top).is_symlink():
+            for parent, dirs, files in os.walk(run_dir / top, followlinks=False):
+                dirs[:] = [d for d in dirs if d != "wandb"]  # (wandb links its latest run)
+                paths += [Path(parent) / name for name in [*dirs, *files]]
+    for path in sorted(paths):
+        if path.is_symlink():
+            raise ConfigError(
+                f"{path} is a symbolic link (to {os.readlink(path)}); a resume writes into "
+                f"the run's own files only: replace it with the file itself to continue "
+                f"{run_dir}"
+            )
+
+
+def check_progress_rows(run_dir: Path, epoch: int | None = None) -> None:
+    """Refuse (one line naming the epoch) a run whose ``progress.csv`` rows (up to the
+    checkpoint's ``epoch``; ``None``: all of them) are not epochs 1, 2, ... once each
+    and in order: a resume would keep a duplicated or missing row in its records, and a
+    report would read its frames and time from it."""
+    path = Path(run_dir) / "progress.csv"
+    if not path.is_file():
+        return
+    with path.open(newline="") as f:
+        reader = csv.reader(f)
+        header = next(reader, None)
+        rows = list(reader)
+    if not header or "epoch" not in header:
+        return
+    col = header.index("epoch")
+    expected = 1
+    for number, row in enumerate(rows, start=2):  # (line numbers: the header is line 1)
+        if len(row) != len(header):
+            continue  # a row cut short by a kill: dropped on resume
+        value = _number(row[col])
+        if value is None or (epoch is not None and value > epoch):
+            continue
+        if value != expected:
+            what = "again" if value < expected else f"where epoch {expected} belongs"
+            upto = "" if epoch is None else f" up to the checkpoint's epoch {epoch}"
+            raise ConfigError(
+                f"{path}: line {number} logs epoch {value:g} {what} (its rows{upto} must be "
+                "epochs 1, 2, ... once each, in order): restore the run's own progress.csv"
+            )
+        expected += 1
 
 
 def replace_text(path: Path, text: str) -> None:

@@ -60,6 +60,8 @@ from wcsac_rl.training.run_dir import (
     AUTO_RESUME,
     RunLock,
     check_new_run_dir,
+    check_own_files,
+    check_progress_rows,
     check_restartable_run_dir,
     cut_records_to,
     replace_text,
@@ -108,6 +110,20 @@ def env_max_episode_steps(cfg: DictConfig) -> int:
         return int(env_info(cfg.env.name, **builders.env_kwargs(cfg))["max_episode_steps"])
     except (EnvSourceError, CostKeyError) as err:
         raise ConfigError(str(err)) from None
+    except (TypeError, ValueError) as err:  # a preset's constructor: an option it lacks
+        first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+        raise ConfigError(f"env.kwargs of env={cfg.env.name}: {first}") from None
+
+
+def _whole(checkpoint: dict[str, Any], key: str, path: Path) -> int:
+    """A checkpoint's counter ``key`` (a whole number >= 0), or one line naming it."""
+    value = checkpoint[key]
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ConfigError(
+            f"{path}: its {key!r} entry must be a whole number >= 0, got {value!r}; pass a "
+            "checkpoint written by train.py"
+        )
+    return value
 
 
 def _postfix(row: dict[str, float]) -> str:
@@ -232,7 +248,11 @@ class Trainer:
             resume_frames=None if checkpoint is None else self.tracker.frames,
         )
         self.progress = ProgressWriter(self.run_dir / "progress.csv")
-        # a session's records (a resume of a finished run trains nothing: it writes none)
+        if checkpoint is not None:
+            # after building the collector and the logger (they draw from the global RNGs)
+            self._restore_rng(checkpoint["rng"], self._resumed_from)
+        # a session's records, once nothing can refuse it (a resume of a finished run
+        # trains nothing: it writes none)
         self.config_path = self.provenance_path = None
         if checkpoint is None or self.collector is not None:
             self.config_path = self._write_config(resumed=checkpoint is not None)
@@ -245,9 +265,6 @@ class Trainer:
                 ),
                 resumed=checkpoint is not None,
             )
-        if checkpoint is not None:
-            # last: building the collector and the logger draws from the global RNGs
-            self._restore_rng(checkpoint["rng"])
 
     def _write_config(self, *, resumed: bool) -> Path:
         """``config.yaml`` for a new run; a resumed session never rewrites it but writes
@@ -311,11 +328,13 @@ class Trainer:
         the run directory's own record's (:func:`check_run_config`: a checkpoint copied
         under another run), and the config changes only what may change on resume."""
         self._resumed_from = path
+        check_own_files(self.run_dir)
         check_compatible(checkpoint["config"], self.cfg, path)
         check_run_config(checkpoint["config"], self.run_dir, path)
         # keys the run was saved with are its own (an option since removed included)
         check_known_keys(self.cfg, extra=key_paths(checkpoint["config"]))
         check_resume_changes(checkpoint["config"], self.cfg, path)
+        check_progress_rows(self.run_dir, _whole(checkpoint, "epoch", path))
 
     # ---------------------------------------------------------- algorithm
     def _build_learner(self) -> None:
@@ -523,7 +542,13 @@ class Trainer:
             held = row.get("loss/constraint_cvar", row["loss/cvar"])  # (kappa_signal)
             row["loss/constraint_slack"] = row["loss/cost_threshold"] - held
         with timeit("eval"):
-            row.update(self._evaluate())
+            try:
+                row.update(self._evaluate())
+            except (CostKeyError, EnvSourceError) as err:  # your env, in a test episode
+                raise TrainingError(
+                    f"{err}; training stopped in the test episodes at {self.tracker.frames} "
+                    f"frames ({self._kept_checkpoint()})"
+                ) from None
         row["time/fps"] = frames / seconds if seconds > 0 else math.nan
         row["time/ups"] = updates / seconds if seconds > 0 else math.nan
         for name, total in timeit.todict(percall=False).items():
@@ -696,10 +721,17 @@ class Trainer:
             return TrainingSafety(float(self.cfg.cost_limit))
 
     @staticmethod
-    def _restore_rng(rng: dict[str, Any]) -> None:
-        torch.set_rng_state(rng["torch"])
-        set_numpy_rng_state(rng["numpy"])
-        random.setstate(rng["python"])
+    def _restore_rng(rng: dict[str, Any], path: Path | None = None) -> None:
+        try:
+            torch.set_rng_state(rng["torch"])
+            set_numpy_rng_state(rng["numpy"])
+            random.setstate(rng["python"])
+        except (KeyError, TypeError, ValueError, RuntimeError) as err:
+            first = (str(err).strip().splitlines() or [type(err).__name__])[0]
+            raise ConfigError(
+                f"checkpoint {path}: its 'rng' entry is not the RNG states train.py saves "
+                f"({first[:200]}); pass a checkpoint written by train.py"
+            ) from None
 
     def close(self) -> None:
         """Release envs, flush the logger and give up the run directory's lock."""
