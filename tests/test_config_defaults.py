@@ -164,21 +164,6 @@ SAC_LAG_LAYOUT = {
         "pid.max_kappa": 0.3,
     },
 }
-# What a SAC-Lag DynamicEnv run had before its own DynamicEnv values (its mean critic,
-# κ ≥ 0.1, the PID's default bound); a run begun then resumes only with these
-SAC_LAG_BEFORE_S4 = [
-    "algo.safety_critic=gaussian",
-    "algo.kappa_min=0.1",
-    "algo.pid.max_kappa=100.0",
-]
-# DynamicEnv's κ rule before the one above: the PID rule at its own gains, κ >= 0.1
-# from log 2, 10-step targets, the actor at 3e-4.
-DYNAMIC_D21 = [
-    "algo.kappa_init=0.6931471805599453",
-    "algo.pid.ki=1e-06",
-    "algo.cost_n_steps=10",
-    "algo.actor_lr=0.0003",
-]
 
 
 def _whole(*overrides: str) -> dict:
@@ -242,61 +227,38 @@ def test_the_algorithms_without_a_lagrangian_have_no_safety_keys(algo):
 @pytest.mark.parametrize(
     ("base", "then"),
     [
-        (
-            ("algo=wcsac", "env=dynamic", "risk_level=0.5"),
-            ("algo.kappa_rule=gradient", "algo.kappa_min=0", *DYNAMIC_D21),
-        ),
-        (("algo=wcsac", "env=dynamic", "risk_level=0.5"), tuple(DYNAMIC_D21)),
-        (("algo=sac_lag", "env=dynamic"), (*SAC_LAG_BEFORE_S4, *DYNAMIC_D21)),
-        (("algo=sac_lag", "env=dynamic"), (*SAC_LAG_BEFORE_S4, "algo.kappa_init=0.1")),
+        (("algo=wcsac", "env=dynamic", "risk_level=0.5"), ("algo.kappa_rule=gradient",)),
         (("algo=sac_lag", "env=static"), ("algo.safety_critic=gaussian",)),
     ],
-    ids=[
-        "dynamic-gradient-rule",
-        "dynamic-d21",
-        "sac_lag-dynamic-d21",
-        "sac_lag-dynamic-y9",
-        "sac_lag-static-mean-critic",
-    ],
+    ids=["wcsac-dynamic-gradient-rule", "sac_lag-static-mean-critic"],
 )
-def test_a_run_begun_under_an_earlier_default_resumes_only_as_it_began(tmp_path, base, then):
-    """``resume=auto`` on a run made under an earlier recipe: DynamicEnv ones made while
-    its κ rule was the gradient rule or an earlier PID rule, and a StaticEnv SAC-Lag one
-    made with its mean critic.
-    Under today's default it is refused in one line that ends with what to add (nothing
-    of the run is touched); with exactly that added it continues, in every key of its
-    config as it began (the actor's rate too, which a resume may change)."""
-    import re
-
+def test_a_run_made_otherwise_resumes_from_its_own_record(tmp_path, base, then):
+    """``resume=auto`` on a run whose configuration differs from today's in a key that
+    cannot change on resume is refused in one line that says how it continues
+    (``resume=<its directory>``), touching nothing of the run; that command continues it
+    with every key of its config as it began."""
     from _training_helpers import compose_config
     from omegaconf import OmegaConf
 
     from wcsac_rl.training import ConfigError, make_trainer
-    from wcsac_rl.training.checkpoint import _leaves, load_checkpoint
+    from wcsac_rl.training.checkpoint import _leaves, load_checkpoint, resume_config
 
     run_dir = tmp_path / "run"
-    base = (*base, "resume=auto")
-    first = make_trainer(compose_config(*base, *then, "total_frames=400"), run_dir)
+    first = make_trainer(compose_config(*base, *then, "resume=auto", "total_frames=400"), run_dir)
     try:
         first.run()
     finally:
         first.close()
     files = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file() and p.name != ".lock"}
     with pytest.raises(ConfigError) as err:
-        make_trainer(compose_config(*base), run_dir).close()
+        make_trainer(compose_config(*base, "resume=auto"), run_dir).close()
     message = str(err.value)
     assert "\n" not in message
-    found = re.search(
-        r" \(a (?:DynamicEnv|StaticEnv) run begun under an earlier preset=kit default "
-        r"continues with (.+) on the command line\)$",
-        message,
-    )
-    assert found is not None, message
-    added = tuple(found.group(1).split(" "))
-    assert sorted(o.split("=")[0] for o in added) == sorted(o.split("=")[0] for o in then)
+    assert message.endswith(f" (resume={run_dir} continues it with its own recorded configuration)")
     assert {p: p.read_bytes() for p in files} == files
     began = _leaves(load_checkpoint(run_dir / "checkpoints" / "last.pt")["config"])
-    resumed = make_trainer(compose_config(*base, *added), run_dir)
+    overrides = [f"resume={run_dir}", "total_frames=800"]
+    resumed = make_trainer(resume_config(compose_config(*base, *overrides), overrides), run_dir)
     try:
         resumed.run()
     finally:
@@ -306,25 +268,3 @@ def test_a_run_begun_under_an_earlier_default_resumes_only_as_it_began(tmp_path,
     assert changed <= {"resume", "total_frames"}, changed
     rows = (run_dir / "progress.csv").read_text().splitlines()
     assert len(rows) == 1 + 2  # header, the first session's epoch and the resumed one's
-
-
-def test_the_dynamic_rule_hint_is_not_offered_for_a_key_the_run_never_had():
-    """A DynamicEnv run whose config predates a refused κ option (no value for it) gets
-    the general preset hint, not the DynamicEnv one, which would list nothing for that
-    key: no value of it would continue the run."""
-    from _training_helpers import compose_config
-    from omegaconf import OmegaConf
-
-    from wcsac_rl.training.checkpoint import PRESET_HINT as GENERAL_HINT
-    from wcsac_rl.training.checkpoint import _preset_hint
-
-    cfg = compose_config("algo=wcsac", "env=dynamic", "risk_level=0.5")
-    saved = OmegaConf.to_container(cfg, resolve=True)
-    del saved["algo"]["kappa_rule"]
-    assert _preset_hint(["algo.kappa_rule"], saved, cfg) == GENERAL_HINT
-    saved["algo"]["kappa_rule"] = "gradient"
-    hint = _preset_hint(["algo.kappa_rule"], saved, cfg)
-    assert hint.endswith(
-        " (a DynamicEnv run begun under an earlier preset=kit default "
-        "continues with algo.kappa_rule=gradient on the command line)"
-    )

@@ -13,7 +13,6 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from wcsac_rl.envs.presets import env_title
 from wcsac_rl.training.config import ConfigError, TrainingError
 from wcsac_rl.training.preemption import DeferredSignals
 from wcsac_rl.training.safe_load import check_buffer_files, load_data
@@ -439,82 +438,12 @@ def _select(cfg: DictConfig | dict, key: str) -> Any:
     return value
 
 
-DYNAMIC_RULE_KEYS = frozenset(
-    {
-        "algo.kappa_rule",
-        "algo.kappa_min",
-        "algo.kappa_init",
-        "algo.pid.ki",
-        "algo.cost_n_steps",
-        "algo.actor_lr",
-        "algo.safety_critic",
-        "algo.pid.max_kappa",
-    }
-)
-"""The keys ``preset=kit`` changed on DynamicEnv after it became the default
-(``conf/algo/kappa_advice/kit/dynamic.yaml``: the PID rule with κ ≥ 0.1, then κ from 0.1
-with no integral term, a 50-step cost target and SAC's actor rate; then SAC-Lag's own
-values, the IQN critic with 0.02 ≤ κ ≤ 0.3: ``conf/algo/kappa_advice/per_algo/``)."""
-
-STATIC_RULE_KEYS = frozenset({"algo.safety_critic"})
-"""The key ``preset=kit`` changed on StaticEnv after it became the default: SAC-Lag's
-safety critic, the mean critic until L19 and the IQN critic since
-(``conf/algo/kappa_advice/per_algo/kit_sac_lag_static.yaml``)."""
-
-LATER_RULE_KEYS = {"dynamic": DYNAMIC_RULE_KEYS, "static": STATIC_RULE_KEYS}
-"""Per layout (``env.name``), the keys ``preset=kit`` changed there after it became the
-default; a run begun before such a change continues with its own values of them."""
-
-PRESET_KEYS = frozenset(
-    f"algo.{key}"
-    for key in (
-        "safety_critic",
-        "kappa_signal",
-        "kappa_episode_window",
-        "kappa_lr_scale",
-        "damp_scale",
-        "alpha_init",
-        "actor_lr",
-    )
-).union(*LATER_RULE_KEYS.values())
-"""The keys in which the config's two presets differ (``conf/algo/preset/``, on some
-layout): a run begun under ``preset=kit_2026_11`` (before the default changed) and
-continued with ``resume=auto`` under the default differs in them, and the refusal says
-which preset it ran with."""
-
-PRESET_HINT = (
-    " (a run begun before the config's default preset changed continues with "
-    "preset=kit_2026_11 on the command line)"
-)
-
-
-def _preset_hint(keys: list[str], saved_config: Any = None, cfg: Any = None) -> str:
-    """What to add to a refusal over ``keys``: how a run begun under an earlier default
-    continues, when the keys are the ones that default changed. On a layout where
-    ``preset=kit`` changed after it became the default (:data:`LATER_RULE_KEYS`), the
-    hint lists each of that layout's keys in which the run differs from today's config,
-    with the run's own value (a changeable one too, such as the actor's rate: left out,
-    the run would go on at today's). A run whose config has no value for a refused key
-    (it predates the option) gets the general hint instead: no value of that key would
-    continue it."""
-    layout = _select(saved_config, "env.name") if saved_config is not None else None
-    later = LATER_RULE_KEYS.get(layout, frozenset())
-    if (
-        keys
-        and later.issuperset(keys)
-        and all(_select(saved_config, key) is not None for key in keys)
-    ):
-        run = {key: _select(saved_config, key) for key in sorted(later)}
-        pairs = [
-            f"{key}={value}"
-            for key, value in run.items()
-            if value is not None and value != _select(cfg, key)
-        ]
-        return (
-            f" (a {env_title(layout)} run begun under an earlier preset=kit default "
-            f"continues with {' '.join(pairs)} on the command line)"
-        )
-    return PRESET_HINT if PRESET_KEYS.intersection(keys) else ""
+def _own_config_hint(path: Path) -> str:
+    """What a refusal to resume with today's config adds: the run continues with its own
+    recorded configuration (``resume=<its directory>`` reads the run's config and applies
+    only the command line's explicit overrides: :func:`resume_config`)."""
+    run_dir = path.parent.parent if path.parent.name == "checkpoints" else path
+    return f" (resume={run_dir} continues it with its own recorded configuration)"
 
 
 def check_compatible(saved_config: dict, cfg: DictConfig, path: Path) -> None:
@@ -528,7 +457,7 @@ def check_compatible(saved_config: dict, cfg: DictConfig, path: Path) -> None:
         raise ConfigError(
             f"checkpoint {path} was made by another configuration ({'; '.join(diffs)}); "
             f"run with the same settings or start a new run"
-            f"{_preset_hint(keys, saved_config, cfg)}"
+            f"{_own_config_hint(path)}"
         )
 
 
@@ -687,7 +616,7 @@ def check_resume_changes(saved_config: dict, cfg: DictConfig, path: Path) -> Non
             f"resume continues {path.parent.parent} as it was configured, and "
             f"{'; '.join(diffs)} cannot change on resume (these can: "
             f"{', '.join(RESUME_CHANGEABLE[1:])}); start a new run to change the "
-            f"others{_preset_hint(keys, saved_config, cfg)}"
+            f"others{_own_config_hint(path)}"
         )
 
 
