@@ -170,6 +170,36 @@ def test_runs_of_other_settings_in_a_row_are_refused_naming_the_key(study, tmp_p
              "(0.3: sac_lag_static_seed0, sac_lag_static_seed20; 0.5: sac_lag_static_seed10)")  # fmt: skip
 
 
+def test_an_option_some_runs_of_a_row_lack_is_not_a_difference(study, tmp_path):
+    """A run made before an option existed (its config lacks the key; it trained at the
+    option's default) pools with runs that have it, as Table 1's rows do."""
+    config = study / "sac_lag_static_seed0" / "config.yaml"
+    config.write_text(
+        config.read_text().replace(
+            "  kappa_lr_scale: 0.3\n", "  kappa_lr_scale: 0.3\n  new_option: 1.0\n"
+        )
+    )
+    out = tmp_path / "out"
+    assert report_main([str(study), "--out", str(out), "--no-trajectories", "--study"]) == 0
+    assert (out / RUN_STATISTICS_MD).is_file()
+
+
+def test_an_interpolation_in_a_runs_config_is_compared_as_written(
+    study, tmp_path, capsys, monkeypatch
+):
+    """A ``${...}`` in a run's config.yaml is data: it is compared as written and never
+    resolved, so no environment variable is read because a file says so."""
+    monkeypatch.setenv("WCSAC_SECRET", "0.3")  # resolved, it would equal the other runs'
+    config = study / "sac_lag_static_seed20" / "config.yaml"
+    config.write_text(
+        config.read_text().replace(
+            "  kappa_lr_scale: 0.3\n", "  kappa_lr_scale: ${oc.env:WCSAC_SECRET}\n"
+        )
+    )
+    _refused(study, tmp_path, capsys, ["--study"],
+             "algo.kappa_lr_scale", "'${oc.env:WCSAC_SECRET}': sac_lag_static_seed20")  # fmt: skip
+
+
 def test_a_seed_twice_in_a_row_is_refused(study, tmp_path, capsys):
     shutil.copytree(study / "sac_lag_static_seed10", study / "copy_of_seed10")
     _refused(study, tmp_path, capsys, ["--study"], "row sac_lag has several runs of seed(s) 10")

@@ -102,9 +102,12 @@ EXECUTION_KEYS = (
     "threads",
     "compile",
     "logger",
+    "trust_env_code",
+    "algo.recipe",
 )
 """Config keys (and sections) the runs of a row may differ in: the seed, and where and how
-a run was executed, checkpointed and logged, not what was trained. Device, threads and
+a run was executed, checkpointed and logged, not what was trained (``algo.recipe`` names
+the files its settings came from; the settings themselves are compared). Device, threads and
 compilation change the floating-point kernels as a machine does; like the machine they are
 a recorded source of variation, not a setting."""
 
@@ -207,12 +210,11 @@ def _settings(directory: Path, meta: dict[str, Any], config_of: Callable[[Path],
     settings: dict[str, str] = {}
     cfg = config_of(directory)
     if cfg is not None:
-        try:
-            plain = OmegaConf.to_container(cfg, resolve=True)
-        except Exception:  # an interpolation that does not resolve: compared as written
-            plain = OmegaConf.to_container(cfg, resolve=False)
+        # a run's files are data: a stored config holds resolved values, and a ``${...}``
+        # in one is compared as written, never resolved (docs/guarantees.md)
+        plain = OmegaConf.to_container(cfg, resolve=False)
         for key, value in _flat(plain).items():
-            if key.split(".", 1)[0] not in EXECUTION_KEYS:
+            if key not in EXECUTION_KEYS and key.split(".", 1)[0] not in EXECUTION_KEYS:
                 settings[key] = value
     for key in EVALUATION_KEYS:
         settings[f"evaluation {key}"] = repr(meta.get(key))
@@ -225,12 +227,14 @@ def _settings(directory: Path, meta: dict[str, Any], config_of: Callable[[Path],
 
 
 def _differing(runs: Sequence[dict[str, Any]]) -> str | None:
-    """The first setting the runs of one row differ in, with each value's runs."""
-    keys = sorted(set().union(*(r["_settings"] for r in runs)))
+    """The first setting the runs of one row differ in, with each value's runs. A key some
+    runs' configs lack (an option added after they ran, which a run without it trained at
+    its default) is not compared, as Table 1's row labels do not compare it."""
+    keys = sorted(set.intersection(*(set(r["_settings"]) for r in runs)))
     for key in keys:
         by_value: dict[str, list[str]] = defaultdict(list)
         for run in runs:
-            by_value[run["_settings"].get(key, "(not set)")].append(run["run"])
+            by_value[run["_settings"][key]].append(run["run"])
         if len(by_value) > 1:
             listing = "; ".join(f"{value}: {', '.join(names)}" for value, names in by_value.items())
             return f"{key} ({listing})"
