@@ -437,3 +437,24 @@ def test_report_archive_leaves_identical_copies_and_refuses_other_bytes(sweep, t
         build_report([sweep], other, trajectories=False, archive=True, log=lambda _: None)
     assert not (other / "table1.md").exists()
     assert (other / "runs" / first.name / "progress.csv").read_text() == "epoch,frames\n"
+
+
+def test_runs_read_at_another_ensemble_reading_are_another_row():
+    """Two runs of one label whose safety-critic ensembles are read differently are two
+    rows of Table 1; a run whose records lack the option (made before it) is not split."""
+    from wcsac_rl.evaluation.reporting import POOLED_KEYS, row_labels
+
+    assert {"algo.ensemble_reading", "algo.num_safety_nets", "algo.prior_scale"} <= set(POOLED_KEYS)
+    members = {
+        "wcsac_0.1": [
+            ("max_run", {"algo.ensemble_reading": "'max'"}),
+            ("ucb_run", {"algo.ensemble_reading": "'ucb'"}),
+            ("older_run", {}),
+        ]
+    }
+    labels, warnings = row_labels(members)
+    assert labels["max_run"] != labels["ucb_run"]
+    assert warnings == [
+        "row wcsac_0.1: its runs differ in algo.ensemble_reading (max: 1 run; ucb: 1 run), "
+        "shown as one row per setting"
+    ]

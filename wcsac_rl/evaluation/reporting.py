@@ -411,9 +411,23 @@ def _write_text(path: Path, text: str) -> Path:
     return path
 
 
-POOLED_KEYS = ("cost_limit", "total_frames", *(k for k in IDENTITY_KEYS if k != "cost_limit"))
+ENSEMBLE_KEYS = tuple(
+    f"algo.{key}"
+    for key in ("num_safety_nets", "ensemble_target", "ensemble_reading", "k_ucb", "k_ucb_lr",
+                "k_ucb_max", "prior_scale", "damp_clamp")
+)  # fmt: skip
+"""The safety-critic ensemble's settings: how many critics, how they are read and trained."""
+
+POOLED_KEYS = (
+    "cost_limit",
+    "total_frames",
+    *(k for k in IDENTITY_KEYS if k != "cost_limit"),
+    *ENSEMBLE_KEYS,
+)
 """What the runs pooled into one row must share (besides the env): the budget d, the
-frame budget and what their networks and losses depend on (``IDENTITY_KEYS``)."""
+frame budget, what their networks and losses depend on (``IDENTITY_KEYS``) and the
+safety-critic ensemble (:data:`ENSEMBLE_KEYS`: two runs of ``algo=wcsac`` read at the
+largest member and at a UCB are two rows)."""
 
 
 def _session_config(directory: Path) -> Any:
