@@ -71,9 +71,10 @@ SAFETY_ALGOS = ("wcsac", "sac_lag", "cal")
 SAFETY_CRITIC_KINDS = ("gaussian", "iqn")
 """What :func:`~wcsac_rl.modules.make_safety_critic` builds (``kind``)."""
 ENSEMBLE_TARGETS = ("own", "max", "merged")
+"""Where several safety critics bootstrap from
+(:class:`~wcsac_rl.objectives.ensemble_head.EnsembleHead`)."""
 ENSEMBLE_READINGS = ("max", "ucb", "tqc")
-"""Where several safety critics bootstrap from, and how their Γ is read
-(:class:`~wcsac_rl.objectives.safety_head.EnsembleHead`)."""
+"""How several safety critics' Γ is read (:mod:`~wcsac_rl.objectives.ensemble_reading`)."""
 VARIANCE_LOSSES = ("w2", "mse", "glm")
 """The Gaussian head's variance TD losses (:mod:`~wcsac_rl.objectives.variance`)."""
 VARIANCE_TARGETS = ("moment", "td")

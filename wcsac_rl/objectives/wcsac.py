@@ -610,7 +610,7 @@ class WCSACLoss(SACLoss):
         The reading a collection-time shield compares with its threshold
         (:class:`~wcsac_rl.modules.CriticShield`): deterministic (an IQN critic is
         read at the midpoints of its tail strata) and, with several safety critics,
-        the largest Γ among them, as the actor and κ read it."""
+        the ensemble's reading (``ensemble_reading``), as the actor and κ read it."""
         return self.safety_head.action_cvar(tensordict, self.safety_network_params, action)
 
     # ---------------------------------------------------------------- targets
