@@ -28,6 +28,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from wcsac_rl.cli_args import add_trust_env_code, check_seed
 from wcsac_rl.evaluation.evaluator import DEFAULT_SEED_OFFSET
 
 __all__ = ["DEFAULT_CALIBRATION_EPISODES", "format_table", "main", "parse_args"]
@@ -68,20 +69,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help="bound on an episode's length (default: the env's own)",
     )
     parser.add_argument("--force", action="store_true", help="overwrite calibration.json")
-    parser.add_argument(
-        "--trust-env-code",
-        action="store_true",
-        help=(
-            "import and call the env code (env.id=module:callable, with env.kwargs) that a "
-            "run of env=gymnasium names in its files; without it such a run is refused, "
-            "nothing imported (a run directory is untrusted input: docs/guarantees.md)"
-        ),
-    )
+    add_trust_env_code(parser)
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
-    if not 0 <= args.seed <= 2**63 - 1:
-        parser.error(f"--seed must be a whole number in [0, 2**63 - 1], got {args.seed}")
+    check_seed(parser, "--seed", args.seed)
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     if args.max_episode_steps is not None and args.max_episode_steps < 1:

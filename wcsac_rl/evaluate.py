@@ -35,6 +35,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from wcsac_rl.cli_args import add_trust_env_code, check_seed
 from wcsac_rl.evaluation.evaluator import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
 
 __all__ = ["main", "parse_args"]
@@ -93,15 +94,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
             "what `wcsac-report --archive` keeps, for run directories that may not last"
         ),
     )
-    parser.add_argument(
-        "--trust-env-code",
-        action="store_true",
-        help=(
-            "import and call the env code (env.id=module:callable, with env.kwargs) that a "
-            "run of env=gymnasium names in its files; without it such a run is refused, "
-            "nothing imported (a run directory is untrusted input: docs/guarantees.md)"
-        ),
-    )
+    add_trust_env_code(parser)
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     random_group = parser.add_argument_group("random policy (no training run needed)")
@@ -131,8 +124,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help="budget d recorded with its evaluation (default 15)",
     )
     args = parser.parse_args(argv)
-    if not 0 <= args.seed <= 2**63 - 1:
-        parser.error(f"--seed must be a whole number in [0, 2**63 - 1], got {args.seed}")
+    check_seed(parser, "--seed", args.seed)
     if not args.paths and args.random_policy is None:
         parser.error("give run or sweep directories, or --random-policy ENV")
     if args.episodes < 1:

@@ -54,6 +54,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from wcsac_rl.cli_args import add_trust_env_code, check_seed
 from wcsac_rl.evaluation.evaluator import DEFAULT_SEED_OFFSET
 
 __all__ = ["main", "parse_args"]
@@ -149,21 +150,10 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help="require the statistics over runs: a run without an evaluation, runs of a row "
         "with other settings or the same seed, a row of one run are errors",
     )
-    parser.add_argument(
-        "--trust-env-code",
-        action="store_true",
-        help=(
-            "import and call the env code (env.id=module:callable, with env.kwargs) that a "
-            "run of env=gymnasium names in its files; without it such a run is refused, "
-            "nothing imported (a run directory is untrusted input: docs/guarantees.md)"
-        ),
-    )
+    add_trust_env_code(parser)
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = parser.parse_args(argv)
-    if not 0 <= args.trajectory_seed <= 2**63 - 1:
-        parser.error(
-            f"--trajectory-seed must be a whole number in [0, 2**63 - 1], got {args.trajectory_seed}"
-        )
+    check_seed(parser, "--trajectory-seed", args.trajectory_seed)
     if args.trajectory_episodes < 1:
         parser.error(f"--trajectory-episodes must be >= 1, got {args.trajectory_episodes}")
     if args.trajectory_max_steps is not None and args.trajectory_max_steps < 1:

@@ -8,6 +8,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from wcsac_rl.cli_args import SEED_MAX
 from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
 from wcsac_rl.options import (
@@ -36,11 +37,6 @@ __all__ = [
 OFF_POLICY_ALGOS = (*SAFETY_ALGOS, "sac")
 ON_POLICY_ALGOS = ("cpo",)
 ALGOS = (*OFF_POLICY_ALGOS, *ON_POLICY_ALGOS, "random")
-
-
-SEED_MAX = 2**63 - 1
-"""The largest seed: torch seeds are 64-bit, and a run seeds its envs and collector with
-``seed`` plus offsets (frames, env indices)."""
 
 
 def _get(cfg: Mapping[str, Any], key: str) -> Any:

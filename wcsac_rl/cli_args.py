@@ -1,0 +1,32 @@
+"""Command-line options the console scripts share (``wcsac-evaluate``, ``wcsac-calibration``,
+``wcsac-report``): defined once, so their flags and refusals read the same everywhere.
+Imports nothing heavy: ``--help`` is answered before torch is imported."""
+
+from __future__ import annotations
+
+import argparse
+
+__all__ = ["SEED_MAX", "add_trust_env_code", "check_seed"]
+
+SEED_MAX = 2**63 - 1
+"""The largest seed: torch seeds are 64-bit, and a run seeds its envs and collector with
+``seed`` plus offsets (frames, env indices)."""
+
+
+def add_trust_env_code(parser: argparse.ArgumentParser) -> None:
+    """``--trust-env-code``: import the env code a run of ``env=gymnasium`` names."""
+    parser.add_argument(
+        "--trust-env-code",
+        action="store_true",
+        help=(
+            "import and call the env code (env.id=module:callable, with env.kwargs) that a "
+            "run of env=gymnasium names in its files; without it such a run is refused, "
+            "nothing imported (a run directory is untrusted input: docs/guarantees.md)"
+        ),
+    )
+
+
+def check_seed(parser: argparse.ArgumentParser, option: str, value: int) -> None:
+    """Refuse a seed option outside ``[0, SEED_MAX]`` in one line naming ``option``."""
+    if not 0 <= value <= SEED_MAX:
+        parser.error(f"{option} must be a whole number in [0, 2**63 - 1], got {value}")
