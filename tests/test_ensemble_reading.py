@@ -17,9 +17,9 @@ from torchrl.objectives import SoftUpdate
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives.ensemble_head import EnsembleHead
+from wcsac_rl.objectives.ensemble_head import EnsembleHead, make_safety_head
 from wcsac_rl.objectives.ensemble_reading import ucb, upper_tail_mean
-from wcsac_rl.objectives.safety_head import SafetyValues, make_safety_head
+from wcsac_rl.objectives.safety_head import SafetyValues
 from wcsac_rl.training import ConfigError, make_trainer
 from wcsac_rl.training.config_keys import check_override_keys
 

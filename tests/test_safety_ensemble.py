@@ -19,7 +19,8 @@ from torchrl.data import Bounded
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives.safety_head import EnsembleHead, SafetyValues, make_safety_head
+from wcsac_rl.objectives.ensemble_head import EnsembleHead, make_safety_head
+from wcsac_rl.objectives.safety_head import SafetyValues
 from wcsac_rl.training import ConfigError, make_trainer
 
 # one-step targets at the replay states: the batch needs no n-step or start-state entries

@@ -1,7 +1,7 @@
 """Several safety critics of one kind read as one: :class:`EnsembleHead`.
 
 ``num_safety_nets`` > 1 gives the loss this head over the member head
-:func:`~wcsac_rl.objectives.safety_head.make_safety_head` picks for the critic's kind;
+:func:`~wcsac_rl.objectives.ensemble_head.make_safety_head` picks for the critic's kind;
 how the members are evaluated together, their random priors and the readings' maths
 are in :mod:`~wcsac_rl.objectives.ensemble_reading`.
 """
@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
 from torch import Tensor
 
 from wcsac_rl.objectives.ensemble_reading import (
@@ -20,13 +21,16 @@ from wcsac_rl.objectives.ensemble_reading import (
 )
 from wcsac_rl.objectives.risk import quantile_mixture_cvar
 from wcsac_rl.objectives.safety_head import (
+    GaussianHead,
+    IQNHead,
     SafetyHead,
     SafetyValues,
     _check_count,
+    _make_member_head,
 )
 from wcsac_rl.options import check_ensemble_reading, check_ensemble_target
 
-__all__ = ["EnsembleHead"]
+__all__ = ["EnsembleHead", "make_safety_head"]
 
 
 class EnsembleHead(SafetyHead):
@@ -345,3 +349,70 @@ class EnsembleHead(SafetyHead):
                 out["cost_quantiles"] = self.merged_quantiles(values).sort(-1).values
         out["cvar"] = self.cvar(values)
         return {key: value for key, value in out.items() if value is not None}
+
+
+def make_safety_head(
+    network: TensorDictModule,
+    keys,
+    *,
+    risk_level: float,
+    nonnegative_cost: bool = True,
+    variance_loss: str = "glm",
+    variance_target: str = "td",
+    num_quantiles: int = 20,
+    num_target_quantiles: int = 20,
+    huber_kappa: float = 1.0,
+    members: int = 1,
+    ensemble_target: str = "own",
+    ensemble_reading: str = "max",
+    k_ucb: float = 0.5,
+    prior_scale: float = 0.0,
+    k_ucb_lr: float = 0.0,
+    k_ucb_max: float = 2.0,
+) -> GaussianHead | IQNHead | EnsembleHead:
+    """The head for ``network``: the one place that decides the safety critic's kind.
+
+    An implicit quantile network (an :class:`~wcsac_rl.modules.IQNSafetyCritic`, or a
+    module reading ``keys.quantile_fractions``) gets an :class:`IQNHead`, anything
+    else a :class:`GaussianHead`. Every option is checked whichever the kind; the
+    Gaussian head's ``variance_loss`` / ``variance_target`` are refused for an IQN
+    critic unless left at their defaults. ``members`` > 1: that many critics of the
+    kind, read by an :class:`EnsembleHead` (their parameters stacked), bootstrapping
+    as ``ensemble_target`` says (``"max"`` needs ``members`` > 1), read as
+    ``ensemble_reading`` says (with ``k_ucb``, adapted by ``k_ucb_lr`` within
+    ``[0, k_ucb_max]``), each with a random prior of ``prior_scale`` (0: none).
+    """
+    _check_count("num_safety_nets", members)
+    check_ensemble_target(ensemble_target, members)
+    check_ensemble_reading(
+        ensemble_reading,
+        members,
+        ensemble_target=ensemble_target,
+        prior_scale=prior_scale,
+        k_ucb=k_ucb,
+        k_ucb_lr=k_ucb_lr,
+        k_ucb_max=k_ucb_max,
+    )
+    head = _make_member_head(
+        network,
+        keys,
+        risk_level=risk_level,
+        nonnegative_cost=nonnegative_cost,
+        variance_loss=variance_loss,
+        variance_target=variance_target,
+        num_quantiles=num_quantiles,
+        num_target_quantiles=num_target_quantiles,
+        huber_kappa=huber_kappa,
+    )
+    if members == 1:
+        return head
+    return EnsembleHead(
+        head,
+        members=members,
+        target=ensemble_target,
+        reading=ensemble_reading,
+        k_ucb=k_ucb,
+        prior_scale=prior_scale,
+        k_ucb_lr=k_ucb_lr,
+        k_ucb_max=k_ucb_max,
+    )

@@ -1,7 +1,7 @@
 """An ensemble of safety critics read together: one batched product, random priors and
 the readings of its members' values.
 
-:class:`~wcsac_rl.objectives.safety_head.EnsembleHead` holds ``E`` critics of one kind
+:class:`~wcsac_rl.objectives.ensemble_head.EnsembleHead` holds ``E`` critics of one kind
 with their parameters stacked ``[E, ...]``. This module gives it
 
 * :class:`StackedMembers` — the ``E`` members of the kit's critics

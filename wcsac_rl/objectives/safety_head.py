@@ -28,7 +28,7 @@ their targets, which ``SoftUpdate`` finds by name) and hands them to every call.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -52,12 +52,7 @@ from wcsac_rl.objectives.variance import variance_regression_loss
 from wcsac_rl.options import (
     VARIANCE_LOSSES,
     VARIANCE_TARGETS,
-    check_ensemble_reading,
-    check_ensemble_target,
 )
-
-if TYPE_CHECKING:
-    from wcsac_rl.objectives.ensemble_head import EnsembleHead
 
 __all__ = [
     "VARIANCE_TARGETS",
@@ -65,7 +60,6 @@ __all__ = [
     "IQNHead",
     "SafetyHead",
     "SafetyValues",
-    "make_safety_head",
 ]
 
 
@@ -585,87 +579,9 @@ class IQNHead(SafetyHead):
         }
 
 
-def __getattr__(name: str):
-    # EnsembleHead lives in its own module, which builds on this one
-    if name == "EnsembleHead":
-        from wcsac_rl.objectives.ensemble_head import EnsembleHead
-
-        return EnsembleHead
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
 def _check_count(name: str, count) -> None:
     if int(count) != count or count < 1:
         raise ValueError(f"{name} must be an integer >= 1, got {count}")
-
-
-def make_safety_head(
-    network: TensorDictModule,
-    keys,
-    *,
-    risk_level: float,
-    nonnegative_cost: bool = True,
-    variance_loss: str = "glm",
-    variance_target: str = "td",
-    num_quantiles: int = 20,
-    num_target_quantiles: int = 20,
-    huber_kappa: float = 1.0,
-    members: int = 1,
-    ensemble_target: str = "own",
-    ensemble_reading: str = "max",
-    k_ucb: float = 0.5,
-    prior_scale: float = 0.0,
-    k_ucb_lr: float = 0.0,
-    k_ucb_max: float = 2.0,
-) -> GaussianHead | IQNHead | EnsembleHead:
-    """The head for ``network``: the one place that decides the safety critic's kind.
-
-    An implicit quantile network (an :class:`~wcsac_rl.modules.IQNSafetyCritic`, or a
-    module reading ``keys.quantile_fractions``) gets an :class:`IQNHead`, anything
-    else a :class:`GaussianHead`. Every option is checked whichever the kind; the
-    Gaussian head's ``variance_loss`` / ``variance_target`` are refused for an IQN
-    critic unless left at their defaults. ``members`` > 1: that many critics of the
-    kind, read by an :class:`EnsembleHead` (their parameters stacked), bootstrapping
-    as ``ensemble_target`` says (``"max"`` needs ``members`` > 1), read as
-    ``ensemble_reading`` says (with ``k_ucb``, adapted by ``k_ucb_lr`` within
-    ``[0, k_ucb_max]``), each with a random prior of ``prior_scale`` (0: none).
-    """
-    _check_count("num_safety_nets", members)
-    check_ensemble_target(ensemble_target, members)
-    check_ensemble_reading(
-        ensemble_reading,
-        members,
-        ensemble_target=ensemble_target,
-        prior_scale=prior_scale,
-        k_ucb=k_ucb,
-        k_ucb_lr=k_ucb_lr,
-        k_ucb_max=k_ucb_max,
-    )
-    head = _make_member_head(
-        network,
-        keys,
-        risk_level=risk_level,
-        nonnegative_cost=nonnegative_cost,
-        variance_loss=variance_loss,
-        variance_target=variance_target,
-        num_quantiles=num_quantiles,
-        num_target_quantiles=num_target_quantiles,
-        huber_kappa=huber_kappa,
-    )
-    if members == 1:
-        return head
-    from wcsac_rl.objectives.ensemble_head import EnsembleHead  # (it builds on this module)
-
-    return EnsembleHead(
-        head,
-        members=members,
-        target=ensemble_target,
-        reading=ensemble_reading,
-        k_ucb=k_ucb,
-        prior_scale=prior_scale,
-        k_ucb_lr=k_ucb_lr,
-        k_ucb_max=k_ucb_max,
-    )
 
 
 def _make_member_head(

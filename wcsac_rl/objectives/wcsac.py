@@ -42,6 +42,7 @@ from wcsac_rl.objectives.constraint_signal import ConstraintSignal, HeldStatisti
 from wcsac_rl.objectives.cost_target import CostTarget
 from wcsac_rl.objectives.critic_ensemble import Layers
 from wcsac_rl.objectives.critics import CriticParams, Critics, CriticValues
+from wcsac_rl.objectives.ensemble_head import make_safety_head
 from wcsac_rl.objectives.inputs import (
     check_batch_entries,
     check_finite_entries,
@@ -54,7 +55,7 @@ from wcsac_rl.objectives.inputs import (
     state_keys,
 )
 from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
-from wcsac_rl.objectives.safety_head import SafetyValues, make_safety_head
+from wcsac_rl.objectives.safety_head import SafetyValues
 from wcsac_rl.objectives.td0 import td0_target
 from wcsac_rl.objectives.torchrl_compat import (
     as_given,
@@ -93,7 +94,7 @@ class WCSACLoss(SACLoss):
             (:func:`wcsac_rl.modules.make_safety_critic`): Gaussian (``"cost_value"`` and
             ``"cost_variance"``; mean-only at ``risk_level=1``) or an implicit quantile
             network (``"quantile_fractions"`` → ``"cost_quantiles"``); its head
-            (:func:`~wcsac_rl.objectives.safety_head.make_safety_head`) reads it. A list
+            (:func:`~wcsac_rl.objectives.ensemble_head.make_safety_head`) reads it. A list
             of ``num_safety_nets`` modules of one structure gives that many
             independently initialised critics.
 
