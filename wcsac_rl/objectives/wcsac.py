@@ -805,7 +805,9 @@ class WCSACLoss(SACLoss):
     def _data_keys(self) -> list[NestedKey]:
         """The entries of ``in_keys`` a batch must hold: not those the loss's own networks
         write (a composite actor's ``params``, a shared trunk's features), not the end
-        flags (``terminated`` falls back to ``done``), not the cost (its own message)."""
+        flags (``terminated`` falls back to ``done``; the n-step entries' flag the cost
+        target reads, naming it, is the one its bootstrap needs), not the cost (its own
+        message)."""
         in_keys = tuple(self.in_keys)
         cached = self.__dict__.get("_data_keys_cache")
         if cached is not None and cached[0] == in_keys:
@@ -813,9 +815,11 @@ class WCSACLoss(SACLoss):
         networks = (self.actor_network, self.qvalue_network, self.safety_network)
         produced = produced_keys(*networks)
         optional = {
-            nested_key("next", getattr(self.tensor_keys, name))
-            for name in ("done", "terminated", "cost")
-        }
+            nested_key(outer, getattr(self.tensor_keys, name))
+            for outer, names in (("next", ("done", "terminated", "cost")),
+                                 (self.tensor_keys.nstep, ("done", "terminated")))
+            for name in names
+        }  # fmt: skip
         keys = []
         for key in in_keys:
             key = nested_key(key)
