@@ -41,6 +41,9 @@ NEW_KEYS = {
     # (The recording has no ``preset`` key to ignore: the removed preset group wrote no
     # key into the job config, only its choice into Hydra's runtime node.)
     "algo.recipe",
+    # whether this command may import the env code a resumed run's files name (the
+    # user's word on this call: never read from a run, docs/guarantees.md): a new key.
+    "trust_env_code",
 }
 ADDED_OPTIONS = ("ensemble_reading", "k_ucb", "k_ucb_lr", "k_ucb_max", "prior_scale", "damp_clamp")
 # ... and the safety-critic options added after the recording (the ensemble's readings,
