@@ -80,7 +80,6 @@ def load_safety_run(
         ConfigError: no or unreadable checkpoint, a run without a safety critic (SAC,
             CPO, random), or a checkpoint whose networks do not fit its config.
     """
-    from wcsac_rl.envs import CostKeyError, EnvSourceError
     from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
     from wcsac_rl.training import builders
     from wcsac_rl.training.checkpoint import (
@@ -90,8 +89,9 @@ def load_safety_run(
         load_module_state,
     )
     from wcsac_rl.training.devices import on_cpu
+    from wcsac_rl.training.restore import trusted_eval_env
     from wcsac_rl.training.trainer import env_max_episode_steps
-    from wcsac_rl.training.trust import TRUST_FLAG, check_env_code, plain_select, stored_config
+    from wcsac_rl.training.trust import plain_select, stored_config
 
     path = find_checkpoint(run_dir)
     checkpoint = load_checkpoint(path)
@@ -104,16 +104,7 @@ def load_safety_run(
             f"{path.parent.parent}: algo {algo!r} has no safety critic to calibrate "
             f"(calibration needs one of {', '.join(SAFETY_ALGOS)})"
         )
-    check_env_code(
-        cfg,
-        path,
-        trusted=trust_env_code,
-        allow=f"pass {TRUST_FLAG} (in Python: trust_env_code=True)",
-    )
-    try:  # (your env: a module that no longer imports, an env that fails to build)
-        env = builders.make_eval_env(cfg, seed=seed, num_envs=num_envs)
-    except (EnvSourceError, CostKeyError) as err:
-        raise ConfigError(f"{path}: {err}") from None
+    env = trusted_eval_env(cfg, path, trust_env_code=trust_env_code, seed=seed, num_envs=num_envs)
     try:
         agent = builders.make_agent(cfg, env)
         loss = builders.make_loss(cfg, agent, env_max_episode_steps(cfg))

@@ -48,6 +48,25 @@ class RestoredRun:
     checkpoint_sha256: str = ""
 
 
+def trusted_eval_env(
+    cfg: DictConfig, checkpoint_path: Path, *, trust_env_code: bool, seed: int, num_envs: int
+) -> EnvBase:
+    """The test env of a stored run's ``cfg``, built only if the env code it names is
+    allowed (:func:`~wcsac_rl.training.trust.check_env_code`); an env that cannot be
+    built (a module that no longer imports, a missing cost key) is one ``ConfigError``
+    line naming the checkpoint."""
+    check_env_code(
+        cfg,
+        checkpoint_path,
+        trusted=trust_env_code,
+        allow=f"pass {TRUST_FLAG} (in Python: trust_env_code=True)",
+    )
+    try:  # (your env: a module that no longer imports, an env that fails to build)
+        return builders.make_eval_env(cfg, seed=seed, num_envs=num_envs)
+    except (EnvSourceError, CostKeyError) as err:
+        raise ConfigError(f"{checkpoint_path}: {err}") from None
+
+
 def load_run(
     path: str | os.PathLike,
     *,
@@ -75,16 +94,9 @@ def load_run(
     checkpoint_path = find_checkpoint(path)
     checkpoint, digest = read_checkpoint(checkpoint_path)
     cfg = on_cpu(stored_config(checkpoint["config"], checkpoint_path))  # whatever it trained on
-    check_env_code(
-        cfg,
-        checkpoint_path,
-        trusted=trust_env_code,
-        allow=f"pass {TRUST_FLAG} (in Python: trust_env_code=True)",
+    env = trusted_eval_env(
+        cfg, checkpoint_path, trust_env_code=trust_env_code, seed=seed, num_envs=num_envs
     )
-    try:  # (your env: a module that no longer imports, an env that fails to build)
-        env = builders.make_eval_env(cfg, seed=seed, num_envs=num_envs)
-    except (EnvSourceError, CostKeyError) as err:
-        raise ConfigError(f"{checkpoint_path}: {err}") from None
     try:
         policy = trainer_class(cfg.algo.name).restore_policy(
             cfg, checkpoint.get("learner", {}), env
