@@ -1,4 +1,4 @@
-"""The loss evaluates no critic whose values it does not read (issue 31's cuts).
+"""The loss evaluates no critic whose values it does not read.
 
 * the TD targets read the target reward critics at ``(s', a')`` and the target safety
   critic once, where its target bootstraps (at ``s_{t+m}`` with n-step targets: not also

@@ -1,4 +1,4 @@
-"""TorchRL's own SACLoss / LossModule test cases, ported to WCSACLoss and SACLagLoss (issue 28).
+"""TorchRL's own SACLoss / LossModule test cases, ported to WCSACLoss and SACLagLoss.
 
 Ported from pytorch/rl at the 0.14.0 release commit 373c31a85 (``prepare-0.14``; the
 installed 0.14.1 has the same ``torchrl/objectives/sac.py``):
@@ -19,7 +19,7 @@ fast paths; ``user``: TorchRL-style ``ProbabilisticActor`` / ``ValueOperator`` a
 not obvious for a safe loss, TorchRL's ``SACLoss`` runs the same assertion first
 (``reference``), so the ported test is shown to pass on the loss it was written for.
 
-Every case runs; nothing is skipped or marked xfail. The defects issue 28 found are
+Every case runs; nothing is skipped or marked xfail. The defects these cases found are
 named where their cases are (D1 in_keys, D2 ``skip_done_states``, D3 ``separate_losses``,
 D4 value estimators, D5 ``MultiStep``, D7 masking, D9 a batch without ``terminated``,
 the plain first batch).

@@ -203,6 +203,7 @@ def main(cfg: DictConfig) -> None:
     hydra_cfg = HydraConfig.get()
     run_dir = Path(hydra_cfg.runtime.output_dir)
     staged = _staged_records(run_dir, hydra_cfg.output_subdir)
+    entries = _entries_before(run_dir, staged)
     with ConsoleLog() as log:
         try:
             trainer = _build(cfg, run_dir, hydra_cfg.overrides.task)
@@ -223,7 +224,8 @@ def main(cfg: DictConfig) -> None:
             print(f"{stop}", file=sys.stderr, flush=True)
             sys.exit(stop.exit_code)
         except user_errors as err:
-            _exit_with(f"error: {err}")
+            trainer.close()  # (its lock released before its files go)
+            _exit_with(f"error: {err}{_discard_stopped(trainer, entries)}")
         finally:
             trainer.close()
         print(f"run directory: {run_dir}")
@@ -319,10 +321,64 @@ def _discard(run_dir: Path, staged: Path | None = None) -> None:
     noted = _BEFORE.get("dir") == Path(os.path.abspath(run_dir))
     existed = _BEFORE.get("existed") if noted else None
     created = noted and existed is None
-    if not discard_unused_run_dir(
+    if discard_unused_run_dir(
         run_dir, existed=existed, since=_BEFORE.get("since"), created=created
     ):
-        return
+        _remove_empty_parents(run_dir)
+
+
+def _entries_before(run_dir: Path, staged: Path | None) -> frozenset[str] | None:
+    """The entries of ``run_dir`` before the run wrote anything, without what this
+    command itself made there first (Hydra's staged records and its empty job log, the
+    directory itself when ``hydra.run.dir`` did not exist): ``None`` when there were
+    none (the run's files are all of it)."""
+    import os
+
+    from wcsac_rl.training.run_dir import HYDRA_STAGING
+
+    if _BEFORE.get("dir") == Path(os.path.abspath(run_dir)):
+        return _BEFORE.get("existed")
+    if not run_dir.is_dir():
+        return None
+    names = frozenset(
+        p.name
+        for p in run_dir.iterdir()
+        if not (p.name.startswith(HYDRA_STAGING) or (p.suffix == ".log" and _empty(p)))
+    )
+    return names or None
+
+
+def _empty(path: Path) -> bool:
+    return path.is_file() and not path.is_symlink() and path.stat().st_size == 0
+
+
+def _discard_stopped(trainer: Trainer, entries: frozenset[str] | None) -> str:
+    """A fresh run that stopped before its first checkpoint has nothing to continue from:
+    what it wrote is removed (its directory too, when only the run was in it). Returns
+    what the error line adds (nothing when a checkpoint is kept: a resumed run's too)."""
+    import shutil
+
+    from wcsac_rl.training.run_dir import LOCK_FILE
+
+    run_dir = Path(trainer.run_dir)
+    if trainer.checkpoint_path.is_file() or not run_dir.is_dir():
+        return ""
+    if entries is None:
+        shutil.rmtree(run_dir, ignore_errors=True)
+        _remove_empty_parents(run_dir)
+        return f"; {run_dir} is removed (it held nothing to continue from)"
+    for path in run_dir.iterdir():
+        if path.name in entries and path.name != LOCK_FILE:
+            continue
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+    return f"; what the run wrote into {run_dir} is removed (it held nothing to continue from)"
+
+
+def _remove_empty_parents(run_dir: Path) -> None:
+    """Hydra's date directories above a removed run (``outputs/<date>/``), once empty."""
     cwd = Path.cwd().resolve()
     parent = run_dir.resolve().parent
     while parent != cwd and parent.is_relative_to(cwd):
@@ -526,6 +582,12 @@ def run_training(
         _say_recipe(trainer.cfg)
         try:
             done, curves = _finish(trainer)
+        except _user_errors() as err:
+            trainer.close()
+            removed = _discard_stopped(trainer, entries)
+            if removed and err.args:
+                err.args = (f"{err.args[0]}{removed}", *err.args[1:])
+            raise
         finally:
             trainer.close()
         print(f"run directory: {done} (training curves: {curves})")
