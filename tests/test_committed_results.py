@@ -19,6 +19,7 @@ from wcsac_rl.evaluation.reporting import (
     build_report,
 )
 from wcsac_rl.evaluation.run_report import IMPROVEMENT_CSV, RUN_STATISTICS_MD
+from wcsac_rl.evaluation.targets import TARGETS_CSV, TARGETS_MD, write_targets
 from wcsac_rl.evaluation.training_safety_table import TRAINING_SAFETY_CSV, TRAINING_SAFETY_MD
 from wcsac_rl.experiments.compare import compare_runs, format_table
 
@@ -104,6 +105,24 @@ def test_the_readme_headline_is_the_held_out_study_and_links_every_laptop_table(
     assert "](results/README.md)" in readme
     for folder in (README_HEADLINE, *LAPTOP_TABLE_1):
         assert f"](results/{folder}/RESULTS.md)" in readme, folder
+
+
+TARGETS_FILE = "targets.yaml"
+
+
+@pytest.mark.parametrize("folder", [f for f in FOLDERS if (RESULTS / f / TARGETS_FILE).is_file()])
+def test_the_committed_targets_table_is_its_runs_counted(folder, tmp_path):
+    """A study's runs-meeting-each-target table (``targets.md``) is what its targets file
+    makes of its committed report files, and the README shows the headline study's."""
+    committed = RESULTS / folder
+    for name in ("run_values.csv", TRAINING_SAFETY_CSV):
+        (tmp_path / name).write_bytes((committed / name).read_bytes())
+    write_targets(tmp_path, committed / TARGETS_FILE)
+    for name in (TARGETS_MD, TARGETS_CSV):
+        assert (tmp_path / name).read_bytes() == (committed / name).read_bytes(), name
+    if folder == README_HEADLINE:
+        readme = (ROOT / "README.md").read_text()
+        assert all(line in readme for line in (committed / TARGETS_MD).read_text().splitlines())
 
 
 @pytest.mark.parametrize("folder", LAPTOP_TABLE_1)
