@@ -16,6 +16,9 @@
 ``fig_score_distribution.png``  fraction of runs with C0.1 <= x, one curve per row
 ==============================  ==============================================================
 
+Each Markdown table is also written as a LaTeX booktabs table (``run_values.tex``,
+``run_statistics.tex``: :mod:`~wcsac_rl.evaluation.latex`), each figure as PNG and PDF.
+
 (definitions: :mod:`~wcsac_rl.evaluation.run_statistics`; figures:
 :mod:`~wcsac_rl.evaluation.run_plots`; the protocol: docs/evaluation_protocol.md).
 
@@ -35,13 +38,15 @@ from __future__ import annotations
 import csv
 import io
 from collections import defaultdict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from omegaconf import OmegaConf
 
+from wcsac_rl.evaluation.latex import latex_path, markdown_to_latex
+from wcsac_rl.evaluation.plots import FIGURE_FORMATS, figure_paths
 from wcsac_rl.evaluation.run_statistics import (
     HELD_OUT_SEEDS,
     RUN_METRICS,
@@ -67,8 +72,10 @@ __all__ = [
     "IMPROVEMENT_METRICS",
     "RUN_STATISTICS_CSV",
     "RUN_STATISTICS_MD",
+    "RUN_STATISTICS_TEX",
     "RUN_VALUES_CSV",
     "RUN_VALUES_MD",
+    "RUN_VALUES_TEX",
     "RunStatistics",
     "RunStatisticsError",
     "collect_run_statistics",
@@ -80,6 +87,8 @@ RUN_VALUES_MD = "run_values.md"
 RUN_VALUES_CSV = "run_values.csv"
 RUN_STATISTICS_MD = "run_statistics.md"
 RUN_STATISTICS_CSV = "run_statistics.csv"
+RUN_VALUES_TEX = latex_path(RUN_VALUES_MD)
+RUN_STATISTICS_TEX = latex_path(RUN_STATISTICS_MD)
 IMPROVEMENT_CSV = "improvement.csv"
 FIG_RUNS = "fig_runs.png"
 FIG_SCORE = "fig_score_distribution.png"
@@ -165,19 +174,26 @@ class RunStatistics:
 
     def tables(self) -> dict[str, str]:
         """File name → text of every table."""
+        values, statistics = run_values_markdown(self), run_statistics_markdown(self)
         files = {
-            RUN_VALUES_MD: run_values_markdown(self),
+            RUN_VALUES_MD: values,
             RUN_VALUES_CSV: _csv(self.runs, RUN_COLUMNS),
-            RUN_STATISTICS_MD: run_statistics_markdown(self),
+            RUN_VALUES_TEX: markdown_to_latex(values),
+            RUN_STATISTICS_MD: statistics,
             RUN_STATISTICS_CSV: _csv(self.rows, ROW_COLUMNS),
+            RUN_STATISTICS_TEX: markdown_to_latex(statistics),
         }
         if self.improvements:
             files[IMPROVEMENT_CSV] = _csv(self.improvements, IMPROVEMENT_COLUMNS)
         return files
 
-    def file_names(self) -> list[str]:
-        """Every file :func:`write` writes (tables and figures)."""
-        return [*self.tables(), FIG_RUNS, FIG_SCORE]
+    def file_names(self, formats: Sequence[str] = FIGURE_FORMATS) -> list[str]:
+        """Every file :func:`write_run_statistics` writes (tables, and the figures in
+        each of ``formats``)."""
+        figures = [
+            p.name for name in (FIG_RUNS, FIG_SCORE) for p in figure_paths(Path(name), formats)
+        ]
+        return [*self.tables(), *figures]
 
 
 def _machine_text(records: Sequence[dict[str, Any]]) -> str:
@@ -510,10 +526,16 @@ def run_statistics_markdown(stats: RunStatistics) -> str:
 
 
 def write_run_statistics(
-    stats: RunStatistics | None, out_dir: Path, write_text: Callable[[Path, str], Path]
+    stats: RunStatistics | None,
+    out_dir: Path,
+    write_text: Callable[[Path, str], Path],
+    *,
+    styles: Mapping[str, Any] | None = None,
+    formats: Sequence[str] = FIGURE_FORMATS,
 ) -> list[Path]:
-    """Write the tables (with ``write_text``) and the two figures; return the paths (none
-    for ``None``: statistics left out)."""
+    """Write the tables (with ``write_text``; each Markdown table also as LaTeX) and the two
+    figures (each row in its ``styles``, as :func:`~wcsac_rl.evaluation.plots.row_styles`
+    gives; each in ``formats``); return the paths (none for ``None``: statistics left out)."""
     from wcsac_rl.evaluation.run_plots import plot_run_values, plot_score_distribution
 
     if stats is None:
@@ -521,6 +543,7 @@ def write_run_statistics(
 
     files = [write_text(out_dir / name, text) for name, text in stats.tables().items()]
     title = _title(stats)
-    files.append(plot_run_values(stats, out_dir / FIG_RUNS, title=title))
-    files.append(plot_score_distribution(stats, out_dir / FIG_SCORE, title=title))
+    for plot, name in ((plot_run_values, FIG_RUNS), (plot_score_distribution, FIG_SCORE)):
+        plot(stats, out_dir / name, title=title, styles=styles, formats=formats)
+        files += figure_paths(out_dir / name, formats)
     return files
