@@ -64,7 +64,6 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from wcsac_rl.envs.presets import get_preset
 from wcsac_rl.evaluation import plots
 from wcsac_rl.evaluation.archive import ARCHIVED_FILES, archived_records, needs_copy
 from wcsac_rl.evaluation.evaluator import (
@@ -86,6 +85,7 @@ from wcsac_rl.evaluation.run_report import (
 )
 from wcsac_rl.evaluation.runs import (
     display_text,
+    env_has_layout,
     env_title,
     find_evaluated_dirs,
     find_progress_dirs,
@@ -120,7 +120,6 @@ __all__ = [
     "Report",
     "ReportError",
     "build_report",
-    "env_has_layout",
     "runs_markdown",
     "table1_markdown",
     "table1_rows",
@@ -166,20 +165,6 @@ training seeds, ``runs`` the evaluated runs; ``<metric>_lo`` / ``<metric>_hi`` b
 95 % seed-stratified bootstrap interval (:mod:`~wcsac_rl.evaluation.intervals`)."""
 GOAL_COLUMNS = ("goals", "goals_lo", "goals_hi")
 """table1.csv's columns of goals, left out for an env without goals (:func:`env_has_layout`)."""
-
-
-def env_has_layout(env: str | None) -> bool:
-    """Whether runs of ``env`` have a layout (hazards, goal) and goals to count: the
-    kit's envs (the point-goal presets and tiny) do; a user's ``env=gymnasium`` env
-    does not (its ``goal_reached`` is always 0), so its report leaves out Figure 5's
-    trajectories and the goals columns. ``None`` (no env known): as a preset."""
-    if env is None:
-        return True
-    try:
-        get_preset(env)
-    except ValueError:
-        return False
-    return True
 
 
 class ReportError(ConfigError):

@@ -58,7 +58,7 @@ from wcsac_rl.evaluation.run_statistics import (
     probability_of_improvement,
     run_values,
 )
-from wcsac_rl.evaluation.runs import env_title, row_name, row_sort_key
+from wcsac_rl.evaluation.runs import env_has_layout, env_title, row_name, row_sort_key
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.provenance import read_provenance
 
@@ -177,10 +177,10 @@ class RunStatistics:
         values, statistics = run_values_markdown(self), run_statistics_markdown(self)
         files = {
             RUN_VALUES_MD: values,
-            RUN_VALUES_CSV: _csv(self.runs, RUN_COLUMNS),
+            RUN_VALUES_CSV: _csv(self.runs, _columns(self, RUN_COLUMNS)),
             RUN_VALUES_TEX: markdown_to_latex(values),
             RUN_STATISTICS_MD: statistics,
-            RUN_STATISTICS_CSV: _csv(self.rows, ROW_COLUMNS),
+            RUN_STATISTICS_CSV: _csv(self.rows, _columns(self, ROW_COLUMNS)),
             RUN_STATISTICS_TEX: markdown_to_latex(statistics),
         }
         if self.improvements:
@@ -440,28 +440,43 @@ def _csv(rows: Sequence[dict[str, Any]], columns: Sequence[str]) -> str:
     return buf.getvalue()
 
 
+def _metrics(stats: RunStatistics) -> list[str]:
+    """The metrics the tables show: :data:`RUN_METRICS` without goals for an env without
+    goals (:func:`~wcsac_rl.evaluation.runs.env_has_layout`)."""
+    return [m for m in RUN_METRICS if m != "goals" or env_has_layout(stats.env)]
+
+
+def _columns(stats: RunStatistics, columns: Sequence[str]) -> list[str]:
+    """A CSV's ``columns`` without those of goals for an env without goals."""
+    goals = env_has_layout(stats.env)
+    return [c for c in columns if goals or not (c == "goals" or c.startswith("goals_"))]
+
+
 def _title(stats: RunStatistics) -> str:
     return f"{env_title(stats.env) if stats.env else '?'}, budget d = {stats.cost_limit:g}"
 
 
 def run_values_markdown(stats: RunStatistics) -> str:
     """``run_values.md``: every run on its own line."""
+    metrics = _metrics(stats)
     lines = [
         f"# Runs one by one — {_title(stats)}",
         "",
-        "| row | seed | split | machine | EC | C0.1 | ER | goals | episodes | run |",
-        "|---|---:|---|---|---:|---:|---:|---:|---:|---|",
+        f"| row | seed | split | machine | {' | '.join(metrics)} | episodes | run |",
+        "|---|---:|---|---|" + "---:|" * len(metrics) + "---:|---|",
     ]
     for run in stats.runs:
         cells = [run["algorithm"], str(run["seed"]), run["split"], run["machine"]]
-        cells += [f"{run[m]:.2f}" for m in RUN_METRICS]
+        cells += [f"{run[m]:.2f}" for m in metrics]
         cells += [str(run["episodes"]), run["run"]]
         lines.append("| " + " | ".join(cells) + " |")
     lo, hi = HELD_OUT_SEEDS[0], HELD_OUT_SEEDS[-1]
     lines += [
         "",
         "Each run's deterministic test episodes: EC their mean cost, C0.1 the mean cost of the "
-        "worst ⌈n·0.1⌉ of them, ER their mean return, goals per episode. split: held-out "
+        "worst ⌈n·0.1⌉ of them, ER their mean return"
+        + (", goals per episode" if "goals" in metrics else "")
+        + ". split: held-out "
         f"(training seeds {lo}-{hi}, fixed before the runs and used to choose nothing) or "
         "in-sample (any other seed). machine: the CPU and the vector instructions of its "
         "kernels, from the run's provenance.json (docs/evaluation_protocol.md).",
@@ -476,15 +491,16 @@ def _cell(row: dict[str, Any], metric: str) -> str:
 
 def run_statistics_markdown(stats: RunStatistics) -> str:
     """``run_statistics.md``: IQM over runs per row, and the pairs' P(improvement)."""
+    metrics = _metrics(stats)
     lines = [
         f"# Statistics over runs — {_title(stats)}",
         "",
-        "| row | runs (held-out) | EC | C0.1 | ER | goals | machines |",
-        "|---|---:|---:|---:|---:|---:|---|",
+        f"| row | runs (held-out) | {' | '.join(metrics)} | machines |",
+        "|---|---:|" + "---:|" * len(metrics) + "---|",
     ]
     for row in stats.rows:
         cells = [row["algorithm"], f"{row['runs']} ({row['held_out_runs']})"]
-        cells += [_cell(row, m) for m in RUN_METRICS] + [row["machines"]]
+        cells += [_cell(row, m) for m in metrics] + [row["machines"]]
         lines.append("| " + " | ".join(cells) + " |")
     lines += [
         "",
