@@ -179,8 +179,8 @@ def _row_colours(figures):
     names = [t.get_text() for t in ax.get_xticklabels()]
     drawn["fig_runs"] = {
         names[round(line.get_xdata()[0])]: (to_hex(line.get_markeredgecolor()), line.get_marker())
-        for line in ax.get_lines()
-        if line.get_linestyle() == "None" and line.get_marker() not in ("D", "_")  # (IQM, caps)
+        for line in ax.get_lines()  # (in black: the IQM and its interval's caps)
+        if line.get_linestyle() == "None" and to_hex(line.get_markeredgecolor()) != "#000000"
     }
     ax = figures["fig_score_distribution.png"].axes[0]
     drawn["fig_score"] = {
