@@ -37,7 +37,16 @@ groups them by Table-1 row (``algo.label``; seeds pooled) and writes
 ``improvement.csv``,             ``improvement`` pairs, and their figures
 ``fig_runs.png``,                (:mod:`~wcsac_rl.evaluation.run_report`)
 ``fig_score_distribution.png``
+``fig_cost_return.png``          each row at (EC, ER) with their 95 % intervals, d drawn
+                                 (:mod:`~wcsac_rl.evaluation.cost_return`)
 ===============================  ============================================================
+
+Every figure is written as PNG and PDF (:data:`FORMATS`), every Markdown table also as a
+LaTeX booktabs table (``table1.tex``, ``runs.tex``, ...: :mod:`~wcsac_rl.evaluation.latex`).
+A row is drawn in one colour and marker in all the figures (:func:`~wcsac_rl.evaluation.plots.row_styles`
+of the report's rows). On an env without a layout (a user's ``env=gymnasium`` env:
+:func:`~wcsac_rl.evaluation.runs.env_has_layout`) Figure 5 is skipped, said in one line, and
+the tables have no goals columns.
 
 Below a sweep directory (``multirun.yaml``, from any launcher) every job of the sweep
 is accounted for: jobs that never started, failed, still run or stopped before
