@@ -36,7 +36,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from wcsac_rl.cli_args import add_trust_env_code, check_seed
-from wcsac_rl.evaluation.evaluator import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
+from wcsac_rl.evaluation.defaults import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
 
 __all__ = ["main", "parse_args"]
 
