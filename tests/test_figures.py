@@ -356,3 +356,23 @@ def test_the_runs_score_and_cost_return_figures_draw_each_row_in_its_style(tmp_p
         list(line.get_xdata()) == [15, 15] and line.get_linestyle() == "--"
         for line in ax.get_lines()
     )
+
+
+def test_the_env_step_labels_do_not_overlap_up_to_millions_of_frames(tmp_path):
+    """Figure 4 and a run's curves over 3 M frames: the x labels in engineering units
+    (``1 M``), none running into the next."""
+    progress = _progress(0)
+    progress["frames"] = [375_000.0 * i for i in range(1, 9)]
+    captured = {}
+    original = plots._save
+    plots._save = lambda fig, out, formats=("png",): captured.setdefault(out.name, fig) and out
+    try:
+        plots.plot_training_curves({"sac": [progress]}, tmp_path / "f4.png")
+    finally:
+        plots._save = original
+    for fig in (captured["f4.png"], plots.run_curves_figure(progress)):
+        renderer = _drawn(fig)
+        for ax in fig.axes:
+            labels = [t for t in ax.get_xticklabels() if t.get_text()]
+            assert "3 M" in [t.get_text() for t in labels] and len(labels) <= 8
+            _assert_labels_apart(labels, renderer)

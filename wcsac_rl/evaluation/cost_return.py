@@ -80,9 +80,11 @@ def plot_cost_return(
     ax.axvline(
         cost_limit, color="k", linestyle="--", linewidth=1.2, label=f"budget d = {cost_limit:g}"
     )
-    left = min(0.0, *(row["EC"] - _error(row, "EC")[0] for row in rows))
+    low = min(0.0, *(row["EC"] - _error(row, "EC")[0] for row in rows))
+    high = max(cost_limit, *(row["EC"] + _error(row, "EC")[1] for row in rows))
+    left = low - 0.04 * (high - low or 1.0)  # (a row at EC = 0 stays whole in view)
     ax.axvspan(left, cost_limit, color="0.5", alpha=0.08, linewidth=0, label="within budget")
-    ax.set_xlim(left=left)
+    ax.set_xlim(left, high + 0.04 * (high - low or 1.0))
     ax.set_xlabel("EC: mean episodic cost (95 % interval)")
     ax.set_ylabel("ER: mean episodic return (95 % interval)")
     ax.grid(alpha=0.3)

@@ -46,6 +46,7 @@ __all__ = [
     "row_styles",
     "run_curves_figure",
     "save_figure",
+    "set_frames_axis",
     "set_row_ticks",
     "styles_for",
     "trajectory_figure_size",
@@ -146,6 +147,16 @@ def set_row_ticks(ax: Any, names: Sequence[str]) -> None:
         label.set(rotation=TICK_ROTATION, horizontalalignment="right", rotation_mode="anchor")
 
 
+def set_frames_axis(ax: Any) -> None:
+    """An x axis of env steps: at most 6 ticks, in engineering units (``50 k``, ``1.5 M``),
+    so that the labels of a run of millions of frames do not run into each other."""
+    from matplotlib.ticker import EngFormatter, MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(nbins=6, steps=[1, 2, 2.5, 5, 10]))
+    ax.xaxis.set_major_formatter(EngFormatter(sep=" "))
+    ax.set_xlabel("env steps")
+
+
 _PANELS = (
     ("episode return", ("train/episode_return", "eval/episode_return")),
     ("episode cost", ("train/episode_cost", "eval/episode_cost")),
@@ -237,7 +248,7 @@ def run_curves_figure(
     for ax, panel in zip(grid, panels):
         _draw_run_panel(ax, panel, columns, cost_limit, int(smooth))
         ax.set_title(panel)
-        ax.set_xlabel("env steps")
+        set_frames_axis(ax)
         ax.grid(alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=8)
@@ -446,7 +457,7 @@ def plot_training_curves(
             line = ax.axhline(cost_limit, color="k", linestyle="--", linewidth=1.2)
             handles.setdefault(f"budget d = {cost_limit:g}", line)
         ax.set_title(panel_title)
-        ax.set_xlabel("env steps")
+        set_frames_axis(ax)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     if handles:  # one legend for the three panels, under them (never over a curve)
