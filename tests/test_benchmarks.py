@@ -48,6 +48,7 @@ SMOKE_ARGS = {
         "algo.batch_size=8",
         "algo.buffer_size=1500",  # --fill fills it from a 1 000-step rollout
     ],
+    "bench_help.py": ["--repeats", "1"],
     "profile_update.py": [
         *("--batch", "8", "--width", "16", "--updates", "2", "--warmup", "1", "--repeats", "1"),
         *("--ablation", "1"),
@@ -92,6 +93,18 @@ def test_bench_envs_runs(tmp_path):
     assert [row["env"] for row in rows] == ["tiny", "static"]
     for row in rows:
         assert_positive(row, "raw_steps_per_s", "torchrl_steps_per_s", "batched4_frames_per_s")
+
+
+def test_bench_help_times_every_console_script_without_torch(tmp_path):
+    """Each console script of pyproject.toml answers --help (timed, not asserted here: the
+    figure is docs/performance.md's) without importing torch, torchrl or matplotlib."""
+    rows = run_benchmark("bench_help.py", tmp_path)
+    text = (ROOT / "pyproject.toml").read_text().split("[project.scripts]")[1].split("\n[")[0]
+    scripts = [line.split("=")[0].strip() for line in text.splitlines() if "=" in line]
+    assert [row["script"] for row in rows] == scripts and len(scripts) >= 4
+    for row in rows:
+        assert_positive(row, "min_s", "median_s", "help_lines")
+        assert row["heavy_modules"] == "", row
 
 
 def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):

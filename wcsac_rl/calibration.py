@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from wcsac_rl.cli_args import add_trust_env_code, check_seed
-from wcsac_rl.evaluation.evaluator import DEFAULT_SEED_OFFSET
+from wcsac_rl.evaluation.defaults import DEFAULT_SEED_OFFSET
 
 __all__ = ["DEFAULT_CALIBRATION_EPISODES", "format_table", "main", "parse_args"]
 

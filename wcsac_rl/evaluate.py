@@ -34,9 +34,10 @@ import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from wcsac_rl.cli_args import add_trust_env_code, check_seed
-from wcsac_rl.evaluation.evaluator import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
+from wcsac_rl.evaluation.defaults import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
 
 __all__ = ["main", "parse_args"]
 
@@ -250,7 +251,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"re-evaluates), {len(errors)} failed",
         flush=True,
     )
-    # a sweep's jobs that did not finish (any launcher): named, never silently dropped
+    failed_jobs = _report_unfinished(sweep_jobs)
+    return 1 if errors or failed_jobs else 0
+
+
+def _report_unfinished(sweep_jobs: Sequence[Any]) -> bool:
+    """Name a sweep's jobs that did not finish (any launcher), never silently dropped;
+    whether any of them is missing or failed (the command then fails)."""
     incomplete = [job for job in sweep_jobs if not job.complete]
     for job in incomplete:
         kind = "warning" if job.status in ("running", "unfinished") else "error"
@@ -261,8 +268,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             + ", ".join(f"{job.name} ({job.status})" for job in incomplete),
             flush=True,
         )
-    failed_jobs = [job for job in incomplete if job.status in ("missing", "failed")]
-    return 1 if errors or failed_jobs else 0
+    return any(job.status in ("missing", "failed") for job in incomplete)
 
 
 if __name__ == "__main__":

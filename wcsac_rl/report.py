@@ -26,7 +26,8 @@ Table-1 row (``algo.label``, seeds pooled) and writes into ``--out`` (default
   number of times) the probability that a run of A has a lower C0.1 (and EC) than a run
   of B, with its interval (also ``improvement.csv``);
 * ``fig_runs.png`` — one dot per run of EC, C0.1, ER, the IQM and its interval, d drawn;
-  ``fig_score_distribution.png`` — the fraction of runs with C0.1 <= x per row
+  ``fig_score_distribution.png`` — the fraction of runs with C0.1 <= x per row;
+  ``fig_cost_return.png`` — each row at its (EC, ER) with their intervals, d drawn
   (docs/evaluation_protocol.md says how a study uses them; ``--study`` makes a run that
   cannot be pooled an error instead of leaving these out with a warning);
 * with ``--archive``, ``runs/<run>/`` — each run's ``evaluation.json``/``.csv``,
@@ -35,7 +36,10 @@ Table-1 row (``algo.label``, seeds pooled) and writes into ``--out`` (default
   without checkpoints, from which ``python -m wcsac_rl.report <out>/runs`` makes the
   same tables again.
 
-Existing files are not overwritten without ``--force``. Errors print one ``error:``
+Each figure is written as PNG and PDF, each row in one colour and marker in all of them;
+each Markdown table also as a LaTeX booktabs table (``.tex``). On a user's own env
+(``env=gymnasium``: no layout to draw on) Figure 5 is skipped in one line and the tables
+have no goals columns. Existing files are not overwritten without ``--force``. Errors print one ``error:``
 line and exit with code 1.
 
 Examples::
@@ -55,7 +59,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from wcsac_rl.cli_args import add_trust_env_code, check_seed
-from wcsac_rl.evaluation.evaluator import DEFAULT_SEED_OFFSET
+from wcsac_rl.evaluation.defaults import DEFAULT_SEED_OFFSET
 
 __all__ = ["main", "parse_args"]
 

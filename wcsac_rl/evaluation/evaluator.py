@@ -42,6 +42,7 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
+from wcsac_rl.evaluation.defaults import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
 from wcsac_rl.evaluation.metrics import table1_metrics
 from wcsac_rl.evaluation.runs import EVALUATION_CSV, EVALUATION_JSON
 from wcsac_rl.rollouts.episodes import EpisodeResult, run_episodes
@@ -64,8 +65,6 @@ __all__ = [
     "write_evaluation",
 ]
 
-DEFAULT_EPISODES = 100  # the paper: 100 test episodes per seed, 300 per algorithm
-DEFAULT_SEED_OFFSET = 2_000_003
 CSV_COLUMNS = ("episode", "return", "cost", "length", "goals", "numerical_failure")
 
 

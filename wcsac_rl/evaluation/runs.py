@@ -15,7 +15,7 @@ import re
 from collections.abc import Iterable
 from pathlib import Path
 
-from wcsac_rl.envs.presets import env_title
+from wcsac_rl.envs.presets import env_title, get_preset
 from wcsac_rl.training.checkpoint import CHECKPOINT_DIR, LAST_CHECKPOINT
 
 __all__ = [
@@ -24,6 +24,7 @@ __all__ = [
     "ROW_NAMES",
     "ROW_ORDER",
     "display_text",
+    "env_has_layout",
     "env_title",
     "find_evaluated_dirs",
     "find_progress_dirs",
@@ -49,6 +50,21 @@ ROW_ORDER: tuple[str, ...] = (
     "random",
 )
 """Table 1's rows (``algo.label`` values) in the paper's order."""
+
+
+def env_has_layout(env: str | None) -> bool:
+    """Whether runs of ``env`` have a layout (hazards, goal) and goals to count: the
+    kit's envs (the point-goal presets and tiny) do; a user's ``env=gymnasium`` env
+    does not (its ``goal_reached`` is always 0), so its report leaves out Figure 5's
+    trajectories and the goals columns. ``None`` (no env known): as a preset."""
+    if env is None:
+        return True
+    try:
+        get_preset(env)
+    except ValueError:
+        return False
+    return True
+
 
 _WCSAC_LABEL = re.compile(r"wcsac_(iqn_|paper_)?([0-9.]+)")
 _SAC_LAG_AT = re.compile(r"sac_lag_d([0-9.]+)")
