@@ -35,6 +35,7 @@ BENCHMARKS = ROOT / "benchmarks"
 TINY_UPDATE = ["--batch", "8", "--width", "16", "--rounds", "1", "--updates", "1"]
 SMOKE_ARGS = {
     "bench_envs.py": ["--steps", "40", "--envs", "tiny", "static"],
+    "bench_ensemble.py": [*TINY_UPDATE, "--warmup", "1"],
     "bench_update.py": [
         *TINY_UPDATE,
         *("--warmup", "1", "--peak-seconds", "0.01"),
@@ -156,6 +157,33 @@ def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
         assert_positive(row, "fps", "ups", "of_ceiling")
         # UTD 0.25 (100 updates per 400-frame batch): over a whole epoch, updates per frame
         assert row["ups"] / row["fps"] == pytest.approx(0.25)
+
+
+def test_bench_ensemble_times_four_and_eight_critics_beside_one(tmp_path):
+    result = run_benchmark("bench_ensemble.py", tmp_path)
+    assert result["threads"] == 1
+    rows = {row["name"]: row for row in result["rows"]}
+    assert {name: row["members"] for name, row in rows.items()} == {
+        "wcsac": 1,
+        "wcsac_ucb_E4": 4,
+        "wcsac_ucb_E8": 8,
+        "cal_E1": 1,
+        "cal": 4,
+        "cal_E8": 8,
+    }
+    for row in rows.values():
+        assert_positive(row, "updates_per_s", "vs_one", "gflop_per_update", "flops_vs_one")
+        baseline = rows[row["baseline"]]
+        assert baseline["members"] == 1 and row["baseline"] in ("wcsac", "cal_E1")
+        assert row["vs_one"] == pytest.approx(row["updates_per_s"] / baseline["updates_per_s"])
+    # every member adds the same matrix work (counted exactly): linear in E
+    for one, four, eight in (
+        ("wcsac", "wcsac_ucb_E4", "wcsac_ucb_E8"),
+        ("cal_E1", "cal", "cal_E8"),
+    ):
+        flops = [rows[name]["gflop_per_update"] for name in (one, four, eight)]
+        assert flops[0] < flops[1] < flops[2]
+        assert (flops[1] - flops[0]) / 3 == pytest.approx((flops[2] - flops[1]) / 4, rel=1e-9)
 
 
 def test_bench_memory_runs_at_the_defaults_and_the_paper_options(tmp_path):

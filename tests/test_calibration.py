@@ -387,12 +387,19 @@ def test_cli_writes_calibration_json_and_refuses_to_overwrite(runs, tmp_path, ca
     assert calibration_main(args) == 0
     out = capsys.readouterr().out
     assert "Γ_α / CVaR_α (α = 0.5)" in out and f"wrote {run / 'calibration.json'}" in out
+    assert "training episodes, read when collected" in out
     written = (run / "calibration.json").read_text()
     data = json.loads(written)
     assert data["algo"] == "wcsac" and data["episodes"] == 4
     # the recipe's critic (conf/algo/wcsac.yaml): quantiles, no variance network
     assert data["safety_critic"] == "iqn" and data["has_variance"] is False
     assert set(data["metrics"]) == {k.removeprefix("calib/") for k in CALIBRATION_KEYS}
+    # per epoch, the critic's reading of its training episodes (progress.csv's train_calib/*)
+    assert [e["frames"] for e in data["training_episodes"]] == [400, 800]
+    progress = _rows(run)
+    for epoch, row in zip(data["training_episodes"], progress):
+        assert epoch["episodes"] == float(row["train_calib/episodes"]) >= 1
+        assert epoch["start_cvar"] == pytest.approx(float(row["train_calib/start_cvar"]), rel=F64)
     assert data["metrics"]["start_cvar_ratio"] is None or data["metrics"]["start_cvar_ratio"] > 0
     episodes = data["per_episode"]
     assert data["metrics"]["episode_cost"] == pytest.approx(

@@ -34,6 +34,8 @@ from wcsac_rl.rollouts.critic_calibration import (
 )
 from wcsac_rl.rollouts.episodes import EpisodeResult
 from wcsac_rl.training.config import ConfigError
+from wcsac_rl.training.progress import read_progress
+from wcsac_rl.training.training_calibration import TRAIN_PREFIX, TRAINING_CALIBRATION_KEYS
 
 __all__ = [
     "CALIBRATION_JSON",
@@ -51,6 +53,7 @@ __all__ = [
     "record_calibration_episodes",
     "summarize_calibration",
     "supports_calibration",
+    "training_episode_readings",
 ]
 
 CALIBRATION_JSON = "calibration.json"
@@ -127,6 +130,28 @@ def load_safety_run(
     return cfg, env, policy, loss, frames
 
 
+def training_episode_readings(run_dir: str | os.PathLike) -> list[dict[str, float]]:
+    """Per epoch of the run's ``progress.csv``, its end (``frames``) and the critic's
+    reading of that epoch's training episodes against their realised cost-to-go (the
+    ``train_calib/*`` columns without their prefix,
+    :mod:`~wcsac_rl.training.training_calibration`); empty for a run that did not log
+    them (no ``progress.csv``, or one from before these columns)."""
+    path = Path(run_dir) / "progress.csv"
+    columns = read_progress(path, warn=False) if path.is_file() else {}
+    if TRAIN_PREFIX + "episodes" not in columns or "frames" not in columns:
+        return []
+    return [
+        {
+            "frames": frames,
+            **{
+                key.removeprefix(TRAIN_PREFIX): columns.get(key, [math.nan] * (i + 1))[i]
+                for key in TRAINING_CALIBRATION_KEYS
+            },
+        }
+        for i, frames in enumerate(columns["frames"])
+    ]
+
+
 def _finite_or_none(value: Any) -> Any:
     """JSON has no NaN: undefined numbers are written as ``null``."""
     if isinstance(value, float) and not math.isfinite(value):
@@ -174,8 +199,10 @@ def calibrate_run(
         ``{meta..., "metrics": {name: value}, "per_episode": [dict per episode]}``:
         the meta data (run, α, γ_c, threshold, env seed, ``episodes``,
         ``episodes_at_time_limit``...), the :data:`CALIBRATION_KEYS` without their
-        ``calib/`` prefix, and each episode's return and
-        :meth:`EpisodeCalibration.as_dict`. NaN is written as ``null``.
+        ``calib/`` prefix, each episode's return and
+        :meth:`EpisodeCalibration.as_dict`, and ``training_episodes``: per epoch, the
+        critic's reading of its training episodes against what they cost
+        (:func:`training_episode_readings`). NaN is written as ``null``.
 
     Raises:
         ConfigError: see :func:`load_safety_run`; :class:`CalibrationExistsError`
@@ -235,6 +262,7 @@ def calibrate_run(
         "per_episode": [
             {"return": r.result.ret, **c.as_dict()} for r, c in zip(recorded, compared)
         ],
+        "training_episodes": training_episode_readings(run_dir),
     }
     path = run_dir / CALIBRATION_JSON
     _atomic_write_json(path, _nan_to_null(result))
