@@ -24,6 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from wcsac_rl.config_dir import CONF_DIR as _CONF_DIR
 from wcsac_rl.training.errors import ConfigError
+from wcsac_rl.training.registry import ALGORITHMS
 
 __all__ = [
     "CONF_DIR",
@@ -155,9 +156,10 @@ def _unknown_message(key: str, known: Iterable[str], where: str) -> str:
         and parts[1] in SafetyOptions.__dataclass_fields__
         and f"algo.{parts[1]}" not in known  # (the algorithm has no safety critic)
     ):
+        safe = [name for name, entry in ALGORITHMS.items() if entry.safety_critic]
         return (
             f"unknown config key {key}: an option of the safety critic and κ, which the "
-            f"{where} config does not have (algo=wcsac, sac_lag and cal do)"
+            f"{where} config does not have (algo={', '.join(safe[:-1])} and {safe[-1]} do)"
         )
     return (
         f"unknown config key {key}{_suggestion(key, known)}: not a key of the {where} config "
