@@ -83,6 +83,7 @@ def load_safety_run(
     from wcsac_rl.training import builders
     from wcsac_rl.training.checkpoint import (
         StateMismatch,
+        check_current,
         find_checkpoint,
         load_checkpoint,
         load_module_state,
@@ -95,6 +96,7 @@ def load_safety_run(
     path = find_checkpoint(run_dir)
     checkpoint = load_checkpoint(path)
     cfg = on_cpu(stored_config(checkpoint["config"], path))  # whatever it trained on
+    check_current(cfg, path)  # (a config of another commit's kit: refused)
     algo = plain_select(cfg, "algo.name")
     learner = checkpoint["learner"]
     frames = int(checkpoint["frames"])

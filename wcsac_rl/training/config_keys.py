@@ -25,6 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 from wcsac_rl.config_dir import CONF_DIR as _CONF_DIR
 from wcsac_rl.training.errors import ConfigError
 from wcsac_rl.training.registry import ALGORITHMS
+from wcsac_rl.training.trust import TRUST_KEY
 
 __all__ = [
     "CONF_DIR",
@@ -33,6 +34,7 @@ __all__ = [
     "check_override_keys",
     "key_paths",
     "known_keys",
+    "missing_keys",
     "unknown_keys",
 ]
 
@@ -136,6 +138,25 @@ def unknown_keys(cfg: DictConfig | dict, extra: Iterable[str] = ()) -> list[str]
         if not any(path.startswith(f"{u}.") for u in unknown):
             unknown.append(path)
     return unknown
+
+
+def missing_keys(cfg: DictConfig | dict) -> list[str] | None:
+    """The keys the default config of ``cfg``'s own algorithm, env and logger has and
+    ``cfg`` lacks (a key under a missing one not listed again; not the trust flag, which
+    is a command's word, never a run's); ``None`` without ``conf/``. A stored run's
+    config lacking one was written by another commit's kit (:func:`~wcsac_rl.training.
+    checkpoint.check_current`)."""
+    reference = _reference(_choice_overrides(_choices(cfg)))
+    if reference is None:
+        return None
+    have = key_paths(cfg)
+    missing: list[str] = []
+    for path in _paths(_container(reference)):
+        if path.split(".")[0] in IGNORED_ROOTS or path == TRUST_KEY or path in have:
+            continue
+        if not any(path.startswith(f"{m}.") for m in missing):
+            missing.append(path)
+    return missing
 
 
 def _suggestion(key: str, known: Iterable[str]) -> str:
