@@ -437,8 +437,8 @@ def _check_device(device: Any) -> None:
 
 def safety_options(algo: DictConfig) -> SafetyOptions:
     """The WCSAC / SAC-Lag options of ``algo``, checked and typed
-    (:func:`~wcsac_rl.options.read_options`; an option a saved run lacks is
-    what it did), or one :class:`ConfigError` line naming ``algo.<key>``."""
+    (:func:`~wcsac_rl.options.read_options`), or one :class:`ConfigError` line naming
+    ``algo.<key>`` (a bad value, or a missing one)."""
     try:
         return read_options(SafetyOptions, algo, prefix="algo.")
     except ValueError as err:
