@@ -109,6 +109,25 @@ def test_a_new_algorithm_trains_with_only_an_entry_a_config_and_a_loss(tmp_path)
     assert (run_dir / "checkpoints").is_dir()
 
 
+def test_a_config_of_an_algorithm_without_its_entry_is_one_line_and_leaves_no_run(tmp_path):
+    kit = tmp_path / "kit"
+    _copy_kit(kit)
+    (kit / "conf" / "algo" / "penalty_sac.yaml").write_text(_blocks()["conf/algo/penalty_sac.yaml"])
+    run_dir = tmp_path / "run"
+    result = subprocess.run(
+        [sys.executable, "train.py", "algo=penalty_sac", "env=tiny", f"hydra.run.dir={run_dir}"],
+        cwd=kit, env={**os.environ, "PYTHONPATH": str(kit)}, capture_output=True, text=True,
+        timeout=300,
+    )  # fmt: skip
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines() == [
+        f"error: unknown algo 'penalty_sac'; choose one of {', '.join(ALGORITHMS)} (a new "
+        "algorithm is an entry of ALGORITHMS in wcsac_rl/training/registry.py: "
+        "docs/own_algorithm.md)"
+    ]
+    assert not run_dir.exists()
+
+
 def test_every_entry_names_a_trainer_and_a_loss_that_import():
     for entry in ALGORITHMS.values():
         assert issubclass(resolve(entry.trainer), Trainer), entry.name

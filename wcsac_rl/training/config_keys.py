@@ -30,6 +30,7 @@ from wcsac_rl.training.trust import TRUST_KEY
 __all__ = [
     "CONF_DIR",
     "FREE_FORM_KEYS",
+    "check_group_choices",
     "check_known_keys",
     "check_override_keys",
     "key_paths",
@@ -221,6 +222,40 @@ def _group_overrides(parsed: list) -> list[list[str]]:
     return groups
 
 
+def _group_options(group: str) -> list[str]:
+    """What ``group=...`` may choose: the files of ``conf/<group>/`` (for ``algo``, those
+    that are an algorithm or a variant of one)."""
+    if group == "algo":
+        from wcsac_rl.recipes import algorithm_files
+
+        return algorithm_files(CONF_DIR)
+    return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+
+
+def check_group_choices(overrides: list[str]) -> None:
+    """Refuse a config-group choice ``conf/`` has no file for (``algo=wcsca``,
+    ``env=dinamic``, each choice of a sweep) in one line naming the group's options
+    (Hydra's own refusal is a block of lines with its search path); what Hydra cannot
+    parse is left to it."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(list(overrides))
+    except HydraException:
+        return
+    for choices in _group_overrides(parsed):
+        for choice in choices:
+            group, _, name = choice.lstrip("+").partition("=")
+            if group.split("/")[0] in IGNORED_ROOTS or name == "null":
+                continue
+            if not (CONF_DIR / group / f"{name}.yaml").is_file():
+                raise ConfigError(
+                    f"unknown {group} {name!r}: {CONF_DIR.name}/{group}/ has no {name}.yaml; "
+                    f"choose one of {', '.join(_group_options(group))}"
+                )
+
+
 def _passes(override: Any, known: frozenset[str]) -> bool:
     """An override :func:`check_override_keys` leaves alone."""
     key = override.key_or_group
@@ -251,6 +286,7 @@ def check_override_keys(overrides: list[str]) -> None:
         parsed = OverridesParser.create().parse_overrides(list(overrides))
     except HydraException:
         return
+    check_group_choices(list(overrides))
     groups = _group_overrides(parsed)
     combos = list(itertools.islice(itertools.product(*groups), MAX_SWEEP_REFERENCES + 1))
     if len(combos) > MAX_SWEEP_REFERENCES:

@@ -112,7 +112,10 @@ def algorithm(name: Any) -> Algorithm:
     try:
         return ALGORITHMS[name]
     except (KeyError, TypeError):
-        raise ConfigError(f"unknown algo {name!r}; choose one of {', '.join(ALGORITHMS)}") from None
+        raise ConfigError(
+            f"unknown algo {name!r}; choose one of {', '.join(ALGORITHMS)} (a new algorithm "
+            "is an entry of ALGORITHMS in wcsac_rl/training/registry.py: docs/own_algorithm.md)"
+        ) from None
 
 
 def find_algorithm(name: Any) -> Algorithm | None:
