@@ -649,9 +649,7 @@ class SafetyOptions:
         "integer",
         low=1,
     )
-    nonnegative_cost: bool = option(
-        True, "max(Q^c, 0) in targets and Γ (false: the paper)", "flag"
-    )
+    nonnegative_cost: bool = option(True, "max(Q^c, 0) in targets and Γ (false: the paper)", "flag")
 
     def __post_init__(self) -> None:
         check_fields(self)
