@@ -324,7 +324,7 @@ def test_the_config_refuses_a_bad_ensemble_option_in_one_line(tmp_path, override
 
 SAC_LINE = (
     "unknown config key algo.{key}: an option of the safety critic and κ, which the "
-    "algo=sac{where} config does not have (algo=wcsac, sac_lag and cal do)"
+    "algo=sac{where} config does not have (algo=sac_lag, cal and wcsac do)"
 )
 
 

@@ -21,9 +21,7 @@ from hydra import compose, initialize_config_dir
 from wcsac_rl import WCSACLoss, config_schema
 from wcsac_rl.options import (
     LOSS_OPTIONS,
-    NOT_SAVED,
     PAPER_OPTIONS,
-    SAVED_RUN_VALUES,
     IQNOptions,
     PIDGains,
     SafetyOptions,
@@ -31,6 +29,7 @@ from wcsac_rl.options import (
     config_defaults,
     option,
     option_spec,
+    read_options,
 )
 from wcsac_rl.training import ConfigError, validate_config
 from wcsac_rl.training.config_keys import check_override_keys
@@ -124,7 +123,7 @@ def test_changing_a_default_changes_the_composed_config_and_the_loss_it_builds(m
     @dataclasses.dataclass(frozen=True)
     class Changed(SafetyOptions):
         kappa_init: float = option(1.5, "another default", "number", low=0.0, low_open=True)
-        cost_n_steps: int = option(3, "another default", "integer", low=1, saved_run=1)
+        cost_n_steps: int = option(3, "another default", "integer", low=1)
 
     monkeypatch.setattr(config_schema, "SafetyOptions", Changed)
     config_schema.register_configs()
@@ -216,14 +215,16 @@ def test_the_yaml_files_set_only_what_differs_from_the_schema():
                 assert value != base[key], f"{path.name}: {key} repeats"
 
 
-def test_the_saved_run_values_are_the_fields_metadata():
-    expected = {
-        f.name: f.metadata["option"].saved_run
-        for f in dataclasses.fields(SafetyOptions)
-        if f.metadata["option"].saved_run is not NOT_SAVED
-    }
-    assert dict(SAVED_RUN_VALUES) == expected
-    assert SAVED_RUN_VALUES["cost_bootstrap_truncated"] is True  # (it bootstrapped then)
+@pytest.mark.parametrize("key", ["cost_bootstrap_truncated", "kappa_signal", "shield"])
+def test_an_option_a_config_lacks_is_refused_naming_it(key):
+    """Nothing fills in an option a config lacks (a stored run's config of another
+    commit's kit is refused before this: tests/test_config_defaults.py)."""
+    values = config_defaults(SafetyOptions)
+    assert read_options(SafetyOptions, values, prefix="algo.") == SafetyOptions()
+    del values[key]
+    line = f"algo.{key} is missing (a composed config has every option)"
+    with pytest.raises(ValueError, match=f"^{re.escape(line)}$"):
+        read_options(SafetyOptions, values, prefix="algo.")
 
 
 def test_the_paper_options_are_a_valid_replacement_of_the_fields():

@@ -34,7 +34,6 @@ import argparse
 import sys
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 from wcsac_rl.cli_args import add_trust_env_code, check_seed
 from wcsac_rl.evaluation.defaults import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
@@ -135,40 +134,15 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     return args
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Evaluate; return the exit code (1 if any path failed)."""
-    args = parse_args(argv)
-    import torch
-
-    from wcsac_rl.evaluation.archive import ArchiveError, archive_run
-    from wcsac_rl.evaluation.evaluator import (
-        EvaluationExistsError,
-        evaluate_random_policy,
-        evaluate_run,
-    )
+def _jobs(args: argparse.Namespace, sweep_jobs, errors: list[str]) -> list[tuple[Path, object]]:
+    """``(directory, evaluate)`` of every run below ``args.paths`` and every random-policy
+    seed; a path that holds no run adds its line to ``errors`` (and says it)."""
+    from wcsac_rl.evaluation.evaluator import evaluate_random_policy, evaluate_run
     from wcsac_rl.evaluation.runs import find_run_dirs
-    from wcsac_rl.evaluation.sweeps import all_sweep_jobs
-    from wcsac_rl.training.config import ConfigError
-
-    torch.set_num_threads(max(1, args.threads))
-    errors: list[str] = []
-    skipped: list[str] = []
-    done: list[str] = []
-    archived: list[Path] = []
-
-    def report(directory: Path, evaluation) -> None:
-        m = evaluation.summary["metrics"]
-        done.append(str(directory))
-        print(
-            f"{directory}: {m['episodes']} episodes  EC {m['EC']:.2f}  C0.1 {m['C0.1']:.2f}  "
-            f"ER {m['ER']:.2f}  over budget {100 * m['over_budget']:.1f}%",
-            flush=True,
-        )
 
     jobs: list[tuple[Path, object]] = []
     # the jobs of the sweeps below the paths (any launcher): their status is reported
-    # below, once (a job directory without a checkpoint is not also an error here)
-    sweep_jobs = all_sweep_jobs(args.paths) if args.paths else []
+    # by main, once (a job directory without a checkpoint is not also an error here)
     without_checkpoint = [
         job.directory for job in sweep_jobs if job.directory and not job.has_checkpoint
     ]
@@ -212,6 +186,52 @@ def main(argv: Sequence[str] | None = None) -> int:
                     ),
                 )
             )
+    return jobs
+
+
+def _say_unfinished(sweep_jobs) -> bool:
+    """Name a sweep's jobs that did not finish (any launcher), never silently dropped;
+    whether one of them is missing or failed (an error)."""
+    incomplete = [job for job in sweep_jobs if not job.complete]
+    for job in incomplete:
+        kind = "warning" if job.status in ("running", "unfinished") else "error"
+        print(f"{kind}: sweep job {job.describe()}", file=sys.stderr, flush=True)
+    if incomplete:
+        print(
+            f"{len(incomplete)} sweep job(s) not finished: "
+            + ", ".join(f"{job.name} ({job.status})" for job in incomplete),
+            flush=True,
+        )
+    return any(job.status in ("missing", "failed") for job in incomplete)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Evaluate; return the exit code (1 if any path failed)."""
+    args = parse_args(argv)
+    import torch
+
+    from wcsac_rl.evaluation.archive import ArchiveError, archive_run
+    from wcsac_rl.evaluation.evaluator import EvaluationExistsError
+    from wcsac_rl.evaluation.sweeps import all_sweep_jobs
+    from wcsac_rl.training.config import ConfigError
+
+    torch.set_num_threads(max(1, args.threads))
+    errors: list[str] = []
+    skipped: list[str] = []
+    done: list[str] = []
+    archived: list[Path] = []
+
+    def report(directory: Path, evaluation) -> None:
+        m = evaluation.summary["metrics"]
+        done.append(str(directory))
+        print(
+            f"{directory}: {m['episodes']} episodes  EC {m['EC']:.2f}  C0.1 {m['C0.1']:.2f}  "
+            f"ER {m['ER']:.2f}  over budget {100 * m['over_budget']:.1f}%",
+            flush=True,
+        )
+
+    sweep_jobs = all_sweep_jobs(args.paths) if args.paths else []
+    jobs = _jobs(args, sweep_jobs, errors)
 
     def keep(directory: Path) -> None:
         """With --archive: the records of a run evaluated now or before, copied."""
@@ -251,24 +271,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"re-evaluates), {len(errors)} failed",
         flush=True,
     )
-    failed_jobs = _report_unfinished(sweep_jobs)
+    failed_jobs = _say_unfinished(sweep_jobs)
     return 1 if errors or failed_jobs else 0
-
-
-def _report_unfinished(sweep_jobs: Sequence[Any]) -> bool:
-    """Name a sweep's jobs that did not finish (any launcher), never silently dropped;
-    whether any of them is missing or failed (the command then fails)."""
-    incomplete = [job for job in sweep_jobs if not job.complete]
-    for job in incomplete:
-        kind = "warning" if job.status in ("running", "unfinished") else "error"
-        print(f"{kind}: sweep job {job.describe()}", file=sys.stderr, flush=True)
-    if incomplete:
-        print(
-            f"{len(incomplete)} sweep job(s) not finished: "
-            + ", ".join(f"{job.name} ({job.status})" for job in incomplete),
-            flush=True,
-        )
-    return any(job.status in ("missing", "failed") for job in incomplete)
 
 
 if __name__ == "__main__":

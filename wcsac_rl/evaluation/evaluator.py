@@ -47,6 +47,7 @@ from wcsac_rl.evaluation.metrics import table1_metrics
 from wcsac_rl.evaluation.runs import EVALUATION_CSV, EVALUATION_JSON
 from wcsac_rl.rollouts.episodes import EpisodeResult, run_episodes
 from wcsac_rl.training.config import ConfigError
+from wcsac_rl.training.registry import find_algorithm
 from wcsac_rl.training.restore import RestoredRun
 
 __all__ = [
@@ -338,7 +339,8 @@ def load_policy(
 
     restored = load_run(run_dir, seed=env_seed, num_envs=num_envs, trust_env_code=trust_env_code)
     algo = str(restored.cfg.algo.name)
-    if restored.policy is None and algo != "random":
+    entry = find_algorithm(algo)
+    if restored.policy is None and (entry is None or entry.learns):
         restored.env.close()
         raise ConfigError(
             f"{run_dir}: no policy could be restored from the checkpoint of algo {algo!r}"

@@ -110,6 +110,7 @@ from wcsac_rl.training.checkpoint import IDENTITY_KEYS, kept_checkpoints
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
 from wcsac_rl.training.provenance import read_provenance
+from wcsac_rl.training.registry import find_algorithm, row_algorithm
 from wcsac_rl.training.run_dir import check_progress_rows
 from wcsac_rl.training.trust import interpolation_in, plain_select, stored_config
 
@@ -325,10 +326,22 @@ def table1_rows(evaluations: Sequence[Evaluation], cost_limit: float) -> list[di
     return rows
 
 
+def _learns(algo: object) -> bool:
+    """Whether runs of ``algo`` restore a learnt policy (an algorithm the registry does
+    not know: as one that does)."""
+    entry = find_algorithm(algo)
+    return entry is None or entry.learns
+
+
+def _learns_row(label: str) -> bool:
+    entry = row_algorithm(label)
+    return entry is None or entry.learns
+
+
 def _constrained_column(label: str) -> str | None:
     """The column the row's agent constrains (bold in the paper's Table 1)."""
     label, _ = split_row_label(label)
-    if label in ("sac_lag", "cal") or label.startswith("sac_lag_d"):
+    if (entry := row_algorithm(label)) is not None and entry.risk_neutral and "_paper" not in label:
         return "EC"
     if label.startswith("wcsac_"):
         try:
@@ -570,7 +583,7 @@ def _trajectory_sources(
                 sources.append(_TrajectorySource(directory, record.label, record.seed))
             elif (directory / "evaluation.json").is_file():
                 ev = read_evaluation(directory)
-                if ev.meta.get("algo") != "random":
+                if _learns(ev.meta.get("algo")):
                     raise ReportError(f"{directory}: no checkpoint to draw trajectories from")
                 sources.append(_TrajectorySource(directory, ev.label, int(ev.meta["seed"])))
             else:
@@ -589,7 +602,7 @@ def _trajectory_sources(
         directory = Path(ev.directory).resolve()
         if directory in seen:
             continue
-        if has_checkpoint(directory) or ev.meta.get("algo") == "random":
+        if has_checkpoint(directory) or not _learns(ev.meta.get("algo")):
             candidates[ev.label].append(
                 _TrajectorySource(directory, ev.label, int(ev.meta["seed"]))
             )
@@ -1038,7 +1051,7 @@ def _write_table1(
     for ev in sorted(evaluations, key=lambda e: row_sort_key(e.label)):
         costs[ev.label].extend(ev.costs)
     if fig6_rows is None:
-        chosen = [label for label in costs if label != "random"] or list(costs)
+        chosen = [label for label in costs if _learns_row(label)] or list(costs)
     else:
         unknown = sorted(set(fig6_rows) - set(costs))
         if unknown:

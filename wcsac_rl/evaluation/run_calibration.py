@@ -19,7 +19,6 @@ from typing import Any
 
 import torch
 
-from wcsac_rl.options import SAFETY_ALGOS  # (the conf/algo entries with a safety critic)
 from wcsac_rl.rollouts.critic_calibration import (
     CALIBRATION_KEYS,
     PREFIX,
@@ -35,13 +34,13 @@ from wcsac_rl.rollouts.critic_calibration import (
 from wcsac_rl.rollouts.episodes import EpisodeResult
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
+from wcsac_rl.training.registry import ALGORITHMS, find_algorithm, make_loss
 from wcsac_rl.training.training_calibration import TRAIN_PREFIX, TRAINING_CALIBRATION_KEYS
 
 __all__ = [
     "CALIBRATION_JSON",
     "CALIBRATION_KEYS",
     "PREFIX",
-    "SAFETY_ALGOS",
     "CalibrationExistsError",
     "EpisodeCalibration",
     "calibrate_run",
@@ -69,7 +68,7 @@ def load_safety_run(
     """A run's config, test env, policy and whole loss (safety critic included).
 
     The loss is built like the trainer's (``builders.make_agent`` /
-    ``builders.make_loss``) and loaded from the checkpoint; the policy acts through
+    its entry's loss, ``registry.make_loss``) and loaded from the checkpoint; the policy acts through
     the loss's actor as in training and evaluation.
 
     A run of your own env (``env=gymnasium``) names code: it is imported only with
@@ -87,6 +86,7 @@ def load_safety_run(
     from wcsac_rl.training import builders
     from wcsac_rl.training.checkpoint import (
         StateMismatch,
+        check_current,
         find_checkpoint,
         load_checkpoint,
         load_module_state,
@@ -99,18 +99,21 @@ def load_safety_run(
     path = find_checkpoint(run_dir)
     checkpoint = load_checkpoint(path)
     cfg = on_cpu(stored_config(checkpoint["config"], path))  # whatever it trained on
+    check_current(cfg, path)  # (a config of another commit's kit: refused)
     algo = plain_select(cfg, "algo.name")
     learner = checkpoint["learner"]
     frames = int(checkpoint["frames"])
-    if algo not in SAFETY_ALGOS:
+    entry = find_algorithm(algo)
+    if entry is None or not entry.safety_critic:
+        safe = ", ".join(name for name, a in ALGORITHMS.items() if a.safety_critic)
         raise ConfigError(
             f"{path.parent.parent}: algo {algo!r} has no safety critic to calibrate "
-            f"(calibration needs one of {', '.join(SAFETY_ALGOS)})"
+            f"(calibration needs one of {safe})"
         )
     env = trusted_eval_env(cfg, path, trust_env_code=trust_env_code, seed=seed, num_envs=num_envs)
     try:
         agent = builders.make_agent(cfg, env)
-        loss = builders.make_loss(cfg, agent, env_max_episode_steps(cfg))
+        loss = make_loss(cfg, agent, env_max_episode_steps(cfg))
         load_module_state(loss, learner.get("loss"))
     except StateMismatch as err:
         env.close()

@@ -41,9 +41,10 @@ from wcsac_rl.objectives import (
     WCSACLoss,
     param_groups,
 )
-from wcsac_rl.options import SAFETY_ALGOS, SafetyOptions
+from wcsac_rl.options import SafetyOptions
 from wcsac_rl.training.config import safety_options
 from wcsac_rl.training.devices import RunDevices, run_devices
+from wcsac_rl.training.registry import algorithm
 from wcsac_rl.training.replay import NStepReplayBuffer, nested_key
 
 __all__ = [
@@ -163,7 +164,7 @@ def make_agent(cfg: DictConfig, env: EnvBase, devices: RunDevices | None = None)
     )
     qvalues = [make_qvalue(obs_dim, act_dim, **shape) for _ in range(2)]
     safety = None
-    if cfg.algo.name in SAFETY_ALGOS:
+    if algorithm(cfg.algo.name).safety_critic:
         options = safety_options(cfg.algo)
         kwargs = safety_critic_kwargs(options)
         # one module, or num_safety_nets of them, each initialised on its own
@@ -225,7 +226,7 @@ def make_collection_policy(cfg: DictConfig, loss: LossModule, policy: TanhNormal
     ``algo.shield.candidates >= 2`` (WCSAC, SAC-Lag), ``policy`` behind a
     :class:`~wcsac_rl.modules.CriticShield` reading ``loss``'s safety critic, its
     threshold ``algo.shield.scale`` × the loss's ``cost_threshold`` (read at each step)."""
-    if cfg.algo.name not in SAFETY_ALGOS:
+    if not algorithm(cfg.algo.name).safety_critic:
         return policy
     shield = safety_options(cfg.algo).shield
     if not shield.candidates:

@@ -1,5 +1,8 @@
 """Off-policy learning for WCSAC, SAC-Lag and SAC: replay buffer, UTD updates, polyak targets.
 
+The trainer of every off-policy entry of :data:`~wcsac_rl.training.registry.ALGORITHMS`:
+it builds the loss with the entry's ``loss`` function (:func:`~wcsac_rl.training.registry.make_loss`).
+
 After each collector batch (``algo.collector.frames_per_batch`` frames) the entries
 of the batch the loss reads (``loss.in_keys``) go into the replay buffer and
 ``frames_per_batch × utd_ratio`` gradient steps follow (the authors' schedule: 100
@@ -34,7 +37,7 @@ from torchrl import timeit
 from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
 from wcsac_rl.objectives.inputs import collected_keys
 from wcsac_rl.rollouts.critic_calibration import supports_calibration
-from wcsac_rl.training import builders
+from wcsac_rl.training import builders, registry
 from wcsac_rl.training.checkpoint import (
     CHECKPOINT_DIR,
     INITIAL_STATE_BUFFER_DIR,
@@ -60,7 +63,7 @@ class OffPolicyTrainer(Trainer):
         cfg = self.cfg
         collector_cfg = cfg.algo.collector
         self.agent = builders.make_agent(cfg, self.env)
-        self.loss = builders.make_loss(cfg, self.agent, self.max_episode_steps)
+        self.loss = registry.make_loss(cfg, self.agent, self.max_episode_steps)
         self.target_updater = builders.make_target_updater(cfg, self.loss)
         self.optimizers = builders.make_optimizers(cfg, self.loss)
         # n-step cost entries (cost_n_steps > 1), added to each collected batch
@@ -205,7 +208,7 @@ class OffPolicyTrainer(Trainer):
     def restore_policy(cls, cfg, learner_state, env):
         agent = builders.make_agent(cfg, env)
         max_steps = env_max_episode_steps(cfg)
-        loss = builders.make_loss(cfg, agent, max_steps)
+        loss = registry.make_loss(cfg, agent, max_steps)
         load_module_state(loss, learner_state.get("loss"))  # the actor shares these parameters
         return TanhNormalPolicy(agent.actor)
 
