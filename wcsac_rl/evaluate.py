@@ -35,7 +35,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from wcsac_rl.cli_args import add_trust_env_code, check_seed
+from wcsac_rl.cli_args import add_trust_env_code, check_seed, check_threads
 from wcsac_rl.evaluation.evaluator import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
 
 __all__ = ["main", "parse_args"]
@@ -125,6 +125,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     )
     args = parser.parse_args(argv)
     check_seed(parser, "--seed", args.seed)
+    check_threads(parser, args.threads)
+    for seed in args.random_seeds:
+        check_seed(parser, "--random-seeds", seed)
     if not args.paths and args.random_policy is None:
         parser.error("give run or sweep directories, or --random-policy ENV")
     if args.episodes < 1:
@@ -142,6 +145,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from wcsac_rl.evaluation.archive import ArchiveError, archive_run
     from wcsac_rl.evaluation.evaluator import (
         EvaluationExistsError,
+        check_random_policy,
         evaluate_random_policy,
         evaluate_run,
     )
@@ -149,7 +153,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from wcsac_rl.evaluation.sweeps import all_sweep_jobs
     from wcsac_rl.training.config import ConfigError
 
-    torch.set_num_threads(max(1, args.threads))
+    torch.set_num_threads(args.threads)
     errors: list[str] = []
     skipped: list[str] = []
     done: list[str] = []
@@ -192,7 +196,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                 )
             )
     if args.random_policy is not None:
+        try:  # (once, not once per seed)
+            check_random_policy(args.random_policy, args.cost_limit)
+        except ConfigError as err:
+            print(f"error: {err}", file=sys.stderr, flush=True)
+            return 1
         out = args.out or Path("evaluations") / f"random_{args.random_policy}"
+        if out.exists() and not out.is_dir():
+            print(f"error: --out {out} is a file, not a directory", file=sys.stderr, flush=True)
+            return 1
         for seed in dict.fromkeys(args.random_seeds):
             directory = out / f"random_{args.random_policy}_seed{seed}"
             jobs.append(
