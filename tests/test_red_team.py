@@ -1205,7 +1205,8 @@ def _documented() -> dict[str, tuple[int, list[str]]]:
     """``category -> (count, inputs)`` from the table of docs/guarantees.md."""
     text = (ROOT / "docs" / "guarantees.md").read_text()
     rows = {}
-    for line in text.split("## The bad inputs the tests try", 1)[1].splitlines():
+    section = text.split("## The bad inputs the tests try", 1)[1].split("\n## ", 1)[0]
+    for line in section.splitlines():
         match = re.fullmatch(r"\| (.+?) \| (\d+) \| (.+) \|", line.strip())
         if match:
             rows[match.group(1)] = (int(match.group(2)), re.findall(r"`([^`]+)`", match.group(3)))

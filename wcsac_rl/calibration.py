@@ -28,7 +28,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from wcsac_rl.cli_args import add_trust_env_code, check_seed
+from wcsac_rl.cli_args import add_trust_env_code, check_seed, check_threads
 from wcsac_rl.evaluation.defaults import DEFAULT_SEED_OFFSET
 
 __all__ = ["DEFAULT_CALIBRATION_EPISODES", "format_table", "main", "parse_args"]
@@ -74,6 +74,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     check_seed(parser, "--seed", args.seed)
+    check_threads(parser, args.threads)
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     if args.max_episode_steps is not None and args.max_episode_steps < 1:
@@ -182,7 +183,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from wcsac_rl.evaluation.run_calibration import calibrate_run
     from wcsac_rl.training.config import ConfigError
 
-    torch.set_num_threads(max(1, args.threads))
+    torch.set_num_threads(args.threads)
     progress: list = []  # (bar, callback), made at the first episode: none before an error
 
     def on_episode(episode) -> None:

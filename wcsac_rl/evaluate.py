@@ -35,7 +35,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from wcsac_rl.cli_args import add_trust_env_code, check_seed
+from wcsac_rl.cli_args import add_trust_env_code, check_seed, check_threads
 from wcsac_rl.evaluation.defaults import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
 
 __all__ = ["main", "parse_args"]
@@ -125,6 +125,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     )
     args = parser.parse_args(argv)
     check_seed(parser, "--seed", args.seed)
+    check_threads(parser, args.threads)
+    for seed in args.random_seeds:
+        check_seed(parser, "--random-seeds", seed)
     if not args.paths and args.random_policy is None:
         parser.error("give run or sweep directories, or --random-policy ENV")
     if args.episodes < 1:
@@ -189,6 +192,22 @@ def _jobs(args: argparse.Namespace, sweep_jobs, errors: list[str]) -> list[tuple
     return jobs
 
 
+def _random_policy_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with ``--random-policy``'s env, cost limit or ``--out`` (said once,
+    not once per seed), or ``None``."""
+    from wcsac_rl.evaluation.evaluator import check_random_policy
+    from wcsac_rl.training.config import ConfigError
+
+    try:
+        check_random_policy(args.random_policy, args.cost_limit)
+    except ConfigError as err:
+        return str(err)
+    out = args.out or Path("evaluations") / f"random_{args.random_policy}"
+    if out.exists() and not out.is_dir():
+        return f"--out {out} is a file, not a directory"
+    return None
+
+
 def _say_unfinished(sweep_jobs) -> bool:
     """Name a sweep's jobs that did not finish (any launcher), never silently dropped;
     whether one of them is missing or failed (an error)."""
@@ -215,7 +234,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from wcsac_rl.evaluation.sweeps import all_sweep_jobs
     from wcsac_rl.training.config import ConfigError
 
-    torch.set_num_threads(max(1, args.threads))
+    torch.set_num_threads(args.threads)
     errors: list[str] = []
     skipped: list[str] = []
     done: list[str] = []
@@ -230,6 +249,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             flush=True,
         )
 
+    if args.random_policy is not None:
+        problem = _random_policy_problem(args)
+        if problem is not None:
+            print(f"error: {problem}", file=sys.stderr, flush=True)
+            return 1
     sweep_jobs = all_sweep_jobs(args.paths) if args.paths else []
     jobs = _jobs(args, sweep_jobs, errors)
 

@@ -54,11 +54,12 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from wcsac_rl.cli_args import add_trust_env_code, check_seed
+from wcsac_rl.cli_args import add_trust_env_code, check_seed, check_threads
 from wcsac_rl.evaluation.defaults import DEFAULT_SEED_OFFSET
 
 __all__ = ["main", "parse_args"]
@@ -158,6 +159,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = parser.parse_args(argv)
     check_seed(parser, "--trajectory-seed", args.trajectory_seed)
+    check_threads(parser, args.threads)
+    if args.fig6_ymax is not None and not (math.isfinite(args.fig6_ymax) and args.fig6_ymax > 0):
+        parser.error(f"--fig6-ymax must be a finite number > 0 (a cost), got {args.fig6_ymax}")
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out} is a file, not a directory")
     if args.trajectory_episodes < 1:
         parser.error(f"--trajectory-episodes must be >= 1, got {args.trajectory_episodes}")
     if args.trajectory_max_steps is not None and args.trajectory_max_steps < 1:
@@ -176,7 +182,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from wcsac_rl.training.config import ConfigError
     from wcsac_rl.training.trust import allow_env_code
 
-    torch.set_num_threads(max(1, args.threads))
+    torch.set_num_threads(args.threads)
     out = args.out if args.out is not None else args.paths[0] / "report"
     try:
         pairs = [parse_improvement(text) for text in args.improvement]

@@ -57,6 +57,7 @@ __all__ = [
     "Evaluation",
     "EvaluationExistsError",
     "check_env_code_allowed",
+    "check_random_policy",
     "evaluate_random_policy",
     "evaluate_run",
     "load_policy",
@@ -470,6 +471,17 @@ def evaluate_run(
     return evaluation
 
 
+def check_random_policy(env_name: str, cost_limit: float) -> None:
+    """Refuse, naming it, an env the random policy cannot be evaluated on or a cost
+    limit that is not a budget (:class:`ConfigError`)."""
+    from wcsac_rl.envs import PRESET_NAMES
+
+    if env_name not in PRESET_NAMES:
+        raise ConfigError(f"unknown env {env_name!r}; choose one of {', '.join(PRESET_NAMES)}")
+    if not math.isfinite(cost_limit) or cost_limit < 0:
+        raise ConfigError(f"cost limit must be a number >= 0, got {cost_limit!r}")
+
+
 def evaluate_random_policy(
     env_name: str,
     out_dir: str | os.PathLike,
@@ -491,12 +503,9 @@ def evaluate_random_policy(
         ConfigError: unknown env, negative cost limit, or an existing evaluation and
             not ``force``.
     """
-    from wcsac_rl.envs import PRESET_NAMES, env_info, make_env
+    from wcsac_rl.envs import env_info, make_env
 
-    if env_name not in PRESET_NAMES:
-        raise ConfigError(f"unknown env {env_name!r}; choose one of {', '.join(PRESET_NAMES)}")
-    if not math.isfinite(cost_limit) or cost_limit < 0:
-        raise ConfigError(f"cost limit must be a number >= 0, got {cost_limit!r}")
+    check_random_policy(env_name, cost_limit)
     out_dir = Path(out_dir)
     check_can_write(out_dir, force)
     kwargs = {} if max_episode_steps is None else {"max_episode_steps": int(max_episode_steps)}

@@ -412,6 +412,12 @@ def _check_entries(state: dict[str, Any], path: Path) -> None:
     crafted file's ``config: 5`` or ``frames: "abc"`` is one line, not a traceback)."""
     if "config" in state:
         stored_config(state["config"], path)  # a mapping of resolved values
+        for section in ("algo", "env"):  # what every reader selects by name
+            if not isinstance(state["config"].get(section), dict):
+                raise ConfigError(
+                    f"{path}: its config's '{section}' entry must be a mapping of settings, "
+                    f"got {state['config'].get(section)!r}; pass a checkpoint written by train.py"
+                )
     frames = state.get("frames", 0)
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 0:
         raise ConfigError(
