@@ -235,12 +235,12 @@ def check_run_name(value: Any) -> None:
 
 def _validate_run(cfg: DictConfig) -> None:
     """The run's schedule, checkpoints and switches (the top-level keys)."""
-    if cfg.get("run_name") is not None:
-        check_run_name(cfg.run_name)
     seed = _get(cfg, "seed")
     _positive_int(cfg, "seed", allow_zero=True)  # gymnasium and NumPy need seeds >= 0
     if seed > SEED_MAX:
         raise ConfigError(f"seed must be at most 2**63 - 1 = {SEED_MAX}, got {seed!r}")
+    if cfg.get("run_name") is not None:  # (after the seed its default is made from)
+        check_run_name(cfg.run_name)
     for key in ("total_frames", "epoch_frames", "threads", "checkpoint_every_epochs"):
         _positive_int(cfg, key)
     cores = machine_cores()
