@@ -6,7 +6,7 @@ user wrote it."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 import torch
@@ -163,10 +163,14 @@ def convert_safety_network(
             loss.safety_network_params.set(key, copy)
 
 
-def refuse_unknown_keywords(init: Callable, kwargs: dict) -> None:
+def refuse_unknown_keywords(
+    init: Callable, kwargs: dict, parts: Mapping[str, str] | None = None
+) -> None:
     """Refuse a keyword neither ``init`` (the loss's ``__init__``) nor
-    :class:`~torchrl.objectives.SACLoss` takes, in one line naming the closest one
-    (``kapa_init`` → ``kappa_init``), before ``SACLoss`` says only that it is unexpected."""
+    :class:`~torchrl.objectives.SACLoss` takes, in one line naming the part that takes
+    it (``parts``: ``kappa_init`` → ``constraint=GradientLagrangian(kappa_init=...)``)
+    or the closest keyword (``alpha_int`` → ``alpha_init``), before ``SACLoss`` says
+    only that it is unexpected."""
     import difflib
     import inspect
 
@@ -175,6 +179,8 @@ def refuse_unknown_keywords(init: Callable, kwargs: dict) -> None:
     known = {*inspect.signature(init).parameters, *inspect.signature(SACLoss.__init__).parameters}
     known -= {"self", "sac_kwargs", "kwargs"}
     for name in kwargs:
+        if name in (parts or {}):
+            raise TypeError(f"{name!r} is an option of a part of the loss: give {parts[name]}")
         if name not in known:
             close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
             hint = f" (did you mean {close[0]}?)" if close else ""
