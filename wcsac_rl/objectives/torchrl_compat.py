@@ -178,10 +178,13 @@ def refuse_unknown_keywords(
 
     known = {*inspect.signature(init).parameters, *inspect.signature(SACLoss.__init__).parameters}
     known -= {"self", "sac_kwargs", "kwargs"}
+    parts = parts or {}
     for name in kwargs:
-        if name in (parts or {}):
+        if name in parts:
             raise TypeError(f"{name!r} is an option of a part of the loss: give {parts[name]}")
         if name not in known:
-            close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
+            close = difflib.get_close_matches(name, sorted({*known, *parts}), n=1, cutoff=0.6)
             hint = f" (did you mean {close[0]}?)" if close else ""
+            if close and close[0] in parts:
+                hint = f" (did you mean {close[0]}? give {parts[close[0]]})"
             raise TypeError(f"unknown keyword argument {name!r}{hint}")

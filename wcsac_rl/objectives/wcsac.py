@@ -261,6 +261,7 @@ class WCSACLoss(SACLoss):
         self.max_episode_steps = int(max_episode_steps)
         self._explicit_cost_threshold = None if cost_threshold is None else float(cost_threshold)
         self.head_options, self.signal_options = head, signal  # (the parts' options as given)
+        self.variance_loss = head.variance_loss  # (TorchRL wraps a class's "*loss" names)
 
         super().__init__(
             actor_network,
@@ -317,7 +318,6 @@ class WCSACLoss(SACLoss):
     # the parts' options, by name (what the config calls them)
     num_safety_nets = property(lambda self: self.head_options.num_safety_nets)
     nonnegative_cost = property(lambda self: self.head_options.nonnegative_cost)
-    variance_loss = property(lambda self: self.head_options.variance_loss)
     variance_target_kind = property(lambda self: self.head_options.variance_target)
     num_quantiles = property(lambda self: self.head_options.num_quantiles)
     num_target_quantiles = property(lambda self: self.head_options.num_target_quantiles)
