@@ -98,6 +98,12 @@ def recipe_kwargs(kind: str = "gaussian", *, paper: bool = True, **kwargs) -> di
     return {**loss_parts(recipe), **loss_kwargs}
 
 
+def flat_parts(**kwargs) -> dict:
+    """``WCSACLoss``'s keywords for flat options over ``SafetyOptions``' defaults (the
+    loss's own keywords pass as they are): :func:`recipe_kwargs` without the paper."""
+    return recipe_kwargs(paper=False, **kwargs)
+
+
 def make_loss(
     *, variance: bool = True, width: int = 32, seed: int = 0, kind: str = "gaussian", **kwargs
 ) -> WCSACLoss:

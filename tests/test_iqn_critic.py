@@ -20,6 +20,7 @@ from _loss_helpers import (
     ACT_DIM,
     OBS_DIM,
     assert_same_losses_and_gradients,
+    flat_parts,
     linear_quantile_critic,
     make_batch,
     paper_options,
@@ -382,9 +383,7 @@ def test_sac_lag_with_an_iqn_critic_holds_the_mean_quantile_under_the_threshold(
         make_actor(2, Bounded(-1.0, 1.0, shape=(1,)), width=8),
         [make_qvalue(2, 1, width=8) for _ in range(2)],
         _linear_critic(),
-        num_quantiles=4,
-        cost_threshold=1.0,
-        **paper_options("iqn"),
+        **flat_parts(num_quantiles=4, cost_threshold=1.0, **paper_options("iqn")),
     )
     assert loss.safety_critic_kind == "iqn" and loss.risk_level == 1.0
     out = loss(_linear_batch())
@@ -435,7 +434,7 @@ def _linear_loss(gamma: float = 0.9, **kwargs) -> WCSACLoss:
         make_actor(2, Bounded(-1.0, 1.0, shape=(1,)), width=8),
         [make_qvalue(2, 1, width=8) for _ in range(2)],
         safety,
-        **{**paper_options("iqn"), **kwargs},
+        **flat_parts(**{**paper_options("iqn"), **kwargs}),
     )
     loss.make_value_estimator(gamma=gamma)
     return loss
@@ -757,8 +756,7 @@ def test_learned_quantiles_match_the_chain_return_distribution(n_steps):
         make_actor(N, Bounded(-1.0, 1.0, shape=(1,)), width=16),
         [make_qvalue(N, 1, width=16) for _ in range(2)],
         make_safety_critic(N, 1, kind="iqn", width=64),
-        risk_level=0.5,
-        **{**paper_options("iqn"), "cost_n_steps": n_steps},
+        **flat_parts(risk_level=0.5, **{**paper_options("iqn"), "cost_n_steps": n_steps}),
     )
     loss.make_value_estimator(gamma=GAMMA)
     steps = 3000

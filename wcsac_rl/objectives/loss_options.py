@@ -193,9 +193,9 @@ def loss_parts(recipe: SafetyOptions | Mapping[str, Any] | None = None) -> dict[
     (a config read with :func:`~wcsac_rl.options.read_options`; ``alpha_init`` is then
     the off-policy default). The trainer's keys a recipe holds (learning rates, the
     episode window) are not the loss's and are left out, as is ``risk_level`` (the
-    loss's first keyword: give it yourself). The IQN head's options apply to an IQN
-    critic (``safety_critic="iqn"``), the Gaussian head's to the others; the other kind's
-    stay at their defaults.
+    loss's first keyword: give it yourself). The Gaussian head's options stay at their
+    defaults with ``safety_critic="iqn"`` (an IQN head has no variance to learn); a
+    Gaussian head does not read the IQN head's.
 
     Example:
         >>> from wcsac_rl.objectives import PAPER_OPTIONS
@@ -212,9 +212,9 @@ def loss_parts(recipe: SafetyOptions | Mapping[str, Any] | None = None) -> dict[
         options = _safety_options(recipe)
     head = {f.name: getattr(options, f.name, None) for f in fields(SafetyHeadOptions)}
     head.update({name: getattr(options.iqn, name) for name in _IQN_HEAD})
-    unused = _GAUSSIAN_HEAD if options.safety_critic == "iqn" else _IQN_HEAD
-    for name in unused:
-        head[name] = SafetyHeadOptions.__dataclass_fields__[name].default
+    if options.safety_critic == "iqn":  # (an IQN head refuses the Gaussian head's options)
+        for name in _GAUSSIAN_HEAD:
+            head[name] = SafetyHeadOptions.__dataclass_fields__[name].default
     return {
         "safety_head": SafetyHeadOptions(**head),
         "signal": SignalOptions(
