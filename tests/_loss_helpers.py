@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import torch
 from _tolerance import assert_close_f32
 from tensordict import TensorDict
@@ -77,13 +79,17 @@ IQN_OPTIONS = tuple(IQNOptions.__dataclass_fields__)
 RECIPE_KEYS = (*SafetyOptions.__dataclass_fields__, *IQN_OPTIONS)
 
 
-def recipe_kwargs(kind: str = "gaussian", *, paper: bool = True, **kwargs) -> dict:
+def recipe_kwargs(
+    kind: str = "gaussian", *, paper: bool = True, base: Mapping | None = None, **kwargs
+) -> dict:
     """``WCSACLoss``'s keywords for the paper's recipe (:func:`paper_options`; ``paper=False``:
-    SafetyOptions' defaults) changed by the flat options among ``kwargs``
-    (``kappa_init=...``, ``num_quantiles=...``: a recipe, as the config writes it, through
-    ``loss_parts``); the loss's own keywords (``risk_level``, ``cost_limit``, a part
-    given as an object) pass as they are."""
-    recipe = {**(paper_options(kind) if paper else {}), "safety_critic": kind}
+    SafetyOptions' defaults; ``base``: that recipe, e.g. ``KIT_OPTIONS``) changed by the
+    flat options among ``kwargs`` (``kappa_init=...``, ``num_quantiles=...``: a recipe, as
+    the config writes it, through ``loss_parts``); the loss's own keywords
+    (``risk_level``, ``cost_limit``, a part given as an object) pass as they are."""
+    if base is None:
+        base = paper_options(kind) if paper else {}
+    recipe = {**base, "safety_critic": kind}
     iqn = {}
     loss_kwargs = {}
     for key, value in kwargs.items():

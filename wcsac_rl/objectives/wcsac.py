@@ -29,7 +29,7 @@ from torchrl.objectives.utils import (
     distance_loss,
 )
 
-from wcsac_rl.modules.tanh_normal import sample_tanh_normal, tanh_normal_actor_plan
+from wcsac_rl.modules.tanh_normal import sample_tanh_normal
 from wcsac_rl.objectives.budget import (
     per_step_cost_threshold,
     validate_cost_limit,
@@ -46,10 +46,11 @@ from wcsac_rl.objectives.inputs import (
     check_finite_entries,
     check_finite_losses,
     check_nonempty_batch,
+    data_keys,
     finite_number,
+    loss_out_keys,
     missing_inputs,
-    nested_key,
-    produced_keys,
+    parts_in_keys,
     state_keys,
 )
 from wcsac_rl.objectives.loss_options import (
@@ -65,6 +66,7 @@ from wcsac_rl.objectives.torchrl_compat import (
     as_given,
     check_td0,
     convert_safety_network,
+    direct_actor_plan,
     refuse_multistep,
     refuse_unknown_keywords,
     sample_alive,
@@ -84,14 +86,12 @@ __all__ = [
 class WCSACLoss(SACLoss):
     r"""The WCSAC loss: SAC with a safety critic and a CVaR constraint.
 
-    TorchRL-style: the networks, then a handful of keywords, and the parts as objects
-    (``docs/architecture.md`` maps them). With none given, the parts are the kit's
-    recipe on StaticEnv (``KIT_OPTIONS``: what ``train.py algo=wcsac env=static`` runs,
-    with an IQN safety critic); ``**loss_parts(recipe)`` gives them for another
-    (``PAPER_OPTIONS``, ``kit_options("dynamic")``;
-    :func:`~wcsac_rl.objectives.loss_options.loss_parts`).
-    ``benchmarks/plain_wcsac.py`` is the plain-PyTorch reference of the paper's update,
-    tested equal to this loss in ``tests/test_plain_reference.py``.
+    TorchRL-style: the networks, a handful of keywords, the parts as objects
+    (``docs/architecture.md``). Not given, a part is the kit's StaticEnv recipe's
+    (``KIT_OPTIONS``: what ``train.py algo=wcsac env=static`` runs, with an IQN critic);
+    ``**loss_parts(recipe)`` gives them for another (``PAPER_OPTIONS``,
+    ``kit_options("dynamic")``). ``benchmarks/plain_wcsac.py`` is the plain-PyTorch
+    reference of the paper's update (``tests/test_plain_reference.py``).
 
     Args:
         actor_network (ProbabilisticTensorDictSequential): the stochastic (tanh-Normal) actor.
@@ -122,35 +122,26 @@ class WCSACLoss(SACLoss):
             (:mod:`wcsac_rl.objectives.constraint`), owned by this loss from now on; the
             PID rule steps in :meth:`forward` while the loss is in training mode.
         alpha_init (float): the initial entropy weight β; the kit's 0.1.
-        fuse_critics, direct_sampling (bool, optional): evaluate the critics as one
-            batched ensemble (:mod:`~wcsac_rl.objectives.critic_ensemble`), draw the
-            actor's actions straight from its parameters; ``None`` (default): when
-            possible. Same values and gradients either way.
+        fuse_critics, direct_sampling (bool, optional): the critics as one batched
+            ensemble (:mod:`~wcsac_rl.objectives.critic_ensemble`), the actor's actions
+            drawn from its parameters; ``None``: when possible. Same values either way.
         check_finite (bool): run :meth:`check_inputs` on every call (not under
             ``torch.compile``). Default ``False``; an empty batch is refused either way.
-        num_qvalue_nets, loss_function: as in :class:`~torchrl.objectives.SACLoss`;
-            ``loss_function`` defaults to ``"l2"``.
-        **sac_kwargs: :class:`~torchrl.objectives.SACLoss`'s other keywords (``min_alpha``,
-            ``max_alpha``, ``action_spec``, ``fixed_alpha``, ``target_entropy``,
-            ``delay_actor``, ``delay_qvalue``, ``separate_losses``, ``reduction``,
-            ``skip_done_states``, ``deactivate_vmap``, ``scalar_output_mode``), passed
-            on. The loss's own keywords are the ones above (13, as
-            ``inspect.signature`` lists them; SACLoss's count as SACLoss's).
+        num_qvalue_nets, loss_function: SACLoss's (``loss_function`` default ``"l2"``).
+        **sac_kwargs: :class:`~torchrl.objectives.SACLoss`'s other keywords
+            (``target_entropy``, ``delay_qvalue``, ``separate_losses``, ``reduction``, ...),
+            passed on. The loss's own keywords are the 13 above (``inspect.signature``'s
+            keyword-only parameters; SACLoss's count as SACLoss's).
 
-    Each option is defined once, in :class:`~wcsac_rl.options.SafetyOptions` (the
-    parts' options classes take its fields; a bad value is refused in one line naming
-    it). γ comes from the value estimator (``loss.make_value_estimator(gamma=0.99)``,
-    any TD(0) form :class:`~torchrl.objectives.SACLoss` takes; default 0.99). A batch
-    that lacks what the parts read is refused with a ``KeyError`` naming, in one line,
-    the transforms to add (:func:`~wcsac_rl.objectives.inputs.missing_inputs`);
-    ``docs/torchrl_contract.md`` lists the rest of the TorchRL contract the loss keeps.
-    ``forward`` returns ``loss_actor``, ``loss_qvalue``, ``loss_alpha``, the head's terms
-    (``loss_cost_value`` and ``loss_cost_variance``, or ``loss_cost_quantile``) and,
-    under the gradient rule, ``loss_kappa``; and the detached ``alpha``, ``kappa``,
-    ``entropy``, the head's diagnostics, ``cvar`` (the critic's statistic κ reads),
-    ``cost_threshold`` (and with an episode signal ``episode_cvar``,
-    ``constraint_cvar``). Each term sends gradients only to its own parameters, so
-    their sum can be back-propagated at once.
+    Each option is defined once, in :class:`~wcsac_rl.options.SafetyOptions`; a bad value
+    is refused in one line naming it. γ comes from the value estimator
+    (``loss.make_value_estimator(gamma=0.99)``, any TD(0) form; default 0.99). A batch
+    lacking what the parts read is refused with a one-line ``KeyError`` naming the
+    transforms to add (:func:`~wcsac_rl.objectives.inputs.missing_inputs`; the TorchRL
+    contract the loss keeps: ``docs/torchrl_contract.md``). ``forward`` returns the
+    ``loss_*`` terms (``loss_kappa`` under the gradient rule) and detached diagnostics
+    (:attr:`out_keys`); each term sends gradients only to its own parameters, so their
+    sum can be back-propagated at once.
 
     Example:
         >>> import torch
@@ -335,15 +326,7 @@ class WCSACLoss(SACLoss):
             fuse=fuse_critics,
             direct=not self.deactivate_vmap,  # (a loop rounds unlike the vmapped call)
         )
-        self._actor_plan = (
-            tanh_normal_actor_plan(actor_network) if direct_sampling is not False else None
-        )
-        if direct_sampling and self._actor_plan is None:
-            raise ValueError(
-                "direct_sampling=True needs an actor built like wcsac_rl.modules.make_actor "
-                "(an MLP with ClampedLogStdNormalParams and a TanhNormal); use "
-                "direct_sampling=None to fall back automatically"
-            )
+        self._actor_plan = direct_actor_plan(actor_network, direct_sampling)
 
     # ------------------------------------------------------------------ set-up
     @property
@@ -408,32 +391,13 @@ class WCSACLoss(SACLoss):
 
     def _set_in_keys(self):
         super()._set_in_keys()
-        head = self.__dict__.get("safety_head")
-        if head is not None:
-            keys = set(self._in_keys)
-            keys.update(head.in_keys)
-            keys.update(("next", k) for k in head.in_keys if k != self.tensor_keys.action)
-            states = state_keys(self)
-            keys.update(self.cost_target.in_keys(states))
-            if self.kappa_states == "initial":
-                initial = self.tensor_keys.initial_states
-                keys.update(nested_key(initial, key) for key in states)
-            if self.kappa_signal != "critic" or head.reads_episode_costs:
-                keys.add(self.tensor_keys.episode_cvar)
-            self._in_keys = list(keys)
+        if "safety_head" in self.__dict__:  # (the parts exist: not in SACLoss.__init__)
+            self._in_keys = parts_in_keys(self, self._in_keys)
 
     @property
     def out_keys(self):
         if self._out_keys is None:
-            head = self.safety_head
-            keys = ["loss_actor", "loss_qvalue", "loss_alpha", *head.loss_names]
-            if self.constraint.rule == "gradient":
-                keys.append("loss_kappa")
-            keys += ["alpha", "kappa", *self.constraint.diagnostic_names, "entropy"]
-            keys += [*head.diagnostic_names, "cvar", "cost_threshold"]
-            if self.kappa_signal != "critic":
-                keys += ["episode_cvar", "constraint_cvar"]
-            self._out_keys = keys
+            self._out_keys = loss_out_keys(self)
         return self._out_keys
 
     @out_keys.setter
@@ -754,31 +718,8 @@ class WCSACLoss(SACLoss):
         check_finite_entries(tensordict, self.in_keys, type(self).__name__)
 
     def _data_keys(self) -> list[NestedKey]:
-        """The entries of ``in_keys`` a batch must hold: not those the loss's own networks
-        write (a composite actor's ``params``, a shared trunk's features), not the end
-        flags (``terminated`` falls back to ``done``; the n-step entries' flag the cost
-        target reads, naming it, is the one its bootstrap needs), not the cost (its own
-        message)."""
-        in_keys = tuple(self.in_keys)
-        cached = self.__dict__.get("_data_keys_cache")
-        if cached is not None and cached[0] == in_keys:
-            return cached[1]
-        networks = (self.actor_network, self.qvalue_network, self.safety_network)
-        produced = produced_keys(*networks)
-        optional = {
-            nested_key(outer, getattr(self.tensor_keys, name))
-            for outer, names in (("next", ("done", "terminated", "cost")),
-                                 (self.tensor_keys.nstep, ("done", "terminated")))
-            for name in names
-        }  # fmt: skip
-        keys = []
-        for key in in_keys:
-            key = nested_key(key)
-            inner = key[1:] if key[0] == "next" else key
-            if key not in optional and not any(out[: len(inner)] == inner for out in produced):
-                keys.append(key)
-        self.__dict__["_data_keys_cache"] = (in_keys, keys)  # (set_keys changes in_keys)
-        return keys
+        """The entries of ``in_keys`` a batch must hold (:func:`~wcsac_rl.objectives.inputs.data_keys`)."""
+        return data_keys(self)
 
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
