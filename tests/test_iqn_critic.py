@@ -37,7 +37,7 @@ import wcsac_rl.objectives.safety_head as safety_head_module
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import IQNSafetyCritic, make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.modules.quantile_critic import IQNReader
-from wcsac_rl.objectives import PolyakUpdate, quantile_mixture_cvar
+from wcsac_rl.objectives import PolyakUpdate, SafetyHeadOptions, quantile_mixture_cvar
 from wcsac_rl.objectives.quantile import (
     midpoint_fractions,
     quantile_huber_loss,
@@ -413,8 +413,11 @@ def test_fusing_falls_back_for_an_iqn_critic_or_is_refused():
     ],
 )
 def test_bad_iqn_arguments_are_refused(kwargs, message):
-    with pytest.raises(ValueError, match=message):
-        make_loss(**kwargs)
+    """Given as the head's options (a recipe with ``safety_critic="iqn"`` leaves the
+    Gaussian head's options at their defaults), a bad one is refused in one line."""
+    with pytest.raises(ValueError, match=message) as err:
+        make_loss(safety_head=SafetyHeadOptions(**kwargs))
+    assert "\n" not in str(err.value)
 
 
 # ---------------------------------------------------------- analytic targets
