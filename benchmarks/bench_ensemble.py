@@ -52,7 +52,7 @@ from bench_update import (
 
 from wcsac_rl import WCSACLoss, compose_config
 from wcsac_rl.modules import make_safety_critic
-from wcsac_rl.objectives import SACLagLoss
+from wcsac_rl.objectives import SACLagLoss, loss_parts
 from wcsac_rl.training.builders import safety_critic_kwargs
 from wcsac_rl.training.config import safety_options
 from wcsac_rl.training.runtime import retain_freed_memory
@@ -86,13 +86,14 @@ def ensemble_loss(name: str, sizes: Sizes):
         make_safety_critic(sizes.obs, sizes.act, width=sizes.width, **critic)
         for _ in range(options.num_safety_nets)
     ]
-    kwargs = options.loss_kwargs()
+    kwargs = {**loss_parts(options), "alpha_init": float(algo.alpha_init)}
     cls = WCSACLoss
-    if algo.name != "wcsac":
-        cls = SACLagLoss
-        del kwargs["risk_level"]  # (SAC-Lag and CAL are α = 1)
+    if algo.name == "wcsac":
+        kwargs["risk_level"] = options.risk_level
+    else:
+        cls = SACLagLoss  # (SAC-Lag and CAL are α = 1)
     safety = members[0] if len(members) == 1 else members
-    loss = cls(actor, qvalues, safety, alpha_init=float(algo.alpha_init), **kwargs)
+    loss = cls(actor, qvalues, safety, **kwargs)
     return loss, pipeline_batch(loss, sizes, options), options.num_safety_nets
 
 

@@ -16,6 +16,7 @@ import pytest
 import torch
 from _env_helpers import tiny_goal_seeker
 from _evaluation_helpers import png_size
+from _loss_helpers import flat_parts
 from _training_helpers import ROOT, compose_config
 from tensordict import TensorDict
 
@@ -258,8 +259,10 @@ def test_calibration_keys_and_support_follow_the_loss():
     def parts():
         return make_actor(6, Bounded(-1.0, 1.0, shape=(2,))), [make_qvalue(6, 2) for _ in range(2)]
 
-    wcsac = WCSACLoss(*parts(), make_safety_critic(6, 2), **PAPER_OPTIONS)
-    sac_lag = SACLagLoss(*parts(), make_safety_critic(6, 2, variance=False), **PAPER_OPTIONS)
+    wcsac = WCSACLoss(*parts(), make_safety_critic(6, 2), **flat_parts(**PAPER_OPTIONS))
+    sac_lag = SACLagLoss(
+        *parts(), make_safety_critic(6, 2, variance=False), **flat_parts(**PAPER_OPTIONS)
+    )
     assert supports_calibration(wcsac) and supports_calibration(sac_lag)
     assert not supports_calibration(SACLoss(*parts()))
     assert not supports_calibration(None)

@@ -5,9 +5,10 @@ inside) is the one definition of each WCSAC / SAC-Lag option: its default, what 
 be, a line saying what it does and which part reads it. Everything else reads these
 dataclasses:
 
-* the keyword defaults of :class:`~wcsac_rl.objectives.WCSACLoss` are their class
-  attributes (``kappa_init=SafetyOptions.kappa_init``), and the loss checks what it is
-  given with :func:`check_value`;
+* the loss's parts take them: the fields of ``SafetyHeadOptions`` and ``SignalOptions``
+  (:mod:`wcsac_rl.objectives.loss_options`) are these fields, checked with
+  :func:`check_value`; a recipe (``PAPER_OPTIONS``, ``wcsac_rl.recipes.KIT_OPTIONS``)
+  is what it sets over these defaults;
 * the training config (``conf/algo/wcsac.yaml``) starts from :func:`config_defaults`,
   registered with Hydra's ConfigStore (:mod:`wcsac_rl.config_schema`); the YAML files
   set only what differs;
@@ -53,7 +54,6 @@ __all__ = [
     "check_ensemble_target",
     "check_fields",
     "check_kappa_bound",
-    "check_loss_options",
     "check_shield_candidates",
     "check_signal_every",
     "check_value",
@@ -654,31 +654,6 @@ class SafetyOptions:
     def __post_init__(self) -> None:
         check_fields(self)
 
-    def loss_kwargs(self) -> dict[str, Any]:
-        """The keywords of :class:`~wcsac_rl.objectives.WCSACLoss` these options give.
-
-        Only the options of the parts they select: the PID gains under
-        ``kappa_rule="pid"`` (then no MDMM damping, the gradient rule's knob), the IQN
-        head's options with ``safety_critic="iqn"``, the variance head's otherwise."""
-        kwargs = {f.name: getattr(self, f.name) for f in _loss_fields(self)}
-        kwargs.update({f.name: getattr(self.iqn, f.name) for f in _loss_fields(self.iqn)})
-        if self.kappa_rule == "pid":
-            kwargs["damp_scale"], kwargs["damp_clamp"] = 0.0, False
-        else:
-            del kwargs["pid"]
-        iqn = self.safety_critic == "iqn"
-        for name in (
-            ("variance_loss", "variance_target")
-            if iqn
-            else ("num_quantiles", "num_target_quantiles", "huber_kappa")
-        ):
-            del kwargs[name]
-        return kwargs
-
-
-def _loss_fields(instance: Any) -> list:
-    return [f for f in fields(instance) if f.metadata["option"].reader == "loss"]
-
 
 LOSS_OPTIONS = tuple(
     f.name
@@ -686,17 +661,8 @@ LOSS_OPTIONS = tuple(
     for f in fields(cls)
     if f.metadata["option"].reader == "loss" and f.metadata["option"].kind != "group"
 )
-"""The loss's keywords that are options here (checked by the loss with :func:`check_value`)."""
-
-
-def check_loss_options(arguments: Mapping[str, Any]) -> None:
-    """Check the loss's arguments that are options (:data:`LOSS_OPTIONS`; the others are
-    left alone) with :func:`check_value`: ``kappa_init must be >= 0 (a number), got -1``."""
-    for name in LOSS_OPTIONS:
-        if name not in arguments:
-            continue
-        cls = SafetyOptions if name in SafetyOptions.__dataclass_fields__ else IQNOptions
-        check_value(name, arguments[name], option_spec(cls, name))
+"""The options the loss's parts take (:mod:`wcsac_rl.objectives.loss_options`: the fields of
+``SafetyHeadOptions``, ``SignalOptions`` and the constraint's)."""
 
 
 def check_kappa_bound(
@@ -847,9 +813,9 @@ PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(
 )
 """The safety critic and κ as the paper writes them (Eq. 7–8, one-step targets with the
 reward's γ, κ on the mean Γ over replay states against the per-step threshold):
-``WCSACLoss(..., **PAPER_OPTIONS)``, ``dataclasses.replace(SafetyOptions(),
-**PAPER_OPTIONS)``. The defaults differ, on StaticEnv evidence (docs/defaults.md);
-``algo=wcsac_paper`` is the same in the config."""
+``WCSACLoss(..., **loss_parts(PAPER_OPTIONS))``, ``dataclasses.replace(SafetyOptions(),
+**PAPER_OPTIONS)``. The kit's recipes differ, on StaticEnv evidence (docs/defaults.md;
+``wcsac_rl.recipes.KIT_OPTIONS``); ``algo=wcsac_paper`` is the same in the config."""
 
 for _name, _value in PAPER_OPTIONS.items():  # (a preset of the fields above, checked)
     check_value(_name, _value, option_spec(SafetyOptions, _name))

@@ -26,11 +26,14 @@ __all__ = [
     "check_finite_losses",
     "check_nonempty_batch",
     "collected_keys",
+    "data_keys",
     "finite_number",
+    "loss_out_keys",
     "missing_inputs",
     "nested_key",
     "network_state_keys",
     "nonfinite_entry",
+    "parts_in_keys",
     "produced_keys",
     "required_entry",
     "state_keys",
@@ -222,6 +225,65 @@ class _Present:
         return self.tensordict.get(key, None) is not None
 
 
+def parts_in_keys(loss, in_keys: Iterable[NestedKey]) -> list[NestedKey]:
+    """``in_keys`` (SACLoss's) and what ``loss``'s parts read: the safety head's inputs
+    at ``s`` and ``s'``, the cost target's, the start states with
+    ``kappa_states="initial"``, the episodes' cost where the signal or the head reads it."""
+    head, tensor_keys = loss.safety_head, loss.tensor_keys
+    keys = set(in_keys)
+    keys.update(head.in_keys)
+    keys.update(("next", k) for k in head.in_keys if k != tensor_keys.action)
+    states = state_keys(loss)
+    keys.update(loss.cost_target.in_keys(states))
+    if loss.kappa_states == "initial":
+        keys.update(nested_key(tensor_keys.initial_states, key) for key in states)
+    if loss.kappa_signal != "critic" or head.reads_episode_costs:
+        keys.add(tensor_keys.episode_cvar)
+    return list(keys)
+
+
+def loss_out_keys(loss) -> list[str]:
+    """What ``loss.forward`` returns: the loss terms (the head's; ``loss_kappa`` under the
+    gradient rule), then the diagnostics (the constraint's and the head's among them)."""
+    head, constraint = loss.safety_head, loss.constraint
+    keys = ["loss_actor", "loss_qvalue", "loss_alpha", *head.loss_names]
+    if constraint.rule == "gradient":
+        keys.append("loss_kappa")
+    keys += ["alpha", "kappa", *constraint.diagnostic_names, "entropy"]
+    keys += [*head.diagnostic_names, "cvar", "cost_threshold"]
+    if loss.kappa_signal != "critic":
+        keys += ["episode_cvar", "constraint_cvar"]
+    return keys
+
+
+def data_keys(loss) -> list[NestedKey]:
+    """The entries of ``loss.in_keys`` a batch must hold: not those the loss's own networks
+    write (a composite actor's ``params``, a shared trunk's features), not the end
+    flags (``terminated`` falls back to ``done``; the n-step entries' flag the cost
+    target reads, naming it, is the one its bootstrap needs), not the cost (its own
+    message). Cached on the loss until its ``in_keys`` change (``set_keys``)."""
+    in_keys = tuple(loss.in_keys)
+    cached = loss.__dict__.get("_data_keys_cache")
+    if cached is not None and cached[0] == in_keys:
+        return cached[1]
+    produced = produced_keys(loss.actor_network, loss.qvalue_network, loss.safety_network)
+    tensor_keys = loss.tensor_keys
+    optional = {
+        nested_key(outer, getattr(tensor_keys, name))
+        for outer, names in (("next", ("done", "terminated", "cost")),
+                             (tensor_keys.nstep, ("done", "terminated")))
+        for name in names
+    }  # fmt: skip
+    keys = []
+    for key in in_keys:
+        key = nested_key(key)
+        inner = key[1:] if key[0] == "next" else key
+        if key not in optional and not any(out[: len(inner)] == inner for out in produced):
+            keys.append(key)
+    loss.__dict__["_data_keys_cache"] = (in_keys, keys)
+    return keys
+
+
 def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
     """One line naming what ``tensordict`` lacks for ``loss``'s options and the kit's
     transform that writes it, or ``None`` if nothing is missing. Looks at keys only (no
@@ -277,6 +339,6 @@ def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
     )
     return (
         f"{name}: the batch lacks entries its options read ({parts}; from "
-        "wcsac_rl.objectives). Or construct the loss with **PAPER_OPTIONS, which reads "
+        "wcsac_rl.objectives). Or construct the loss with **loss_parts(PAPER_OPTIONS), which reads "
         "only observation, action and next reward / done / terminated / cost."
     )

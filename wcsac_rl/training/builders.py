@@ -39,6 +39,7 @@ from wcsac_rl.objectives import (
     SACLagLoss,
     StartStateBuffer,
     WCSACLoss,
+    loss_parts,
     param_groups,
 )
 from wcsac_rl.options import SafetyOptions
@@ -202,19 +203,19 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
         loss = SACLoss(agent.actor, agent.qvalues, num_qvalue_nets=2, **common)
     else:
         cls = SACLagLoss if algo.name in ("sac_lag", "cal") else WCSACLoss
-        # every option the loss reads, from the one definition (wcsac_rl/options.py):
-        # checked, typed, what a run saved before an option existed did where it lacks one
-        options = safety_options(algo).loss_kwargs()
-        if algo.name != "wcsac":
-            del options["risk_level"]  # (SAC-Lag and CAL are α = 1)
+        # the loss's parts from every option it reads, from the one definition
+        # (wcsac_rl/options.py): checked, typed, what a run saved before an option
+        # existed did where it lacks one
+        options = safety_options(algo)
+        if algo.name == "wcsac":  # (SAC-Lag and CAL are α = 1)
+            common["risk_level"] = options.risk_level
         loss = cls(
             agent.actor,
             agent.qvalues,
             agent.safety,
             cost_limit=float(cfg.cost_limit),
             max_episode_steps=int(max_episode_steps),
-            **options,
-            **common,
+            **{**loss_parts(options), **common},
         )
     # (its γ buffer is made on the default device unless told)
     loss.make_value_estimator(gamma=float(algo.gamma), device=run_devices(cfg).learner)
