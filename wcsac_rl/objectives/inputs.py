@@ -12,6 +12,7 @@ once instead, before it reaches the replay buffer.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable
 from numbers import Real
@@ -51,6 +52,29 @@ def finite_number(value: object, name: str, *, minimum: float | None = None) -> 
     return float(value)
 
 
+def takes_tensordict(forward):
+    """``forward`` (under TorchRL's ``dispatch``) refusing a positional batch that is not
+    a TensorDict in one ``TypeError`` line (``dispatch`` would read it as keywords)."""
+
+    @functools.wraps(forward)
+    def checked(self, *args, **kwargs):
+        if args and not isinstance(args[0], TensorDictBase):
+            raise TypeError(
+                f"{type(self).__name__} takes a TensorDict batch, got {type(args[0]).__name__} "
+                "(wrap it: TensorDict(batch, batch_size=[n]))"
+            )
+        return forward(self, *args, **kwargs)
+
+    return checked
+
+
+def whole_count(value: object, name: str) -> int:
+    """``value`` as a count >= 1, or a ``ValueError`` naming ``name`` (a bool is no count)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    return value
+
+
 def required_entry(tensordict: TensorDictBase, key: NestedKey, what: str, how: str):
     """``tensordict[key]``, or a ``KeyError`` saying what it is and how to provide it."""
     value = tensordict.get(key, None)
@@ -60,8 +84,14 @@ def required_entry(tensordict: TensorDictBase, key: NestedKey, what: str, how: s
 
 
 def check_nonempty_batch(tensordict: TensorDictBase, what: str) -> None:
-    """A ``ValueError`` naming the batch size when ``tensordict`` holds no sample (its
-    shape is known without reading any value: no host synchronisation)."""
+    """A ``TypeError`` for a batch that is not a TensorDict, a ``ValueError`` naming the
+    batch size when ``tensordict`` holds no sample (its shape is known without reading
+    any value: no host synchronisation)."""
+    if not isinstance(tensordict, TensorDictBase):
+        raise TypeError(
+            f"{what} takes a TensorDict batch, got {type(tensordict).__name__} (wrap it: "
+            "TensorDict(batch, batch_size=[n]))"
+        )
     if tensordict.batch_size.numel() == 0 and tensordict.batch_dims:
         raise ValueError(
             f"{what} got an empty batch (batch_size={list(tensordict.batch_size)}); it needs "
@@ -91,6 +121,44 @@ def check_batch_entries(
                 f"{what}: batch entry {key!r} must be boolean (torch.bool), got {value.dtype}; "
                 "convert it with .bool() (TorchRL's envs write done and terminated as bool)"
             )
+
+
+def check_critic_inputs(tensordict: TensorDictBase, loss, what: str) -> None:
+    """A ``TypeError`` when a batch entry the reward critics read is not of the networks'
+    floating dtype, and, for a critic that is one module over its entries (the kit's),
+    a ``ValueError`` when those entries do not add up to the inputs its first layer
+    takes; each naming the entries. Looks at shapes and dtypes only (no host
+    synchronisation; not under ``torch.compile``)."""
+    from tensordict.nn import TensorDictSequential
+
+    if torch.compiler.is_compiling():  # (a graph runs what eager mode checked)
+        return
+    network = loss.qvalue_network
+    params = loss.qvalue_network_params.values(True, True)
+    dtype = next(iter(params), torch.empty(0)).dtype
+    keys = [nested_key(key) for key in network.in_keys]
+    first = None
+    if not isinstance(network, TensorDictSequential):  # (a trunk's features: not the batch's)
+        leaves = (m for m in network.modules() if not list(m.children()))
+        first = next((m for m in leaves if list(m.parameters(recurse=False))), None)
+        first = first if type(first) is torch.nn.Linear else None  # (an MLP on the entries)
+    entries = [(key, tensordict.get(key, None)) for key in keys]
+    entries = [(key, value) for key, value in entries if isinstance(value, torch.Tensor)]
+    for key, value in entries:
+        if value.is_floating_point() and value.dtype != dtype:
+            raise TypeError(
+                f"{what}: batch entry {key!r} is {value.dtype}, the networks' parameters "
+                f"{dtype}; convert the batch (.to({dtype})) or the loss"
+            )
+    if first is None or len(entries) != len(keys):
+        return
+    widths = {key: value.shape[-1] if value.ndim else 1 for key, value in entries}
+    if sum(widths.values()) != first.in_features:
+        shown = ", ".join(f"{key!r} {width}" for key, width in widths.items())
+        raise ValueError(
+            f"{what}: the batch's entries ({shown} numbers) make {sum(widths.values())} "
+            f"critic inputs; the critics take {first.in_features}"
+        )
 
 
 def nonfinite_entry(
@@ -275,10 +343,12 @@ def data_keys(loss) -> list[NestedKey]:
         for name in names
     }  # fmt: skip
     keys = []
+    action = nested_key(tensor_keys.action)  # (the actor writes one, the critics read the batch's)
     for key in in_keys:
         key = nested_key(key)
         inner = key[1:] if key[0] == "next" else key
-        if key not in optional and not any(out[: len(inner)] == inner for out in produced):
+        written = key != action and any(out[: len(inner)] == inner for out in produced)
+        if key not in optional and not written:
             keys.append(key)
     loss.__dict__["_data_keys_cache"] = (in_keys, keys)
     return keys

@@ -156,6 +156,11 @@ def _safety_options(recipe: Mapping[str, Any]) -> SafetyOptions:
                 if unknown:
                     raise ValueError(f"unknown option {key}.{unknown[0]} in the recipe")
                 value = replace(group, **value)
+            elif not isinstance(value, type(group)):
+                raise ValueError(
+                    f"{key} must be a {type(group).__name__} or a mapping of its fields, "
+                    f"got {value!r}"
+                )
             changes[key] = value
         elif key in known:
             changes[key] = value

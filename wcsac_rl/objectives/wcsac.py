@@ -43,6 +43,7 @@ from wcsac_rl.objectives.critics import CriticParams, Critics, CriticValues
 from wcsac_rl.objectives.ensemble_head import make_safety_head
 from wcsac_rl.objectives.inputs import (
     check_batch_entries,
+    check_critic_inputs,
     check_finite_entries,
     check_finite_losses,
     check_nonempty_batch,
@@ -52,6 +53,8 @@ from wcsac_rl.objectives.inputs import (
     missing_inputs,
     parts_in_keys,
     state_keys,
+    takes_tensordict,
+    whole_count,
 )
 from wcsac_rl.objectives.loss_options import (
     PART_OF_OPTION,
@@ -247,6 +250,7 @@ class WCSACLoss(SACLoss):
             finite_number(cost_threshold, "cost_threshold", minimum=0.0)
         else:  # (what the threshold is made from, checked now whatever γ is later)
             validate_max_episode_steps(max_episode_steps)
+        whole_count(num_qvalue_nets, "num_qvalue_nets")
         self.check_finite = bool(check_finite)
         self.cost_limit = float(cost_limit)
         self.max_episode_steps = int(max_episode_steps)
@@ -721,6 +725,7 @@ class WCSACLoss(SACLoss):
         """The entries of ``in_keys`` a batch must hold (:func:`~wcsac_rl.objectives.inputs.data_keys`)."""
         return data_keys(self)
 
+    @takes_tensordict
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         check_nonempty_batch(tensordict, type(self).__name__)  # (shapes only: no sync)
@@ -729,11 +734,11 @@ class WCSACLoss(SACLoss):
             raise KeyError(missing)
         flags = [("next", self.tensor_keys.done), ("next", self.tensor_keys.terminated)]
         check_batch_entries(tensordict, self._data_keys(), flags, type(self).__name__)
+        check_critic_inputs(tensordict, self, type(self).__name__)
         if self.check_finite:
             self.check_inputs(tensordict)
         targets = self.compute_targets(tensordict)
-        # the fused critics' parameters are gathered once: trainable for the critic
-        # losses, detached for the actor's
+        # the fused critics' parameters, once: trainable for the critic losses, detached below
         layers = self.critics.layers(self._online_critics())
         values = self._online_values(tensordict, layers)  # shared by both critic losses
         loss_qvalue, q_metadata = self.qvalue_loss(tensordict, targets, values)
