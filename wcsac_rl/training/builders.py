@@ -199,15 +199,15 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
         if algo.target_entropy == "auto"
         else float(algo.target_entropy),
     }
-    if algo.name == "sac":
+    entry = algorithm(algo.name)
+    if not entry.safety_critic:
         loss = SACLoss(agent.actor, agent.qvalues, num_qvalue_nets=2, **common)
     else:
-        cls = SACLagLoss if algo.name in ("sac_lag", "cal") else WCSACLoss
+        cls = SACLagLoss if entry.risk_neutral else WCSACLoss
         # the loss's parts from every option it reads, from the one definition
-        # (wcsac_rl/options.py): checked, typed, what a run saved before an option
-        # existed did where it lacks one
+        # (wcsac_rl/options.py): checked and typed; a stored config lacking one is refused
         options = safety_options(algo)
-        if algo.name == "wcsac":  # (SAC-Lag and CAL are α = 1)
+        if not entry.risk_neutral:  # (SAC-Lag and CAL are α = 1)
             common["risk_level"] = options.risk_level
         loss = cls(
             agent.actor,
