@@ -48,7 +48,7 @@ BAD = [
 
 NO_SAFETY_CRITIC = (
     "unknown config key algo.{key}: an option of the safety critic and κ, which the "
-    "algo={algo}{where} config does not have (algo=wcsac, sac_lag and cal do)"
+    "algo={algo}{where} config does not have (algo=sac_lag, cal and wcsac do)"
 )
 ENSEMBLE_KEYS = [
     "num_safety_nets=4",
@@ -102,7 +102,7 @@ CLI = [
     (
         ["algo=sac", "algo.num_safety_nets=4"],
         "error: unknown config key algo.num_safety_nets: an option of the safety critic and "
-        "κ, which the env=tiny algo=sac config does not have (algo=wcsac, sac_lag and cal do)",
+        "κ, which the env=tiny algo=sac config does not have (algo=sac_lag, cal and wcsac do)",
     ),
 ]
 

@@ -46,7 +46,8 @@ def _job(root: Path, name: str, overrides: list[str], frames: int | None, total:
     (directory / ".hydra").mkdir(parents=True)
     OmegaConf.save(OmegaConf.create(overrides), directory / ".hydra" / "overrides.yaml")
     if frames is not None:
-        state = {"config": {"total_frames": total}, "frames": frames, "learner": {}}
+        config = {"total_frames": total, "algo": {"name": "sac"}, "env": {"name": "tiny"}}
+        state = {"config": config, "frames": frames, "learner": {}}
         save_checkpoint(directory / "checkpoints" / "last.pt", state)
     return directory
 

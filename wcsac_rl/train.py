@@ -413,27 +413,34 @@ def check_command_line(argv: list[str]) -> None:
     from wcsac_rl.training.errors import ConfigError
 
     try:
-        check_override_syntax(list(args.overrides), multirun=bool(args.multirun))
+        check_override_syntax(list(args.overrides))
         check_interpolations(list(args.overrides))
         check_override_keys(list(args.overrides))
         check_output_dirs(list(args.overrides))
-        if args.multirun:
-            check_sweep_jobs(list(args.overrides))
+        check_sweep_jobs(list(args.overrides), multirun=bool(args.multirun))
     except ConfigError as err:
         sys.exit(f"error: {err}")
 
 
-def check_sweep_jobs(overrides: list[str]) -> None:
-    """With ``-m``, every value of each sweep the command line names is checked before the
-    launcher starts a job (``seed=1,abc`` is refused before seed 1 trains): the config of
-    each value, the other sweeps at their first, composed and validated. A sweep that
-    resumes runs (``resume=...``) is checked by each job against its own run instead."""
+def check_sweep_jobs(overrides: list[str], *, multirun: bool = True) -> None:
+    """Without ``-m`` a sweep (``algo.lr=1,2``) is one line saying to add it or to quote
+    the value. With ``-m``, every value of each sweep the command line names is checked
+    before the launcher starts a job (``seed=1,abc`` is refused before seed 1 trains):
+    the config of each value, the other sweeps at their first, composed and validated. A
+    sweep that resumes runs (``resume=...``) is checked by each job against its own run."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     from wcsac_rl.training.config import validate_config
+    from wcsac_rl.training.errors import ConfigError
 
     parsed = OverridesParser.create().parse_overrides(overrides)
     sweeps = [o for o in parsed if o.is_sweep_override() and not o.is_hydra_override()]
+    if sweeps and not multirun:
+        key, _, value = sweeps[0].input_line.partition("=")
+        raise ConfigError(
+            f"{sweeps[0].input_line} is a sweep of values: add -m (--multirun) to run one job "
+            f"for each, or quote the value to give it whole: \"{key}='{value}'\""
+        )
     if not sweeps or any(o.get_key_element().lstrip("+~") == "resume" for o in parsed):
         return
     fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
@@ -444,11 +451,10 @@ def check_sweep_jobs(overrides: list[str]) -> None:
             validate_config(compose_config(*fixed, *job))
 
 
-def check_override_syntax(overrides: list[str], *, multirun: bool = False) -> None:
+def check_override_syntax(overrides: list[str]) -> None:
     """Refuse, in one line naming it, an override Hydra's grammar cannot read (a path
-    with a newline, a character outside its lexer's such as ``ü``), one that names no key
-    (``=5``), and without ``multirun`` one that is a sweep (``algo.lr=1,2``): Hydra's own
-    refusals are stacks of lines (or a traceback)."""
+    with a newline, a character outside its lexer's such as ``ü``) and one that names no
+    key (``=5``): Hydra's own refusals are stacks of lines (or a traceback)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
@@ -456,11 +462,11 @@ def check_override_syntax(overrides: list[str], *, multirun: bool = False) -> No
 
     parser = OverridesParser.create()
     for override in overrides:
-        key, sep, value = override.partition("=")
+        key, sep, _ = override.partition("=")
         if sep and not key.lstrip("+~").strip():
             raise ConfigError(f"cannot read the override {override!r}: it names no key (key=value)")
         try:
-            (parsed,) = parser.parse_overrides([override])
+            parser.parse_overrides([override])
         except (HydraException, ValueError) as err:
             reason = (str(err).strip().splitlines() or [type(err).__name__])[0]
             reason = reason.split(":", 1)[0] if reason.startswith("Lexer") else reason
@@ -470,11 +476,6 @@ def check_override_syntax(overrides: list[str], *, multirun: bool = False) -> No
                 f"the argument, e.g. \"{key}='...'\", or choose a value without newlines or "
                 "characters outside ASCII"
             ) from None
-        if not multirun and parsed.is_sweep_override() and not parsed.is_hydra_override():
-            raise ConfigError(
-                f"{override} is a sweep of values: add -m (--multirun) to run one job for "
-                f"each, or quote the value to give it whole: \"{key}='{value}'\""
-            )
 
 
 def check_interpolations(overrides: list[str]) -> None:
