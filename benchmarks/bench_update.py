@@ -92,7 +92,7 @@ from plain_wcsac import PlainWCSAC, batch_inputs
 
 from wcsac_rl import WCSACLoss, compose_config
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import PolyakUpdate, StartStateBuffer
+from wcsac_rl.objectives import PolyakUpdate, StartStateBuffer, loss_parts
 from wcsac_rl.objectives.inputs import collected_keys
 from wcsac_rl.options import SafetyOptions
 from wcsac_rl.training.builders import (
@@ -119,8 +119,8 @@ CONFIG_OVERRIDES = {
     "paper": ("algo=wcsac_paper",),
 }
 """The option sets each ``WCSACLoss`` variant is timed at (``--options``), as the config
-composes them: ``kit`` is ``python train.py``'s default, ``defaults`` the loss's own
-(``SafetyOptions()``), ``paper``
+composes them: ``kit`` is ``python train.py``'s default (the loss's own defaults),
+``defaults`` ``SafetyOptions()``' defaults, ``paper``
 ``PAPER_OPTIONS``. The end-to-end loop runs these configs."""
 OPTION_SETS = tuple(CONFIG_OVERRIDES)
 
@@ -138,7 +138,7 @@ class OptionSet:
 
     def loss_kwargs(self) -> dict:
         """``WCSACLoss``'s keywords, as ``make_loss`` passes them."""
-        return {**self.options.loss_kwargs(), **self.extra}
+        return {**loss_parts(self.options), **self.extra}
 
 
 @functools.cache

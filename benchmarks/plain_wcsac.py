@@ -5,8 +5,8 @@ al., AAAI 2021) written out without TorchRL or tensordict: ``nn.Sequential`` MLP
 and the losses as formulas. It is the paper's update with an MSE variance loss: its
 loss terms and gradients are those ``WCSACLoss`` computes with these options::
 
-    WCSACLoss(actor, [qvalue, qvalue], safety, risk_level=α, **PAPER_OPTIONS,
-              variance_loss="mse")     # everything else at its default
+    WCSACLoss(actor, [qvalue, qvalue], safety, risk_level=α,
+              **loss_parts({**PAPER_OPTIONS, "variance_loss": "mse"}))
 
 that is:
 

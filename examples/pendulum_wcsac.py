@@ -3,11 +3,12 @@
 TorchRL's SAC example flow — env, collector, replay buffer, ``SACLoss``, ``SoftUpdate``,
 one optimizer — with ``SACLoss`` swapped for ``WCSACLoss`` and a made-up cost: 1 at every
 step where the pendulum spins faster than ``speed_limit`` rad/s. What the swap adds
-(marked ``# WCSAC`` below, each line or block): the cost transform, a safety critic,
-``NStepCost`` as the collector's postproc and a ``StartStateBuffer`` (the loss's defaults
-read n-step cost targets and episode start states; ``WCSACLoss(..., **PAPER_OPTIONS)``
-needs neither), the optimizer's parameter groups (κ at its own learning rate) and the
-episodes' cost in the log.
+(marked ``# WCSAC`` below, each line or block): the cost transform, a safety critic (the
+kit's IQN one), ``NStepCost`` as the collector's postproc, a ``StartStateBuffer`` and an
+``EpisodeCostWindow`` (the loss's defaults, the kit's recipe ``KIT_OPTIONS``, read n-step
+cost targets, episode start states and the recent episodes' cost;
+``WCSACLoss(..., **loss_parts(PAPER_OPTIONS))`` needs none of them), the optimizer's
+parameter groups (κ at its own learning rate) and the episodes' cost in the log.
 
 Each iteration collects one 200-step episode (Pendulum's time limit) and prints its
 return and cost; the last line is a verdict: whether the policy's last episodes return
@@ -28,7 +29,13 @@ from torchrl.envs import GymEnv, RewardSum, StepCounter, Transform, TransformedE
 from torchrl.objectives import SoftUpdate
 
 from wcsac_rl import WCSACLoss, make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import NStepCost, StartStateBuffer, param_groups
+from wcsac_rl.objectives import (
+    KIT_OPTIONS,
+    EpisodeCostWindow,
+    NStepCost,
+    StartStateBuffer,
+    param_groups,
+)
 
 
 class SpeedCost(Transform):  # WCSAC: the made-up cost, ("next", "cost") = 1 above the limit
@@ -92,7 +99,7 @@ def main(frames: int = 20_000, seed: int = 0, init_random_frames: int = 1_000) -
     loss = WCSACLoss(
         actor,
         [make_qvalue(obs_dim, act_dim, width=64) for _ in range(2)],
-        make_safety_critic(obs_dim, act_dim, width=64),  # WCSAC
+        make_safety_critic(obs_dim, act_dim, kind="iqn", width=64),  # WCSAC
         risk_level=0.5,  # WCSAC: α
         cost_limit=COST_LIMIT,  # WCSAC: d, fast steps per 200-step episode
         max_episode_steps=EPISODE_STEPS,  # WCSAC: the episodes' length
@@ -100,6 +107,8 @@ def main(frames: int = 20_000, seed: int = 0, init_random_frames: int = 1_000) -
     loss.make_value_estimator(gamma=0.99)
     nstep = NStepCost.for_loss(loss)  # WCSAC
     starts = StartStateBuffer.for_loss(loss)  # WCSAC
+    window = KIT_OPTIONS["kappa_episode_window"]  # WCSAC: κ also reads the last episodes
+    episodes = EpisodeCostWindow.for_loss(loss, window=window)  # WCSAC
     updater = SoftUpdate(loss, tau=0.005)
     optim = torch.optim.Adam(param_groups(loss, lr=3e-4))  # WCSAC: κ's own group
     buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(100_000), batch_size=128)
@@ -116,6 +125,7 @@ def main(frames: int = 20_000, seed: int = 0, init_random_frames: int = 1_000) -
     for iteration, data in enumerate(collector, 1):
         buffer.extend(nstep(data).reshape(-1))  # WCSAC: nstep(...)
         starts.add_starts(data)  # WCSAC
+        episodes.add_episodes(data)  # WCSAC
         frames_done += data.numel()
         done = data["next", "done"].squeeze(-1)
         returns += data["next", "episode_reward"][done].squeeze(-1).tolist()
@@ -129,7 +139,7 @@ def main(frames: int = 20_000, seed: int = 0, init_random_frames: int = 1_000) -
         if len(buffer) < init_random_frames:
             continue
         for _ in range(50):
-            out = loss(starts.attach(buffer.sample()))  # WCSAC: starts.attach(...)
+            out = loss(episodes.attach(starts.attach(buffer.sample())))  # WCSAC: attach(...)
             sum(v for k, v in out.items() if k.startswith("loss_")).backward()
             optim.step()
             optim.zero_grad()

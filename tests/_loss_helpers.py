@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import torch
 from _tolerance import assert_close_f32
 from tensordict import TensorDict
@@ -11,7 +13,8 @@ from torchrl.data import Bounded
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import PAPER_OPTIONS
+from wcsac_rl.objectives import PAPER_OPTIONS, loss_parts
+from wcsac_rl.options import IQNOptions, SafetyOptions
 
 OBS_DIM = 5
 ACT_DIM = 2
@@ -72,17 +75,52 @@ def paper_options(kind: str = "gaussian") -> dict:
     return {k: v for k, v in PAPER_OPTIONS.items() if kind == "gaussian" or k != "variance_target"}
 
 
+IQN_OPTIONS = tuple(IQNOptions.__dataclass_fields__)
+RECIPE_KEYS = (*SafetyOptions.__dataclass_fields__, *IQN_OPTIONS)
+
+
+def recipe_kwargs(
+    kind: str = "gaussian", *, paper: bool = True, base: Mapping | None = None, **kwargs
+) -> dict:
+    """``WCSACLoss``'s keywords for the paper's recipe (:func:`paper_options`; ``paper=False``:
+    SafetyOptions' defaults; ``base``: that recipe, e.g. ``KIT_OPTIONS``) changed by the
+    flat options among ``kwargs`` (``kappa_init=...``, ``num_quantiles=...``: a recipe, as
+    the config writes it, through ``loss_parts``); the loss's own keywords
+    (``risk_level``, ``cost_limit``, a part given as an object) pass as they are."""
+    if base is None:
+        base = paper_options(kind) if paper else {}
+    recipe = {**base, "safety_critic": kind}
+    iqn = {}
+    loss_kwargs = {}
+    for key, value in kwargs.items():
+        if key in IQN_OPTIONS:
+            iqn[key] = value
+        elif key in RECIPE_KEYS and key != "risk_level":
+            recipe[key] = value
+        else:
+            loss_kwargs[key] = value
+    if iqn:
+        recipe["iqn"] = iqn
+    return {**loss_parts(recipe), **loss_kwargs}
+
+
+def flat_parts(**kwargs) -> dict:
+    """``WCSACLoss``'s keywords for flat options over ``SafetyOptions``' defaults (the
+    loss's own keywords pass as they are): :func:`recipe_kwargs` without the paper."""
+    return recipe_kwargs(paper=False, **kwargs)
+
+
 def make_loss(
     *, variance: bool = True, width: int = 32, seed: int = 0, kind: str = "gaussian", **kwargs
 ) -> WCSACLoss:
-    """A small WCSACLoss; ``kind="iqn"`` gives it an implicit-quantile safety critic."""
+    """A small WCSACLoss; ``kind="iqn"`` gives it an implicit-quantile safety critic. The
+    paper's loss unless a test asks otherwise (flat options: :func:`recipe_kwargs`)."""
     torch.manual_seed(seed)
     actor = make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=width)
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=width) for _ in range(2)]
     safety = make_safety_critic(OBS_DIM, ACT_DIM, kind=kind, variance=variance, width=width)
     kwargs.setdefault("risk_level", 0.5 if variance else 1.0)
-    kwargs = {**paper_options(kind), **kwargs}  # the paper's loss unless a test asks otherwise
-    return WCSACLoss(actor, qvalues, safety, **kwargs)
+    return WCSACLoss(actor, qvalues, safety, **recipe_kwargs(kind, **kwargs))
 
 
 def assert_same_losses_and_gradients(first: WCSACLoss, second: WCSACLoss, batch) -> None:

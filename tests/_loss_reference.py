@@ -16,7 +16,7 @@ from torchrl.data import Bounded
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import PAPER_OPTIONS, NStepCost, StartStateBuffer
+from wcsac_rl.objectives import PAPER_OPTIONS, NStepCost, StartStateBuffer, loss_parts
 
 REFERENCE = Path(__file__).parent / "data" / "loss_reference.pt"
 OBS_DIM, ACT_DIM, WIDTH = 5, 2, 32
@@ -39,7 +39,12 @@ def make_preset_loss(name: str) -> WCSACLoss:
     actor = make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=WIDTH)
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=WIDTH) for _ in range(2)]
     safety = make_safety_critic(OBS_DIM, ACT_DIM, kind=kind, variance=variance, width=WIDTH)
-    loss = WCSACLoss(actor, qvalues, safety, cost_limit=1.5, max_episode_steps=12, **dict(options))
+    options = dict(options)
+    parts = loss_parts({**options, "safety_critic": kind})  # (and alpha_init: SACLoss's 1)
+    risk_level = options["risk_level"]
+    loss = WCSACLoss(
+        actor, qvalues, safety, risk_level=risk_level, cost_limit=1.5, max_episode_steps=12, **parts
+    )
     loss.make_value_estimator(gamma=0.99)
     return loss
 

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from wcsac_rl.objectives import PAPER_OPTIONS
+from wcsac_rl.objectives import PAPER_OPTIONS, loss_parts
 from wcsac_rl.options import SafetyOptions
 from wcsac_rl.training.builders import safety_critic_kwargs
 
@@ -35,6 +35,7 @@ BENCHMARKS = ROOT / "benchmarks"
 TINY_UPDATE = ["--batch", "8", "--width", "16", "--rounds", "1", "--updates", "1"]
 SMOKE_ARGS = {
     "bench_envs.py": ["--steps", "40", "--envs", "tiny", "static"],
+    "bench_ensemble.py": [*TINY_UPDATE, "--warmup", "1"],
     "bench_update.py": [
         *TINY_UPDATE,
         *("--warmup", "1", "--peak-seconds", "0.01"),
@@ -48,6 +49,7 @@ SMOKE_ARGS = {
         "algo.batch_size=8",
         "algo.buffer_size=1500",  # --fill fills it from a 1 000-step rollout
     ],
+    "bench_help.py": ["--repeats", "1"],
     "profile_update.py": [
         *("--batch", "8", "--width", "16", "--updates", "2", "--warmup", "1", "--repeats", "1"),
         *("--ablation", "1"),
@@ -92,6 +94,18 @@ def test_bench_envs_runs(tmp_path):
     assert [row["env"] for row in rows] == ["tiny", "static"]
     for row in rows:
         assert_positive(row, "raw_steps_per_s", "torchrl_steps_per_s", "batched4_frames_per_s")
+
+
+def test_bench_help_times_every_console_script_without_torch(tmp_path):
+    """Each console script of pyproject.toml answers --help (timed, not asserted here: the
+    figure is docs/performance.md's) without importing torch, torchrl or matplotlib."""
+    rows = run_benchmark("bench_help.py", tmp_path)
+    text = (ROOT / "pyproject.toml").read_text().split("[project.scripts]")[1].split("\n[")[0]
+    scripts = [line.split("=")[0].strip() for line in text.splitlines() if "=" in line]
+    assert [row["script"] for row in rows] == scripts and len(scripts) >= 4
+    for row in rows:
+        assert_positive(row, "min_s", "median_s", "help_lines")
+        assert row["heavy_modules"] == "", row
 
 
 def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
@@ -143,6 +157,33 @@ def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
         assert_positive(row, "fps", "ups", "of_ceiling")
         # UTD 0.25 (100 updates per 400-frame batch): over a whole epoch, updates per frame
         assert row["ups"] / row["fps"] == pytest.approx(0.25)
+
+
+def test_bench_ensemble_times_four_and_eight_critics_beside_one(tmp_path):
+    result = run_benchmark("bench_ensemble.py", tmp_path)
+    assert result["threads"] == 1
+    rows = {row["name"]: row for row in result["rows"]}
+    assert {name: row["members"] for name, row in rows.items()} == {
+        "wcsac": 1,
+        "wcsac_ucb_E4": 4,
+        "wcsac_ucb_E8": 8,
+        "cal_E1": 1,
+        "cal": 4,
+        "cal_E8": 8,
+    }
+    for row in rows.values():
+        assert_positive(row, "updates_per_s", "vs_one", "gflop_per_update", "flops_vs_one")
+        baseline = rows[row["baseline"]]
+        assert baseline["members"] == 1 and row["baseline"] in ("wcsac", "cal_E1")
+        assert row["vs_one"] == pytest.approx(row["updates_per_s"] / baseline["updates_per_s"])
+    # every member adds the same matrix work (counted exactly): linear in E
+    for one, four, eight in (
+        ("wcsac", "wcsac_ucb_E4", "wcsac_ucb_E8"),
+        ("cal_E1", "cal", "cal_E8"),
+    ):
+        flops = [rows[name]["gflop_per_update"] for name in (one, four, eight)]
+        assert flops[0] < flops[1] < flops[2]
+        assert (flops[1] - flops[0]) / 3 == pytest.approx((flops[2] - flops[1]) / 4, rel=1e-9)
 
 
 def test_bench_memory_runs_at_the_defaults_and_the_paper_options(tmp_path):
@@ -213,9 +254,14 @@ def _bench_update():
     return bench_update
 
 
+def _comparable(kwargs: dict) -> dict:
+    """Loss keywords with the constraint (a new module each time) as its kind and repr."""
+    return {k: (type(v), repr(v)) if k == "constraint" else v for k, v in kwargs.items()}
+
+
 def test_option_sets_are_what_the_trainer_and_the_loss_read():
-    """``kit`` is ``python train.py``'s config; ``defaults`` is ``WCSACLoss``'s own
-    options and ``paper`` ``PAPER_OPTIONS``, in every keyword the loss is given."""
+    """``kit`` is ``python train.py``'s config; ``defaults`` is ``SafetyOptions``' defaults
+    and ``paper`` ``PAPER_OPTIONS``, in every keyword the loss is given."""
     bench = _bench_update()
     kit = bench.option_set("kit")
     assert kit.options.safety_critic == "iqn" and kit.options.kappa_signal == "max"
@@ -231,7 +277,8 @@ def test_option_sets_are_what_the_trainer_and_the_loss_read():
         ("paper", replace(SafetyOptions(), **PAPER_OPTIONS)),
     ):
         chosen = bench.option_set(name)
-        assert chosen.loss_kwargs() == {**options.loss_kwargs(), "alpha_init": 1.0}, name
+        expected = {**loss_parts(options), "alpha_init": 1.0}
+        assert _comparable(chosen.loss_kwargs()) == _comparable(expected), name
         assert safety_critic_kwargs(chosen.options) == {
             "kind": "gaussian",
             "variance": options.variance,

@@ -16,6 +16,7 @@ import pytest
 import torch
 from _env_helpers import tiny_goal_seeker
 from _evaluation_helpers import png_size
+from _loss_helpers import flat_parts
 from _training_helpers import ROOT, compose_config
 from tensordict import TensorDict
 
@@ -258,8 +259,10 @@ def test_calibration_keys_and_support_follow_the_loss():
     def parts():
         return make_actor(6, Bounded(-1.0, 1.0, shape=(2,))), [make_qvalue(6, 2) for _ in range(2)]
 
-    wcsac = WCSACLoss(*parts(), make_safety_critic(6, 2), **PAPER_OPTIONS)
-    sac_lag = SACLagLoss(*parts(), make_safety_critic(6, 2, variance=False), **PAPER_OPTIONS)
+    wcsac = WCSACLoss(*parts(), make_safety_critic(6, 2), **flat_parts(**PAPER_OPTIONS))
+    sac_lag = SACLagLoss(
+        *parts(), make_safety_critic(6, 2, variance=False), **flat_parts(**PAPER_OPTIONS)
+    )
     assert supports_calibration(wcsac) and supports_calibration(sac_lag)
     assert not supports_calibration(SACLoss(*parts()))
     assert not supports_calibration(None)
@@ -387,12 +390,19 @@ def test_cli_writes_calibration_json_and_refuses_to_overwrite(runs, tmp_path, ca
     assert calibration_main(args) == 0
     out = capsys.readouterr().out
     assert "Γ_α / CVaR_α (α = 0.5)" in out and f"wrote {run / 'calibration.json'}" in out
+    assert "training episodes, read when collected" in out
     written = (run / "calibration.json").read_text()
     data = json.loads(written)
     assert data["algo"] == "wcsac" and data["episodes"] == 4
     # the recipe's critic (conf/algo/wcsac.yaml): quantiles, no variance network
     assert data["safety_critic"] == "iqn" and data["has_variance"] is False
     assert set(data["metrics"]) == {k.removeprefix("calib/") for k in CALIBRATION_KEYS}
+    # per epoch, the critic's reading of its training episodes (progress.csv's train_calib/*)
+    assert [e["frames"] for e in data["training_episodes"]] == [400, 800]
+    progress = _rows(run)
+    for epoch, row in zip(data["training_episodes"], progress):
+        assert epoch["episodes"] == float(row["train_calib/episodes"]) >= 1
+        assert epoch["start_cvar"] == pytest.approx(float(row["train_calib/start_cvar"]), rel=F64)
     assert data["metrics"]["start_cvar_ratio"] is None or data["metrics"]["start_cvar_ratio"] > 0
     episodes = data["per_episode"]
     assert data["metrics"]["episode_cost"] == pytest.approx(

@@ -1,4 +1,4 @@
-"""A checkpoint never runs code (issue 33): runs are shared, and opening one must be safe.
+"""A checkpoint never runs code: runs are shared, and opening one must be safe.
 
 A ``checkpoints/last.pt`` whose pickle carries a ``__reduce__`` payload (here: one that
 creates a marker file) is refused by every command of the kit that reads a run —

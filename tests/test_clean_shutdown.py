@@ -1,4 +1,4 @@
-"""Shutdown is clean (issue 33): a stop signal while a checkpoint is written waits until the
+"""Shutdown is clean: a stop signal while a checkpoint is written waits until the
 file is in place (the old or the new file, never a temporary one), and the message of a
 stopped run names the command that continues it."""
 

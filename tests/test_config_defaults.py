@@ -1,6 +1,6 @@
 """The paper variants are PAPER_OPTIONS; the kit's recipes (conf/algo/wcsac.yaml,
-sac_lag.yaml and their layout files) set what docs/defaults.md says; saved runs compose
-as they ran.
+sac_lag.yaml and their layout files) set what docs/defaults.md says; a stored run whose
+config lacks an option of today's kit is refused, naming the commit that wrote it.
 
 (The config's defaults and the loss's are one definition, SafetyOptions, which each
 recipe then changes for the trainer: test_options.py and below.)"""
@@ -59,58 +59,64 @@ def test_paper_variant_builds_the_papers_loss():
     assert builders.make_postproc(loss) is None
 
 
-def test_saved_configs_without_the_truncation_option_keep_bootstrapping():
-    """A run saved before ``cost_bootstrap_truncated`` existed bootstrapped its safety
-    critic across time limits: resuming it keeps that; a current config (the key at
-    null, γ_c = 1) stops there."""
-    from omegaconf import open_dict
-
-    from wcsac_rl.envs import make_env
-    from wcsac_rl.training import builders
-
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("config", overrides=["algo=wcsac", "env=tiny", "risk_level=0.1"])
-    env = make_env("tiny", seed=0)
-    try:
-        current = builders.make_loss(cfg, builders.make_agent(cfg, env), 100)
-        with open_dict(cfg):
-            del cfg.algo["cost_bootstrap_truncated"]
-        saved = builders.make_loss(cfg, builders.make_agent(cfg, env), 100)
-    finally:
-        env.close()
-    assert current.cost_gamma == 1.0 and current.cost_bootstrap_truncated is False
-    assert saved.cost_bootstrap_truncated is True
+COMMIT = "0123456789abcdef0123456789abcdef01234567"
 
 
-def test_a_config_saved_before_the_safety_options_validates_and_builds_what_it_ran():
-    """A run saved before the safety critic's and κ's options existed (resumed with
-    ``resume=<run dir>``, which keeps the run's own config) passes validation, and its
-    loss gets what such a run did: the paper's choices (``SAVED_RUN_VALUES``)."""
-    from omegaconf import open_dict
+def _run_of_another_commit(tmp_path):
+    """A tiny trained run whose checkpoint's config lacks an option of today's kit (as one
+    written before the option existed) and whose provenance.json names ``COMMIT``."""
+    import json
 
-    from wcsac_rl.envs import make_env
-    from wcsac_rl.options import SAVED_RUN_VALUES
-    from wcsac_rl.training import builders, validate_config
+    import torch
+    from _evaluation_helpers import train_run
 
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose("config", overrides=["algo=wcsac", "env=tiny", "risk_level=0.1"])
-    with open_dict(cfg):
-        for key in {*SAVED_RUN_VALUES, "kappa_episode_window"}:
-            del cfg.algo[key]
-    validate_config(cfg)
-    env = make_env("tiny", seed=0)
-    try:
-        loss = builders.make_loss(cfg, builders.make_agent(cfg, env), 100)
-    finally:
-        env.close()
-    assert (loss.variance_target_kind, loss.kappa_states, loss.kappa_statistic) == (
-        "moment",
-        "replay",
-        "mean",
+    run_dir = train_run(tmp_path / "run", "wcsac", 0)
+    path = run_dir / "checkpoints" / "last.pt"
+    state = torch.load(path, weights_only=True)
+    del state["config"]["algo"]["cost_bootstrap_truncated"]
+    torch.save(state, path)
+    provenance = run_dir / "provenance.json"
+    record = json.loads(provenance.read_text())
+    record["code"]["commit"] = COMMIT
+    provenance.write_text(json.dumps(record))
+    return run_dir
+
+
+def test_a_run_of_another_commits_kit_is_refused_on_resume_and_evaluate(tmp_path):
+    """Nothing fills in an option a stored config lacks: resuming or evaluating it is
+    one line naming the commit that wrote it and the command that continues it there,
+    and changes nothing in the run."""
+    import subprocess
+    import sys
+
+    from _training_helpers import tree_digests
+
+    from wcsac_rl.training import ConfigError
+    from wcsac_rl.training.restore import load_run
+
+    run_dir = _run_of_another_commit(tmp_path)
+    line = (
+        f"{run_dir} was written by commit 0123456789ab, and its config lacks "
+        "algo.cost_bootstrap_truncated that this kit reads; continue it with that "
+        "commit's kit: git worktree add ../wcsac-0123456789ab 0123456789ab "
+        '(docs/reproduce.md, "A run of another commit")'
     )
-    assert (loss.kappa_signal, loss.cost_n_steps, loss.nonnegative_cost) == ("critic", 1, False)
-    assert loss.cost_gamma == 0.99 and loss.cost_bootstrap_truncated is True
-    assert loss.safety_critic_kind == "gaussian"
+    before = tree_digests(run_dir)
+    with pytest.raises(ConfigError) as err:
+        load_run(run_dir)
+    assert str(err.value) == line
+    for command in (
+        ["-m", "wcsac_rl.train", f"resume={run_dir}", "total_frames=1200"],
+        ["-m", "wcsac_rl.evaluate", str(run_dir), "--episodes", "1", "--no-progress"],
+    ):
+        result = subprocess.run(
+            [sys.executable, *command], cwd=tmp_path, capture_output=True, text=True,
+            timeout=300,
+        )  # fmt: skip
+        assert result.returncode == 1, command
+        assert f"error: {line}" in result.stderr.splitlines(), result.stderr
+        assert tree_digests(run_dir) == before, command
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # nothing else written
 
 
 ENVS = ["static", "tiny", "dynamic", "point_goal1", "point_goal2", "gymnasium"]

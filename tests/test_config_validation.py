@@ -1,5 +1,5 @@
 """Every bad config value is one line naming the key and what it may be, before anything is
-built (issue 33); a key no config has is refused naming the closest known key; every
+built; a key no config has is refused naming the closest known key; every
 legitimate config (the presets, the rows, the experiments, the tests' own) still passes."""
 
 from __future__ import annotations

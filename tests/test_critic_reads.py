@@ -1,4 +1,4 @@
-"""The loss evaluates no critic whose values it does not read (issue 31's cuts).
+"""The loss evaluates no critic whose values it does not read.
 
 * the TD targets read the target reward critics at ``(s', a')`` and the target safety
   critic once, where its target bootstraps (at ``s_{t+m}`` with n-step targets: not also
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from _loss_helpers import flat_parts
 from _loss_reference import ACT_DIM, OBS_DIM, WIDTH, make_preset_batch
 from torch.utils.flop_counter import FlopCounterMode
 from torchrl.data import Bounded
@@ -37,11 +38,13 @@ def _loss(variance: bool, fuse: bool, **options) -> WCSACLoss:
         actor,
         qvalues,
         safety,
-        risk_level=0.1 if variance else 1.0,
-        cost_limit=1.5,
-        max_episode_steps=12,
-        fuse_critics=fuse,
-        **options,
+        **flat_parts(
+            risk_level=0.1 if variance else 1.0,
+            cost_limit=1.5,
+            max_episode_steps=12,
+            fuse_critics=fuse,
+            **options,
+        ),
     )
     loss.make_value_estimator(gamma=0.99)
     return loss

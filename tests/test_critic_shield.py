@@ -9,7 +9,14 @@ import signal
 
 import pytest
 import torch
-from _loss_helpers import ACT_DIM, OBS_DIM, linear_quantile_critic, make_batch, make_loss
+from _loss_helpers import (
+    ACT_DIM,
+    OBS_DIM,
+    flat_parts,
+    linear_quantile_critic,
+    make_batch,
+    make_loss,
+)
 from _tolerance import assert_close_f32
 from _training_helpers import compose_config
 from tensordict import TensorDict
@@ -165,8 +172,7 @@ def test_action_cvar_is_the_critics_gamma_at_the_given_actions(options):
             make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=32),
             [make_qvalue(OBS_DIM, ACT_DIM, width=32) for _ in range(2)],
             [make_safety_critic(OBS_DIM, ACT_DIM, width=32) for _ in range(2)],
-            num_safety_nets=2,
-            risk_level=0.5,
+            **flat_parts(num_safety_nets=2, risk_level=0.5),
         )
     else:
         loss = make_loss(**options)
@@ -193,9 +199,7 @@ def test_action_cvar_of_a_linear_quantile_critic_is_its_tail_mean_at_the_midpoin
         make_actor(2, Bounded(-1.0, 1.0, shape=(1,)), width=8),
         [make_qvalue(2, 1, width=8) for _ in range(2)],
         linear_quantile_critic(),
-        risk_level=alpha,
-        num_quantiles=n,
-        nonnegative_cost=False,
+        **flat_parts(risk_level=alpha, num_quantiles=n, nonnegative_cost=False),
     )
     obs = torch.tensor([[2.0, 1.0], [-1.0, 4.0], [3.0, -2.0]])
     reading = loss.action_cvar(TensorDict({"observation": obs}, [3]), torch.zeros(3, 1))

@@ -9,7 +9,7 @@ import re
 
 import pytest
 import torch
-from _loss_helpers import ACT_DIM, OBS_DIM, linear_quantile_critic, make_batch
+from _loss_helpers import ACT_DIM, OBS_DIM, flat_parts, linear_quantile_critic, make_batch
 from _tolerance import assert_close_f32
 from _training_helpers import compose_config
 from torchrl.data import Bounded
@@ -43,8 +43,10 @@ def _losses(members=3, kind="gaussian", **kwargs):
     critics = [make_safety_critic(OBS_DIM, ACT_DIM, kind=kind, width=32) for _ in range(members)]
     options = {**PLAIN, "fuse_critics": False, **kwargs}
     singles = {k: v for k, v in options.items() if k not in ENSEMBLE_ONLY}
-    ensemble = WCSACLoss(actor, qvalues, critics, num_safety_nets=members, **options)
-    return ensemble, [WCSACLoss(actor, qvalues, critic, **singles) for critic in critics]
+    ensemble = WCSACLoss(actor, qvalues, critics, **flat_parts(num_safety_nets=members, **options))
+    return ensemble, [
+        WCSACLoss(actor, qvalues, critic, **flat_parts(**singles)) for critic in critics
+    ]
 
 
 # ------------------------------------------------------------------ the UCB reading
@@ -294,7 +296,7 @@ def test_the_loss_refuses_a_bad_ensemble_option_in_one_line(kwargs, line):
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)]
     critic = make_safety_critic(OBS_DIM, ACT_DIM, width=8)
     with pytest.raises(ValueError, match=f"^{re.escape(line)}$"):
-        WCSACLoss(actor, qvalues, critic, **PLAIN, **kwargs)
+        WCSACLoss(actor, qvalues, critic, **flat_parts(**PLAIN, **kwargs))
 
 
 @pytest.mark.parametrize(
@@ -324,7 +326,7 @@ def test_the_config_refuses_a_bad_ensemble_option_in_one_line(tmp_path, override
 
 SAC_LINE = (
     "unknown config key algo.{key}: an option of the safety critic and κ, which the "
-    "algo=sac{where} config does not have (algo=wcsac, sac_lag and cal do)"
+    "algo=sac{where} config does not have (algo=sac_lag, cal and wcsac do)"
 )
 
 

@@ -14,6 +14,7 @@ from _loss_helpers import (
     ACT_DIM,
     OBS_DIM,
     assert_same_losses_and_gradients,
+    flat_parts,
     make_batch,
     make_loss,
     paper_options,
@@ -109,7 +110,7 @@ def test_actors_not_built_like_make_actor_fall_back_or_are_refused():
     actor = _actor_not_from_make_actor()
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)]
     safety = make_safety_critic(OBS_DIM, ACT_DIM, width=8)
-    loss = WCSACLoss(actor, qvalues, safety, **PAPER_OPTIONS)
+    loss = WCSACLoss(actor, qvalues, safety, **flat_parts(**PAPER_OPTIONS))
     assert loss._actor_plan is None
     out = loss(make_batch())  # the general path still works
     assert torch.isfinite(out["loss_actor"])
@@ -276,7 +277,7 @@ def _torchrl_networks_loss(**kwargs):
     safety = TensorDictModule(
         _MeanVariance(), in_keys=["observation", "action"], out_keys=["cost_value", "cost_variance"]
     )
-    return WCSACLoss(actor, qvalue, safety, num_qvalue_nets=2, **kwargs)
+    return WCSACLoss(actor, qvalue, safety, **flat_parts(num_qvalue_nets=2, **kwargs))
 
 
 class _MeanVariance(nn.Module):
@@ -363,8 +364,7 @@ def test_twin_critics_not_read_as_torchrl_mlps_keep_the_vmapped_call():
             make_actor(OBS_DIM, spec, width=8),
             qvalue,
             safety,
-            num_qvalue_nets=2,
-            **paper_options("iqn"),
+            **flat_parts(num_qvalue_nets=2, **paper_options("iqn")),
         )
         assert loss.critics.stacked is None, type(module).__name__
         out = loss(make_batch())  # the vmapped call still serves it

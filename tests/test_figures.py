@@ -270,3 +270,109 @@ def test_smoothing_draws_the_trailing_mean_over_the_epochs_own_values():
     assert plots._smoothed([math.nan, 1.0, math.nan, 3.0], 2)[1:].tolist() == [1.0, 1.0, 3.0]
     with pytest.raises(ValueError, match="smooth must be a whole number of epochs >= 1"):
         plots.run_curves_figure(columns, smooth=0)
+
+
+def _statistics(labels):
+    from wcsac_rl.evaluation.run_report import RunStatistics
+    from wcsac_rl.evaluation.runs import row_name
+
+    rng = np.random.default_rng(5)
+    runs, rows = [], []
+    for i, label in enumerate(labels):
+        for seed in (100, 101, 7):
+            values = {"EC": rng.uniform(0, 30), "C0.1": rng.uniform(0, 90), "ER": rng.normal()}
+            split = "held-out" if seed >= 100 else "in-sample"
+            runs.append({"label": label, "algorithm": row_name(label), "seed": seed,
+                         "split": split, **values})  # fmt: skip
+        row = {"label": label, "algorithm": row_name(label)}
+        for metric in ("EC", "C0.1", "ER"):
+            row |= {f"{metric}_iqm": i, f"{metric}_lo": i - 0.5, f"{metric}_hi": i + 1.0}
+        rows.append(row)
+    return RunStatistics("static", 15.0, runs, rows)
+
+
+def _table1_rows(labels):
+    from wcsac_rl.evaluation.runs import row_name
+
+    return [
+        {"label": label, "algorithm": row_name(label), "EC": 2.0 * i, "EC_lo": 2.0 * i - 1,
+         "EC_hi": 2.0 * i + 1.5, "ER": -0.1 * i, "ER_lo": -0.1 * i - 0.2, "ER_hi": -0.1 * i + 0.3}
+        for i, label in enumerate(labels)
+    ]  # fmt: skip
+
+
+def test_the_runs_score_and_cost_return_figures_draw_each_row_in_its_style(tmp_path):
+    """14 rows: fig_runs' dots, the score distribution's curves and the cost-return points
+    (read from the artists) are in each row's colour and marker of the report, and
+    fig_runs' row names do not overlap."""
+    from matplotlib.colors import to_hex
+
+    from wcsac_rl.evaluation.cost_return import plot_cost_return
+    from wcsac_rl.evaluation.run_plots import plot_run_values, plot_score_distribution
+    from wcsac_rl.evaluation.runs import row_name
+
+    styles = plots.row_styles(ROWS)
+    expected = {row_name(label): (to_hex(s.color), s.marker) for label, s in styles.items()}
+    captured = {}
+    original = plots.save_figure
+    plots.save_figure = lambda fig, out, formats=("png",): captured.setdefault(out.name, fig)
+    try:
+        stats = _statistics(ROWS)
+        plot_run_values(stats, tmp_path / "runs.png", styles=styles)
+        plot_score_distribution(stats, tmp_path / "score.png", styles=styles)
+        plot_cost_return(_table1_rows(ROWS), tmp_path / "cr.png", cost_limit=15, styles=styles)
+    finally:
+        plots.save_figure = original
+    ax = captured["runs.png"].axes[0]
+    names = [t.get_text() for t in ax.get_xticklabels()]
+    dots: dict[str, set] = {}
+    for line in ax.get_lines():  # (in black: the IQM and its interval's caps)
+        if line.get_linestyle() == "None" and to_hex(line.get_markeredgecolor()) != "#000000":
+            name = names[round(line.get_xdata()[0])]
+            dots.setdefault(name, set()).add(
+                (to_hex(line.get_markeredgecolor()), line.get_marker())
+            )
+    assert dots == {name: {style} for name, style in expected.items()}
+    _assert_labels_apart(ax.get_xticklabels(), _drawn(captured["runs.png"]))
+    ax = captured["score.png"].axes[0]
+    curves = {
+        line.get_label().rsplit(" (", 1)[0]: (to_hex(line.get_color()), line.get_marker())
+        for line in ax.get_lines()
+        if not line.get_label().startswith("budget")
+    }
+    assert curves == expected
+    ax = captured["cr.png"].axes[0]
+    points = {
+        c.get_label(): (to_hex(c.lines[0].get_color()), c.lines[0].get_marker())
+        for c in ax.containers
+    }
+    assert points == expected and len({color for color, _ in points.values()}) == len(ROWS)
+    # each point at (EC, ER) with its interval as error bars; d drawn
+    first = ax.containers[1]
+    assert first.lines[0].get_xydata().tolist() == [[2.0, -0.1]]
+    segments = [seg for col in first.lines[2] for seg in col.get_segments()]
+    assert [[1.0, -0.1], [3.5, -0.1]] in [s.tolist() for s in segments]
+    assert any(
+        list(line.get_xdata()) == [15, 15] and line.get_linestyle() == "--"
+        for line in ax.get_lines()
+    )
+
+
+def test_the_env_step_labels_do_not_overlap_up_to_millions_of_frames(tmp_path):
+    """Figure 4 and a run's curves over 3 M frames: the x labels in engineering units
+    (``1 M``), none running into the next."""
+    progress = _progress(0)
+    progress["frames"] = [375_000.0 * i for i in range(1, 9)]
+    captured = {}
+    original = plots._save
+    plots._save = lambda fig, out, formats=("png",): captured.setdefault(out.name, fig) and out
+    try:
+        plots.plot_training_curves({"sac": [progress]}, tmp_path / "f4.png")
+    finally:
+        plots._save = original
+    for fig in (captured["f4.png"], plots.run_curves_figure(progress)):
+        renderer = _drawn(fig)
+        for ax in fig.axes:
+            labels = [t for t in ax.get_xticklabels() if t.get_text()]
+            assert "3 M" in [t.get_text() for t in labels] and len(labels) <= 8
+            _assert_labels_apart(labels, renderer)

@@ -96,7 +96,7 @@ def test_the_graph_sees_known_edges():
     graph = import_graph()
     assert "wcsac_rl.objectives" in graph["wcsac_rl.training.builders"]  # the package
     assert "wcsac_rl.envs.info" in graph["wcsac_rl.envs.batched_gym"]
-    assert "wcsac_rl.training.off_policy" in graph["wcsac_rl.training.registry"]
+    assert "wcsac_rl.training.registry" in graph["wcsac_rl.training.config"]
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
 

@@ -20,6 +20,7 @@ from _loss_helpers import (
     ACT_DIM,
     OBS_DIM,
     assert_same_losses_and_gradients,
+    flat_parts,
     linear_quantile_critic,
     make_batch,
     paper_options,
@@ -36,7 +37,7 @@ import wcsac_rl.objectives.safety_head as safety_head_module
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import IQNSafetyCritic, make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.modules.quantile_critic import IQNReader
-from wcsac_rl.objectives import PolyakUpdate, quantile_mixture_cvar
+from wcsac_rl.objectives import PolyakUpdate, SafetyHeadOptions, quantile_mixture_cvar
 from wcsac_rl.objectives.quantile import (
     midpoint_fractions,
     quantile_huber_loss,
@@ -382,9 +383,7 @@ def test_sac_lag_with_an_iqn_critic_holds_the_mean_quantile_under_the_threshold(
         make_actor(2, Bounded(-1.0, 1.0, shape=(1,)), width=8),
         [make_qvalue(2, 1, width=8) for _ in range(2)],
         _linear_critic(),
-        num_quantiles=4,
-        cost_threshold=1.0,
-        **paper_options("iqn"),
+        **flat_parts(num_quantiles=4, cost_threshold=1.0, **paper_options("iqn")),
     )
     assert loss.safety_critic_kind == "iqn" and loss.risk_level == 1.0
     out = loss(_linear_batch())
@@ -414,8 +413,11 @@ def test_fusing_falls_back_for_an_iqn_critic_or_is_refused():
     ],
 )
 def test_bad_iqn_arguments_are_refused(kwargs, message):
-    with pytest.raises(ValueError, match=message):
-        make_loss(**kwargs)
+    """Given as the head's options (a recipe with ``safety_critic="iqn"`` leaves the
+    Gaussian head's options at their defaults), a bad one is refused in one line."""
+    with pytest.raises(ValueError, match=message) as err:
+        make_loss(safety_head=SafetyHeadOptions(**kwargs))
+    assert "\n" not in str(err.value)
 
 
 # ---------------------------------------------------------- analytic targets
@@ -435,7 +437,7 @@ def _linear_loss(gamma: float = 0.9, **kwargs) -> WCSACLoss:
         make_actor(2, Bounded(-1.0, 1.0, shape=(1,)), width=8),
         [make_qvalue(2, 1, width=8) for _ in range(2)],
         safety,
-        **{**paper_options("iqn"), **kwargs},
+        **flat_parts(**{**paper_options("iqn"), **kwargs}),
     )
     loss.make_value_estimator(gamma=gamma)
     return loss
@@ -757,8 +759,7 @@ def test_learned_quantiles_match_the_chain_return_distribution(n_steps):
         make_actor(N, Bounded(-1.0, 1.0, shape=(1,)), width=16),
         [make_qvalue(N, 1, width=16) for _ in range(2)],
         make_safety_critic(N, 1, kind="iqn", width=64),
-        risk_level=0.5,
-        **{**paper_options("iqn"), "cost_n_steps": n_steps},
+        **flat_parts(risk_level=0.5, **{**paper_options("iqn"), "cost_n_steps": n_steps}),
     )
     loss.make_value_estimator(gamma=GAMMA)
     steps = 3000

@@ -1,4 +1,4 @@
-"""NaN in, error out (issue 33): the loss refuses bad constructor numbers and an empty
+"""NaN in, error out: the loss refuses bad constructor numbers and an empty
 batch by name, offers a check of a batch's values (``check_inputs``, or
 ``check_finite=True``) without a host synchronisation in its default path, and the
 trainer stops on a non-finite collected entry, naming it and the frames, keeping its

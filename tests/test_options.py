@@ -6,7 +6,6 @@ by the same function; a misspelt option names the closest one."""
 
 from __future__ import annotations
 
-import ast
 import dataclasses
 import inspect
 import re
@@ -21,9 +20,7 @@ from hydra import compose, initialize_config_dir
 from wcsac_rl import WCSACLoss, config_schema
 from wcsac_rl.options import (
     LOSS_OPTIONS,
-    NOT_SAVED,
     PAPER_OPTIONS,
-    SAVED_RUN_VALUES,
     IQNOptions,
     PIDGains,
     SafetyOptions,
@@ -31,6 +28,7 @@ from wcsac_rl.options import (
     config_defaults,
     option,
     option_spec,
+    read_options,
 )
 from wcsac_rl.training import ConfigError, validate_config
 from wcsac_rl.training.config_keys import check_override_keys
@@ -57,43 +55,95 @@ BAD = {"choice": "nope", "flag": "maybe", "number": "abc", "integer": -1, "risk_
 
 
 # ------------------------------------------------------------------ the loss
-def test_the_loss_keyword_defaults_are_references_to_the_fields():
-    """``WCSACLoss.__init__`` writes each option's default as ``SafetyOptions.<name>``
-    (or ``IQNOptions.<name>``): no literal a second definition could drift from."""
-    tree = ast.parse((ROOT / "wcsac_rl" / "objectives" / "wcsac.py").read_text())
-    init = next(
-        node
-        for cls in ast.walk(tree)
-        if isinstance(cls, ast.ClassDef) and cls.name == "WCSACLoss"
-        for node in cls.body
-        if isinstance(node, ast.FunctionDef) and node.name == "__init__"
+def test_the_parts_options_are_the_fields():
+    """Each field of ``SafetyHeadOptions`` and ``SignalOptions`` is the ``SafetyOptions``
+    (or ``IQNOptions``) field of that name: its default and its very metadata, no second
+    definition; every option the loss reads belongs to one part."""
+    from wcsac_rl.objectives.loss_options import PART_OF_OPTION, SafetyHeadOptions, SignalOptions
+
+    for part in (SafetyHeadOptions, SignalOptions):
+        for f in dataclasses.fields(part):
+            cls = SafetyOptions if f.name in SafetyOptions.__dataclass_fields__ else IQNOptions
+            source = cls.__dataclass_fields__[f.name]
+            assert (f.default, f.metadata) == (source.default, source.metadata), f.name
+            assert f.metadata["option"] is source.metadata["option"], f.name
+    assert set(LOSS_OPTIONS) - {"risk_level"} <= set(PART_OF_OPTION)
+
+
+def test_the_loss_defaults_are_the_kits_recipe():
+    """``WCSACLoss``'s own keywords are at most SACLoss's count (22; SACLoss's own pass
+    through ``**sac_kwargs`` and count as SACLoss's), and with none but the networks,
+    α and d it is the kit's StaticEnv recipe: ``loss_parts(KIT_OPTIONS)``."""
+    from wcsac_rl.objectives import KIT_OPTIONS, loss_parts
+
+    own = [
+        p.name
+        for p in inspect.signature(WCSACLoss.__init__).parameters.values()
+        if p.kind is inspect.Parameter.KEYWORD_ONLY
+    ]
+    assert len(own) <= 22, own
+    kit = loss_parts(KIT_OPTIONS)
+    networks = make_loss(kind="iqn")
+    plain = WCSACLoss(
+        networks.actor_network, [networks.qvalue_network] * 2, networks.safety_network
     )
-    defaults = dict(zip((a.arg for a in init.args.kwonlyargs), init.args.kw_defaults))
-    assert set(LOSS_OPTIONS) <= set(defaults)
-    for name in LOSS_OPTIONS:
-        node = defaults[name]
-        assert isinstance(node, ast.Attribute) and node.attr == name, name
-        assert node.value.id in ("SafetyOptions", "IQNOptions"), name
-    signature = inspect.signature(WCSACLoss.__init__).parameters
-    for name in LOSS_OPTIONS:
-        cls = SafetyOptions if name in SafetyOptions.__dataclass_fields__ else IQNOptions
-        assert signature[name].default == cls.__dataclass_fields__[name].default, name
+    for built in (plain,):
+        assert (built.head_options, built.signal_options) == (kit["safety_head"], kit["signal"])
+        assert type(built.constraint) is type(kit["constraint"])
+        assert repr(built.constraint) == repr(kit["constraint"])
+        assert float(built.kappa) == pytest.approx(float(kit["constraint"].kappa))
+        assert float(built.log_alpha.exp()) == pytest.approx(KIT_OPTIONS["alpha_init"])
 
 
 @pytest.mark.parametrize("name", LOSS_OPTIONS)
 def test_the_loss_refuses_a_bad_value_of_each_option_by_name(name):
+    """A bad value of an option is one ``ValueError`` line naming it, from the part's
+    options (a recipe, as the config gives them: ``loss_parts``)."""
     cls = SafetyOptions if name in SafetyOptions.__dataclass_fields__ else IQNOptions
     spec = option_spec(cls, name)
     message = (
         "tail fraction" if spec.kind == "risk_level" else f"{name} must be {spec.requirement()}"
     )
-    with pytest.raises(ValueError, match=re.escape(message)):
+    with pytest.raises(ValueError, match=re.escape(message)) as err:
         make_loss(**{name: BAD[spec.kind]})
+    assert "\n" not in str(err.value)
 
 
-def test_a_misspelt_loss_keyword_names_the_closest():
-    with pytest.raises(TypeError, match=re.escape("'kapa_init' (did you mean kappa_init?)")):
-        make_loss(kapa_init=1.0)
+@pytest.mark.parametrize(
+    ("part", "name"),
+    [
+        ("SafetyHeadOptions", "variance_target"),
+        ("SafetyHeadOptions", "num_quantiles"),
+        ("SafetyHeadOptions", "cost_gamma"),
+        ("SignalOptions", "kappa_signal_every"),
+        ("SignalOptions", "kappa_states"),
+    ],
+)
+def test_each_parts_options_refuse_a_bad_value_by_name(part, name):
+    from wcsac_rl.objectives import loss_options
+
+    cls = SafetyOptions if name in SafetyOptions.__dataclass_fields__ else IQNOptions
+    spec = option_spec(cls, name)
+    with pytest.raises(ValueError) as err:
+        getattr(loss_options, part)(**{name: BAD[spec.kind]})
+    assert str(err.value) == f"{name} must be {spec.requirement()}, got {BAD[spec.kind]!r}"
+
+
+def test_a_misspelt_loss_keyword_names_the_closest_and_an_option_names_its_part():
+    with pytest.raises(TypeError, match=re.escape("'alpha_int' (did you mean alpha_init?)")):
+        make_loss(alpha_int=1.0)
+    loss = make_loss()
+    networks = (loss.actor_network, [loss.qvalue_network] * 2, loss.safety_network)
+    with pytest.raises(TypeError) as err:
+        WCSACLoss(*networks, kappa_init=1.0)
+    assert str(err.value) == (
+        "'kappa_init' is an option of a part of the loss: give "
+        "constraint=GradientLagrangian(kappa_init=...)"
+    )
+    with pytest.raises(TypeError, match=re.escape("(did you mean cost_n_steps? give safety_head")):
+        WCSACLoss(*networks, cost_n_step=1)
+    with pytest.raises(ValueError, match=r"^signal must be a SignalOptions, got dict$"):
+        WCSACLoss(*networks, signal={"kappa_states": "replay"})
 
 
 # ------------------------------------------------------------------ the config
@@ -124,7 +174,7 @@ def test_changing_a_default_changes_the_composed_config_and_the_loss_it_builds(m
     @dataclasses.dataclass(frozen=True)
     class Changed(SafetyOptions):
         kappa_init: float = option(1.5, "another default", "number", low=0.0, low_open=True)
-        cost_n_steps: int = option(3, "another default", "integer", low=1, saved_run=1)
+        cost_n_steps: int = option(3, "another default", "integer", low=1)
 
     monkeypatch.setattr(config_schema, "SafetyOptions", Changed)
     config_schema.register_configs()
@@ -216,14 +266,16 @@ def test_the_yaml_files_set_only_what_differs_from_the_schema():
                 assert value != base[key], f"{path.name}: {key} repeats"
 
 
-def test_the_saved_run_values_are_the_fields_metadata():
-    expected = {
-        f.name: f.metadata["option"].saved_run
-        for f in dataclasses.fields(SafetyOptions)
-        if f.metadata["option"].saved_run is not NOT_SAVED
-    }
-    assert dict(SAVED_RUN_VALUES) == expected
-    assert SAVED_RUN_VALUES["cost_bootstrap_truncated"] is True  # (it bootstrapped then)
+@pytest.mark.parametrize("key", ["cost_bootstrap_truncated", "kappa_signal", "shield"])
+def test_an_option_a_config_lacks_is_refused_naming_it(key):
+    """Nothing fills in an option a config lacks (a stored run's config of another
+    commit's kit is refused before this: tests/test_config_defaults.py)."""
+    values = config_defaults(SafetyOptions)
+    assert read_options(SafetyOptions, values, prefix="algo.") == SafetyOptions()
+    del values[key]
+    line = f"algo.{key} is missing (a composed config has every option)"
+    with pytest.raises(ValueError, match=f"^{re.escape(line)}$"):
+        read_options(SafetyOptions, values, prefix="algo.")
 
 
 def test_the_paper_options_are_a_valid_replacement_of_the_fields():

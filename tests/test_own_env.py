@@ -216,3 +216,50 @@ def test_bad_env_input_is_one_line_and_leaves_no_run_directory(tmp_path, overrid
     assert lines[0].startswith("error: ") and message in lines[0], lines[0]
     assert "Traceback" not in result.stderr + result.stdout
     assert list(cwd.iterdir()) == []  # no outputs/<date>/<run>, no outputs/ either
+
+
+def test_the_report_of_a_sweep_of_the_users_env(user_module, tmp_path, capsys):
+    """``wcsac-report`` on two evaluated runs of the user's env: exit 0; Figure 5 is skipped
+    in one line saying why (nothing to draw the paths on), the rest written; no goals
+    column in any table (the env has no goals)."""
+    from wcsac_rl.evaluate import main as evaluate_main
+    from wcsac_rl.report import main as report_main
+    from wcsac_rl.train import compose_config
+    from wcsac_rl.training import make_trainer
+
+    sweep = tmp_path / "outputs" / "2026-01-01"
+    for seed in (0, 1):
+        run = sweep / f"{seed}_wcsac_0.5_gymnasium_seed{seed}"
+        overrides = ("env=gymnasium", "env.id=user_envs:five", "risk_level=0.5")
+        trainer = make_trainer(compose_config(*overrides, f"seed={seed}", "total_frames=400"), run)
+        try:
+            trainer.run()
+        finally:
+            trainer.close()
+        assert (
+            evaluate_main([str(run), "--episodes", "3", "--no-progress", "--trust-env-code"]) == 0
+        )
+    capsys.readouterr()
+    out = tmp_path / "report"
+    assert report_main([str(sweep), "--out", str(out)]) == 0  # (no --trust-env-code needed)
+    lines = capsys.readouterr().out.splitlines()
+    skipped = [line for line in lines if "Figure 5" in line]
+    assert skipped == [
+        "warning: Figure 5 (trajectories) skipped: env gymnasium has no layout (hazards, "
+        "goal) to draw the paths on; they are drawn for the kit's envs (static, dynamic, "
+        "point_goal1, point_goal2, tiny)"
+    ]
+    assert not list(out.glob("fig5*"))
+    names = {p.name for p in out.iterdir()}
+    assert {"table1.md", "table1.tex", "fig4_training_curves.pdf", "fig6_evaluation.png"} <= names
+    assert {"fig_cost_return.pdf", "run_values.csv", "run_statistics.tex"} <= names
+    table = (out / "table1.md").read_text().splitlines()
+    assert (
+        table[2] == "| Algorithm | EC | C0.9 | C0.5 | C0.1 | ER | over budget | episodes (seeds) |"
+    )
+    assert "goals" not in "\n".join(table)
+    for name in ("table1.csv", "run_values.csv", "run_statistics.csv"):
+        header = (out / name).read_text().splitlines()[0].split(",")
+        assert not [c for c in header if c.startswith("goals")], name
+    for name in ("table1.tex", "run_values.md", "run_statistics.md"):
+        assert "goals" not in (out / name).read_text(), name

@@ -1,4 +1,4 @@
-"""The red-team suite (issue 33): bad inputs a hostile or careless user gives every command.
+"""The red-team suite: bad inputs a hostile or careless user gives every command.
 
 Each case asserts that the command stops — a non-zero exit code, or the named exception —
 with the offending key, value or file in one line and no traceback, and that every file
@@ -847,6 +847,82 @@ def test_an_own_env_that_fails_mid_run_stops_in_one_line(tmp_path, monkeypatch, 
     _one_line(str(err.value), message, "training stopped ")
 
 
+def _failing_env(tmp_path: Path, monkeypatch) -> None:
+    (tmp_path / "failing_envs.py").write_text(FAILING_ENV)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    sys.modules.pop("failing_envs", None)
+
+
+@pytest.mark.parametrize("how", ["step", "reset", "shape"])
+def test_an_own_env_that_fails_before_the_first_checkpoint_leaves_nothing(
+    tmp_path, monkeypatch, how
+):
+    """Stopped before its first checkpoint, a fresh run has nothing to continue from:
+    the directory it made is gone, and the one line says so; a directory the user made
+    keeps what it held."""
+    from wcsac_rl.train import run_training
+
+    _failing_env(tmp_path, monkeypatch)
+    overrides = ("env=gymnasium", "env.id=failing_envs:make", f"+env.kwargs.how={how}")
+    cfg = compose_config(*overrides, "+env.kwargs.after=30", "total_frames=800")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    for run_dir in (tmp_path / "new" / "run", mine):
+        with pytest.raises(TrainingError) as err:
+            run_training(cfg, run_dir)
+        _one_line(str(err.value), f"{how}" if how != "shape" else "4 numbers", "removed")
+        assert "no checkpoint had been written yet" in str(err.value)
+    assert not (tmp_path / "new" / "run").exists()
+    assert mine.is_dir() and not any(mine.iterdir())
+    sys.modules.pop("failing_envs", None)
+
+
+def test_an_own_env_that_fails_after_a_checkpoint_keeps_the_run(tmp_path, monkeypatch):
+    """Stopped after a checkpoint, the run keeps its directory: resume=auto continues it."""
+    from wcsac_rl.train import run_training
+
+    _failing_env(tmp_path, monkeypatch)
+    cfg = compose_config(
+        "env=gymnasium",
+        "env.id=failing_envs:make",
+        "+env.kwargs.how=step",
+        "+env.kwargs.after=600",
+        "epoch_frames=400",
+        "checkpoint_every_epochs=1",
+        "algo.collector.init_random_frames=400",
+        "total_frames=800",
+    )
+    with pytest.raises(TrainingError) as err:
+        run_training(cfg, tmp_path / "run")
+    sys.modules.pop("failing_envs", None)
+    _one_line(str(err.value), "step() raised RuntimeError", "is kept")
+    assert "removed" not in str(err.value)
+    assert (tmp_path / "run" / "checkpoints").is_dir()
+    assert (tmp_path / "run" / "progress.csv").is_file()
+
+
+def test_train_py_removes_the_run_directory_of_a_run_stopped_before_any_checkpoint(tmp_path):
+    """The same from the command line, in Hydra's own dated directory and in a
+    ``hydra.run.dir`` that did not exist."""
+    (tmp_path / "failing_envs.py").write_text(FAILING_ENV)
+    overrides = ["env=gymnasium", "env.id=failing_envs:make", "+env.kwargs.how=reset"]
+    overrides += ["+env.kwargs.after=30", "total_frames=800", "progress_bar=false"]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
+    for where in ([], [f"hydra.run.dir={tmp_path / 'D'}"]):
+        result = subprocess.run(
+            [sys.executable, str(ROOT / "train.py"), *overrides, *where],
+            cwd=tmp_path,
+            capture_output=True,
+            text=True,
+            timeout=600,
+            env=env,
+        )
+        assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+        (error,) = _error_lines(result.stderr)
+        _one_line(error, "reset() raised RuntimeError", "is removed")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["failing_envs.py"]
+
+
 # ------------------------------------- a refused command changes nothing that existed
 def _train_py(cwd: Path, *overrides: str) -> subprocess.CompletedProcess:
     return subprocess.run(
@@ -1053,10 +1129,16 @@ def _unreadable_path(tmp_path, monkeypatch, capsys) -> str:
     return str(stop.value)
 
 
-def _seed_overflow(tmp_path, monkeypatch, capsys) -> str:
-    with pytest.raises(SystemExit):
-        evaluate_main([str(tmp_path), "--seed", "99999999999999999999999"])
-    return capsys.readouterr().err.strip().splitlines()[-1]
+def _seed_overflow(main, option: str):
+    def case(tmp_path, monkeypatch, capsys) -> str:
+        before = snapshot(tmp_path)
+        with pytest.raises(SystemExit) as stop:
+            main([str(tmp_path), option, "99999999999999999999999"])
+        assert stop.value.code == 2 and snapshot(tmp_path) == before
+        (line,) = capsys.readouterr().err.strip().splitlines()[-1:]
+        return line
+
+    return case
 
 
 def _stopped_under_wcsac_train(tmp_path, monkeypatch, capsys) -> str:
@@ -1073,10 +1155,17 @@ MINOR = [
         "no checkpoint had been written yet",
     ),
     ("hydra.run.dir=runü", _unreadable_path, "error: cannot read the override 'hydra.run.dir="),
-    (
-        "--seed 99999999999999999999999",
-        _seed_overflow,
-        "error: --seed must be a whole number in [0, 2**63 - 1]",
+    *(
+        (
+            f"{command} {option} 99999999999999999999999",
+            _seed_overflow(main, option),
+            f"error: {option} must be a whole number in [0, 2**63 - 1]",
+        )
+        for command, main, option in (
+            ("wcsac-evaluate", evaluate_main, "--seed"),
+            ("wcsac-calibration", calibration_main, "--seed"),
+            ("wcsac-report", report_main, "--trajectory-seed"),
+        )
     ),
     (
         "SIGTERM under wcsac-train",
@@ -1116,7 +1205,8 @@ def _documented() -> dict[str, tuple[int, list[str]]]:
     """``category -> (count, inputs)`` from the table of docs/guarantees.md."""
     text = (ROOT / "docs" / "guarantees.md").read_text()
     rows = {}
-    for line in text.split("## The bad inputs the tests try", 1)[1].splitlines():
+    section = text.split("## The bad inputs the tests try", 1)[1].split("\n## ", 1)[0]
+    for line in section.splitlines():
         match = re.fullmatch(r"\| (.+?) \| (\d+) \| (.+) \|", line.strip())
         if match:
             rows[match.group(1)] = (int(match.group(2)), re.findall(r"`([^`]+)`", match.group(3)))

@@ -33,11 +33,28 @@ PANEL_PX = 550
 RUN_STATISTICS_FILES = (
     "run_values.md",
     "run_values.csv",
+    "run_values.tex",
     "run_statistics.md",
     "run_statistics.csv",
+    "run_statistics.tex",
     "fig_runs.png",
+    "fig_runs.pdf",
     "fig_score_distribution.png",
+    "fig_score_distribution.pdf",
 )
+# every figure as PNG and PDF, every table as Markdown (+ LaTeX) and CSV
+TABLE_FILES = ("table1.md", "table1.csv", "table1.tex")
+TRAINING_FILES = (
+    "runs.md",
+    "runs.tex",
+    "training_safety.md",
+    "training_safety.csv",
+    "training_safety.tex",
+)
+
+
+def _figure(stem):
+    return (f"{stem}.png", f"{stem}.pdf")
 
 
 def _px(size_in: tuple[float, float]) -> tuple[int, int]:
@@ -54,12 +71,26 @@ def sweep(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def report(sweep, tmp_path_factory):
+def figures():
+    """file name → the matplotlib Figure the report saved there (filled by ``report``)."""
+    return {}
+
+
+@pytest.fixture(scope="module")
+def report(sweep, figures, tmp_path_factory):
     out = tmp_path_factory.mktemp("report_out") / "report"
     lines: list[str] = []
-    result = build_report(
-        [sweep.parents[2]], out, trajectory_episodes=TRAJECTORY_EPISODES, log=lines.append
-    )
+    save = plots.save_figure
+
+    def keep(fig, path, **kwargs):  # every figure of the report goes through save_figure
+        figures[path.name] = fig
+        return save(fig, path, **kwargs)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(plots, "save_figure", keep)
+        result = build_report(
+            [sweep.parents[2]], out, trajectory_episodes=TRAJECTORY_EPISODES, log=lines.append
+        )
     return result, lines
 
 
@@ -74,16 +105,14 @@ def test_report_writes_every_file(report):
     names = sorted(p.name for p in result.files)
     assert names == sorted(
         [
-            "table1.md",
-            "table1.csv",
-            "fig4_training_curves.png",
-            "fig5_trajectories.png",
-            "fig5_wcsac_0.5_seed0.png",
-            "fig5_random_seed0.png",
-            "fig6_evaluation.png",
-            "runs.md",
-            "training_safety.md",
-            "training_safety.csv",
+            *TABLE_FILES,
+            *_figure("fig4_training_curves"),
+            *_figure("fig5_trajectories"),
+            *_figure("fig5_wcsac_0.5_seed0"),
+            *_figure("fig5_random_seed0"),
+            *_figure("fig6_evaluation"),
+            *_figure("fig_cost_return"),
+            *TRAINING_FILES,
             *RUN_STATISTICS_FILES,
         ]
     )
@@ -92,6 +121,115 @@ def test_report_writes_every_file(report):
     assert [line for line in lines if line.startswith("wrote ")] == [
         f"wrote {p}" for p in result.files
     ]
+
+
+def test_every_figure_is_png_and_pdf_and_every_table_markdown_csv_and_latex(report):
+    result, _ = report
+    out = result.out_dir
+    pngs = sorted(out.glob("*.png"))
+    assert len(pngs) == 8
+    for png in pngs:
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert png.with_suffix(".pdf").read_bytes()[:5] == b"%PDF-", png.name
+    tables = sorted(out.glob("*.md"))
+    assert [p.stem for p in tables] == [
+        "run_statistics", "run_values", "runs", "table1", "training_safety",
+    ]  # fmt: skip
+    for md in tables:
+        tex = md.with_suffix(".tex").read_text()
+        body = [line for line in md.read_text().splitlines() if line.startswith("| ")]
+        rows = [line for line in tex.splitlines() if line.endswith(r" \\")]
+        # every Markdown row (header included) is a LaTeX row, between booktabs rules
+        assert len(rows) == len(body) and tex.count(r"\toprule") == tex.count(r"\bottomrule")
+        assert tex.count(r"\midrule") == tex.count(r"\toprule") >= 1
+        content = tex.split("\n", 1)[1]  # (after the comment line)
+        assert "_" not in content.replace(r"\_", "") and "%" not in content.replace(r"\%", "")
+        if md.stem != "runs":
+            assert md.with_suffix(".csv").is_file()
+    table1 = (out / "table1.tex").read_text()
+    assert r"\caption{Table 1 --- TinyHazard, budget d = 15}" in table1
+    assert r"Algorithm & EC & C0.9 & C0.5 & C0.1 & ER & goals & over budget" in table1
+    assert r"\begin{tabular}{lrrrrrrrr}" in table1
+    first = [c.strip() for c in (out / "table1.md").read_text().splitlines()[4].split("|")[1:-1]]
+    row = next(line for line in table1.splitlines() if line.startswith("WCSAC-0.5 & "))
+    cells = [c.strip() for c in row.removesuffix(r" \\").split(" & ")]
+    bold, interval = first[3].split(" ", 1)  # "**0.12** [0.00, 0.50]": the constrained C0.5
+    assert cells[3] == r"\textbf{" + bold.strip("*") + "} " + interval
+    assert cells[7] == first[7].replace("%", r"\%")
+
+
+def _row_colours(figures):
+    """figure → {row name: (colour, marker)} as its artists draw the rows."""
+    from matplotlib.colors import to_hex
+
+    drawn = {}
+    ax = figures["fig4_training_curves.png"].axes[0]
+    drawn["fig4"] = {
+        line.get_label().rsplit(" (", 1)[0]: (to_hex(line.get_color()), line.get_marker())
+        for line in ax.get_lines()
+        if not line.get_label().startswith("_")
+    }
+    box_ax = figures["fig6_evaluation.png"].axes[0]
+    names = [t.get_text().replace("\n", " ") for t in box_ax.get_xticklabels()]
+    drawn["fig6"] = {  # (the boxes are its only patches)
+        name: (to_hex(patch.get_facecolor(), keep_alpha=False), None)
+        for name, patch in zip(names, box_ax.patches, strict=True)
+    }
+    ax = figures["fig_runs.png"].axes[0]
+    names = [t.get_text() for t in ax.get_xticklabels()]
+    drawn["fig_runs"] = {
+        names[round(line.get_xdata()[0])]: (to_hex(line.get_markeredgecolor()), line.get_marker())
+        for line in ax.get_lines()  # (in black: the IQM and its interval's caps)
+        if line.get_linestyle() == "None" and to_hex(line.get_markeredgecolor()) != "#000000"
+    }
+    ax = figures["fig_score_distribution.png"].axes[0]
+    drawn["fig_score"] = {
+        line.get_label().rsplit(" (", 1)[0]: (to_hex(line.get_color()), line.get_marker())
+        for line in ax.get_lines()
+        if "budget" not in line.get_label()
+    }
+    ax = figures["fig_cost_return.png"].axes[0]
+    drawn["fig_cost_return"] = {
+        c.get_label(): (to_hex(c.lines[0].get_color()), c.lines[0].get_marker())
+        for c in ax.containers
+    }
+    for name in ("fig5_trajectories.png", "fig5_wcsac_0.5_seed0.png", "fig5_random_seed0.png"):
+        drawn[name] = {
+            ax.get_title().rsplit(", seed", 1)[0]: (to_hex(ax.spines["left"].get_edgecolor()), None)
+            for ax in figures[name].axes
+            if ax.get_title()
+        }
+    return drawn
+
+
+def test_every_row_has_one_colour_and_marker_in_every_figure(report, figures):
+    """Read from the figures' artists: each row of the sweep is drawn in one colour (and
+    one marker where a figure draws markers) in all of them, and the rows' colours differ."""
+    result, _ = report
+    drawn = _row_colours(figures)
+    rows = [row["algorithm"] for row in result.rows]
+    assert rows == ["WCSAC-0.5", "Random Policy"]
+    wcsac, random = rows
+    assert {figure: sorted(by_row) for figure, by_row in drawn.items()} == {
+        **{figure: sorted(rows) for figure in drawn},
+        "fig6": [wcsac],  # Figure 6 leaves the random policy out
+        "fig5_wcsac_0.5_seed0.png": [wcsac],
+        "fig5_random_seed0.png": [random],
+    }
+    colour = {row: {by_row[row][0] for by_row in drawn.values() if row in by_row} for row in rows}
+    assert all(len(colours) == 1 for colours in colour.values()), colour
+    assert len({colours.pop() for colours in colour.values()}) == len(rows)
+    for row in rows:
+        markers = {by_row[row][1] for by_row in drawn.values() if by_row.get(row, (0, None))[1]}
+        assert len(markers) == 1, (row, markers)
+
+
+def test_the_box_plot_shows_every_row_s_interquartile_box(report, figures, sweep):
+    box_ax = figures["fig6_evaluation.png"].axes[0]
+    low, high = box_ax.get_ylim()
+    costs = [c for d in run_dirs(sweep)[:2] for c in read_evaluation(d).costs]  # WCSAC-0.5
+    q1, q3 = np.percentile(costs, [25, 75])
+    assert low <= q1 and q3 <= high and low <= 0 <= 15 <= high
 
 
 def test_runs_md_lists_each_run_with_its_frames_wall_time_and_commit(report, sweep):
@@ -211,13 +349,11 @@ def test_existing_report_is_not_overwritten_without_force(report, sweep):
         [sweep], result.out_dir, force=True, trajectories=False, log=lambda _: None
     )
     assert {p.name for p in again.files} == {
-        "table1.md",
-        "table1.csv",
-        "fig4_training_curves.png",
-        "fig6_evaluation.png",
-        "runs.md",
-        "training_safety.md",
-        "training_safety.csv",
+        *TABLE_FILES,
+        *_figure("fig4_training_curves"),
+        *_figure("fig6_evaluation"),
+        *_figure("fig_cost_return"),
+        *TRAINING_FILES,
         *RUN_STATISTICS_FILES,
     }
     assert (result.out_dir / "table1.csv").read_bytes() == before[result.out_dir / "table1.csv"]
@@ -240,12 +376,7 @@ def test_unevaluated_runs_give_curves_and_a_warning(tmp_path):
     sweep = copy_sweep(tmp_path)
     lines: list[str] = []
     result = build_report([sweep], tmp_path / "out", trajectories=False, log=lines.append)
-    assert [p.name for p in result.files] == [
-        "runs.md",
-        "training_safety.md",
-        "training_safety.csv",
-        "fig4_training_curves.png",
-    ]
+    assert [p.name for p in result.files] == [*TRAINING_FILES, *_figure("fig4_training_curves")]
     assert any("4 training run(s) have no evaluation" in w for w in result.warnings)
     assert any("Table 1 and Figure 6 skipped" in w for w in result.warnings)
     assert all(line.startswith(("warning: ", "wrote ")) for line in lines)
@@ -372,7 +503,8 @@ def test_report_cli(sweep, tmp_path, capsys):
     assert proc.returncode == 0, proc.stderr
     assert "# Table 1 — TinyHazard, budget d = 15" in proc.stdout
     assert "| WCSAC-0.5 |" in proc.stdout
-    assert len(list(out.glob("*.png"))) == 7  # Figures 4, 5 (3 files), 6; runs, scores
+    # Figures 4, 5 (3 files), 6; runs, scores, cost-return: each as PNG and PDF
+    assert len(list(out.glob("*.png"))) == len(list(out.glob("*.pdf"))) == 8
     # the same again without --force: one error line, exit code 1 (in-process: fast)
     from wcsac_rl.report import main
 

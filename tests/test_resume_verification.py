@@ -1,4 +1,4 @@
-"""A resume keeps what exists (issue 33): it never goes back behind the run's latest
+"""A resume keeps what exists: it never goes back behind the run's latest
 progress, and it continues only a checkpoint that belongs to the run it writes into.
 
 Every refusal is one line, before anything is written: every file of the run stays

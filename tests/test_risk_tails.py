@@ -1,4 +1,4 @@
-"""CVaR far in the tail (issue 33): exact for every accepted α, down to MIN_RISK_LEVEL = 1e-12,
+"""CVaR far in the tail: exact for every accepted α, down to MIN_RISK_LEVEL = 1e-12,
 against the closed form of a single Gaussian, a high-precision integral of a two-component
 mixture, and the exact CVaR of discrete pools; a smaller α is one clear error."""
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from _loss_helpers import flat_parts
 from tensordict import TensorDict
 from torchrl.data import Bounded
 from torchrl.objectives import SoftUpdate
@@ -42,9 +43,7 @@ def _loss(variance_loss: str, obs_dim: int, seed: int = 0, **kwargs) -> WCSACLos
         make_actor(obs_dim, Bounded(-1.0, 1.0, shape=(1,)), width=16),
         [make_qvalue(obs_dim, 1, width=16) for _ in range(2)],
         make_safety_critic(obs_dim, 1, width=64),
-        risk_level=0.5,
-        variance_loss=variance_loss,
-        **{**PAPER_OPTIONS, **kwargs},
+        **flat_parts(risk_level=0.5, variance_loss=variance_loss, **{**PAPER_OPTIONS, **kwargs}),
     )
     loss.make_value_estimator(gamma=GAMMA)
     return loss

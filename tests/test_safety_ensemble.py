@@ -11,7 +11,7 @@ import re
 
 import pytest
 import torch
-from _loss_helpers import ACT_DIM, OBS_DIM, linear_quantile_critic, make_batch
+from _loss_helpers import ACT_DIM, OBS_DIM, flat_parts, linear_quantile_critic, make_batch
 from _tolerance import assert_close_f32
 from _training_helpers import compose_config
 from tensordict import TensorDict
@@ -36,9 +36,12 @@ def _ensemble_and_singles(ensemble_target="own", **kwargs):
     members = [make_safety_critic(OBS_DIM, ACT_DIM, width=32) for _ in range(2)]
     options = {**PLAIN, "fuse_critics": False, **kwargs}
     ensemble = WCSACLoss(
-        actor, qvalues, members, num_safety_nets=2, ensemble_target=ensemble_target, **options
+        actor,
+        qvalues,
+        members,
+        **flat_parts(num_safety_nets=2, ensemble_target=ensemble_target, **options),
     )
-    singles = [WCSACLoss(actor, qvalues, member, **options) for member in members]
+    singles = [WCSACLoss(actor, qvalues, member, **flat_parts(**options)) for member in members]
     return ensemble, singles
 
 
@@ -148,11 +151,13 @@ def test_a_list_of_safety_critics_must_match_num_safety_nets():
     members = [make_safety_critic(OBS_DIM, ACT_DIM, width=8) for _ in range(2)]
     message = "num_safety_nets=1 but 2 safety critics were given: pass num_safety_nets=2"
     with pytest.raises(ValueError, match=re.escape(message)):
-        WCSACLoss(actor, qvalues, members, **PLAIN)
+        WCSACLoss(actor, qvalues, members, **flat_parts(**PLAIN))
     with pytest.raises(ValueError, match="num_safety_nets"):
-        WCSACLoss(actor, qvalues, members, num_safety_nets=2, fuse_critics=True, **PLAIN)
+        WCSACLoss(
+            actor, qvalues, members, **flat_parts(num_safety_nets=2, fuse_critics=True, **PLAIN)
+        )
     # one module and num_safety_nets=3: TorchRL's expand_dim re-draws each member
-    loss = WCSACLoss(actor, qvalues, members[0], num_safety_nets=3, **PLAIN)
+    loss = WCSACLoss(actor, qvalues, members[0], **flat_parts(num_safety_nets=3, **PLAIN))
     weight = loss.safety_network_params.get(("module", "mean_net", "0", "weight"))
     assert weight.shape[0] == 3 and not torch.equal(weight[0], weight[1])
 
@@ -261,11 +266,13 @@ def test_max_target_needs_several_critics_and_a_known_name(tmp_path):
         "ensemble_target=max picks among several safety critics: it needs num_safety_nets >= 2"
     )
     with pytest.raises(ValueError, match=re.escape(message)):
-        WCSACLoss(actor, qvalues, critic, ensemble_target="max", **PLAIN)
+        WCSACLoss(actor, qvalues, critic, **flat_parts(ensemble_target="max", **PLAIN))
     with pytest.raises(
         ValueError, match=re.escape("ensemble_target must be one of own, max, merged, got 'min'")
     ):
-        WCSACLoss(actor, qvalues, critic, num_safety_nets=2, ensemble_target="min", **PLAIN)
+        WCSACLoss(
+            actor, qvalues, critic, **flat_parts(num_safety_nets=2, ensemble_target="min", **PLAIN)
+        )
     for overrides, line in (
         (
             ["algo.ensemble_target=max"],

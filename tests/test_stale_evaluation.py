@@ -73,7 +73,7 @@ def test_report_refuses_stale_evaluations_by_run_name(tmp_path):
     assert not (tmp_path / "report" / "table1.md").exists()
     evaluate_run(runs[0], episodes=2, progress=False)
     # evaluated again, it is no longer stale; but a 1200-frame run and an 800-frame one
-    # are never pooled into one row (issue 33): each is a row of its own
+    # are never pooled into one row: each is a row of its own
     both = build_report([sweep], tmp_path / "both", trajectories=False, log=lambda m: None)
     assert [row["label"] for row in both.rows] == [
         "wcsac_0.5[total_frames=1200]",

@@ -1,4 +1,4 @@
-"""TorchRL's own SACLoss / LossModule test cases, ported to WCSACLoss and SACLagLoss (issue 28).
+"""TorchRL's own SACLoss / LossModule test cases, ported to WCSACLoss and SACLagLoss.
 
 Ported from pytorch/rl at the 0.14.0 release commit 373c31a85 (``prepare-0.14``; the
 installed 0.14.1 has the same ``torchrl/objectives/sac.py``):
@@ -14,12 +14,13 @@ Every case runs on a grid of *variants*: loss class (``WCSACLoss`` at α = 0.5,
 ``SACLagLoss``) × safety critic (``kit``: the kit's actor and critics, taking the loss's
 fast paths; ``user``: TorchRL-style ``ProbabilisticActor`` / ``ValueOperator`` and a plain
 ``TensorDictModule`` with mean and variance heads) × options (``paper``:
-``PAPER_OPTIONS``; ``default``: the loss's defaults, fed by the kit's ``NStepCost`` and
-``StartStateBuffer`` as a TorchRL user's pipeline would). Where a case's assertion is
+``PAPER_OPTIONS``; ``default``: ``SafetyOptions``' defaults, fed by the kit's ``NStepCost``
+and ``StartStateBuffer`` as a TorchRL user's pipeline would; the loss's own defaults, the
+kit's recipe, add the episode signal of ``EpisodeCostWindow``). Where a case's assertion is
 not obvious for a safe loss, TorchRL's ``SACLoss`` runs the same assertion first
 (``reference``), so the ported test is shown to pass on the loss it was written for.
 
-Every case runs; nothing is skipped or marked xfail. The defects issue 28 found are
+Every case runs; nothing is skipped or marked xfail. The defects these cases found are
 named where their cases are (D1 in_keys, D2 ``skip_done_states``, D3 ``separate_losses``,
 D4 value estimators, D5 ``MultiStep``, D7 masking, D9 a batch without ``terminated``,
 the plain first batch).
@@ -34,6 +35,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from _loss_helpers import recipe_kwargs
 from _tolerance import assert_close_f32
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import (
@@ -60,6 +62,7 @@ from torchrl.objectives.value import TD0Estimator
 from wcsac_rl import SACLagLoss, WCSACLoss, make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives import (
     PAPER_OPTIONS,
+    EpisodeCostWindow,
     NStepCost,
     SingleGroupWarning,
     StartStateBuffer,
@@ -153,14 +156,17 @@ VARIANTS = [
 
 
 def options_of(name: str) -> dict:
+    """The variant's recipe: the paper's, or nothing over SafetyOptions' defaults (the
+    kit's recipe but for its episode signal, ``KIT_OPTIONS``' ``kappa_signal="max"``)."""
     return dict(PAPER_OPTIONS) if name == "paper" else {}
 
 
 def make_variant(variant, seed: int = 0, **kwargs):
-    """The loss of ``variant`` = (class, critic, options), with ``kwargs`` on top."""
+    """The loss of ``variant`` = (class, critic, options), with ``kwargs`` on top (flat
+    options change the variant's recipe: ``recipe_kwargs``)."""
     cls_name, critic, options = variant
     torch.manual_seed(seed)
-    kwargs = {**options_of(options), **kwargs}
+    kwargs = recipe_kwargs(base=options_of(options), **kwargs)
     cls = WCSACLoss if cls_name == "WCSAC" else SACLagLoss
     if cls is WCSACLoss:
         kwargs.setdefault("risk_level", 0.5)
@@ -226,6 +232,8 @@ def prepare(loss, traj: TensorDictBase, seed: int = 0, **nstep_keys) -> TensorDi
         starts.add_starts(traj)
         torch.manual_seed(seed)
         flat = starts.attach(flat)
+    if loss.kappa_signal != "critic":  # (no episode has finished yet: NaN, the critic's)
+        flat = EpisodeCostWindow.for_loss(loss).attach(flat)
     return flat
 
 
@@ -501,7 +509,7 @@ def test_separate_losses_with_a_shared_trunk(cls, options, separate_losses, comp
     torch.manual_seed(0)
     actor, qvalue, safety, common = shared_trunk_setup(composite)
     loss_cls = WCSACLoss if cls == "WCSAC" else SACLagLoss
-    kwargs = {**options_of(options), "kappa_states": "replay", "cost_n_steps": 1}
+    kwargs = recipe_kwargs(base=options_of(options), kappa_states="replay", cost_n_steps=1)
     if cls == "WCSAC":
         kwargs["risk_level"] = 0.5
     loss = loss_cls(
@@ -689,7 +697,7 @@ def renamed_variant(variant, action_key, observation_key):
     cls_name, critic, options = variant
     torch.manual_seed(0)
     cls = WCSACLoss if cls_name == "WCSAC" else SACLagLoss
-    kwargs = {**options_of(options)}
+    kwargs = recipe_kwargs(base=options_of(options))
     if cls is WCSACLoss:
         kwargs["risk_level"] = 0.5
     if critic == "kit":
@@ -852,10 +860,15 @@ def test_skip_done_states_is_honoured(cls, options):
     on an n-step state after an episode's end), as SACLoss's ``skip_done_states``."""
     actor, spec, seen = recording_actor()
     loss_cls = WCSACLoss if cls == "WCSAC" else SACLagLoss
-    kwargs = {**options_of(options), "skip_done_states": True}
-    if cls == "WCSAC":
-        kwargs["risk_level"] = 0.5
-    loss = loss_cls(actor, user_qvalue(), user_safety(), action_spec=spec, **kwargs)
+    kwargs = {"skip_done_states": True, **({"risk_level": 0.5} if cls == "WCSAC" else {})}
+    recipe = options_of(options)
+    loss = loss_cls(
+        actor,
+        user_qvalue(),
+        user_safety(),
+        action_spec=spec,
+        **recipe_kwargs(base=recipe, **kwargs),
+    )
     batch = done_sentinel_batch(loss)
     seen.clear()
     out = loss(batch)
@@ -865,7 +878,13 @@ def test_skip_done_states_is_honoured(cls, options):
     # without the option the actor does see them (the case above is not vacuous)
     kwargs["skip_done_states"] = False
     actor, spec, seen = recording_actor()
-    loss = loss_cls(actor, user_qvalue(), user_safety(), action_spec=spec, **kwargs)
+    loss = loss_cls(
+        actor,
+        user_qvalue(),
+        user_safety(),
+        action_spec=spec,
+        **recipe_kwargs(base=recipe, **kwargs),
+    )
     loss(done_sentinel_batch(loss))
     assert any((obs == SENTINEL).any() for obs in seen)
 
@@ -1240,7 +1259,8 @@ def test_a_composite_actor_runs_through_the_kit_transforms(cls):
     assert set(traj["nstep"].keys()) == {"observation", "cost", "steps", "terminated", "done"}
     starts = StartStateBuffer.for_loss(loss)
     assert starts.add_starts(traj) == BATCH * TIME // 3
-    out = loss(starts.attach(traj.reshape(-1)))
+    episodes = EpisodeCostWindow.for_loss(loss)  # (the kit's recipe: κ reads episodes too)
+    out = loss(episodes.attach(starts.attach(traj.reshape(-1))))
     total(out).backward()
     for name, p in loss.named_parameters():
         assert name.startswith("target_") or (p.grad is not None and p.grad.norm() > 0), name
@@ -1268,7 +1288,9 @@ def test_missing_inputs_names_the_transforms_in_one_line(variant):
         assert name in message, name
     assert missing_inputs(loss, batch_for(loss)) is None
     signal = make_variant(variant, kappa_signal="max")
-    assert "EpisodeCostWindow.for_loss(loss)" in missing_inputs(signal, batch_for(signal))
+    assert missing_inputs(signal, batch_for(signal)) is None
+    without = batch_for(signal).exclude("episode_cvar")
+    assert "EpisodeCostWindow.for_loss(loss)" in missing_inputs(signal, without)
 
 
 @pytest.mark.parametrize("variant", VARIANTS)

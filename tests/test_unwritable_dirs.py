@@ -1,4 +1,4 @@
-"""Tracebacks turned into lines (issue 33): a run, a resume or a sweep into a directory that
+"""Tracebacks turned into lines: a run, a resume or a sweep into a directory that
 cannot be written, and an evaluation of a checkpoint whose networks do not fit its config,
 are each one ``error:`` line with exit code 1."""
 

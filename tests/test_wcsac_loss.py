@@ -13,6 +13,7 @@ from _loss_helpers import (
     assert_same_losses_and_gradients,
     make_batch,
     make_loss,
+    recipe_kwargs,
 )
 from _tolerance import assert_close_f32
 from tensordict import TensorDict
@@ -24,7 +25,7 @@ from torchrl.objectives.utils import ValueEstimators
 
 from wcsac_rl import SACLagLoss, WCSACLoss, per_step_cost_threshold
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import PAPER_OPTIONS
+from wcsac_rl.objectives import PAPER_OPTIONS, loss_parts
 
 # Which parameter groups each loss term may (and must) send gradients to.
 OWNERS = {
@@ -231,7 +232,7 @@ def test_set_keys_with_custom_names_gives_the_same_losses():
         cost_variance_key=("safety", "var"),
         width=16,
     )
-    custom = WCSACLoss(actor, qvalues, safety, risk_level=0.5, **PAPER_OPTIONS)
+    custom = WCSACLoss(actor, qvalues, safety, risk_level=0.5, **loss_parts(PAPER_OPTIONS))
     # the safety critic's out keys are adopted (mean first, variance second)
     assert custom.tensor_keys.cost_value == ("safety", "mean")
     assert custom.tensor_keys.cost_variance == ("safety", "var")
@@ -267,7 +268,7 @@ def test_mean_only_critic_is_sac_lag_without_variance_parameters():
         make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=8),
         [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)],
         make_safety_critic(OBS_DIM, ACT_DIM, variance=False, width=8),
-        **PAPER_OPTIONS,
+        **loss_parts(PAPER_OPTIONS),
     )
     assert isinstance(lag, WCSACLoss) and lag.risk_level == 1.0 and lag.cvar_multiplier == 0.0
     assert set(lag(make_batch()).keys()) == set(lag.out_keys)
@@ -396,8 +397,7 @@ def _readout_loss(variance_loss: str, gamma: float = 0.9, **kwargs) -> WCSACLoss
         qvalues,
         safety,
         risk_level=0.5,
-        variance_loss=variance_loss,
-        **{**PAPER_OPTIONS, **kwargs},
+        **recipe_kwargs(variance_loss=variance_loss, **kwargs),
     )
     loss.make_value_estimator(gamma=gamma)
     return loss

@@ -1,4 +1,4 @@
-"""Readers of a run's records read only whole data (issue 33): a row a killed process left
+"""Readers of a run's records read only whole data: a row a killed process left
 half-written is skipped with one warning line, never parsed into a wrong number; the
 report never pools runs of different configurations into one row, reports a run whose
 name is not UTF-8, and leaves no temporary file on an error."""

@@ -28,8 +28,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from wcsac_rl.cli_args import add_trust_env_code, check_seed
-from wcsac_rl.evaluation.evaluator import DEFAULT_SEED_OFFSET
+from wcsac_rl.cli_args import add_trust_env_code, check_seed, check_threads
+from wcsac_rl.evaluation.defaults import DEFAULT_SEED_OFFSET
 
 __all__ = ["DEFAULT_CALIBRATION_EPISODES", "format_table", "main", "parse_args"]
 
@@ -74,6 +74,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     check_seed(parser, "--seed", args.seed)
+    check_threads(parser, args.threads)
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     if args.max_episode_steps is not None and args.max_episode_steps < 1:
@@ -132,7 +133,45 @@ def format_table(result: dict[str, Any]) -> str:
     for name, predicted, realised, note in rows:
         cells = [c if isinstance(c, str) else _number(c) for c in (predicted, realised)]
         lines.append(f"{name:<32}{cells[0]:>10}{cells[1]:>10}  {note}".rstrip())
-    return "\n".join(lines)
+    return "\n".join([*lines, *training_lines(result)])
+
+
+def _count(value: float | None) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "—"
+    return str(int(value))
+
+
+def training_lines(result: dict[str, Any]) -> list[str]:
+    """The table's part on the training episodes: per epoch whose training episodes
+    cost more than ``d`` (and the last epoch), the critic's reading when they were
+    collected against their realised discounted cost-to-go, at their start states and
+    over their steps (``result["training_episodes"]``, the run's ``train_calib/*``
+    columns); one line when the run did not log them."""
+    epochs = result.get("training_episodes") or []
+    if not epochs:
+        return ["training episodes: not logged (train_calib/* columns: a run from before them)"]
+    over = [e for e in epochs if (e.get("over_episodes") or 0) > 0]
+    shown = [*over, epochs[-1]] if not over or over[-1] is not epochs[-1] else over
+    d = result.get("cost_limit", math.nan)
+    lines = [
+        f"training episodes, read when collected ({len(over)} of {len(epochs)} epochs had "
+        f"episodes over d = {d:g}; the last epoch too)",
+        f"{'  frames':<10}{'episodes':>9}{'over d':>7}{'Γ(s0)':>9}{'CVaR G0':>9}{'ratio':>8}"
+        f"{'Γ over d':>10}{'G over d':>10}{'ratio':>8}",
+    ]
+    for e in shown:
+        lines.append(
+            f"  {_count(e['frames']):<8}{_count(e['episodes']):>9}{_count(e['over_episodes']):>7}"
+            f"{_number(e['start_cvar']):>9}{_number(e['start_realised_cvar']):>9}"
+            f"{_number(e['start_ratio']):>8}{_number(e['over_cvar']):>10}"
+            f"{_number(e['over_cost_to_go']):>10}{_number(e['over_ratio']):>8}"
+        )
+    lines.append(
+        "  (ratio < 1 over d: the critic under-read the route as it was taken; ≈ 1: it "
+        "anticipated; > 1: it over-read)"
+    )
+    return lines
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -144,7 +183,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from wcsac_rl.evaluation.run_calibration import calibrate_run
     from wcsac_rl.training.config import ConfigError
 
-    torch.set_num_threads(max(1, args.threads))
+    torch.set_num_threads(args.threads)
     progress: list = []  # (bar, callback), made at the first episode: none before an error
 
     def on_episode(episode) -> None:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import argparse
 
-__all__ = ["SEED_MAX", "add_trust_env_code", "check_seed"]
+__all__ = ["SEED_MAX", "add_trust_env_code", "check_seed", "check_threads"]
 
 SEED_MAX = 2**63 - 1
 """The largest seed: torch seeds are 64-bit, and a run seeds its envs and collector with
@@ -30,3 +30,18 @@ def check_seed(parser: argparse.ArgumentParser, option: str, value: int) -> None
     """Refuse a seed option outside ``[0, SEED_MAX]`` in one line naming ``option``."""
     if not 0 <= value <= SEED_MAX:
         parser.error(f"{option} must be a whole number in [0, 2**63 - 1], got {value}")
+
+
+def check_threads(parser: argparse.ArgumentParser, value: int) -> None:
+    """Refuse ``--threads`` below 1 or above the cores this process may run on, in one
+    line (torch threads beyond the cores only wait for each other)."""
+    import os
+
+    try:
+        cores = max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # (not Linux)
+        cores = max(1, os.cpu_count() or 1)
+    if not 1 <= value <= cores:
+        parser.error(
+            f"--threads must be a whole number in [1, {cores}] (this machine's cores), got {value}"
+        )

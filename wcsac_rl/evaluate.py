@@ -35,8 +35,8 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from wcsac_rl.cli_args import add_trust_env_code, check_seed
-from wcsac_rl.evaluation.evaluator import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
+from wcsac_rl.cli_args import add_trust_env_code, check_seed, check_threads
+from wcsac_rl.evaluation.defaults import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
 
 __all__ = ["main", "parse_args"]
 
@@ -125,6 +125,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     )
     args = parser.parse_args(argv)
     check_seed(parser, "--seed", args.seed)
+    check_threads(parser, args.threads)
+    for seed in args.random_seeds:
+        check_seed(parser, "--random-seeds", seed)
     if not args.paths and args.random_policy is None:
         parser.error("give run or sweep directories, or --random-policy ENV")
     if args.episodes < 1:
@@ -134,40 +137,15 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     return args
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Evaluate; return the exit code (1 if any path failed)."""
-    args = parse_args(argv)
-    import torch
-
-    from wcsac_rl.evaluation.archive import ArchiveError, archive_run
-    from wcsac_rl.evaluation.evaluator import (
-        EvaluationExistsError,
-        evaluate_random_policy,
-        evaluate_run,
-    )
+def _jobs(args: argparse.Namespace, sweep_jobs, errors: list[str]) -> list[tuple[Path, object]]:
+    """``(directory, evaluate)`` of every run below ``args.paths`` and every random-policy
+    seed; a path that holds no run adds its line to ``errors`` (and says it)."""
+    from wcsac_rl.evaluation.evaluator import evaluate_random_policy, evaluate_run
     from wcsac_rl.evaluation.runs import find_run_dirs
-    from wcsac_rl.evaluation.sweeps import all_sweep_jobs
-    from wcsac_rl.training.config import ConfigError
-
-    torch.set_num_threads(max(1, args.threads))
-    errors: list[str] = []
-    skipped: list[str] = []
-    done: list[str] = []
-    archived: list[Path] = []
-
-    def report(directory: Path, evaluation) -> None:
-        m = evaluation.summary["metrics"]
-        done.append(str(directory))
-        print(
-            f"{directory}: {m['episodes']} episodes  EC {m['EC']:.2f}  C0.1 {m['C0.1']:.2f}  "
-            f"ER {m['ER']:.2f}  over budget {100 * m['over_budget']:.1f}%",
-            flush=True,
-        )
 
     jobs: list[tuple[Path, object]] = []
     # the jobs of the sweeps below the paths (any launcher): their status is reported
-    # below, once (a job directory without a checkpoint is not also an error here)
-    sweep_jobs = all_sweep_jobs(args.paths) if args.paths else []
+    # by main, once (a job directory without a checkpoint is not also an error here)
     without_checkpoint = [
         job.directory for job in sweep_jobs if job.directory and not job.has_checkpoint
     ]
@@ -211,6 +189,73 @@ def main(argv: Sequence[str] | None = None) -> int:
                     ),
                 )
             )
+    return jobs
+
+
+def _random_policy_problem(args: argparse.Namespace) -> str | None:
+    """What is wrong with ``--random-policy``'s env, cost limit or ``--out`` (said once,
+    not once per seed), or ``None``."""
+    from wcsac_rl.evaluation.evaluator import check_random_policy
+    from wcsac_rl.training.config import ConfigError
+
+    try:
+        check_random_policy(args.random_policy, args.cost_limit)
+    except ConfigError as err:
+        return str(err)
+    out = args.out or Path("evaluations") / f"random_{args.random_policy}"
+    if out.exists() and not out.is_dir():
+        return f"--out {out} is a file, not a directory"
+    return None
+
+
+def _say_unfinished(sweep_jobs) -> bool:
+    """Name a sweep's jobs that did not finish (any launcher), never silently dropped;
+    whether one of them is missing or failed (an error)."""
+    incomplete = [job for job in sweep_jobs if not job.complete]
+    for job in incomplete:
+        kind = "warning" if job.status in ("running", "unfinished") else "error"
+        print(f"{kind}: sweep job {job.describe()}", file=sys.stderr, flush=True)
+    if incomplete:
+        print(
+            f"{len(incomplete)} sweep job(s) not finished: "
+            + ", ".join(f"{job.name} ({job.status})" for job in incomplete),
+            flush=True,
+        )
+    return any(job.status in ("missing", "failed") for job in incomplete)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Evaluate; return the exit code (1 if any path failed)."""
+    args = parse_args(argv)
+    import torch
+
+    from wcsac_rl.evaluation.archive import ArchiveError, archive_run
+    from wcsac_rl.evaluation.evaluator import EvaluationExistsError
+    from wcsac_rl.evaluation.sweeps import all_sweep_jobs
+    from wcsac_rl.training.config import ConfigError
+
+    torch.set_num_threads(args.threads)
+    errors: list[str] = []
+    skipped: list[str] = []
+    done: list[str] = []
+    archived: list[Path] = []
+
+    def report(directory: Path, evaluation) -> None:
+        m = evaluation.summary["metrics"]
+        done.append(str(directory))
+        print(
+            f"{directory}: {m['episodes']} episodes  EC {m['EC']:.2f}  C0.1 {m['C0.1']:.2f}  "
+            f"ER {m['ER']:.2f}  over budget {100 * m['over_budget']:.1f}%",
+            flush=True,
+        )
+
+    if args.random_policy is not None:
+        problem = _random_policy_problem(args)
+        if problem is not None:
+            print(f"error: {problem}", file=sys.stderr, flush=True)
+            return 1
+    sweep_jobs = all_sweep_jobs(args.paths) if args.paths else []
+    jobs = _jobs(args, sweep_jobs, errors)
 
     def keep(directory: Path) -> None:
         """With --archive: the records of a run evaluated now or before, copied."""
@@ -250,18 +295,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"re-evaluates), {len(errors)} failed",
         flush=True,
     )
-    # a sweep's jobs that did not finish (any launcher): named, never silently dropped
-    incomplete = [job for job in sweep_jobs if not job.complete]
-    for job in incomplete:
-        kind = "warning" if job.status in ("running", "unfinished") else "error"
-        print(f"{kind}: sweep job {job.describe()}", file=sys.stderr, flush=True)
-    if incomplete:
-        print(
-            f"{len(incomplete)} sweep job(s) not finished: "
-            + ", ".join(f"{job.name} ({job.status})" for job in incomplete),
-            flush=True,
-        )
-    failed_jobs = [job for job in incomplete if job.status in ("missing", "failed")]
+    failed_jobs = _say_unfinished(sweep_jobs)
     return 1 if errors or failed_jobs else 0
 
 

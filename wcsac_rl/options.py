@@ -2,18 +2,18 @@
 
 :class:`SafetyOptions` (with :class:`PIDGains`, :class:`IQNOptions` and :class:`ShieldOptions`
 inside) is the one definition of each WCSAC / SAC-Lag option: its default, what it may
-be, a line saying what it does, which part reads it, and, where a run saved before the
-option existed did something else, what that run did. Everything else reads these dataclasses:
+be, a line saying what it does and which part reads it. Everything else reads these
+dataclasses:
 
-* the keyword defaults of :class:`~wcsac_rl.objectives.WCSACLoss` are their class
-  attributes (``kappa_init=SafetyOptions.kappa_init``), and the loss checks what it is
-  given with :func:`check_value`;
+* the loss's parts take them: the fields of ``SafetyHeadOptions`` and ``SignalOptions``
+  (:mod:`wcsac_rl.objectives.loss_options`) are these fields, checked with
+  :func:`check_value`; a recipe (``PAPER_OPTIONS``, ``wcsac_rl.recipes.KIT_OPTIONS``)
+  is what it sets over these defaults;
 * the training config (``conf/algo/wcsac.yaml``) starts from :func:`config_defaults`,
   registered with Hydra's ConfigStore (:mod:`wcsac_rl.config_schema`); the YAML files
   set only what differs;
 * the config validator and ``builders.make_loss`` read ``algo`` with
-  :func:`read_options`: one line naming ``algo.<key>`` for a bad value, and a run
-  saved before an option existed gets what it did (:data:`SAVED_RUN_VALUES`).
+  :func:`read_options`: one line naming ``algo.<key>`` for a bad or a missing value.
 
 The allowed values of the choices are defined here too; the parts import them. This
 module imports nothing heavy (no torch), so ``wcsac-train --help`` can compose the
@@ -43,7 +43,6 @@ __all__ = [
     "PAPER_OPTIONS",
     "SAFETY_ALGOS",
     "SAFETY_CRITIC_KINDS",
-    "SAVED_RUN_VALUES",
     "VARIANCE_LOSSES",
     "VARIANCE_TARGETS",
     "IQNOptions",
@@ -55,7 +54,6 @@ __all__ = [
     "check_ensemble_target",
     "check_fields",
     "check_kappa_bound",
-    "check_loss_options",
     "check_shield_candidates",
     "check_signal_every",
     "check_value",
@@ -96,10 +94,6 @@ KAPPA_PARAMETRIZATIONS = ("softplus", "log")
 
 
 # ------------------------------------------------------------------ field metadata
-NOT_SAVED = object()
-"""No :attr:`Option.saved_run` value: a run saved before the option existed cannot lack it."""
-
-
 @dataclass(frozen=True)
 class Option:
     """What one field may be (its ``metadata["option"]``), and who reads it.
@@ -124,7 +118,6 @@ class Option:
     nullable: bool = False
     unit: str = ""
     finite_words: bool = False
-    saved_run: Any = NOT_SAVED
     holds: str = ""  # a group: what it holds ("the PID gains")
     unknown_label: str | None = None  # a group: refuse unknown keys as "unknown <label> option"
     members: str = "options"  # a group: what its fields are called ("the gains are ...")
@@ -222,29 +215,25 @@ def read_options(cls: type, values: Mapping[str, Any], prefix: str = "") -> Any:
     """``cls`` (an options dataclass) from the entries of ``values`` (a config node), each
     checked (``ValueError`` naming ``<prefix><key>``) and cast to its type.
 
-    An entry ``values`` lacks is what a run saved before the option existed did
-    (:attr:`Option.saved_run`; a missing group: its defaults). Entries that are not
-    fields of ``cls`` are left alone (``algo`` also holds the SAC family's options),
+    An option (or a group) ``values`` lacks is refused naming it: a composed config has
+    every one. Entries that are not fields of ``cls`` are left alone (``algo`` also holds the SAC family's options),
     except in a group with an ``unknown_label`` (``algo.pid.kq`` is refused naming the
     closest gain)."""
     read = {}
     for f in fields(cls):
         spec = f.metadata["option"]
         key = f"{prefix}{f.name}"
+        if f.name not in values:
+            raise ValueError(f"{key} is missing (a composed config has every option)")
         if spec.kind == "group":
-            node = values.get(f.name)
-            if node is None:
-                continue  # (its defaults)
+            node = values[f.name]
             if not isinstance(node, Mapping):
                 raise ValueError(f"{key} must hold {spec.holds}, got {node!r}")
             nested = f.default_factory
             _refuse_unknown(nested, node, key, spec)
             read[f.name] = read_options(nested, node, f"{key}.")
             continue
-        if f.name in values:
-            value = values[f.name]
-        else:  # (None where no run could lack it: refused below, naming the key)
-            value = None if spec.saved_run is NOT_SAVED else spec.saved_run
+        value = values[f.name]
         check_value(key, value, spec)
         read[f.name] = spec.coerce(value)
     return cls(**read)
@@ -309,7 +298,6 @@ class PIDGains:
         low=0.0,
         low_open=True,
         nullable=True,
-        saved_run=None,
         finite_words=True,
     )
     kd: float = option(
@@ -392,7 +380,6 @@ class ShieldOptions:
         "integer",
         low=0,
         reader="collector (CriticShield)",
-        saved_run=0,
     )
     scale: float = option(
         1.0,
@@ -401,7 +388,6 @@ class ShieldOptions:
         low=0.0,
         low_open=True,
         reader="collector (CriticShield)",
-        saved_run=1.0,
     )
 
     def __post_init__(self) -> None:
@@ -443,7 +429,6 @@ class SafetyOptions:
         "the damping term at most κ, so the actor's weight stays >= 0 (CAL's rectification; "
         "false: the authors' unclamped damp)",
         "flag",
-        saved_run=False,
     )
     safety_critic: str = option(
         "gaussian",
@@ -451,7 +436,6 @@ class SafetyOptions:
         "choice",
         choices=SAFETY_CRITIC_KINDS,
         reader="network",
-        saved_run="gaussian",
     )
     num_safety_nets: int = option(
         1,
@@ -459,7 +443,6 @@ class SafetyOptions:
         "the actor, κ and the shield read them as ensemble_reading says",
         "integer",
         low=1,
-        saved_run=1,
     )
     ensemble_target: str = option(
         "own",
@@ -469,7 +452,6 @@ class SafetyOptions:
         "all from every member's target quantiles pooled, TQC's and COX-Q's)",
         "choice",
         choices=ENSEMBLE_TARGETS,
-        saved_run="own",
     )
     ensemble_reading: str = option(
         "max",
@@ -478,14 +460,12 @@ class SafetyOptions:
         "the CVaR_α of every member's quantiles merged, COX-Q)",
         "choice",
         choices=ENSEMBLE_READINGS,
-        saved_run="max",
     )
     k_ucb: float = option(
         0.5,
         "ensemble_reading=ucb: the weight of the members' standard deviation (CAL's k)",
         "number",
         low=0.0,
-        saved_run=0.5,
     )
     k_ucb_lr: float = option(
         0.0,
@@ -493,14 +473,12 @@ class SafetyOptions:
         "episode window's cost − d) per update, within [0, k_ucb_max]; 0: k_ucb fixed",
         "number",
         low=0.0,
-        saved_run=0.0,
     )
     k_ucb_max: float = option(
         2.0,
         "k_ucb_lr > 0: the largest k_ucb",
         "number",
         low=0.0,
-        saved_run=2.0,
     )
     prior_scale: float = option(
         0.0,
@@ -508,7 +486,6 @@ class SafetyOptions:
         "its cost value (randomized prior functions; 0: none)",
         "number",
         low=0.0,
-        saved_run=0.0,
     )
     iqn: IQNOptions = field(
         default_factory=IQNOptions,
@@ -538,7 +515,6 @@ class SafetyOptions:
         "the variance head's TD target: td (squared TD error + γ_c² V̄') or moment (Eq. 8)",
         "choice",
         choices=VARIANCE_TARGETS,
-        saved_run="moment",
     )
     kappa_actions: str = option(
         "policy",
@@ -551,21 +527,18 @@ class SafetyOptions:
         "the states κ reads Γ at: initial (episode starts, vs d) or replay (batch states)",
         "choice",
         choices=KAPPA_STATES,
-        saved_run="replay",
     )
     kappa_statistic: str = option(
         "tail",
         "tail (CVaR_α of the critic mixed over the states) or mean (of per-state Γ)",
         "choice",
         choices=KAPPA_STATISTICS,
-        saved_run="mean",
     )
     kappa_signal: str = option(
         "critic",
         "what κ holds under d: critic (Γ), max (of Γ and the recent episodes') or episodes",
         "choice",
         choices=KAPPA_SIGNALS,
-        saved_run="critic",
     )
     kappa_signal_every: int = option(
         1,
@@ -575,9 +548,7 @@ class SafetyOptions:
         "integer",
         low=1,
         unit="updates",
-        saved_run=1,
     )
-    # (saved_run: a run saved before the window existed read the critic, not the window)
     kappa_episode_window: int = option(
         30,
         "kappa_signal max/episodes: the last finished training episodes it reads",
@@ -585,7 +556,6 @@ class SafetyOptions:
         low=1,
         unit="episodes",
         reader="episode window",
-        saved_run=30,
     )
     kappa_episode_statistic: str = option(
         "cvar",
@@ -593,7 +563,6 @@ class SafetyOptions:
         "rate (per step, times the episode limit)",
         "choice",
         choices=EPISODE_STATISTICS,
-        saved_run="cvar",
         reader="episode window",
     )
     kappa_test_window: int = option(
@@ -605,14 +574,12 @@ class SafetyOptions:
         low=0,
         unit="episodes",
         reader="episode window",
-        saved_run=0,
     )
     kappa_rule: str = option(
         "gradient",
         "how κ moves: gradient (Adam on loss_kappa) or pid (PID Lagrangian)",
         "choice",
         choices=CONSTRAINT_RULES,
-        saved_run="gradient",
     )
     pid: PIDGains = field(
         default_factory=PIDGains,
@@ -653,7 +620,6 @@ class SafetyOptions:
         low=0.0,
         low_open=True,
         nullable=True,
-        saved_run=None,
     )
     kappa_min: float = option(
         0.0,
@@ -662,7 +628,6 @@ class SafetyOptions:
         "number",
         low=0.0,
         finite_words=True,
-        saved_run=0.0,
     )
     cost_gamma: float | None = option(
         1.0,
@@ -671,53 +636,23 @@ class SafetyOptions:
         low=0.0,
         high=1.0,
         nullable=True,
-        saved_run=None,
     )
     cost_bootstrap_truncated: bool | None = option(
         None,
         "bootstrap the safety critic across time limits (null: only if γ_c < 1)",
         "flag",
         nullable=True,
-        saved_run=True,
     )
     cost_n_steps: int = option(
         10,
         "the safety critic's TD targets bootstrap n steps ahead (1: the paper)",
         "integer",
         low=1,
-        saved_run=1,
     )
-    nonnegative_cost: bool = option(
-        True, "max(Q^c, 0) in targets and Γ (false: the paper)", "flag", saved_run=False
-    )
+    nonnegative_cost: bool = option(True, "max(Q^c, 0) in targets and Γ (false: the paper)", "flag")
 
     def __post_init__(self) -> None:
         check_fields(self)
-
-    def loss_kwargs(self) -> dict[str, Any]:
-        """The keywords of :class:`~wcsac_rl.objectives.WCSACLoss` these options give.
-
-        Only the options of the parts they select: the PID gains under
-        ``kappa_rule="pid"`` (then no MDMM damping, the gradient rule's knob), the IQN
-        head's options with ``safety_critic="iqn"``, the variance head's otherwise."""
-        kwargs = {f.name: getattr(self, f.name) for f in _loss_fields(self)}
-        kwargs.update({f.name: getattr(self.iqn, f.name) for f in _loss_fields(self.iqn)})
-        if self.kappa_rule == "pid":
-            kwargs["damp_scale"], kwargs["damp_clamp"] = 0.0, False
-        else:
-            del kwargs["pid"]
-        iqn = self.safety_critic == "iqn"
-        for name in (
-            ("variance_loss", "variance_target")
-            if iqn
-            else ("num_quantiles", "num_target_quantiles", "huber_kappa")
-        ):
-            del kwargs[name]
-        return kwargs
-
-
-def _loss_fields(instance: Any) -> list:
-    return [f for f in fields(instance) if f.metadata["option"].reader == "loss"]
 
 
 LOSS_OPTIONS = tuple(
@@ -726,30 +661,8 @@ LOSS_OPTIONS = tuple(
     for f in fields(cls)
     if f.metadata["option"].reader == "loss" and f.metadata["option"].kind != "group"
 )
-"""The loss's keywords that are options here (checked by the loss with :func:`check_value`)."""
-
-
-def _saved_run_values(cls: type) -> dict[str, Any]:
-    return {
-        f.name: f.metadata["option"].saved_run
-        for f in fields(cls)
-        if f.metadata["option"].saved_run is not NOT_SAVED
-    }
-
-
-SAVED_RUN_VALUES: Mapping[str, Any] = MappingProxyType(_saved_run_values(SafetyOptions))
-"""What a run saved before one of these ``algo`` options existed did: its value for it
-(a resumed or evaluated run keeps training as it did). From the fields' ``saved_run``."""
-
-
-def check_loss_options(arguments: Mapping[str, Any]) -> None:
-    """Check the loss's arguments that are options (:data:`LOSS_OPTIONS`; the others are
-    left alone) with :func:`check_value`: ``kappa_init must be >= 0 (a number), got -1``."""
-    for name in LOSS_OPTIONS:
-        if name not in arguments:
-            continue
-        cls = SafetyOptions if name in SafetyOptions.__dataclass_fields__ else IQNOptions
-        check_value(name, arguments[name], option_spec(cls, name))
+"""The options the loss's parts take (:mod:`wcsac_rl.objectives.loss_options`: the fields of
+``SafetyHeadOptions``, ``SignalOptions`` and the constraint's)."""
 
 
 def check_kappa_bound(
@@ -900,9 +813,9 @@ PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(
 )
 """The safety critic and κ as the paper writes them (Eq. 7–8, one-step targets with the
 reward's γ, κ on the mean Γ over replay states against the per-step threshold):
-``WCSACLoss(..., **PAPER_OPTIONS)``, ``dataclasses.replace(SafetyOptions(),
-**PAPER_OPTIONS)``. The defaults differ, on StaticEnv evidence (docs/defaults.md);
-``algo=wcsac_paper`` is the same in the config."""
+``WCSACLoss(..., **loss_parts(PAPER_OPTIONS))``, ``dataclasses.replace(SafetyOptions(),
+**PAPER_OPTIONS)``. The kit's recipes differ, on StaticEnv evidence (docs/defaults.md;
+``wcsac_rl.recipes.KIT_OPTIONS``); ``algo=wcsac_paper`` is the same in the config."""
 
 for _name, _value in PAPER_OPTIONS.items():  # (a preset of the fields above, checked)
     check_value(_name, _value, option_spec(SafetyOptions, _name))

@@ -1,4 +1,15 @@
-"""Which files hold an algorithm's training recipe, and the groups a user picks from.
+"""Each algorithm's training recipe as a named object, which files hold it, and the
+groups a user picks from.
+
+:func:`recipe_options` is what an algorithm's recipe sets on a layout over
+``SafetyOptions``' defaults and ``off_policy.yaml``'s, the same as its config files
+compose (a test composes every algorithm × layout and compares them key by key):
+``KIT_OPTIONS`` (``kit_options("static")``) is WCSAC's on StaticEnv, what ``train.py
+algo=wcsac env=static`` runs and what :class:`~wcsac_rl.objectives.WCSACLoss`'s own
+defaults are; ``kit_options("dynamic")`` DynamicEnv's; ``PAPER_OPTIONS``
+(:mod:`wcsac_rl.options`) the paper's. A user's own loop builds the loss from one with
+:func:`~wcsac_rl.objectives.loss_options.loss_parts` and reads the trainer's keys
+(``actor_lr``, ``kappa_lr_scale``, ``kappa_episode_window``) from it.
 
 Each algorithm is one file of ``conf/algo/`` (one that names its algorithm or its row:
 ``name:`` / ``label:``),
@@ -19,19 +30,141 @@ lists the groups with :func:`config_groups`.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from types import MappingProxyType
+from typing import Any
 
 import yaml
 
+from wcsac_rl.options import PAPER_OPTIONS
+
 __all__ = [
+    "KIT_OPTIONS",
+    "LAYOUTS",
     "LAYOUT_DIR",
+    "RECIPE_ALGORITHMS",
+    "TRAINER_KEYS",
     "algorithm_files",
     "check_layouts",
     "check_recipe",
     "config_groups",
+    "kit_options",
     "layout_files",
     "recipe_of",
+    "recipe_options",
 ]
+
+# ------------------------------------------------------------------ the recipes
+TRAINER_KEYS: Mapping[str, Any] = MappingProxyType(
+    {"alpha_init": 1.0, "actor_lr": None, "lr": 1.0e-3}
+)
+"""The keys of ``conf/algo/off_policy.yaml`` a recipe may set besides ``SafetyOptions``'
+fields, with that file's values (``alpha_init`` is SACLoss's too)."""
+
+LAYOUTS = ("static", "dynamic", "point_goal1", "point_goal2", "tiny", "gymnasium")
+"""The layouts a recipe may differ on: the envs of ``conf/env/``."""
+
+KIT_OPTIONS: Mapping[str, Any] = MappingProxyType(
+    {
+        "safety_critic": "iqn",
+        "kappa_signal": "max",
+        "kappa_episode_window": 10,
+        "kappa_lr_scale": 0.3,
+        "alpha_init": 0.1,
+        "actor_lr": 3.0e-4,
+    }
+)
+"""The kit's WCSAC recipe on StaticEnv (``conf/algo/wcsac.yaml``; every layout but
+DynamicEnv): the IQN safety critic, κ on the larger of the critic's Γ and the last 10
+training episodes' empirical CVaR_α at 0.3 × lr, β from 0.1 and the actor at 3e-4.
+Its loss options are :class:`~wcsac_rl.objectives.WCSACLoss`'s defaults; evidence:
+docs/defaults.md."""
+
+_DYNAMIC_PID = {"kappa_rule": "pid", "cost_n_steps": 50, "actor_lr": 1.0e-3}
+_AUTHORS_KAPPA_ADVICE = {"kappa_lr_scale": 50.0, "damp_scale": 10.0}
+_SAC_LAG = {"risk_level": 1.0, "variance": False}
+_CAL = {
+    "risk_level": 1.0,
+    "variance": False,
+    "num_safety_nets": 4,
+    "ensemble_reading": "ucb",
+    "damp_scale": 10.0,
+    "damp_clamp": True,
+    "kappa_states": "replay",
+    "kappa_actions": "replay",
+    "kappa_statistic": "mean",
+    "kappa_parametrization": "log",
+    "kappa_init": 0.6931,
+    "cost_gamma": 0.99,
+    "cost_n_steps": 1,
+    "nonnegative_cost": False,
+    "lr": 3.0e-4,
+}
+_PAPER_LAYOUTS = {
+    layout: _AUTHORS_KAPPA_ADVICE for layout in ("dynamic", "point_goal1", "point_goal2")
+}
+# algorithm -> (its recipe on every layout, what differs on a layout): conf/algo/<algorithm>.yaml
+# and conf/algo/layout/<algorithm>_<layout>.yaml, whose comments hold the evidence
+_RECIPES: dict[str, tuple[Mapping[str, Any], dict[str, Mapping[str, Any]]]] = {
+    "wcsac": (
+        KIT_OPTIONS,
+        {"dynamic": {**_DYNAMIC_PID, "kappa_init": 0.1, "kappa_min": 0.1, "pid": {"ki": 0.0}}},
+    ),
+    "wcsac_paper": (PAPER_OPTIONS, _PAPER_LAYOUTS),
+    "sac_lag": (
+        {**_SAC_LAG, **{k: v for k, v in KIT_OPTIONS.items() if k != "safety_critic"}},
+        {
+            "static": {"safety_critic": "iqn"},
+            "dynamic": {
+                **_DYNAMIC_PID,
+                "safety_critic": "iqn",
+                "kappa_init": 0.02,
+                "kappa_min": 0.02,
+                "pid": {"ki": 0.0, "max_kappa": 0.3},
+            },
+        },
+    ),
+    "sac_lag_paper": ({**PAPER_OPTIONS, **_SAC_LAG}, _PAPER_LAYOUTS),
+    "cal": (_CAL, {}),
+}
+RECIPE_ALGORITHMS = tuple(_RECIPES)
+"""The algorithms with a safety critic whose recipes :func:`recipe_options` gives."""
+
+
+def recipe_options(algorithm: str, layout: str = "static") -> Mapping[str, Any]:
+    """What ``algo=<algorithm> env=<layout>`` sets over ``SafetyOptions``' defaults and
+    ``off_policy.yaml``'s (a nested ``pid`` mapping: the gains it sets), read-only; a
+    WCSAC variant's ``risk_level`` is the run's own (``risk_level=...``), not the
+    recipe's. An unknown algorithm or layout: one ``ValueError`` line naming it.
+
+    Example:
+        >>> recipe_options("wcsac", "dynamic")["kappa_rule"]
+        'pid'
+    """
+    if algorithm not in _RECIPES:
+        raise ValueError(
+            f"no recipe for algorithm {algorithm!r}: the algorithms with a safety critic "
+            f"are {', '.join(RECIPE_ALGORITHMS)}"
+        )
+    if layout not in LAYOUTS:
+        raise ValueError(f"no layout {layout!r}: the layouts are {', '.join(LAYOUTS)}")
+    base, layouts = _RECIPES[algorithm]
+    return MappingProxyType({**base, **layouts.get(layout, {})})
+
+
+def kit_options(layout: str = "static") -> Mapping[str, Any]:
+    """The kit's WCSAC recipe on ``layout``: :data:`KIT_OPTIONS` and, on DynamicEnv, the
+    PID rule from κ = 0.1 with that floor and no integral term, 50-step cost targets and
+    the actor at SAC's rate (``conf/algo/layout/wcsac_dynamic.yaml``, with its evidence).
+    ``recipe_options("wcsac", layout)``.
+
+    Example:
+        >>> kit_options("static") == KIT_OPTIONS
+        True
+    """
+    return recipe_options("wcsac", layout)
+
 
 LAYOUT_DIR = "layout"
 """``conf/algo/<this>/``: the per-layout recipe files."""

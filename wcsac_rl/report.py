@@ -26,7 +26,8 @@ Table-1 row (``algo.label``, seeds pooled) and writes into ``--out`` (default
   number of times) the probability that a run of A has a lower C0.1 (and EC) than a run
   of B, with its interval (also ``improvement.csv``);
 * ``fig_runs.png`` — one dot per run of EC, C0.1, ER, the IQM and its interval, d drawn;
-  ``fig_score_distribution.png`` — the fraction of runs with C0.1 <= x per row
+  ``fig_score_distribution.png`` — the fraction of runs with C0.1 <= x per row;
+  ``fig_cost_return.png`` — each row at its (EC, ER) with their intervals, d drawn
   (docs/evaluation_protocol.md says how a study uses them; ``--study`` makes a run that
   cannot be pooled an error instead of leaving these out with a warning);
 * with ``--archive``, ``runs/<run>/`` — each run's ``evaluation.json``/``.csv``,
@@ -35,7 +36,10 @@ Table-1 row (``algo.label``, seeds pooled) and writes into ``--out`` (default
   without checkpoints, from which ``python -m wcsac_rl.report <out>/runs`` makes the
   same tables again.
 
-Existing files are not overwritten without ``--force``. Errors print one ``error:``
+Each figure is written as PNG and PDF, each row in one colour and marker in all of them;
+each Markdown table also as a LaTeX booktabs table (``.tex``). On a user's own env
+(``env=gymnasium``: no layout to draw on) Figure 5 is skipped in one line and the tables
+have no goals columns. Existing files are not overwritten without ``--force``. Errors print one ``error:``
 line and exit with code 1.
 
 Examples::
@@ -50,12 +54,13 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from wcsac_rl.cli_args import add_trust_env_code, check_seed
-from wcsac_rl.evaluation.evaluator import DEFAULT_SEED_OFFSET
+from wcsac_rl.cli_args import add_trust_env_code, check_seed, check_threads
+from wcsac_rl.evaluation.defaults import DEFAULT_SEED_OFFSET
 
 __all__ = ["main", "parse_args"]
 
@@ -154,6 +159,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = parser.parse_args(argv)
     check_seed(parser, "--trajectory-seed", args.trajectory_seed)
+    check_threads(parser, args.threads)
+    if args.fig6_ymax is not None and not (math.isfinite(args.fig6_ymax) and args.fig6_ymax > 0):
+        parser.error(f"--fig6-ymax must be a finite number > 0 (a cost), got {args.fig6_ymax}")
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out} is a file, not a directory")
     if args.trajectory_episodes < 1:
         parser.error(f"--trajectory-episodes must be >= 1, got {args.trajectory_episodes}")
     if args.trajectory_max_steps is not None and args.trajectory_max_steps < 1:
@@ -172,7 +182,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from wcsac_rl.training.config import ConfigError
     from wcsac_rl.training.trust import allow_env_code
 
-    torch.set_num_threads(max(1, args.threads))
+    torch.set_num_threads(args.threads)
     out = args.out if args.out is not None else args.paths[0] / "report"
     try:
         pairs = [parse_improvement(text) for text in args.improvement]

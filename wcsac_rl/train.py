@@ -203,6 +203,7 @@ def main(cfg: DictConfig) -> None:
     hydra_cfg = HydraConfig.get()
     run_dir = Path(hydra_cfg.runtime.output_dir)
     staged = _staged_records(run_dir, hydra_cfg.output_subdir)
+    entries = _entries_before(run_dir, staged)
     with ConsoleLog() as log:
         try:
             trainer = _build(cfg, run_dir, hydra_cfg.overrides.task)
@@ -223,7 +224,8 @@ def main(cfg: DictConfig) -> None:
             print(f"{stop}", file=sys.stderr, flush=True)
             sys.exit(stop.exit_code)
         except user_errors as err:
-            _exit_with(f"error: {err}")
+            trainer.close()  # (its lock released before its files go)
+            _exit_with(f"error: {err}{_discard_stopped(trainer, entries)}")
         finally:
             trainer.close()
         print(f"run directory: {run_dir}")
@@ -253,8 +255,8 @@ def _note_before(argv: Sequence[str]) -> None:
     for arg in argv:
         key, sep, value = arg.lstrip("+").partition("=")
         value = value.strip("'\"")
-        if sep and key == "hydra.run.dir" and "${" not in value and value:
-            path = Path(os.path.abspath(Path(value).expanduser()))  # (as Hydra makes it)
+        if sep and key == "hydra.run.dir" and "${" not in value:  # ("": the current one)
+            path = Path(os.path.abspath(Path(value or ".").expanduser()))  # (as Hydra makes it)
             _BEFORE["dir"] = path
             _BEFORE["existed"] = (
                 frozenset(p.name for p in path.iterdir()) if path.is_dir() else None
@@ -319,10 +321,64 @@ def _discard(run_dir: Path, staged: Path | None = None) -> None:
     noted = _BEFORE.get("dir") == Path(os.path.abspath(run_dir))
     existed = _BEFORE.get("existed") if noted else None
     created = noted and existed is None
-    if not discard_unused_run_dir(
+    if discard_unused_run_dir(
         run_dir, existed=existed, since=_BEFORE.get("since"), created=created
     ):
-        return
+        _remove_empty_parents(run_dir)
+
+
+def _entries_before(run_dir: Path, staged: Path | None) -> frozenset[str] | None:
+    """The entries of ``run_dir`` before the run wrote anything, without what this
+    command itself made there first (Hydra's staged records and its empty job log, the
+    directory itself when ``hydra.run.dir`` did not exist): ``None`` when there were
+    none (the run's files are all of it)."""
+    import os
+
+    from wcsac_rl.training.run_dir import HYDRA_STAGING
+
+    if _BEFORE.get("dir") == Path(os.path.abspath(run_dir)):
+        return _BEFORE.get("existed")
+    if not run_dir.is_dir():
+        return None
+    names = frozenset(
+        p.name
+        for p in run_dir.iterdir()
+        if not (p.name.startswith(HYDRA_STAGING) or (p.suffix == ".log" and _empty(p)))
+    )
+    return names or None
+
+
+def _empty(path: Path) -> bool:
+    return path.is_file() and not path.is_symlink() and path.stat().st_size == 0
+
+
+def _discard_stopped(trainer: Trainer, entries: frozenset[str] | None) -> str:
+    """A fresh run that stopped before its first checkpoint has nothing to continue from:
+    what it wrote is removed (its directory too, when only the run was in it). Returns
+    what the error line adds (nothing when a checkpoint is kept: a resumed run's too)."""
+    import shutil
+
+    from wcsac_rl.training.run_dir import LOCK_FILE
+
+    run_dir = Path(trainer.run_dir)
+    if trainer.checkpoint_path.is_file() or not run_dir.is_dir():
+        return ""
+    if entries is None:
+        shutil.rmtree(run_dir, ignore_errors=True)
+        _remove_empty_parents(run_dir)
+        return f"; {run_dir} is removed (it held nothing to continue from)"
+    for path in run_dir.iterdir():
+        if path.name in entries and path.name != LOCK_FILE:
+            continue
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path, ignore_errors=True)
+        else:
+            path.unlink(missing_ok=True)
+    return f"; what the run wrote into {run_dir} is removed (it held nothing to continue from)"
+
+
+def _remove_empty_parents(run_dir: Path) -> None:
+    """Hydra's date directories above a removed run (``outputs/<date>/``), once empty."""
     cwd = Path.cwd().resolve()
     parent = run_dir.resolve().parent
     while parent != cwd and parent.is_relative_to(cwd):
@@ -357,18 +413,42 @@ def check_command_line(argv: list[str]) -> None:
     from wcsac_rl.training.errors import ConfigError
 
     try:
-        check_override_syntax(list(args.overrides))
+        check_override_syntax(list(args.overrides), multirun=bool(args.multirun))
         check_interpolations(list(args.overrides))
         check_override_keys(list(args.overrides))
         check_output_dirs(list(args.overrides))
+        if args.multirun:
+            check_sweep_jobs(list(args.overrides))
     except ConfigError as err:
         sys.exit(f"error: {err}")
 
 
-def check_override_syntax(overrides: list[str]) -> None:
+def check_sweep_jobs(overrides: list[str]) -> None:
+    """With ``-m``, every value of each sweep the command line names is checked before the
+    launcher starts a job (``seed=1,abc`` is refused before seed 1 trains): the config of
+    each value, the other sweeps at their first, composed and validated. A sweep that
+    resumes runs (``resume=...``) is checked by each job against its own run instead."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from wcsac_rl.training.config import validate_config
+
+    parsed = OverridesParser.create().parse_overrides(overrides)
+    sweeps = [o for o in parsed if o.is_sweep_override() and not o.is_hydra_override()]
+    if not sweeps or any(o.get_key_element().lstrip("+~") == "resume" for o in parsed):
+        return
+    fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
+    first = {id(o): next(iter(o.sweep_string_iterator())) for o in sweeps}
+    for sweep in sweeps:
+        for value in sweep.sweep_string_iterator():
+            job = [f"{o.get_key_element()}={value if o is sweep else first[id(o)]}" for o in sweeps]
+            validate_config(compose_config(*fixed, *job))
+
+
+def check_override_syntax(overrides: list[str], *, multirun: bool = False) -> None:
     """Refuse, in one line naming it, an override Hydra's grammar cannot read (a path
-    with a newline, a character outside its lexer's such as ``ü``): Hydra's own refusal
-    is a stack of lines pointing at a column."""
+    with a newline, a character outside its lexer's such as ``ü``), one that names no key
+    (``=5``), and without ``multirun`` one that is a sweep (``algo.lr=1,2``): Hydra's own
+    refusals are stacks of lines (or a traceback)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
@@ -376,9 +456,12 @@ def check_override_syntax(overrides: list[str]) -> None:
 
     parser = OverridesParser.create()
     for override in overrides:
+        key, sep, value = override.partition("=")
+        if sep and not key.lstrip("+~").strip():
+            raise ConfigError(f"cannot read the override {override!r}: it names no key (key=value)")
         try:
-            parser.parse_overrides([override])
-        except HydraException as err:
+            (parsed,) = parser.parse_overrides([override])
+        except (HydraException, ValueError) as err:
             reason = (str(err).strip().splitlines() or [type(err).__name__])[0]
             reason = reason.split(":", 1)[0] if reason.startswith("Lexer") else reason
             key = override.split("=", 1)[0]
@@ -387,6 +470,11 @@ def check_override_syntax(overrides: list[str]) -> None:
                 f"the argument, e.g. \"{key}='...'\", or choose a value without newlines or "
                 "characters outside ASCII"
             ) from None
+        if not multirun and parsed.is_sweep_override() and not parsed.is_hydra_override():
+            raise ConfigError(
+                f"{override} is a sweep of values: add -m (--multirun) to run one job for "
+                f"each, or quote the value to give it whole: \"{key}='{value}'\""
+            )
 
 
 def check_interpolations(overrides: list[str]) -> None:
@@ -526,6 +614,12 @@ def run_training(
         _say_recipe(trainer.cfg)
         try:
             done, curves = _finish(trainer)
+        except _user_errors() as err:
+            trainer.close()
+            removed = _discard_stopped(trainer, entries)
+            if removed and err.args:
+                err.args = (f"{err.args[0]}{removed}", *err.args[1:])
+            raise
         finally:
             trainer.close()
         print(f"run directory: {done} (training curves: {curves})")

@@ -35,6 +35,33 @@ from wcsac_rl.envs.point_goal import validate_action
 __all__ = ["TinyHazardEnv"]
 
 
+def _number(name: str, value: Any, *, low: float | None = None, strict: bool = False) -> float:
+    """``value`` as a finite float (``> low`` with ``strict``, else ``>= low``), or a
+    ``ValueError`` naming ``name``."""
+    bound = "" if low is None else f" {'>' if strict else '>='} {low:g}"
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = math.nan
+    if (
+        isinstance(value, bool)
+        or not math.isfinite(number)
+        or (low is not None and (number <= low if strict else number < low))
+    ):
+        raise ValueError(f"{name} must be a finite number{bound}, got {value!r}")
+    return number
+
+
+def _point(name: str, value: Any) -> tuple[float, float]:
+    """``value`` as an ``(x, y)`` pair of finite floats, or a ``ValueError`` naming ``name``."""
+    if isinstance(value, (str, bytes)) or not hasattr(value, "__len__") or len(value) != 2:
+        raise ValueError(f"{name} must be a pair (x, y) of finite numbers, got {value!r}")
+    try:
+        return (_number(name, value[0]), _number(name, value[1]))
+    except ValueError:
+        raise ValueError(f"{name} must be a pair (x, y) of finite numbers, got {value!r}") from None
+
+
 class TinyHazardEnv(gym.Env):
     """Point mass to a goal past a hazard disc: the smallest env with a real cost trade-off.
 
@@ -83,8 +110,14 @@ class TinyHazardEnv(gym.Env):
     ) -> None:
         if render_mode is not None:
             raise ValueError(f"TinyHazardEnv does not render; got render_mode={render_mode!r}")
-        if int(max_episode_steps) < 1:
-            raise ValueError(f"max_episode_steps must be >= 1, got {max_episode_steps}")
+        if (
+            isinstance(max_episode_steps, bool)
+            or not isinstance(max_episode_steps, (int, np.integer))
+            or max_episode_steps < 1
+        ):
+            raise ValueError(
+                f"max_episode_steps must be an integer >= 1, got {max_episode_steps!r}"
+            )
         if not 0.0 <= float(hazard_cost_prob) <= 1.0:
             raise ValueError(f"hazard_cost_prob must be in [0, 1], got {hazard_cost_prob}")
         if not float(hazard_cost) >= 0.0:
@@ -93,14 +126,14 @@ class TinyHazardEnv(gym.Env):
         self.hazard_cost_prob = float(hazard_cost_prob)
         self.render_mode = None
         self.max_episode_steps = int(max_episode_steps)
-        self.speed = float(speed)
-        self.goal_size = float(goal_size)
-        self.hazard_size = float(hazard_size)
-        self.start_noise = float(start_noise)
-        self.reward_goal = float(reward_goal)
-        self._start_xy = (float(start_xy[0]), float(start_xy[1]))
-        self._default_goal = (float(goal_xy[0]), float(goal_xy[1]))
-        self._default_hazard = (float(hazard_xy[0]), float(hazard_xy[1]))
+        self.speed = _number("speed", speed, low=0.0, strict=True)
+        self.goal_size = _number("goal_size", goal_size, low=0.0, strict=True)
+        self.hazard_size = _number("hazard_size", hazard_size, low=0.0)
+        self.start_noise = _number("start_noise", start_noise, low=0.0)
+        self.reward_goal = _number("reward_goal", reward_goal)
+        self._start_xy = _point("start_xy", start_xy)
+        self._default_goal = _point("goal_xy", goal_xy)
+        self._default_hazard = _point("hazard_xy", hazard_xy)
         self._gx, self._gy = self._default_goal
         self._hx, self._hy = self._default_hazard
         self._x = self._y = 0.0

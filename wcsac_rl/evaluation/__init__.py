@@ -17,16 +17,10 @@
 * :mod:`~wcsac_rl.evaluation.run_statistics` — statistics over runs (IQM, probability of
   improvement, their bootstrap intervals); :mod:`~wcsac_rl.evaluation.run_report` and
   :mod:`~wcsac_rl.evaluation.run_plots` — the report's runs one by one and their figures.
-"""
 
-from wcsac_rl.evaluation.metrics import (
-    RISK_LEVELS,
-    aggregate_seeds,
-    curve_mean_std,
-    exceedance_proportion,
-    table1_metrics,
-)
-from wcsac_rl.rollouts.episodes import EpisodeResult, run_episodes, summarize_episodes
+The names below are imported on first use, so that the console scripts' ``--help`` (which
+reads :mod:`~wcsac_rl.evaluation.defaults`) answers before torch is imported.
+"""
 
 __all__ = [
     "RISK_LEVELS",
@@ -38,3 +32,25 @@ __all__ = [
     "summarize_episodes",
     "table1_metrics",
 ]
+
+_METRICS = ("RISK_LEVELS", "aggregate_seeds", "curve_mean_std", "exceedance_proportion",
+            "table1_metrics")  # fmt: skip
+_EPISODES = ("EpisodeResult", "run_episodes", "summarize_episodes")
+
+
+def __getattr__(name: str):
+    """The names above, imported on first use (PEP 562): importing a light submodule
+    (``wcsac_rl.evaluation.defaults``, for a console script's ``--help``) loads no torch."""
+    if name in _METRICS:
+        from wcsac_rl.evaluation import metrics as source
+    elif name in _EPISODES:
+        from wcsac_rl.rollouts import episodes as source
+    else:
+        raise AttributeError(f"module 'wcsac_rl.evaluation' has no attribute {name!r}")
+    value = getattr(source, name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

@@ -42,10 +42,12 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
+from wcsac_rl.evaluation.defaults import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
 from wcsac_rl.evaluation.metrics import table1_metrics
 from wcsac_rl.evaluation.runs import EVALUATION_CSV, EVALUATION_JSON
 from wcsac_rl.rollouts.episodes import EpisodeResult, run_episodes
 from wcsac_rl.training.config import ConfigError
+from wcsac_rl.training.registry import find_algorithm
 from wcsac_rl.training.restore import RestoredRun
 
 __all__ = [
@@ -55,6 +57,7 @@ __all__ = [
     "Evaluation",
     "EvaluationExistsError",
     "check_env_code_allowed",
+    "check_random_policy",
     "evaluate_random_policy",
     "evaluate_run",
     "load_policy",
@@ -64,8 +67,6 @@ __all__ = [
     "write_evaluation",
 ]
 
-DEFAULT_EPISODES = 100  # the paper: 100 test episodes per seed, 300 per algorithm
-DEFAULT_SEED_OFFSET = 2_000_003
 CSV_COLUMNS = ("episode", "return", "cost", "length", "goals", "numerical_failure")
 
 
@@ -339,7 +340,8 @@ def load_policy(
 
     restored = load_run(run_dir, seed=env_seed, num_envs=num_envs, trust_env_code=trust_env_code)
     algo = str(restored.cfg.algo.name)
-    if restored.policy is None and algo != "random":
+    entry = find_algorithm(algo)
+    if restored.policy is None and (entry is None or entry.learns):
         restored.env.close()
         raise ConfigError(
             f"{run_dir}: no policy could be restored from the checkpoint of algo {algo!r}"
@@ -469,6 +471,17 @@ def evaluate_run(
     return evaluation
 
 
+def check_random_policy(env_name: str, cost_limit: float) -> None:
+    """Refuse, naming it, an env the random policy cannot be evaluated on or a cost
+    limit that is not a budget (:class:`ConfigError`)."""
+    from wcsac_rl.envs import PRESET_NAMES
+
+    if env_name not in PRESET_NAMES:
+        raise ConfigError(f"unknown env {env_name!r}; choose one of {', '.join(PRESET_NAMES)}")
+    if not math.isfinite(cost_limit) or cost_limit < 0:
+        raise ConfigError(f"cost limit must be a number >= 0, got {cost_limit!r}")
+
+
 def evaluate_random_policy(
     env_name: str,
     out_dir: str | os.PathLike,
@@ -490,12 +503,9 @@ def evaluate_random_policy(
         ConfigError: unknown env, negative cost limit, or an existing evaluation and
             not ``force``.
     """
-    from wcsac_rl.envs import PRESET_NAMES, env_info, make_env
+    from wcsac_rl.envs import env_info, make_env
 
-    if env_name not in PRESET_NAMES:
-        raise ConfigError(f"unknown env {env_name!r}; choose one of {', '.join(PRESET_NAMES)}")
-    if not math.isfinite(cost_limit) or cost_limit < 0:
-        raise ConfigError(f"cost limit must be a number >= 0, got {cost_limit!r}")
+    check_random_policy(env_name, cost_limit)
     out_dir = Path(out_dir)
     check_can_write(out_dir, force)
     kwargs = {} if max_episode_steps is None else {"max_episode_steps": int(max_episode_steps)}

@@ -46,6 +46,9 @@ __all__ = [
     "row_styles",
     "run_curves_figure",
     "save_figure",
+    "set_frames_axis",
+    "set_row_ticks",
+    "styles_for",
     "trajectory_figure_size",
 ]
 
@@ -114,7 +117,7 @@ def row_styles(labels: Iterable[str]) -> dict[str, RowStyle]:
     }
 
 
-def _styles_for(labels: Iterable[str], styles: Mapping[str, RowStyle] | None) -> dict:
+def styles_for(labels: Iterable[str], styles: Mapping[str, RowStyle] | None) -> dict:
     """``styles`` where given (a report's), else :func:`row_styles` of ``labels``; a
     label ``styles`` lacks is refused (it would be drawn in another row's colour)."""
     labels = list(labels)
@@ -129,7 +132,7 @@ def _styles_for(labels: Iterable[str], styles: Mapping[str, RowStyle] | None) ->
 TICK_ROTATION = 45  # degrees: the x labels' tilt when a figure has many rows
 
 
-def _set_row_ticks(ax: Any, names: Sequence[str]) -> None:
+def set_row_ticks(ax: Any, names: Sequence[str]) -> None:
     """Row names under their boxes or bars: up to 4 rows level, wrapped to 14
     characters a line; more rows tilted by :data:`TICK_ROTATION`, one line each
     (``tests/test_figures.py`` checks that no two overlap)."""
@@ -142,6 +145,16 @@ def _set_row_ticks(ax: Any, names: Sequence[str]) -> None:
     ax.tick_params(axis="x", labelsize=8)
     for label in ax.get_xticklabels():
         label.set(rotation=TICK_ROTATION, horizontalalignment="right", rotation_mode="anchor")
+
+
+def set_frames_axis(ax: Any) -> None:
+    """An x axis of env steps: at most 6 ticks, in engineering units (``50 k``, ``1.5 M``),
+    so that the labels of a run of millions of frames do not run into each other."""
+    from matplotlib.ticker import EngFormatter, MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(nbins=6, steps=[1, 2, 2.5, 5, 10]))
+    ax.xaxis.set_major_formatter(EngFormatter(sep=" "))
+    ax.set_xlabel("env steps")
 
 
 _PANELS = (
@@ -235,7 +248,7 @@ def run_curves_figure(
     for ax, panel in zip(grid, panels):
         _draw_run_panel(ax, panel, columns, cost_limit, int(smooth))
         ax.set_title(panel)
-        ax.set_xlabel("env steps")
+        set_frames_axis(ax)
         ax.grid(alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=8)
@@ -412,7 +425,7 @@ def plot_training_curves(
     from wcsac_rl.evaluation.metrics import curve_mean_std
     from wcsac_rl.evaluation.runs import row_name
 
-    styles = _styles_for(rows, styles)
+    styles = styles_for(rows, styles)
     fig = Figure(figsize=FIG4_SIZE, layout="constrained")
     axes = fig.subplots(1, len(_CURVE_PANELS))
     handles: dict[str, Any] = {}
@@ -444,7 +457,7 @@ def plot_training_curves(
             line = ax.axhline(cost_limit, color="k", linestyle="--", linewidth=1.2)
             handles.setdefault(f"budget d = {cost_limit:g}", line)
         ax.set_title(panel_title)
-        ax.set_xlabel("env steps")
+        set_frames_axis(ax)
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     if handles:  # one legend for the three panels, under them (never over a curve)
@@ -508,7 +521,7 @@ def plot_cost_distribution(
     from wcsac_rl.evaluation.runs import row_name
 
     labels = list(costs)
-    styles = _styles_for(labels, styles)
+    styles = styles_for(labels, styles)
     names = [row_name(label) for label in labels]
     colors = [styles[label].color for label in labels]
     data = [np.asarray(costs[label], dtype=np.float64) for label in labels]
@@ -569,7 +582,7 @@ def plot_cost_distribution(
     ax_bar.set_ylabel("episodes over budget (%)")
     ax_bar.grid(axis="y", alpha=0.3)
     for ax in (ax_box, ax_bar):
-        _set_row_ticks(ax, names)
+        set_row_ticks(ax, names)
     fig.suptitle(title)
     return _save(fig, out, formats)
 
@@ -700,6 +713,8 @@ def plot_trajectories(
     *,
     title: str = "Trajectories of deterministic test episodes",
     columns: int = TRAJECTORY_COLUMNS,
+    rows: Sequence[str | None] | None = None,
+    styles: Mapping[str, RowStyle] | None = None,
     formats: Sequence[str] = ("png",),
 ) -> Path:
     """Figure 5: top-down robot paths, one panel per ``(title, layout, trajectories)``.
@@ -707,7 +722,10 @@ def plot_trajectories(
     Each panel draws the layout (placement area, hazards with their radius, goal,
     vases) and every trajectory (start ``o``, end ``X``, legend with its cost and
     return), from :func:`~wcsac_rl.evaluation.trajectories.collect_trajectories`.
-    Panels fill rows of ``columns``; a ``None`` panel is left blank. Size:
+    Panels fill rows of ``columns``; a ``None`` panel is left blank. ``rows``: each
+    panel's row label (``None``: no row): its frame and title are drawn in the row's
+    colour (``styles``, as in the report's other figures; default: :func:`row_styles`
+    of ``rows``), the episodes in a sequential palette. Size:
     :func:`trajectory_figure_size` × ``DPI``; ``formats``: the files written
     (:func:`save_figure`).
     """
@@ -715,16 +733,24 @@ def plot_trajectories(
         raise ValueError("plot_trajectories needs at least one panel")
     if columns < 1:
         raise ValueError(f"columns must be >= 1, got {columns}")
+    rows = list(rows) if rows is not None else [None] * len(panels)
+    if len(rows) != len(panels):
+        raise ValueError(f"rows has {len(rows)} labels for {len(panels)} panels")
+    styles = styles_for(dict.fromkeys(r for r in rows if r is not None), styles)
     fig = Figure(figsize=trajectory_figure_size(len(panels), columns), layout="constrained")
     cols = min(len(panels), columns)
-    rows = math.ceil(len(panels) / cols)
-    axes = np.asarray(fig.subplots(rows, cols, squeeze=False)).reshape(-1)
-    for ax, panel in zip(axes, panels):
+    grid_rows = math.ceil(len(panels) / cols)
+    axes = np.asarray(fig.subplots(grid_rows, cols, squeeze=False)).reshape(-1)
+    for ax, panel, row in zip(axes, panels, rows):
         if panel is None:
             ax.set_axis_off()
-        else:
-            panel_title, layout, trajectories = panel
-            _draw_trajectories(ax, layout, trajectories, panel_title)
+            continue
+        panel_title, layout, trajectories = panel
+        _draw_trajectories(ax, layout, trajectories, panel_title)
+        if row is not None:  # the row's colour, as in the report's other figures
+            ax.title.set_color(styles[row].color)
+            for spine in ax.spines.values():
+                spine.set(edgecolor=styles[row].color, linewidth=2.5)
     for ax in axes[len(panels) :]:
         ax.set_axis_off()
     fig.suptitle(title)

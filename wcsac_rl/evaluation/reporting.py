@@ -37,7 +37,16 @@ groups them by Table-1 row (``algo.label``; seeds pooled) and writes
 ``improvement.csv``,             ``improvement`` pairs, and their figures
 ``fig_runs.png``,                (:mod:`~wcsac_rl.evaluation.run_report`)
 ``fig_score_distribution.png``
+``fig_cost_return.png``          each row at (EC, ER) with their 95 % intervals, d drawn
+                                 (:mod:`~wcsac_rl.evaluation.cost_return`)
 ===============================  ============================================================
+
+Every figure is written as PNG and PDF (:data:`FORMATS`), every Markdown table also as a
+LaTeX booktabs table (``table1.tex``, ``runs.tex``, ...: :mod:`~wcsac_rl.evaluation.latex`).
+A row is drawn in one colour and marker in all the figures (:func:`~wcsac_rl.evaluation.plots.row_styles`
+of the report's rows). On an env without a layout (a user's ``env=gymnasium`` env:
+:func:`~wcsac_rl.evaluation.runs.env_has_layout`) Figure 5 is skipped, said in one line, and
+the tables have no goals columns.
 
 Below a sweep directory (``multirun.yaml``, from any launcher) every job of the sweep
 is accounted for: jobs that never started, failed, still run or stopped before
@@ -74,6 +83,7 @@ from wcsac_rl.evaluation.evaluator import (
     stale_evaluation,
 )
 from wcsac_rl.evaluation.intervals import INTERVAL_METRICS, seed_bootstrap
+from wcsac_rl.evaluation.latex import latex_path, markdown_to_latex
 from wcsac_rl.evaluation.metrics import RISK_LEVELS, aggregate_seeds, cvar_key
 from wcsac_rl.evaluation.paper import paper_comparison_markdown
 from wcsac_rl.evaluation.run_report import (
@@ -84,6 +94,7 @@ from wcsac_rl.evaluation.run_report import (
 )
 from wcsac_rl.evaluation.runs import (
     display_text,
+    env_has_layout,
     env_title,
     find_evaluated_dirs,
     find_progress_dirs,
@@ -99,6 +110,7 @@ from wcsac_rl.training.checkpoint import IDENTITY_KEYS, kept_checkpoints
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
 from wcsac_rl.training.provenance import read_provenance
+from wcsac_rl.training.registry import find_algorithm, row_algorithm
 from wcsac_rl.training.run_dir import check_progress_rows
 from wcsac_rl.training.trust import interpolation_in, plain_select, stored_config
 
@@ -107,9 +119,12 @@ __all__ = [
     "ARCHIVE_DIR",
     "FIG4",
     "FIG6",
+    "FIG_COST_RETURN",
+    "FORMATS",
     "RUNS_MD",
     "TABLE_CSV",
     "TABLE_MD",
+    "TABLE_TEX",
     "TABLE_VS_PAPER",
     "TRAJECTORIES",
     "Report",
@@ -122,6 +137,7 @@ __all__ = [
 
 TABLE_MD = "table1.md"
 TABLE_CSV = "table1.csv"
+TABLE_TEX = latex_path(TABLE_MD)
 TABLE_VS_PAPER = "table1_vs_paper.md"
 RUNS_MD = "runs.md"
 ARCHIVE_DIR = "runs"
@@ -130,7 +146,10 @@ FIG4 = "fig4_training_curves.png"
 FIG5 = "fig5_trajectories.png"
 FIG5_STAGES = "fig5_stages.png"
 FIG6 = "fig6_evaluation.png"
+FIG_COST_RETURN = "fig_cost_return.png"
 TRAJECTORIES = FIG5
+FORMATS = plots.FIGURE_FORMATS
+"""The files of each figure: a PNG to view and a PDF to print (:func:`~wcsac_rl.evaluation.plots.save_figure`)."""
 
 TABLE_COLUMNS = (
     "label",
@@ -154,6 +173,8 @@ TABLE_COLUMNS = (
 report's d, for ``over_budget``, is in table1.md's title); ``seeds`` counts distinct
 training seeds, ``runs`` the evaluated runs; ``<metric>_lo`` / ``<metric>_hi`` bound the
 95 % seed-stratified bootstrap interval (:mod:`~wcsac_rl.evaluation.intervals`)."""
+GOAL_COLUMNS = ("goals", "goals_lo", "goals_hi")
+"""table1.csv's columns of goals, left out for an env without goals (:func:`env_has_layout`)."""
 
 
 class ReportError(ConfigError):
@@ -305,10 +326,22 @@ def table1_rows(evaluations: Sequence[Evaluation], cost_limit: float) -> list[di
     return rows
 
 
+def _learns(algo: object) -> bool:
+    """Whether runs of ``algo`` restore a learnt policy (an algorithm the registry does
+    not know: as one that does)."""
+    entry = find_algorithm(algo)
+    return entry is None or entry.learns
+
+
+def _learns_row(label: str) -> bool:
+    entry = row_algorithm(label)
+    return entry is None or entry.learns
+
+
 def _constrained_column(label: str) -> str | None:
     """The column the row's agent constrains (bold in the paper's Table 1)."""
     label, _ = split_row_label(label)
-    if label in ("sac_lag", "cal") or label.startswith("sac_lag_d"):
+    if (entry := row_algorithm(label)) is not None and entry.risk_neutral and "_paper" not in label:
         return "EC"
     if label.startswith("wcsac_"):
         try:
@@ -324,11 +357,15 @@ def table1_markdown(
     env: str,
     cost_limit: float,
     incomplete: Sequence[SweepJob] = (),
+    goals: bool | None = None,
 ) -> str:
     """Table 1 as Markdown, with a legend of the columns below it and, when a sweep's
-    jobs did not all finish, the list of those jobs (:mod:`~wcsac_rl.evaluation.sweeps`)."""
+    jobs did not all finish, the list of those jobs (:mod:`~wcsac_rl.evaluation.sweeps`).
+    ``goals``: with the goals column (default: where ``env`` has goals, :func:`env_has_layout`)."""
+    goals = env_has_layout(env) if goals is None else goals
     cvars = [cvar_key(a) for a in RISK_LEVELS]
-    header = ["Algorithm", "EC", *cvars, "ER", "goals", "over budget", "episodes (seeds)"]
+    metrics = ["EC", *cvars, "ER", *(["goals"] if goals else [])]
+    header = ["Algorithm", *metrics, "over budget", "episodes (seeds)"]
     lines = [
         f"# Table 1 — {env_title(env)}, budget d = {cost_limit:g}",
         "",
@@ -338,7 +375,7 @@ def table1_markdown(
     for row in rows:
         bold = _constrained_column(row["label"])
         cells = [row["algorithm"]]
-        for key in ("EC", *cvars, "ER", "goals"):
+        for key in metrics:
             text = f"{row[key]:.2f}"
             text = f"**{text}**" if key == bold else text
             if not math.isnan(row[key + "_lo"]):  # (one episode of one seed: none)
@@ -353,8 +390,9 @@ def table1_markdown(
     lines += [
         "",
         "EC: mean episodic cost; C_α: empirical CVaR, the mean cost of the worst ⌈n·α⌉ of "
-        "the n test episodes; ER: mean episodic return; goals: goals reached per episode; "
-        f"over budget: share of episodes with cost strictly above d = {cost_limit:g}. "
+        "the n test episodes; ER: mean episodic return; "
+        + ("goals: goals reached per episode; " if goals else "")
+        + f"over budget: share of episodes with cost strictly above d = {cost_limit:g}. "
         "Deterministic (mean-action) test episodes of each seed's final policy, seeds "
         "pooled; [lo, hi]: 95 % bootstrap interval resampling the seeds, then the episodes "
         "within each seed (one seed: the episodes only). In bold: the quantity the agent "
@@ -380,9 +418,11 @@ def table1_markdown(
     return "\n".join(lines)
 
 
-def _table_csv(rows: Sequence[dict[str, Any]]) -> str:
+def _table_csv(rows: Sequence[dict[str, Any]], goals: bool = True) -> str:
+    """table1.csv (:data:`TABLE_COLUMNS`; without :data:`GOAL_COLUMNS` unless ``goals``)."""
+    columns = [c for c in TABLE_COLUMNS if goals or c not in GOAL_COLUMNS]
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=TABLE_COLUMNS, extrasaction="ignore")
+    writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore")
     writer.writeheader()
     for row in rows:
         writer.writerow(row)
@@ -543,7 +583,7 @@ def _trajectory_sources(
                 sources.append(_TrajectorySource(directory, record.label, record.seed))
             elif (directory / "evaluation.json").is_file():
                 ev = read_evaluation(directory)
-                if ev.meta.get("algo") != "random":
+                if _learns(ev.meta.get("algo")):
                     raise ReportError(f"{directory}: no checkpoint to draw trajectories from")
                 sources.append(_TrajectorySource(directory, ev.label, int(ev.meta["seed"])))
             else:
@@ -562,7 +602,7 @@ def _trajectory_sources(
         directory = Path(ev.directory).resolve()
         if directory in seen:
             continue
-        if has_checkpoint(directory) or ev.meta.get("algo") == "random":
+        if has_checkpoint(directory) or not _learns(ev.meta.get("algo")):
             candidates[ev.label].append(
                 _TrajectorySource(directory, ev.label, int(ev.meta["seed"]))
             )
@@ -660,15 +700,7 @@ def build_report(
     """
     out_dir = Path(out_dir).expanduser()
     report = Report(out_dir=out_dir)
-    raw_log = log
-
-    def log(message: str) -> None:  # (a run name that is not UTF-8 is printable too)
-        raw_log(display_text(message))
-
-    def warn(message: str) -> None:
-        report.warnings.append(message)
-        log(f"warning: {message}")
-
+    log, warn = _printers(log, report)
     archive_dir = (out_dir / ARCHIVE_DIR).resolve()
     evaluations, runs, env, cost_limit, unreadable = _read_records(
         paths, archive_dir, env, cost_limit, warn
@@ -678,43 +710,37 @@ def build_report(
     statistics = _run_statistics(
         evaluations, runs, unreadable, env, cost_limit, improvement, study, warn
     )
-
-    sources: list[_TrajectorySource] = []
-    if trajectories:
-        sources = _trajectory_sources(trajectory_runs, runs, evaluations)
-        for source in sources:  # env code a run names: refused before anything is written
-            if has_checkpoint(source.directory):
-                check_env_code_allowed(source.directory)
-        if not sources and trajectory_runs is None:
-            warn("no run with a checkpoint: Figure 5 (trajectories) skipped")
+    sources = _figure5_sources(trajectories, trajectory_runs, runs, evaluations, env, warn)
     rows, comparison, copies = _plan_outputs(
         out_dir, env, cost_limit, evaluations, runs, sources, archive_dir, archive, video,
-        video_format, stage_rows, trajectory_runs, force, warn,
-        also=[] if statistics is None else [out_dir / n for n in statistics.file_names()],
+        video_format, stage_rows, force, warn,
+        also=[] if statistics is None else statistics.file_names(FORMATS),
     )  # fmt: skip
     out_dir.mkdir(parents=True, exist_ok=True)
-    title_env = env_title(env) if env else "?"
+    # one colour and marker per row, the same in every figure of the report
+    styles = plots.row_styles([e.label for e in evaluations] + [r.label for r in runs])
     if evaluations:
         report.rows = rows
         report.files += _write_table1(
             out_dir, rows, env, cost_limit, comparison, evaluations, report.incomplete,
-            fig6_rows, fig6_ymax, title_env, warn,
+            fig6_rows, fig6_ymax, styles, warn,
         )  # fmt: skip
-        report.files += write_run_statistics(statistics, out_dir, _write_text)
+        report.files += write_run_statistics(
+            statistics, out_dir, _write_text, styles=styles, formats=FORMATS
+        )
     else:
         warn("no evaluated runs: Table 1 and Figure 6 skipped")
     runs_with_progress = [r for r in runs if r.progress]
     if runs_with_progress:
-        report.files += _write_training(
-            out_dir, runs_with_progress, env, cost_limit, title_env, warn
-        )
+        report.files += _write_training(out_dir, runs_with_progress, env, cost_limit, styles, warn)
     else:
         warn("no training runs with progress.csv: Figure 4 skipped")
     if sources:
         report.files += _figure5(
             sources, out_dir, episodes=trajectory_episodes, max_steps=trajectory_max_steps,
             env_seed=trajectory_seed, video_format=video_format if video else None,
-            stage_rows=stage_rows, title_env=title_env, log=log,
+            stage_rows=stage_rows, title_env=env_title(env) if env else "?", styles=styles,
+            log=log,
         )  # fmt: skip
     for source, target in copies:
         target.parent.mkdir(parents=True, exist_ok=True)
@@ -723,6 +749,51 @@ def build_report(
     for path in report.files:
         log(f"wrote {path}")
     return report
+
+
+def _printers(
+    log: Callable[[str], None], report: Report
+) -> tuple[Callable[[str], None], Callable[[str], None]]:
+    """``(log, warn)``: ``log`` printing any run name (one that is not UTF-8 too), ``warn``
+    logging ``warning: <message>`` and keeping the message in ``report.warnings``."""
+
+    def printable(message: str) -> None:
+        log(display_text(message))
+
+    def warn(message: str) -> None:
+        report.warnings.append(message)
+        printable(f"warning: {message}")
+
+    return printable, warn
+
+
+def _figure5_sources(
+    trajectories: bool,
+    chosen: Sequence[str | os.PathLike] | None,
+    runs: list[RunRecord],
+    evaluations: list[Evaluation],
+    env: str | None,
+    warn: Callable[[str], None],
+) -> list[_TrajectorySource]:
+    """The runs Figure 5 draws (:func:`_trajectory_sources`), their env code allowed
+    (refused before anything is written); none, said in one line, for an env without a
+    layout to draw the paths on or without a run with a checkpoint."""
+    if not trajectories:
+        return []
+    if not env_has_layout(env):
+        warn(
+            f"Figure 5 (trajectories) skipped: env {env} has no layout (hazards, goal) to "
+            "draw the paths on; they are drawn for the kit's envs (static, dynamic, "
+            "point_goal1, point_goal2, tiny)"
+        )
+        return []
+    sources = _trajectory_sources(chosen, runs, evaluations)
+    for source in sources:
+        if has_checkpoint(source.directory):
+            check_env_code_allowed(source.directory)
+    if not sources and chosen is None:
+        warn("no run with a checkpoint: Figure 5 (trajectories) skipped")
+    return sources
 
 
 def _read_records(
@@ -873,6 +944,21 @@ def _account_for_runs(
             warn(f"row {label}: {count} evaluations with seed {seed} (all are pooled)")
 
 
+def _files(out_dir: Path, names: Sequence[str]) -> list[Path]:
+    """The files of each output name: a figure (``.png``) in each of :data:`FORMATS`, a
+    Markdown table with its LaTeX table (``.tex``), any other file itself."""
+    files: list[Path] = []
+    for name in names:
+        path = out_dir / name
+        if name.endswith(".png"):
+            files += plots.figure_paths(path, FORMATS)
+        elif name.endswith(".md"):
+            files += [path, path.with_suffix(".tex")]
+        else:
+            files.append(path)
+    return list(dict.fromkeys(files))
+
+
 def _plan_outputs(
     out_dir: Path,
     env: str | None,
@@ -885,35 +971,31 @@ def _plan_outputs(
     video: bool,
     video_format: str,
     stage_rows: Sequence[str] | None,
-    trajectory_runs: Sequence[str | os.PathLike] | None,
     force: bool,
     warn: Callable[[str], None],
-    also: Sequence[Path] = (),
+    also: Sequence[str] = (),
 ) -> tuple[list[dict[str, Any]], str | None, list[tuple[Path, Path]]]:
     """Table 1's rows, the paper comparison and the archive copies; every output file
-    (and the files ``also`` planned elsewhere) planned, refused if it exists without
-    ``force``, and the video encoder checked — before anything is written."""
-    planned: list[Path] = list(also)
+    (and the files named ``also``, planned elsewhere) planned, refused if it exists
+    without ``force``, and the video encoder checked — before anything is written."""
+    names: list[str] = list(also)
     rows: list[dict[str, Any]] = []
     comparison = None
     if evaluations:
         rows = table1_rows(evaluations, cost_limit)
         comparison = paper_comparison_markdown(rows, env, cost_limit) if env else None
-        planned += [out_dir / TABLE_MD, out_dir / TABLE_CSV, out_dir / FIG6]
+        names += [TABLE_MD, TABLE_CSV, FIG6, FIG_COST_RETURN]
         if comparison is not None:
-            planned.append(out_dir / TABLE_VS_PAPER)
+            names.append(TABLE_VS_PAPER)
     copies: list[tuple[Path, Path]] = []
     if archive:
         copies = _archive_plan(
             [Path(e.directory) for e in evaluations] + [r.directory for r in runs], archive_dir
         )
-        planned += [target for _, target in copies]
-    runs_with_progress = [r for r in runs if r.progress]
-    if runs_with_progress:
-        planned += [out_dir / FIG4, out_dir / RUNS_MD]
-        planned += [out_dir / name for name in TRAINING_SAFETY_FILES]
+    if any(r.progress for r in runs):
+        names += [FIG4, RUNS_MD, *TRAINING_SAFETY_FILES]
     if sources:
-        planned.append(out_dir / FIG5)
+        names.append(FIG5)
         if stage_rows is not None:
             unknown = sorted(set(stage_rows) - {s.label for s in sources})
             if unknown:
@@ -923,17 +1005,23 @@ def _plan_outputs(
             for s in sources
             if stage_rows is None or s.label in stage_rows
         ):
-            planned.append(out_dir / FIG5_STAGES)
-        planned += [out_dir / f"{s.stem}.png" for s in sources]
+            names.append(FIG5_STAGES)
+        names += [f"{s.stem}.png" for s in sources]
         if video:
-            planned += [out_dir / f"{s.stem}.{video_format}" for s in sources]
+            names += [f"{s.stem}.{video_format}" for s in sources]
     if video:
         _check_video(video_format, env)
+    planned = _files(out_dir, names) + [target for _, target in copies]
     existing = [p for p in planned if p.exists()]
     if existing and not force:
         listing = ", ".join(p.relative_to(out_dir).as_posix() for p in existing)
         raise ReportError(f"{out_dir} already has {listing}; pass --force to overwrite")
     return rows, comparison, copies
+
+
+def _write_table(path: Path, text: str) -> list[Path]:
+    """A Markdown table and the same as a LaTeX booktabs table beside it (``.tex``)."""
+    return [_write_text(path, text), _write_text(path.with_suffix(".tex"), markdown_to_latex(text))]
 
 
 def _write_table1(
@@ -946,36 +1034,47 @@ def _write_table1(
     incomplete: list[SweepJob],
     fig6_rows: Sequence[str] | None,
     fig6_ymax: float | None,
-    title_env: str,
+    styles: dict[str, plots.RowStyle],
     warn: Callable[[str], None],
 ) -> list[Path]:
-    """Table 1 (markdown, csv, beside the paper's) and Figure 6."""
-    files = [
-        _write_text(out_dir / TABLE_MD, table1_markdown(rows, env, cost_limit, incomplete)),
-        _write_text(out_dir / TABLE_CSV, _table_csv(rows)),
-    ]
+    """Table 1 (Markdown, CSV, LaTeX; beside the paper's), Figure 6 and the cost-return
+    figure, each row in its ``styles``."""
+    from wcsac_rl.evaluation.cost_return import plot_cost_return
+
+    title_env = env_title(env) if env else "?"
+    goals = env_has_layout(env)
+    files = _write_table(out_dir / TABLE_MD, table1_markdown(rows, env, cost_limit, incomplete))
+    files.append(_write_text(out_dir / TABLE_CSV, _table_csv(rows, goals=goals)))
     if comparison is not None:
-        files.append(_write_text(out_dir / TABLE_VS_PAPER, comparison))
+        files += _write_table(out_dir / TABLE_VS_PAPER, comparison)
     costs: dict[str, list[float]] = defaultdict(list)
     for ev in sorted(evaluations, key=lambda e: row_sort_key(e.label)):
         costs[ev.label].extend(ev.costs)
     if fig6_rows is None:
-        chosen = [label for label in costs if label != "random"] or list(costs)
+        chosen = [label for label in costs if _learns_row(label)] or list(costs)
     else:
         unknown = sorted(set(fig6_rows) - set(costs))
         if unknown:
             warn(f"Figure 6: no evaluated row(s) {', '.join(unknown)}")
         chosen = [label for label in fig6_rows if label in costs]
-    files.append(
-        plots.plot_cost_distribution(
-            {label: costs[label] for label in chosen},
-            out_dir / FIG6,
-            cost_limit=cost_limit,
-            title=f"Evaluation after training ({title_env})",
-            ymax=fig6_ymax,
-        )
+    plots.plot_cost_distribution(
+        {label: costs[label] for label in chosen},
+        out_dir / FIG6,
+        cost_limit=cost_limit,
+        title=f"Evaluation after training ({title_env})",
+        ymax=fig6_ymax,
+        styles=styles,
+        formats=FORMATS,
     )
-    return files
+    plot_cost_return(
+        rows,
+        out_dir / FIG_COST_RETURN,
+        cost_limit=cost_limit,
+        title=f"Cost and return of the test episodes ({title_env}), budget d = {cost_limit:g}",
+        styles=styles,
+        formats=FORMATS,
+    )
+    return files + _files(out_dir, [FIG6, FIG_COST_RETURN])
 
 
 def _write_training(
@@ -983,25 +1082,25 @@ def _write_training(
     runs: list[RunRecord],
     env: str | None,
     cost_limit: float,
-    title_env: str,
+    styles: dict[str, plots.RowStyle],
     warn: Callable[[str], None],
 ) -> list[Path]:
     """runs.md, the training-safety table and Figure 4 of the runs with progress."""
-    files = [_write_text(out_dir / RUNS_MD, runs_markdown(runs, env))]
+    files = _write_table(out_dir / RUNS_MD, runs_markdown(runs, env))
     for name, text in training_safety_files(runs, env, cost_limit, warn).items():
         files.append(_write_text(out_dir / name, text))
     by_label: dict[str, list[dict[str, list[float]]]] = defaultdict(list)
     for run in sorted(runs, key=lambda r: (row_sort_key(r.label), r.seed)):
         by_label[run.label].append(run.progress)
-    files.append(
-        plots.plot_training_curves(
-            dict(by_label),
-            out_dir / FIG4,
-            cost_limit=cost_limit,
-            title=f"Training on {title_env}",
-        )
+    plots.plot_training_curves(
+        dict(by_label),
+        out_dir / FIG4,
+        cost_limit=cost_limit,
+        title=f"Training on {env_title(env) if env else '?'}",
+        styles=styles,
+        formats=FORMATS,
     )
-    return files
+    return files + _files(out_dir, [FIG4])
 
 
 def _within(path: Path, directory: Path) -> bool:
@@ -1063,9 +1162,12 @@ def _figure5(
     env_seed: int,
     video_format: str | None,
     title_env: str,
+    styles: dict[str, plots.RowStyle],
     log: Callable[[str], None],
     stage_rows: Sequence[str] | None = None,
 ) -> list[Path]:
+    """Figure 5: every drawn run's panel (one figure each and all in one), the stages of
+    the runs with kept checkpoints, and the videos; each panel framed in its row's colour."""
     import torch
 
     from wcsac_rl.evaluation.trajectories import (
@@ -1077,6 +1179,7 @@ def _figure5(
     written: list[Path] = []
     panels = []
     stages: list[list[tuple[str, dict, list]]] = []  # per run with kept checkpoints
+    stage_labels: list[str] = []
     for source in sources:
         log(f"trajectories: {source.label} seed {source.seed} ({episodes} episodes)")
         policy, env, env_steps, env_name, kwargs, frames = _restore(source, env_seed)
@@ -1098,41 +1201,38 @@ def _figure5(
                 row.append((f"{title}: {_frames_text(at)} frames", kept_layout, kept_trajs))
             row.append((f"{title}: {_frames_text(frames)} frames (end)", layout, trajs))
             stages.append(row)
-        written.append(
-            plots.plot_trajectories(
-                [(title, layout, trajs)],
-                out_dir / f"{source.stem}.png",
-                title=f"{row_name(source.label)} on {title_env}: {episodes} test episodes",
-            )
-        )
+            stage_labels.append(source.label)
+        plots.plot_trajectories(
+            [(title, layout, trajs)],
+            out_dir / f"{source.stem}.png",
+            title=f"{row_name(source.label)} on {title_env}: {episodes} test episodes",
+            rows=[source.label], styles=styles, formats=FORMATS,
+        )  # fmt: skip
+        written += _files(out_dir, [f"{source.stem}.png"])
         if video_format is not None:
             log(f"video: {source.label} seed {source.seed}")
             frames = render_episode(
                 env_name, policy, seed=env_seed, max_steps=steps, **_without_steps(kwargs, steps)
             )
             written.append(write_video(frames, out_dir / f"{source.stem}.{video_format}"))
-    written.insert(
-        0,
-        plots.plot_trajectories(
-            panels,
-            out_dir / FIG5,
-            title=f"Trajectories on {title_env}: {episodes} deterministic test episodes per run",
-        ),
-    )
+    plots.plot_trajectories(
+        panels,
+        out_dir / FIG5,
+        title=f"Trajectories on {title_env}: {episodes} deterministic test episodes per run",
+        rows=[s.label for s in sources], styles=styles, formats=FORMATS,
+    )  # fmt: skip
     if stages:
         columns = max(len(row) for row in stages)
         grid = [panel for row in stages for panel in row + [None] * (columns - len(row))]
-        written.insert(
-            1,
-            plots.plot_trajectories(
-                grid,
-                out_dir / FIG5_STAGES,
-                title=f"Trajectories on {title_env} during training: {episodes} "
-                "deterministic test episodes per panel",
-                columns=columns,
-            ),
-        )
-    return written
+        labels = [label for label, row in zip(stage_labels, stages) for _ in range(columns)]
+        plots.plot_trajectories(
+            grid,
+            out_dir / FIG5_STAGES,
+            title=f"Trajectories on {title_env} during training: {episodes} "
+            "deterministic test episodes per panel",
+            columns=columns, rows=labels, styles=styles, formats=FORMATS,
+        )  # fmt: skip
+    return _files(out_dir, [FIG5, *([FIG5_STAGES] if stages else [])]) + written
 
 
 def _frames_text(frames: int) -> str:

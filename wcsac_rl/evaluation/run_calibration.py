@@ -19,7 +19,6 @@ from typing import Any
 
 import torch
 
-from wcsac_rl.options import SAFETY_ALGOS  # (the conf/algo entries with a safety critic)
 from wcsac_rl.rollouts.critic_calibration import (
     CALIBRATION_KEYS,
     PREFIX,
@@ -34,12 +33,14 @@ from wcsac_rl.rollouts.critic_calibration import (
 )
 from wcsac_rl.rollouts.episodes import EpisodeResult
 from wcsac_rl.training.config import ConfigError
+from wcsac_rl.training.progress import read_progress
+from wcsac_rl.training.registry import ALGORITHMS, find_algorithm, make_loss
+from wcsac_rl.training.training_calibration import TRAIN_PREFIX, TRAINING_CALIBRATION_KEYS
 
 __all__ = [
     "CALIBRATION_JSON",
     "CALIBRATION_KEYS",
     "PREFIX",
-    "SAFETY_ALGOS",
     "CalibrationExistsError",
     "EpisodeCalibration",
     "calibrate_run",
@@ -51,6 +52,7 @@ __all__ = [
     "record_calibration_episodes",
     "summarize_calibration",
     "supports_calibration",
+    "training_episode_readings",
 ]
 
 CALIBRATION_JSON = "calibration.json"
@@ -66,7 +68,7 @@ def load_safety_run(
     """A run's config, test env, policy and whole loss (safety critic included).
 
     The loss is built like the trainer's (``builders.make_agent`` /
-    ``builders.make_loss``) and loaded from the checkpoint; the policy acts through
+    its entry's loss, ``registry.make_loss``) and loaded from the checkpoint; the policy acts through
     the loss's actor as in training and evaluation.
 
     A run of your own env (``env=gymnasium``) names code: it is imported only with
@@ -84,6 +86,7 @@ def load_safety_run(
     from wcsac_rl.training import builders
     from wcsac_rl.training.checkpoint import (
         StateMismatch,
+        check_current,
         find_checkpoint,
         load_checkpoint,
         load_module_state,
@@ -96,18 +99,21 @@ def load_safety_run(
     path = find_checkpoint(run_dir)
     checkpoint = load_checkpoint(path)
     cfg = on_cpu(stored_config(checkpoint["config"], path))  # whatever it trained on
+    check_current(cfg, path)  # (a config of another commit's kit: refused)
     algo = plain_select(cfg, "algo.name")
     learner = checkpoint["learner"]
     frames = int(checkpoint["frames"])
-    if algo not in SAFETY_ALGOS:
+    entry = find_algorithm(algo)
+    if entry is None or not entry.safety_critic:
+        safe = ", ".join(name for name, a in ALGORITHMS.items() if a.safety_critic)
         raise ConfigError(
             f"{path.parent.parent}: algo {algo!r} has no safety critic to calibrate "
-            f"(calibration needs one of {', '.join(SAFETY_ALGOS)})"
+            f"(calibration needs one of {safe})"
         )
     env = trusted_eval_env(cfg, path, trust_env_code=trust_env_code, seed=seed, num_envs=num_envs)
     try:
         agent = builders.make_agent(cfg, env)
-        loss = builders.make_loss(cfg, agent, env_max_episode_steps(cfg))
+        loss = make_loss(cfg, agent, env_max_episode_steps(cfg))
         load_module_state(loss, learner.get("loss"))
     except StateMismatch as err:
         env.close()
@@ -125,6 +131,28 @@ def load_safety_run(
     policy = TanhNormalPolicy(agent.actor)  # as OffPolicyTrainer.restore_policy
     policy.eval()
     return cfg, env, policy, loss, frames
+
+
+def training_episode_readings(run_dir: str | os.PathLike) -> list[dict[str, float]]:
+    """Per epoch of the run's ``progress.csv``, its end (``frames``) and the critic's
+    reading of that epoch's training episodes against their realised cost-to-go (the
+    ``train_calib/*`` columns without their prefix,
+    :mod:`~wcsac_rl.training.training_calibration`); empty for a run that did not log
+    them (no ``progress.csv``, or one from before these columns)."""
+    path = Path(run_dir) / "progress.csv"
+    columns = read_progress(path, warn=False) if path.is_file() else {}
+    if TRAIN_PREFIX + "episodes" not in columns or "frames" not in columns:
+        return []
+    return [
+        {
+            "frames": frames,
+            **{
+                key.removeprefix(TRAIN_PREFIX): columns.get(key, [math.nan] * (i + 1))[i]
+                for key in TRAINING_CALIBRATION_KEYS
+            },
+        }
+        for i, frames in enumerate(columns["frames"])
+    ]
 
 
 def _finite_or_none(value: Any) -> Any:
@@ -174,8 +202,10 @@ def calibrate_run(
         ``{meta..., "metrics": {name: value}, "per_episode": [dict per episode]}``:
         the meta data (run, α, γ_c, threshold, env seed, ``episodes``,
         ``episodes_at_time_limit``...), the :data:`CALIBRATION_KEYS` without their
-        ``calib/`` prefix, and each episode's return and
-        :meth:`EpisodeCalibration.as_dict`. NaN is written as ``null``.
+        ``calib/`` prefix, each episode's return and
+        :meth:`EpisodeCalibration.as_dict`, and ``training_episodes``: per epoch, the
+        critic's reading of its training episodes against what they cost
+        (:func:`training_episode_readings`). NaN is written as ``null``.
 
     Raises:
         ConfigError: see :func:`load_safety_run`; :class:`CalibrationExistsError`
@@ -235,6 +265,7 @@ def calibrate_run(
         "per_episode": [
             {"return": r.result.ret, **c.as_dict()} for r, c in zip(recorded, compared)
         ],
+        "training_episodes": training_episode_readings(run_dir),
     }
     path = run_dir / CALIBRATION_JSON
     _atomic_write_json(path, _nan_to_null(result))

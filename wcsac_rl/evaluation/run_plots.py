@@ -7,20 +7,23 @@
   runs with C0.1 <= x against x, one step curve per row, with a 95 % bootstrap band over
   runs (rliable's score distribution, for a cost: higher is better).
 
-Built on ``matplotlib.figure.Figure`` (no pyplot) and written as 256-colour palette PNGs
-without a software or time stamp: the same runs give the same bytes.
+Built on ``matplotlib.figure.Figure`` (no pyplot), each row in its colour and marker of the
+report (``styles``: :func:`~wcsac_rl.evaluation.plots.row_styles`), and written by
+:func:`~wcsac_rl.evaluation.plots.save_figure` (PNG and PDF, no time stamp): the same runs
+give the same bytes.
 """
 
 from __future__ import annotations
 
-import io
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
 
-from wcsac_rl.evaluation.plots import DPI, row_color
+from wcsac_rl.evaluation import plots
+from wcsac_rl.evaluation.plots import RowStyle
 from wcsac_rl.evaluation.run_statistics import cdf_band
 
 __all__ = ["RUNS_PANEL_SIZE", "SCORE_SIZE", "plot_run_values", "plot_score_distribution"]
@@ -35,47 +38,32 @@ _PANELS = (
 _SPREAD = 0.25  # half the width over which a row's dots are spread
 
 
-def _save(fig: Figure, out: Path) -> Path:
-    """A palette PNG with no metadata (matplotlib's ``Software`` entry dropped)."""
-    from PIL import Image
-
-    out = Path(out)
-    buffer = io.BytesIO()
-    fig.savefig(buffer, dpi=DPI, format="png", metadata={"Software": None})
-    buffer.seek(0)
-    with Image.open(buffer) as image:
-        palette = image.convert("RGB").quantize(
-            colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE
-        )
-    palette.save(out, format="png", optimize=True)
-    return out
-
-
 def _rows(stats: Any) -> list[str]:
     return list(dict.fromkeys(run["label"] for run in stats.runs))
 
 
-def _colors(labels: list[str]) -> dict[str, str]:
-    """Table-1 rows keep their colour (:func:`~wcsac_rl.evaluation.plots.row_color`); the
-    other rows take, in order, colours no row of the figure has."""
-    from wcsac_rl.evaluation.runs import ROW_ORDER
-
-    colors = {label: row_color(label) for label in labels if label in ROW_ORDER}
-    free = [f"C{i}" for i in range(10) if f"C{i}" not in colors.values()]
-    free += ["tab:olive", "tab:cyan", "navy", "maroon", "darkgoldenrod", "teal"]
-    for label in labels:
-        if label not in colors:
-            colors[label] = free[len([c for c in colors if c not in ROW_ORDER]) % len(free)]
-    return colors
+def _write(fig: Figure, out: Path, formats: Sequence[str]) -> Path:
+    """:func:`~wcsac_rl.evaluation.plots.save_figure`, returning ``out``."""
+    plots.save_figure(fig, out, formats=formats)
+    return Path(out)
 
 
-def plot_run_values(stats: Any, out: Path, *, title: str = "") -> Path:
+def plot_run_values(
+    stats: Any,
+    out: Path,
+    *,
+    title: str = "",
+    styles: Mapping[str, RowStyle] | None = None,
+    formats: Sequence[str] = ("png",),
+) -> Path:
     """``fig_runs.png`` (see the module docstring) from a
-    :class:`~wcsac_rl.evaluation.run_report.RunStatistics`."""
+    :class:`~wcsac_rl.evaluation.run_report.RunStatistics`; ``styles``: each row's
+    colour and marker (default: :func:`~wcsac_rl.evaluation.plots.row_styles` of its
+    rows); ``formats``: the files written."""
     labels = _rows(stats)
     by_label = {row["label"]: row for row in stats.rows}
     names = {run["label"]: run["algorithm"] for run in stats.runs}
-    colors = _colors(labels)
+    styles = plots.styles_for(labels, styles)
     fig = Figure(
         figsize=(RUNS_PANEL_SIZE[0] * len(_PANELS), RUNS_PANEL_SIZE[1]), layout="constrained"
     )
@@ -84,13 +72,13 @@ def plot_run_values(stats: Any, out: Path, *, title: str = "") -> Path:
         for x, label in enumerate(labels):
             runs = [run for run in stats.runs if run["label"] == label]
             offsets = np.linspace(-_SPREAD, _SPREAD, len(runs)) if len(runs) > 1 else [0.0]
-            color = colors[label]
+            color, marker = styles[label].color, styles[label].marker
             for offset, run in zip(offsets, runs):
                 held = run["split"] == "held-out"
                 ax.plot(
                     x + offset,
                     run[metric],
-                    marker="o",
+                    marker=marker,
                     linestyle="none",
                     markersize=6,
                     markeredgecolor=color,
@@ -113,16 +101,13 @@ def plot_run_values(stats: Any, out: Path, *, title: str = "") -> Path:
                 )
         if metric != "ER":
             ax.axhline(stats.cost_limit, color="k", linestyle="--", linewidth=1)
-        ax.set_xticks(range(len(labels)), [names[label] for label in labels])
-        for tick in ax.get_xticklabels():
-            tick.set_rotation(30)
-            tick.set_horizontalalignment("right")
+        plots.set_row_ticks(ax, [names[label] for label in labels])
         ax.set_xlim(-0.6, len(labels) - 0.4)
         ax.set_title(panel_title)
         ax.grid(axis="y", alpha=0.3)
     _legend(fig, stats.cost_limit)
     fig.suptitle(f"Runs one by one — {title}")
-    return _save(fig, out)
+    return _write(fig, out, formats)
 
 
 def _legend(fig: Figure, cost_limit: float) -> None:
@@ -145,18 +130,26 @@ def _legend(fig: Figure, cost_limit: float) -> None:
     fig.legend(handles=handles, fontsize=9, loc="outside lower center", ncol=len(handles))
 
 
-def plot_score_distribution(stats: Any, out: Path, *, title: str = "") -> Path:
-    """``fig_score_distribution.png`` (see the module docstring)."""
+def plot_score_distribution(
+    stats: Any,
+    out: Path,
+    *,
+    title: str = "",
+    styles: Mapping[str, RowStyle] | None = None,
+    formats: Sequence[str] = ("png",),
+) -> Path:
+    """``fig_score_distribution.png`` (see the module docstring); ``styles`` and
+    ``formats`` as for :func:`plot_run_values`."""
     values = np.array([run["C0.1"] for run in stats.runs], dtype=np.float64)
     right = max(float(values.max()), float(stats.cost_limit)) * 1.05 or 1.0
     grid = np.unique(np.concatenate([[0.0, right], values, [float(stats.cost_limit)]]))
     fig = Figure(figsize=SCORE_SIZE, layout="constrained")
     ax = fig.subplots()
-    colors = _colors(_rows(stats))
+    styles = plots.styles_for(_rows(stats), styles)
     for label in _rows(stats):
         runs = [run["C0.1"] for run in stats.runs if run["label"] == label]
         name = next(run["algorithm"] for run in stats.runs if run["label"] == label)
-        color = colors[label]
+        color = styles[label].color
         if len(runs) > 1:
             share, low, high = cdf_band(runs, grid)
             ax.fill_between(grid, low, high, step="post", color=color, alpha=0.12, linewidth=0)
@@ -168,6 +161,9 @@ def plot_score_distribution(stats: Any, out: Path, *, title: str = "") -> Path:
             where="post",
             color=color,
             linewidth=1.8,
+            marker=styles[label].marker,
+            markevery=max(1, len(grid) // 8),
+            markersize=5,
             label=f"{name} ({len(runs)} run{'s' if len(runs) != 1 else ''})",
         )
     ax.axvline(
@@ -184,4 +180,4 @@ def plot_score_distribution(stats: Any, out: Path, *, title: str = "") -> Path:
     ax.grid(alpha=0.3)
     fig.legend(fontsize=8, loc="outside right upper")
     ax.set_title(f"Score distribution over runs — {title}", fontsize=10)
-    return _save(fig, out)
+    return _write(fig, out, formats)

@@ -16,6 +16,9 @@
 ``fig_score_distribution.png``  fraction of runs with C0.1 <= x, one curve per row
 ==============================  ==============================================================
 
+Each Markdown table is also written as a LaTeX booktabs table (``run_values.tex``,
+``run_statistics.tex``: :mod:`~wcsac_rl.evaluation.latex`), each figure as PNG and PDF.
+
 (definitions: :mod:`~wcsac_rl.evaluation.run_statistics`; figures:
 :mod:`~wcsac_rl.evaluation.run_plots`; the protocol: docs/evaluation_protocol.md).
 
@@ -35,13 +38,15 @@ from __future__ import annotations
 import csv
 import io
 from collections import defaultdict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from omegaconf import OmegaConf
 
+from wcsac_rl.evaluation.latex import latex_path, markdown_to_latex
+from wcsac_rl.evaluation.plots import FIGURE_FORMATS, figure_paths
 from wcsac_rl.evaluation.run_statistics import (
     HELD_OUT_SEEDS,
     RUN_METRICS,
@@ -53,7 +58,7 @@ from wcsac_rl.evaluation.run_statistics import (
     probability_of_improvement,
     run_values,
 )
-from wcsac_rl.evaluation.runs import env_title, row_name, row_sort_key
+from wcsac_rl.evaluation.runs import env_has_layout, env_title, row_name, row_sort_key
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.provenance import read_provenance
 
@@ -67,8 +72,10 @@ __all__ = [
     "IMPROVEMENT_METRICS",
     "RUN_STATISTICS_CSV",
     "RUN_STATISTICS_MD",
+    "RUN_STATISTICS_TEX",
     "RUN_VALUES_CSV",
     "RUN_VALUES_MD",
+    "RUN_VALUES_TEX",
     "RunStatistics",
     "RunStatisticsError",
     "collect_run_statistics",
@@ -80,6 +87,8 @@ RUN_VALUES_MD = "run_values.md"
 RUN_VALUES_CSV = "run_values.csv"
 RUN_STATISTICS_MD = "run_statistics.md"
 RUN_STATISTICS_CSV = "run_statistics.csv"
+RUN_VALUES_TEX = latex_path(RUN_VALUES_MD)
+RUN_STATISTICS_TEX = latex_path(RUN_STATISTICS_MD)
 IMPROVEMENT_CSV = "improvement.csv"
 FIG_RUNS = "fig_runs.png"
 FIG_SCORE = "fig_score_distribution.png"
@@ -165,19 +174,26 @@ class RunStatistics:
 
     def tables(self) -> dict[str, str]:
         """File name → text of every table."""
+        values, statistics = run_values_markdown(self), run_statistics_markdown(self)
         files = {
-            RUN_VALUES_MD: run_values_markdown(self),
-            RUN_VALUES_CSV: _csv(self.runs, RUN_COLUMNS),
-            RUN_STATISTICS_MD: run_statistics_markdown(self),
-            RUN_STATISTICS_CSV: _csv(self.rows, ROW_COLUMNS),
+            RUN_VALUES_MD: values,
+            RUN_VALUES_CSV: _csv(self.runs, _columns(self, RUN_COLUMNS)),
+            RUN_VALUES_TEX: markdown_to_latex(values),
+            RUN_STATISTICS_MD: statistics,
+            RUN_STATISTICS_CSV: _csv(self.rows, _columns(self, ROW_COLUMNS)),
+            RUN_STATISTICS_TEX: markdown_to_latex(statistics),
         }
         if self.improvements:
             files[IMPROVEMENT_CSV] = _csv(self.improvements, IMPROVEMENT_COLUMNS)
         return files
 
-    def file_names(self) -> list[str]:
-        """Every file :func:`write` writes (tables and figures)."""
-        return [*self.tables(), FIG_RUNS, FIG_SCORE]
+    def file_names(self, formats: Sequence[str] = FIGURE_FORMATS) -> list[str]:
+        """Every file :func:`write_run_statistics` writes (tables, and the figures in
+        each of ``formats``)."""
+        figures = [
+            p.name for name in (FIG_RUNS, FIG_SCORE) for p in figure_paths(Path(name), formats)
+        ]
+        return [*self.tables(), *figures]
 
 
 def _machine_text(records: Sequence[dict[str, Any]]) -> str:
@@ -424,28 +440,43 @@ def _csv(rows: Sequence[dict[str, Any]], columns: Sequence[str]) -> str:
     return buf.getvalue()
 
 
+def _metrics(stats: RunStatistics) -> list[str]:
+    """The metrics the tables show: :data:`RUN_METRICS` without goals for an env without
+    goals (:func:`~wcsac_rl.evaluation.runs.env_has_layout`)."""
+    return [m for m in RUN_METRICS if m != "goals" or env_has_layout(stats.env)]
+
+
+def _columns(stats: RunStatistics, columns: Sequence[str]) -> list[str]:
+    """A CSV's ``columns`` without those of goals for an env without goals."""
+    goals = env_has_layout(stats.env)
+    return [c for c in columns if goals or not (c == "goals" or c.startswith("goals_"))]
+
+
 def _title(stats: RunStatistics) -> str:
     return f"{env_title(stats.env) if stats.env else '?'}, budget d = {stats.cost_limit:g}"
 
 
 def run_values_markdown(stats: RunStatistics) -> str:
     """``run_values.md``: every run on its own line."""
+    metrics = _metrics(stats)
     lines = [
         f"# Runs one by one — {_title(stats)}",
         "",
-        "| row | seed | split | machine | EC | C0.1 | ER | goals | episodes | run |",
-        "|---|---:|---|---|---:|---:|---:|---:|---:|---|",
+        f"| row | seed | split | machine | {' | '.join(metrics)} | episodes | run |",
+        "|---|---:|---|---|" + "---:|" * len(metrics) + "---:|---|",
     ]
     for run in stats.runs:
         cells = [run["algorithm"], str(run["seed"]), run["split"], run["machine"]]
-        cells += [f"{run[m]:.2f}" for m in RUN_METRICS]
+        cells += [f"{run[m]:.2f}" for m in metrics]
         cells += [str(run["episodes"]), run["run"]]
         lines.append("| " + " | ".join(cells) + " |")
     lo, hi = HELD_OUT_SEEDS[0], HELD_OUT_SEEDS[-1]
     lines += [
         "",
         "Each run's deterministic test episodes: EC their mean cost, C0.1 the mean cost of the "
-        "worst ⌈n·0.1⌉ of them, ER their mean return, goals per episode. split: held-out "
+        "worst ⌈n·0.1⌉ of them, ER their mean return"
+        + (", goals per episode" if "goals" in metrics else "")
+        + ". split: held-out "
         f"(training seeds {lo}-{hi}, fixed before the runs and used to choose nothing) or "
         "in-sample (any other seed). machine: the CPU and the vector instructions of its "
         "kernels, from the run's provenance.json (docs/evaluation_protocol.md).",
@@ -460,15 +491,16 @@ def _cell(row: dict[str, Any], metric: str) -> str:
 
 def run_statistics_markdown(stats: RunStatistics) -> str:
     """``run_statistics.md``: IQM over runs per row, and the pairs' P(improvement)."""
+    metrics = _metrics(stats)
     lines = [
         f"# Statistics over runs — {_title(stats)}",
         "",
-        "| row | runs (held-out) | EC | C0.1 | ER | goals | machines |",
-        "|---|---:|---:|---:|---:|---:|---|",
+        f"| row | runs (held-out) | {' | '.join(metrics)} | machines |",
+        "|---|---:|" + "---:|" * len(metrics) + "---|",
     ]
     for row in stats.rows:
         cells = [row["algorithm"], f"{row['runs']} ({row['held_out_runs']})"]
-        cells += [_cell(row, m) for m in RUN_METRICS] + [row["machines"]]
+        cells += [_cell(row, m) for m in metrics] + [row["machines"]]
         lines.append("| " + " | ".join(cells) + " |")
     lines += [
         "",
@@ -510,10 +542,16 @@ def run_statistics_markdown(stats: RunStatistics) -> str:
 
 
 def write_run_statistics(
-    stats: RunStatistics | None, out_dir: Path, write_text: Callable[[Path, str], Path]
+    stats: RunStatistics | None,
+    out_dir: Path,
+    write_text: Callable[[Path, str], Path],
+    *,
+    styles: Mapping[str, Any] | None = None,
+    formats: Sequence[str] = FIGURE_FORMATS,
 ) -> list[Path]:
-    """Write the tables (with ``write_text``) and the two figures; return the paths (none
-    for ``None``: statistics left out)."""
+    """Write the tables (with ``write_text``; each Markdown table also as LaTeX) and the two
+    figures (each row in its ``styles``, as :func:`~wcsac_rl.evaluation.plots.row_styles`
+    gives; each in ``formats``); return the paths (none for ``None``: statistics left out)."""
     from wcsac_rl.evaluation.run_plots import plot_run_values, plot_score_distribution
 
     if stats is None:
@@ -521,6 +559,7 @@ def write_run_statistics(
 
     files = [write_text(out_dir / name, text) for name, text in stats.tables().items()]
     title = _title(stats)
-    files.append(plot_run_values(stats, out_dir / FIG_RUNS, title=title))
-    files.append(plot_score_distribution(stats, out_dir / FIG_SCORE, title=title))
+    for plot, name in ((plot_run_values, FIG_RUNS), (plot_score_distribution, FIG_SCORE)):
+        plot(stats, out_dir / name, title=title, styles=styles, formats=formats)
+        files += figure_paths(out_dir / name, formats)
     return files

@@ -15,15 +15,17 @@ import re
 from collections.abc import Iterable
 from pathlib import Path
 
-from wcsac_rl.envs.presets import env_title
+from wcsac_rl.envs.presets import env_title, get_preset
 from wcsac_rl.training.checkpoint import CHECKPOINT_DIR, LAST_CHECKPOINT
+from wcsac_rl.training.registry import ALGORITHMS, row_algorithm
 
 __all__ = [
+    "ACRONYMS",
     "EVALUATION_CSV",
     "EVALUATION_JSON",
-    "ROW_NAMES",
     "ROW_ORDER",
     "display_text",
+    "env_has_layout",
     "env_title",
     "find_evaluated_dirs",
     "find_progress_dirs",
@@ -39,37 +41,39 @@ __all__ = [
 EVALUATION_CSV = "evaluation.csv"
 EVALUATION_JSON = "evaluation.json"
 
-ROW_ORDER: tuple[str, ...] = (
-    "sac",
-    "sac_lag",
-    "wcsac_0.9",
-    "wcsac_0.5",
-    "wcsac_0.1",
-    "cpo",
-    "random",
-)
-"""Table 1's rows (``algo.label`` values) in the paper's order."""
+ROW_ORDER: tuple[str, ...] = tuple(row for entry in ALGORITHMS.values() for row in entry.paper_rows)
+"""Table 1's rows (``algo.label`` values) in the paper's order (the registry's
+``paper_rows``)."""
 
-_WCSAC_LABEL = re.compile(r"wcsac_(iqn_|paper_)?([0-9.]+)")
-_SAC_LAG_AT = re.compile(r"sac_lag_d([0-9.]+)")
-"""SAC-Lag with its own limit (conf/row/sac_lag_d<d>.yaml: the matched-mean control)."""
-"""``algo.label`` of a WCSAC row: ``wcsac_<α>``, with the IQN critic ``wcsac_iqn_<α>``, with
-the paper's safety critic and κ (``algo=wcsac_paper``) ``wcsac_paper_<α>``."""
 
-ROW_NAMES: dict[str, str] = {
-    "sac": "SAC",
-    "sac_lag": "SAC-Lag",
-    "sac_lag_paper": "SAC-Lag-paper",
-    "cal": "CAL",
-    "cpo": "CPO",
-    "random": "Random Policy",
-}
+def env_has_layout(env: str | None) -> bool:
+    """Whether runs of ``env`` have a layout (hazards, goal) and goals to count: the
+    kit's envs (the point-goal presets and tiny) do; a user's ``env=gymnasium`` env
+    does not (its ``goal_reached`` is always 0), so its report leaves out Figure 5's
+    trajectories and the goals columns. ``None`` (no env known): as a preset."""
+    if env is None:
+        return True
+    try:
+        get_preset(env)
+    except ValueError:
+        return False
+    return True
+
+
+_TRAILING_NUMBER = re.compile(r"[0-9]+(?:\.[0-9]+)?$")
+"""The number a row label ends with (α, or a variant's own cost limit)."""
+_AT_LIMIT = re.compile(r"d([0-9.]+)")
+"""A variant with its own cost limit d (conf/row/sac_lag_d<d>.yaml: the matched-mean control)."""
+ACRONYMS = {"iqn": "IQN"}
+"""Words of a row label written in capitals in its name (``wcsac_iqn_0.1``: WCSAC-IQN-0.1)."""
 
 
 def row_name(label: str) -> str:
-    """The paper's name of a row: ``"sac_lag"`` → ``"SAC-Lag"``, ``"wcsac_0.5"`` → ``"WCSAC-0.5"``
-    (and ``"wcsac_iqn_0.5"``, WCSAC with the IQN safety critic, → ``"WCSAC-IQN-0.5"``;
-    ``"wcsac_paper_0.5"``, with the paper's safety critic and κ, → ``"WCSAC-paper-0.5"``).
+    """The paper's name of a row: its algorithm's title (the registry's), then the words
+    of its variant: ``"sac_lag"`` → ``"SAC-Lag"``, ``"wcsac_0.5"`` → ``"WCSAC-0.5"``, the
+    IQN safety critic's ``"wcsac_iqn_0.5"`` → ``"WCSAC-IQN-0.5"``, the paper's safety
+    critic and κ ``"wcsac_paper_0.5"`` → ``"WCSAC-paper-0.5"``, a variant with its own
+    cost limit ``"sac_lag_d1.5"`` → ``"SAC-Lag (d=1.5)"``.
 
     >>> row_name("wcsac_0.1"), row_name("wcsac_iqn_0.1"), row_name("random"), row_name("my_algo")
     ('WCSAC-0.1', 'WCSAC-IQN-0.1', 'Random Policy', 'my_algo')
@@ -79,16 +83,14 @@ def row_name(label: str) -> str:
     base, settings = split_row_label(label)
     if settings:  # a row of a label split by a differing setting (make_row_label)
         return f"{row_name(base)} ({settings})"
-    if label in ROW_NAMES:
-        return ROW_NAMES[label]
-    at = _SAC_LAG_AT.fullmatch(label)
-    if at:
-        return f"SAC-Lag (d={at.group(1)})"
-    match = _WCSAC_LABEL.fullmatch(label)
-    if match:
-        variant = {"iqn_": "IQN-", "paper_": "paper-"}.get(match.group(1) or "", "")
-        return f"WCSAC-{variant}{match.group(2)}"
-    return label
+    entry = row_algorithm(label)
+    if entry is None:
+        return label
+    name = entry.title
+    for word in label[len(entry.name) + 1 :].split("_") if label != entry.name else ():
+        at = _AT_LIMIT.fullmatch(word)
+        name += f" (d={at.group(1)})" if at else f"-{ACRONYMS.get(word, word)}"
+    return name
 
 
 def make_row_label(label: str, settings: dict[str, str]) -> str:
@@ -114,15 +116,17 @@ def split_row_label(label: str) -> tuple[str, str]:
 
 
 def row_sort_key(label: str) -> tuple[int, float, str]:
-    """Sort key putting rows in the paper's order: SAC, SAC-Lag (the paper's formulation,
-    ``sac_lag_paper``, next), WCSAC by decreasing α (any α; the IQN critic's row after
-    the Gaussian one of the same α), CPO, Random Policy, then unknown labels
-    alphabetically.
+    """Sort key putting rows in the paper's order: by algorithm in the registry's order
+    (SAC, SAC-Lag, CAL, WCSAC, CPO, Random Policy), within one the algorithm's own row
+    first, then its variants without a number (``sac_lag_paper``), then those with one by
+    decreasing number (WCSAC by decreasing α, the IQN critic's row after the Gaussian
+    one of the same α; SAC-Lag with its own limit, the largest first); then unknown
+    labels alphabetically.
 
     >>> sorted(["random", "wcsac_iqn_0.1", "wcsac_0.1", "sac", "wcsac_0.9"], key=row_sort_key)
     ['sac', 'wcsac_0.9', 'wcsac_0.1', 'wcsac_iqn_0.1', 'random']
-    >>> sorted(["wcsac_0.5", "sac_lag_paper", "sac_lag"], key=row_sort_key)
-    ['sac_lag', 'sac_lag_paper', 'wcsac_0.5']
+    >>> sorted(["wcsac_0.5", "sac_lag_paper", "sac_lag", "cal"], key=row_sort_key)
+    ['sac_lag', 'sac_lag_paper', 'cal', 'wcsac_0.5']
     >>> sorted(["wcsac_0.9", "sac_lag_d1.5", "sac_lag_d13.5", "sac_lag"], key=row_sort_key)
     ['sac_lag', 'sac_lag_d13.5', 'sac_lag_d1.5', 'wcsac_0.9']
     """
@@ -130,26 +134,12 @@ def row_sort_key(label: str) -> tuple[int, float, str]:
     if settings:  # right after the row of its label's other settings
         order, value, _ = row_sort_key(base)
         return (order, value, label)
-    match = _WCSAC_LABEL.fullmatch(label)
-    if match:
-        try:
-            alpha = float(match.group(2))
-        except ValueError:
-            alpha = 0.0
-        return (ROW_ORDER.index("wcsac_0.9"), -alpha, label)
-    if label in ROW_ORDER:
-        return (ROW_ORDER.index(label), 0.0, label)
-    if label == "sac_lag_paper":
-        return (ROW_ORDER.index("sac_lag"), 1.0, label)
-    if label == "cal":  # (not a row of the paper: after SAC-Lag's)
-        return (ROW_ORDER.index("sac_lag"), 3.0, label)
-    at = _SAC_LAG_AT.fullmatch(label)
-    if at:  # after SAC-Lag-paper, the largest limit first
-        try:
-            return (ROW_ORDER.index("sac_lag"), 2.0 + 1.0 / (1.0 + float(at.group(1))), label)
-        except ValueError:
-            return (ROW_ORDER.index("sac_lag"), 2.0, label)
-    return (len(ROW_ORDER), 0.0, label)
+    entry = row_algorithm(label)
+    if entry is None:
+        return (len(ALGORITHMS), 0.0, label)
+    order = list(ALGORITHMS).index(entry.name)
+    number = _TRAILING_NUMBER.search(label[len(entry.name) :])
+    return (order, 0.0 if number is None else 1.0 + 1.0 / (1.0 + float(number.group())), label)
 
 
 def display_text(text: str) -> str:

@@ -1,4 +1,4 @@
-"""The report's training-safety table (``training_safety.md``, ``training_safety.csv``).
+"""The report's training-safety table (``training_safety.md``, ``.csv``, ``.tex``).
 
 Beside Table 1, which judges each row's *final* policy, this table says how safely each
 row *trained*: per Table-1 row (the same grouping by ``algo.label`` and the same row
@@ -19,6 +19,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from wcsac_rl.evaluation.latex import latex_path, markdown_to_latex
 from wcsac_rl.evaluation.runs import env_title, row_name, row_sort_key
 from wcsac_rl.training.training_safety import WARMUP_FRAMES, training_safety
 
@@ -26,6 +27,7 @@ __all__ = [
     "TRAINING_SAFETY_CSV",
     "TRAINING_SAFETY_FILES",
     "TRAINING_SAFETY_MD",
+    "TRAINING_SAFETY_TEX",
     "training_safety_csv",
     "training_safety_files",
     "training_safety_markdown",
@@ -34,7 +36,8 @@ __all__ = [
 
 TRAINING_SAFETY_MD = "training_safety.md"
 TRAINING_SAFETY_CSV = "training_safety.csv"
-TRAINING_SAFETY_FILES = (TRAINING_SAFETY_MD, TRAINING_SAFETY_CSV)
+TRAINING_SAFETY_TEX = latex_path(TRAINING_SAFETY_MD)
+TRAINING_SAFETY_FILES = (TRAINING_SAFETY_MD, TRAINING_SAFETY_CSV, TRAINING_SAFETY_TEX)
 
 METRICS = (
     "cumulative_cost",
@@ -191,7 +194,9 @@ def training_safety_files(
 ) -> dict[str, str]:
     """What the report writes: file name → text of :data:`TRAINING_SAFETY_FILES`."""
     rows = training_safety_rows(runs, cost_limit, env=env, warn=warn)
+    markdown = training_safety_markdown(rows, env, cost_limit)
     return {
-        TRAINING_SAFETY_MD: training_safety_markdown(rows, env, cost_limit),
+        TRAINING_SAFETY_MD: markdown,
         TRAINING_SAFETY_CSV: training_safety_csv(rows),
+        TRAINING_SAFETY_TEX: markdown_to_latex(markdown),
     }

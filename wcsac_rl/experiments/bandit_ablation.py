@@ -21,7 +21,7 @@ from torchrl.objectives import SoftUpdate
 
 from wcsac_rl.envs.risky_bandit import RiskyBanditEnv
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.objectives import WCSACLoss
+from wcsac_rl.objectives import WCSACLoss, loss_parts
 from wcsac_rl.objectives.variance import VARIANCE_LOSSES
 
 __all__ = ["BanditRun", "train_on_risky_bandit"]
@@ -71,7 +71,8 @@ def train_on_risky_bandit(
     Lagrangian method oscillates around its fixed point). ``true_cvar`` is the
     policy's expected closed-form Gaussian CVaR at ``report_risk_level`` (default:
     the trained ``risk_level``), ``exact_cvar`` its expected exact CVaR (what an
-    IQN critic, ``safety_critic="iqn"``, estimates).
+    IQN critic, ``safety_critic="iqn"``, estimates). ``loss_kwargs``: more options of the
+    loss, as a recipe names them (``kappa_actions="policy"``; :func:`loss_parts`).
 
     ``damp_scale`` (MDMM damping of κ in the actor loss, default 1) damps the slow
     Lagrangian oscillation of this task: without it a seed can end training in an
@@ -88,11 +89,18 @@ def train_on_risky_bandit(
         risk_level=risk_level,
         cost_limit=cost_limit,
         max_episode_steps=1,
-        damp_scale=damp_scale,
         # one-step episodes: every replayed state is a start state and a one-step
         # target is the whole return, so κ over the replay batch and 1-step targets
         # are the start-state / n-step defaults here, without their extra entries
-        **{"kappa_states": "replay", "cost_n_steps": 1, **loss_kwargs},
+        **loss_parts(
+            {
+                "safety_critic": safety_critic,
+                "damp_scale": damp_scale,
+                "kappa_states": "replay",
+                "cost_n_steps": 1,
+                **loss_kwargs,
+            }
+        ),
     )
     updater = SoftUpdate(loss, tau=0.005)
     kappa = [loss.kappa_raw]

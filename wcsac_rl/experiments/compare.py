@@ -56,7 +56,17 @@ COLUMNS = (
 
 
 def _read_json(path: Path) -> dict | None:
-    return json.loads(path.read_text()) if path.exists() else None
+    """A record's JSON object (``None`` when the file is absent); one that is not an
+    object with a ``metrics`` object is a ``ValueError`` naming the file."""
+    if not path.exists():
+        return None
+    try:
+        record = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: not JSON ({err})") from None
+    if not isinstance(record, dict) or not isinstance(record.get("metrics"), dict):
+        raise ValueError(f"{path}: not a record of wcsac_rl (a JSON object with 'metrics')")
+    return record
 
 
 def run_row(run_dir: Path) -> dict[str, float | str]:
@@ -127,6 +137,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("runs", nargs="+", type=Path)
     parser.add_argument("--out", type=Path, default=None, help="also write the table here")
     args = parser.parse_args(argv)
+    if args.out is not None and args.out.is_dir():
+        parser.error(f"--out {args.out} is a directory; name the file to write the table to")
     try:
         table = format_table(*compare_runs(args.runs))
     except (OSError, ValueError, KeyError) as err:  # a run not evaluated, a torn file

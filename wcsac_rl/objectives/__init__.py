@@ -1,11 +1,16 @@
 """Loss modules (WCSAC, SAC-Lagrangian, CPO), risk measures, ``PolyakUpdate`` (the
 target networks' fast path), ``param_groups`` (the optimizer groups with the kit's
 learning rates), the data the safety critic's options read (``NStepCost``, ``StartStateBuffer``, ``EpisodeCostWindow``),
-and the options themselves (``SafetyOptions``, ``PAPER_OPTIONS``: :mod:`wcsac_rl.options`)."""
+the loss's parts (``SafetyHeadOptions``, ``SignalOptions``, ``GradientLagrangian``,
+``PIDLagrangian``) and the recipes that fill them (``loss_parts``; ``KIT_OPTIONS``,
+``kit_options``, ``recipe_options``: :mod:`wcsac_rl.recipes`; ``PAPER_OPTIONS``,
+``SafetyOptions``: :mod:`wcsac_rl.options`)."""
 
 from wcsac_rl.objectives.budget import per_step_cost_threshold
+from wcsac_rl.objectives.constraint import GradientLagrangian, PIDGains, PIDLagrangian
 from wcsac_rl.objectives.cpo import CPOLoss
 from wcsac_rl.objectives.episode_costs import EpisodeCostWindow
+from wcsac_rl.objectives.loss_options import SafetyHeadOptions, SignalOptions, loss_parts
 from wcsac_rl.objectives.nstep import NStepCost
 from wcsac_rl.objectives.param_groups import SingleGroupWarning, param_groups
 from wcsac_rl.objectives.risk import (
@@ -21,15 +26,22 @@ from wcsac_rl.objectives.start_states import StartStateBuffer
 from wcsac_rl.objectives.target_update import PolyakUpdate
 from wcsac_rl.objectives.wcsac import WCSACLoss
 from wcsac_rl.options import PAPER_OPTIONS, SafetyOptions
+from wcsac_rl.recipes import KIT_OPTIONS, kit_options, recipe_options
 
 __all__ = [
+    "KIT_OPTIONS",
     "PAPER_OPTIONS",
     "CPOLoss",
     "EpisodeCostWindow",
+    "GradientLagrangian",
     "NStepCost",
+    "PIDGains",
+    "PIDLagrangian",
     "PolyakUpdate",
     "SACLagLoss",
+    "SafetyHeadOptions",
     "SafetyOptions",
+    "SignalOptions",
     "SingleGroupWarning",
     "StartStateBuffer",
     "WCSACLoss",
@@ -37,8 +49,11 @@ __all__ = [
     "gaussian_cvar",
     "gaussian_cvar_multiplier",
     "gaussian_mixture_cvar",
+    "kit_options",
+    "loss_parts",
     "param_groups",
     "per_step_cost_threshold",
     "quantile_mixture_cvar",
+    "recipe_options",
     "validate_risk_level",
 ]

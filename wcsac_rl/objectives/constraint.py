@@ -39,6 +39,7 @@ from wcsac_rl.options import (
     CONSTRAINT_RULES,
     KAPPA_PARAMETRIZATIONS,
     PIDGains,
+    SafetyOptions,
     check_kappa_bound,
 )
 
@@ -60,7 +61,7 @@ class GradientLagrangian(nn.Module):
     """κ as a parameter learned by gradient descent (the paper's rule).
 
     Args:
-        kappa_init (float): the initial κ > 0. The authors' ``softplus(0) ≈ 0.693``.
+        kappa_init (float): the initial κ > 0. Default: the authors' ``softplus(0) ≈ 0.693``.
         parametrization (str): ``"softplus"`` (κ = softplus(raw), the authors' code) or
             ``"log"`` (κ = exp(raw)).
         damp_scale (float): MDMM damping: the actor's penalty weight is
@@ -95,8 +96,8 @@ class GradientLagrangian(nn.Module):
 
     def __init__(
         self,
-        kappa_init: float,
-        parametrization: str = "softplus",
+        kappa_init: float = SafetyOptions.kappa_init,
+        parametrization: str = SafetyOptions.kappa_parametrization,
         damp_scale: float = 0.0,
         kappa_max: float | None = None,
         kappa_min: float = 0.0,
@@ -223,7 +224,10 @@ class PIDLagrangian(nn.Module):
     rule = "pid"
 
     def __init__(
-        self, kappa_init: float, gains: PIDGains | None = None, kappa_min: float = 0.0
+        self,
+        kappa_init: float = SafetyOptions.kappa_init,
+        gains: PIDGains | None = None,
+        kappa_min: float = 0.0,
     ) -> None:
         super().__init__()
         gains = PIDGains() if gains is None else gains

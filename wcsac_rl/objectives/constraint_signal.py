@@ -61,7 +61,19 @@ __all__ = [
     "KAPPA_STATISTICS",
     "ConstraintSignal",
     "HeldStatistic",
+    "check_signal_states",
 ]
+
+
+def check_signal_states(states: str, signal: str) -> None:
+    """An episode signal (``kappa_signal`` other than ``"critic"``) needs
+    ``kappa_states="initial"``: one ``ValueError`` line naming both."""
+    if signal != "critic" and states != "initial":
+        raise ValueError(
+            f"kappa_signal={signal!r} compares episode costs with the episodic limit "
+            "d, which is the threshold only with kappa_states='initial' (with 'replay' "
+            "it is a per-step threshold)"
+        )
 
 
 class ConstraintSignal:
@@ -107,12 +119,7 @@ class ConstraintSignal:
         ):
             if value not in allowed:
                 raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
-        if signal != "critic" and states != "initial":
-            raise ValueError(
-                f"kappa_signal={signal!r} compares episode costs with the episodic limit "
-                "d, which is the threshold only with kappa_states='initial' (with 'replay' "
-                "it is a per-step threshold)"
-            )
+        check_signal_states(states, signal)
         self.head = head
         self.keys = keys
         self.states, self.actions = states, actions

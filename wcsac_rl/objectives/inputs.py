@@ -12,6 +12,7 @@ once instead, before it reaches the replay buffer.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable
 from numbers import Real
@@ -26,11 +27,14 @@ __all__ = [
     "check_finite_losses",
     "check_nonempty_batch",
     "collected_keys",
+    "data_keys",
     "finite_number",
+    "loss_out_keys",
     "missing_inputs",
     "nested_key",
     "network_state_keys",
     "nonfinite_entry",
+    "parts_in_keys",
     "produced_keys",
     "required_entry",
     "state_keys",
@@ -48,6 +52,29 @@ def finite_number(value: object, name: str, *, minimum: float | None = None) -> 
     return float(value)
 
 
+def takes_tensordict(forward):
+    """``forward`` (under TorchRL's ``dispatch``) refusing a positional batch that is not
+    a TensorDict in one ``TypeError`` line (``dispatch`` would read it as keywords)."""
+
+    @functools.wraps(forward)
+    def checked(self, *args, **kwargs):
+        if args and not isinstance(args[0], TensorDictBase):
+            raise TypeError(
+                f"{type(self).__name__} takes a TensorDict batch, got {type(args[0]).__name__} "
+                "(wrap it: TensorDict(batch, batch_size=[n]))"
+            )
+        return forward(self, *args, **kwargs)
+
+    return checked
+
+
+def whole_count(value: object, name: str) -> int:
+    """``value`` as a count >= 1, or a ``ValueError`` naming ``name`` (a bool is no count)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    return value
+
+
 def required_entry(tensordict: TensorDictBase, key: NestedKey, what: str, how: str):
     """``tensordict[key]``, or a ``KeyError`` saying what it is and how to provide it."""
     value = tensordict.get(key, None)
@@ -57,8 +84,14 @@ def required_entry(tensordict: TensorDictBase, key: NestedKey, what: str, how: s
 
 
 def check_nonempty_batch(tensordict: TensorDictBase, what: str) -> None:
-    """A ``ValueError`` naming the batch size when ``tensordict`` holds no sample (its
-    shape is known without reading any value: no host synchronisation)."""
+    """A ``TypeError`` for a batch that is not a TensorDict, a ``ValueError`` naming the
+    batch size when ``tensordict`` holds no sample (its shape is known without reading
+    any value: no host synchronisation)."""
+    if not isinstance(tensordict, TensorDictBase):
+        raise TypeError(
+            f"{what} takes a TensorDict batch, got {type(tensordict).__name__} (wrap it: "
+            "TensorDict(batch, batch_size=[n]))"
+        )
     if tensordict.batch_size.numel() == 0 and tensordict.batch_dims:
         raise ValueError(
             f"{what} got an empty batch (batch_size={list(tensordict.batch_size)}); it needs "
@@ -88,6 +121,44 @@ def check_batch_entries(
                 f"{what}: batch entry {key!r} must be boolean (torch.bool), got {value.dtype}; "
                 "convert it with .bool() (TorchRL's envs write done and terminated as bool)"
             )
+
+
+def check_critic_inputs(tensordict: TensorDictBase, loss, what: str) -> None:
+    """A ``TypeError`` when a batch entry the reward critics read is not of the networks'
+    floating dtype, and, for a critic that is one module over its entries (the kit's),
+    a ``ValueError`` when those entries do not add up to the inputs its first layer
+    takes; each naming the entries. Looks at shapes and dtypes only (no host
+    synchronisation; not under ``torch.compile``)."""
+    from tensordict.nn import TensorDictSequential
+
+    if torch.compiler.is_compiling():  # (a graph runs what eager mode checked)
+        return
+    network = loss.qvalue_network
+    params = loss.qvalue_network_params.values(True, True)
+    dtype = next(iter(params), torch.empty(0)).dtype
+    keys = [nested_key(key) for key in network.in_keys]
+    first = None
+    if not isinstance(network, TensorDictSequential):  # (a trunk's features: not the batch's)
+        leaves = (m for m in network.modules() if not list(m.children()))
+        first = next((m for m in leaves if list(m.parameters(recurse=False))), None)
+        first = first if type(first) is torch.nn.Linear else None  # (an MLP on the entries)
+    entries = [(key, tensordict.get(key, None)) for key in keys]
+    entries = [(key, value) for key, value in entries if isinstance(value, torch.Tensor)]
+    for key, value in entries:
+        if value.is_floating_point() and value.dtype != dtype:
+            raise TypeError(
+                f"{what}: batch entry {key!r} is {value.dtype}, the networks' parameters "
+                f"{dtype}; convert the batch (.to({dtype})) or the loss"
+            )
+    if first is None or len(entries) != len(keys):
+        return
+    widths = {key: value.shape[-1] if value.ndim else 1 for key, value in entries}
+    if sum(widths.values()) != first.in_features:
+        shown = ", ".join(f"{key!r} {width}" for key, width in widths.items())
+        raise ValueError(
+            f"{what}: the batch's entries ({shown} numbers) make {sum(widths.values())} "
+            f"critic inputs; the critics take {first.in_features}"
+        )
 
 
 def nonfinite_entry(
@@ -222,6 +293,67 @@ class _Present:
         return self.tensordict.get(key, None) is not None
 
 
+def parts_in_keys(loss, in_keys: Iterable[NestedKey]) -> list[NestedKey]:
+    """``in_keys`` (SACLoss's) and what ``loss``'s parts read: the safety head's inputs
+    at ``s`` and ``s'``, the cost target's, the start states with
+    ``kappa_states="initial"``, the episodes' cost where the signal or the head reads it."""
+    head, tensor_keys = loss.safety_head, loss.tensor_keys
+    keys = set(in_keys)
+    keys.update(head.in_keys)
+    keys.update(("next", k) for k in head.in_keys if k != tensor_keys.action)
+    states = state_keys(loss)
+    keys.update(loss.cost_target.in_keys(states))
+    if loss.kappa_states == "initial":
+        keys.update(nested_key(tensor_keys.initial_states, key) for key in states)
+    if loss.kappa_signal != "critic" or head.reads_episode_costs:
+        keys.add(tensor_keys.episode_cvar)
+    return list(keys)
+
+
+def loss_out_keys(loss) -> list[str]:
+    """What ``loss.forward`` returns: the loss terms (the head's; ``loss_kappa`` under the
+    gradient rule), then the diagnostics (the constraint's and the head's among them)."""
+    head, constraint = loss.safety_head, loss.constraint
+    keys = ["loss_actor", "loss_qvalue", "loss_alpha", *head.loss_names]
+    if constraint.rule == "gradient":
+        keys.append("loss_kappa")
+    keys += ["alpha", "kappa", *constraint.diagnostic_names, "entropy"]
+    keys += [*head.diagnostic_names, "cvar", "cost_threshold"]
+    if loss.kappa_signal != "critic":
+        keys += ["episode_cvar", "constraint_cvar"]
+    return keys
+
+
+def data_keys(loss) -> list[NestedKey]:
+    """The entries of ``loss.in_keys`` a batch must hold: not those the loss's own networks
+    write (a composite actor's ``params``, a shared trunk's features), not the end
+    flags (``terminated`` falls back to ``done``; the n-step entries' flag the cost
+    target reads, naming it, is the one its bootstrap needs), not the cost (its own
+    message). Cached on the loss until its ``in_keys`` change (``set_keys``)."""
+    in_keys = tuple(loss.in_keys)
+    cached = loss.__dict__.get("_data_keys_cache")
+    if cached is not None and cached[0] == in_keys:
+        return cached[1]
+    produced = produced_keys(loss.actor_network, loss.qvalue_network, loss.safety_network)
+    tensor_keys = loss.tensor_keys
+    optional = {
+        nested_key(outer, getattr(tensor_keys, name))
+        for outer, names in (("next", ("done", "terminated", "cost")),
+                             (tensor_keys.nstep, ("done", "terminated")))
+        for name in names
+    }  # fmt: skip
+    keys = []
+    action = nested_key(tensor_keys.action)  # (the actor writes one, the critics read the batch's)
+    for key in in_keys:
+        key = nested_key(key)
+        inner = key[1:] if key[0] == "next" else key
+        written = key != action and any(out[: len(inner)] == inner for out in produced)
+        if key not in optional and not written:
+            keys.append(key)
+    loss.__dict__["_data_keys_cache"] = (in_keys, keys)
+    return keys
+
+
 def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
     """One line naming what ``tensordict`` lacks for ``loss``'s options and the kit's
     transform that writes it, or ``None`` if nothing is missing. Looks at keys only (no
@@ -277,6 +409,6 @@ def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
     )
     return (
         f"{name}: the batch lacks entries its options read ({parts}; from "
-        "wcsac_rl.objectives). Or construct the loss with **PAPER_OPTIONS, which reads "
+        "wcsac_rl.objectives). Or construct the loss with **loss_parts(PAPER_OPTIONS), which reads "
         "only observation, action and next reward / done / terminated / cost."
     )

@@ -83,7 +83,7 @@ class NStepCost(nn.Module):
         out_key: NestedKey = "nstep",
     ) -> None:
         super().__init__()
-        if int(n_steps) != n_steps or n_steps < 1:
+        if isinstance(n_steps, bool) or int(n_steps) != n_steps or n_steps < 1:
             raise ValueError(f"n_steps must be an integer >= 1, got {n_steps}")
         if not 0.0 <= gamma <= 1.0:
             raise ValueError(f"gamma must be in [0, 1], got {gamma}")
@@ -112,6 +112,13 @@ class NStepCost(nn.Module):
                 "NStepCost got a batch from TorchRL's MultiStep (it has 'steps_to_next_obs'), "
                 "whose 'next' entries are n steps on; put NStepCost before MultiStep"
             )
+        for key in (self.cost_key, self.done_key):
+            if tensordict.get(("next", *_tuple(key)), None) is None:
+                raise KeyError(
+                    f"NStepCost: the batch has no {('next', *_tuple(key))!r} entry, which the "
+                    "n-step cost reads (name yours with cost_key= / done_key=, or "
+                    "NStepCost.for_loss(loss) after loss.set_keys(...))"
+                )
         nxt = tensordict.get("next")
         shape = tensordict.shape
         cost = nxt.get(self.cost_key)
@@ -146,3 +153,7 @@ class NStepCost(nn.Module):
         out["done"] = at_last(nxt.get(self.done_key))
         tensordict.set(self.out_key, TensorDict(out, batch_size=shape))
         return tensordict
+
+
+def _tuple(key: NestedKey) -> tuple[str, ...]:
+    return (key,) if isinstance(key, str) else tuple(key)

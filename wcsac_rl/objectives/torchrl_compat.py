@@ -6,7 +6,7 @@ user wrote it."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 import torch
@@ -16,10 +16,13 @@ from torch import Tensor
 from torchrl.objectives.utils import ValueEstimators, _coerce_value_type
 from torchrl.objectives.value import TD0Estimator, ValueEstimatorBase
 
+from wcsac_rl.modules.tanh_normal import tanh_normal_actor_plan
+
 __all__ = [
     "as_given",
     "check_td0",
     "convert_safety_network",
+    "direct_actor_plan",
     "refuse_multistep",
     "refuse_unknown_keywords",
     "sample_alive",
@@ -163,10 +166,14 @@ def convert_safety_network(
             loss.safety_network_params.set(key, copy)
 
 
-def refuse_unknown_keywords(init: Callable, kwargs: dict) -> None:
+def refuse_unknown_keywords(
+    init: Callable, kwargs: dict, parts: Mapping[str, str] | None = None
+) -> None:
     """Refuse a keyword neither ``init`` (the loss's ``__init__``) nor
-    :class:`~torchrl.objectives.SACLoss` takes, in one line naming the closest one
-    (``kapa_init`` → ``kappa_init``), before ``SACLoss`` says only that it is unexpected."""
+    :class:`~torchrl.objectives.SACLoss` takes, in one line naming the part that takes
+    it (``parts``: ``kappa_init`` → ``constraint=GradientLagrangian(kappa_init=...)``)
+    or the closest keyword (``alpha_int`` → ``alpha_init``), before ``SACLoss`` says
+    only that it is unexpected."""
     import difflib
     import inspect
 
@@ -174,8 +181,28 @@ def refuse_unknown_keywords(init: Callable, kwargs: dict) -> None:
 
     known = {*inspect.signature(init).parameters, *inspect.signature(SACLoss.__init__).parameters}
     known -= {"self", "sac_kwargs", "kwargs"}
+    parts = parts or {}
     for name in kwargs:
+        if name in parts:
+            raise TypeError(f"{name!r} is an option of a part of the loss: give {parts[name]}")
         if name not in known:
-            close = difflib.get_close_matches(name, sorted(known), n=1, cutoff=0.6)
+            close = difflib.get_close_matches(name, sorted({*known, *parts}), n=1, cutoff=0.6)
             hint = f" (did you mean {close[0]}?)" if close else ""
+            if close and close[0] in parts:
+                hint = f" (did you mean {close[0]}? give {parts[close[0]]})"
             raise TypeError(f"unknown keyword argument {name!r}{hint}")
+
+
+def direct_actor_plan(actor_network, direct_sampling: bool | None):
+    """The plan to draw ``actor_network``'s actions straight from its parameters
+    (:func:`~wcsac_rl.modules.tanh_normal.tanh_normal_actor_plan`), or ``None``:
+    ``direct_sampling=False``, or ``None`` with an actor it cannot read (TorchRL's
+    general path then); ``True`` with such an actor is refused in one line."""
+    plan = tanh_normal_actor_plan(actor_network) if direct_sampling is not False else None
+    if direct_sampling and plan is None:
+        raise ValueError(
+            "direct_sampling=True needs an actor built like wcsac_rl.modules.make_actor "
+            "(an MLP with ClampedLogStdNormalParams and a TanhNormal); use "
+            "direct_sampling=None to fall back automatically"
+        )
+    return plan

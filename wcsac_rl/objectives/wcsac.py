@@ -13,9 +13,7 @@ itself is one method per term: ``qvalue_loss``, ``safety_loss``, ``actor_loss``
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
@@ -31,13 +29,13 @@ from torchrl.objectives.utils import (
     distance_loss,
 )
 
-from wcsac_rl.modules.tanh_normal import sample_tanh_normal, tanh_normal_actor_plan
+from wcsac_rl.modules.tanh_normal import sample_tanh_normal
 from wcsac_rl.objectives.budget import (
     per_step_cost_threshold,
     validate_cost_limit,
     validate_max_episode_steps,
 )
-from wcsac_rl.objectives.constraint import make_constraint, rename_kappa_raw
+from wcsac_rl.objectives.constraint import GradientLagrangian, PIDLagrangian, rename_kappa_raw
 from wcsac_rl.objectives.constraint_signal import ConstraintSignal, HeldStatistic
 from wcsac_rl.objectives.cost_target import CostTarget
 from wcsac_rl.objectives.critic_ensemble import Layers
@@ -45,14 +43,24 @@ from wcsac_rl.objectives.critics import CriticParams, Critics, CriticValues
 from wcsac_rl.objectives.ensemble_head import make_safety_head
 from wcsac_rl.objectives.inputs import (
     check_batch_entries,
+    check_critic_inputs,
     check_finite_entries,
     check_finite_losses,
     check_nonempty_batch,
+    data_keys,
     finite_number,
+    loss_out_keys,
     missing_inputs,
-    nested_key,
-    produced_keys,
+    parts_in_keys,
     state_keys,
+    takes_tensordict,
+    whole_count,
+)
+from wcsac_rl.objectives.loss_options import (
+    PART_OF_OPTION,
+    SafetyHeadOptions,
+    SignalOptions,
+    kit_parts,
 )
 from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
 from wcsac_rl.objectives.safety_head import SafetyValues
@@ -61,29 +69,32 @@ from wcsac_rl.objectives.torchrl_compat import (
     as_given,
     check_td0,
     convert_safety_network,
+    direct_actor_plan,
     refuse_multistep,
     refuse_unknown_keywords,
     sample_alive,
 )
-from wcsac_rl.options import (
-    PAPER_OPTIONS,
-    IQNOptions,
-    PIDGains,
-    SafetyOptions,
-    check_loss_options,
-    check_signal_every,
-)
+from wcsac_rl.options import PAPER_OPTIONS, SafetyOptions
+from wcsac_rl.recipes import KIT_OPTIONS
 
-__all__ = ["PAPER_OPTIONS", "CriticValues", "WCSACLoss", "per_step_cost_threshold"]
+__all__ = [
+    "KIT_OPTIONS",
+    "PAPER_OPTIONS",
+    "CriticValues",
+    "WCSACLoss",
+    "per_step_cost_threshold",
+]
 
 
 class WCSACLoss(SACLoss):
     r"""The WCSAC loss: SAC with a safety critic and a CVaR constraint.
 
-    ``benchmarks/plain_wcsac.py`` is the plain-PyTorch reference of the paper's update
-    (this loss with ``**PAPER_OPTIONS, variance_loss="mse"``), tested equal to it in
-    ``tests/test_plain_reference.py``. Each option belongs to one part and is
-    documented there (``docs/architecture.md`` has the map).
+    TorchRL-style: the networks, a handful of keywords, the parts as objects
+    (``docs/architecture.md``). Not given, a part is the kit's StaticEnv recipe's
+    (``KIT_OPTIONS``: what ``train.py algo=wcsac env=static`` runs, with an IQN critic);
+    ``**loss_parts(recipe)`` gives them for another (``PAPER_OPTIONS``,
+    ``kit_options("dynamic")``). ``benchmarks/plain_wcsac.py`` is the plain-PyTorch
+    reference of the paper's update (``tests/test_plain_reference.py``).
 
     Args:
         actor_network (ProbabilisticTensorDictSequential): the stochastic (tanh-Normal) actor.
@@ -93,10 +104,9 @@ class WCSACLoss(SACLoss):
         safety_network (TensorDictModule or list of them): the safety critic
             (:func:`wcsac_rl.modules.make_safety_critic`): Gaussian (``"cost_value"`` and
             ``"cost_variance"``; mean-only at ``risk_level=1``) or an implicit quantile
-            network (``"quantile_fractions"`` → ``"cost_quantiles"``); its head
-            (:func:`~wcsac_rl.objectives.ensemble_head.make_safety_head`) reads it. A list
-            of ``num_safety_nets`` modules of one structure gives that many
-            independently initialised critics.
+            network (``"quantile_fractions"`` → ``"cost_quantiles"``). A list of
+            ``safety_head.num_safety_nets`` modules of one structure gives that many
+            independently initialised critics; given one, the others are re-drawn from it.
 
     Keyword Args:
         risk_level (float): the paper's α ∈ (0, 1], the tail fraction whose mean cost
@@ -107,70 +117,34 @@ class WCSACLoss(SACLoss):
         cost_threshold (float, optional): the threshold given directly (then
             ``cost_limit`` and ``max_episode_steps`` are not used). By default ``d``
             at start states, the per-step threshold at replay states.
-        cost_gamma (float, optional): γ_c of the safety critic; ``None``: the value
-            estimator's γ (the paper). At 1, Q^c at a start state is the expected
-            episode cost the limit ``d`` is about.
-        cost_bootstrap_truncated (bool, optional): whether the cost target bootstraps
-            across a time-limit truncation; ``None``: only when γ_c < 1.
-        cost_n_steps (int): ``1`` (the paper) or ``n > 1``: the cost target bootstraps
-            ``m ≤ n`` steps ahead from the entries :class:`~wcsac_rl.objectives.NStepCost`
-            adds to collected data.
-        nonnegative_cost (bool): ``max(Q^c, 0)`` wherever Q^c is *used* (targets, Γ),
-            not where it is fitted.
-        num_safety_nets (int): how many safety critics (default 1, the paper), each with
-            its own target network and TD loss (summed over them); given one module, the
-            others are re-drawn from it as TorchRL's ``expand_dim`` does.
-        ensemble_target, ensemble_reading (str), k_ucb, k_ucb_lr, k_ucb_max, prior_scale
-            (float): with ``num_safety_nets`` > 1, where the critics bootstrap, how the
-            actor, κ and the shield read them (the largest Γ, mean + k_ucb·std adapted
-            by k_ucb_lr, merged quantiles) and their random priors (:class:`~wcsac_rl.objectives.ensemble_head.EnsembleHead`).
-        variance_loss, variance_target (str): the Gaussian head's variance TD loss and
-            target (:class:`~wcsac_rl.objectives.safety_head.GaussianHead`).
-        num_quantiles, num_target_quantiles (int), huber_kappa (float): the IQN head's
-            (:class:`~wcsac_rl.objectives.safety_head.IQNHead`).
-        kappa_states, kappa_actions, kappa_statistic, kappa_signal (str): what κ holds
-            under the threshold (:mod:`wcsac_rl.objectives.constraint_signal`);
-            ``kappa_states="initial"`` reads start states
-            (:class:`~wcsac_rl.objectives.StartStateBuffer`).
-        kappa_signal_every (int): with ``kappa_states="initial"`` and
-            ``kappa_statistic="tail"``, read the critic's start-state tail in one
-            training update of this many and hold it in the others
-            (:class:`~wcsac_rl.objectives.constraint_signal.HeldStatistic`; 1: every
-            update).
-        kappa_init (float), kappa_parametrization (str), damp_scale (float), damp_clamp
-            (bool), kappa_max (float, optional), kappa_min (float), kappa_rule (str), pid
-            (PIDGains or dict): κ and how it moves
-            (:mod:`wcsac_rl.objectives.constraint`); ``pid=None``: the default gains. The
+        safety_head (SafetyHeadOptions, optional): the safety critic's head, its TD
+            target and ensemble (:class:`~wcsac_rl.objectives.loss_options.SafetyHeadOptions`).
+        signal (SignalOptions, optional): what κ holds under the threshold
+            (:class:`~wcsac_rl.objectives.loss_options.SignalOptions`).
+        constraint (GradientLagrangian or PIDLagrangian, optional): κ and its rule
+            (:mod:`wcsac_rl.objectives.constraint`), owned by this loss from now on; the
             PID rule steps in :meth:`forward` while the loss is in training mode.
-
-        Each of these options is defined once, in
-        :class:`~wcsac_rl.options.SafetyOptions` (and ``IQNOptions``,
-        ``PIDGains``): its default (the keyword defaults above are its fields), what it
-        may be (a bad value is refused in one line naming it) and what it does; the
-        paper's choices are ``PAPER_OPTIONS``.
-        fuse_critics, direct_sampling (bool, optional): evaluate the critics as one
-            batched ensemble (:mod:`~wcsac_rl.objectives.critic_ensemble`), draw the
-            actor's actions straight from its parameters; ``None`` (default): when
-            possible. Same values and gradients either way.
+        alpha_init (float): the initial entropy weight β; the kit's 0.1.
+        fuse_critics, direct_sampling (bool, optional): the critics as one batched
+            ensemble (:mod:`~wcsac_rl.objectives.critic_ensemble`), the actor's actions
+            drawn from its parameters; ``None``: when possible. Same values either way.
         check_finite (bool): run :meth:`check_inputs` on every call (not under
             ``torch.compile``). Default ``False``; an empty batch is refused either way.
-        num_qvalue_nets, loss_function, alpha_init, min_alpha, max_alpha, action_spec,
-        fixed_alpha, target_entropy, delay_actor, delay_qvalue, separate_losses,
-        reduction, skip_done_states, deactivate_vmap, scalar_output_mode: as in
-        :class:`~torchrl.objectives.SACLoss`; ``loss_function`` defaults to ``"l2"``.
+        num_qvalue_nets, loss_function: SACLoss's (``loss_function`` default ``"l2"``).
+        **sac_kwargs: :class:`~torchrl.objectives.SACLoss`'s other keywords
+            (``target_entropy``, ``delay_qvalue``, ``separate_losses``, ``reduction``, ...),
+            passed on. The loss's own keywords are the 13 above (``inspect.signature``'s
+            keyword-only parameters; SACLoss's count as SACLoss's).
 
-    γ comes from the value estimator (``loss.make_value_estimator(gamma=0.99)``, any
-    TD(0) form :class:`~torchrl.objectives.SACLoss` takes; default 0.99). A batch that
-    lacks what the options read (a plain replay batch under the defaults) is refused
-    with a ``KeyError`` naming, in one line, the transforms to add
-    (:func:`~wcsac_rl.objectives.inputs.missing_inputs`); ``docs/torchrl_contract.md``
-    lists the rest of the TorchRL contract the loss keeps. ``forward`` returns ``loss_actor``, ``loss_qvalue``,
-    ``loss_alpha``, the head's terms (``loss_cost_value`` and ``loss_cost_variance``,
-    or ``loss_cost_quantile``) and, under the gradient rule, ``loss_kappa``; and the
-    detached ``alpha``, ``kappa``, ``entropy``, ``cost_value``, ``cost_variance``,
-    ``cvar`` (the critic's statistic κ reads), ``cost_threshold`` (and with an episode
-    signal ``episode_cvar``, ``constraint_cvar``). Each term sends gradients only to
-    its own parameters, so their sum can be back-propagated at once.
+    Each option is defined once, in :class:`~wcsac_rl.options.SafetyOptions`; a bad value
+    is refused in one line naming it. γ comes from the value estimator
+    (``loss.make_value_estimator(gamma=0.99)``, any TD(0) form; default 0.99). A batch
+    lacking what the parts read is refused with a one-line ``KeyError`` naming the
+    transforms to add (:func:`~wcsac_rl.objectives.inputs.missing_inputs`; the TorchRL
+    contract the loss keeps: ``docs/torchrl_contract.md``). ``forward`` returns the
+    ``loss_*`` terms (``loss_kappa`` under the gradient rule) and detached diagnostics
+    (:attr:`out_keys`); each term sends gradients only to its own parameters, so their
+    sum can be back-propagated at once.
 
     Example:
         >>> import torch
@@ -179,10 +153,10 @@ class WCSACLoss(SACLoss):
         >>> from torchrl.objectives import SoftUpdate
         >>> from wcsac_rl import WCSACLoss
         >>> from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-        >>> from wcsac_rl.objectives import NStepCost, StartStateBuffer
+        >>> from wcsac_rl.objectives import EpisodeCostWindow, NStepCost, StartStateBuffer
         >>> actor = make_actor(4, Bounded(-1.0, 1.0, shape=(2,)))
-        >>> loss = WCSACLoss(
-        ...     actor, [make_qvalue(4, 2) for _ in range(2)], make_safety_critic(4, 2),
+        >>> loss = WCSACLoss(  # the kit's recipe: an IQN safety critic
+        ...     actor, [make_qvalue(4, 2) for _ in range(2)], make_safety_critic(4, 2, kind="iqn"),
         ...     risk_level=0.1, cost_limit=15.0, max_episode_steps=1000)
         >>> updater = SoftUpdate(loss, tau=0.005)
         >>> traj = TensorDict({  # one env's first 8 steps, as a collector hands them over
@@ -193,13 +167,14 @@ class WCSACLoss(SACLoss):
         ...              "done": torch.zeros(1, 8, 1, dtype=torch.bool),
         ...              "terminated": torch.zeros(1, 8, 1, dtype=torch.bool)}}, [1, 8])
         >>> traj = NStepCost.for_loss(loss)(traj)  # n-step cost targets
-        >>> starts = StartStateBuffer.for_loss(loss)  # κ looks at episode start states
+        >>> starts = StartStateBuffer.for_loss(loss)  # κ looks at episode start states ...
         >>> starts.add_starts(traj)
         1
-        >>> out = loss(starts.attach(traj.reshape(-1)))
+        >>> episodes = EpisodeCostWindow.for_loss(loss, window=10)  # ... and recent episodes
+        >>> out = loss(episodes.attach(starts.attach(traj.reshape(-1))))
         >>> sum(v for k, v in out.items() if k.startswith("loss_")).backward()
         >>> sorted(k for k in out.keys() if k.startswith("loss_"))
-        ['loss_actor', 'loss_alpha', 'loss_cost_value', 'loss_cost_variance', 'loss_kappa', 'loss_qvalue']
+        ['loss_actor', 'loss_alpha', 'loss_cost_quantile', 'loss_kappa', 'loss_qvalue']
     """
 
     @dataclass
@@ -253,44 +228,19 @@ class WCSACLoss(SACLoss):
         cost_limit: float = 15.0,
         max_episode_steps: int = 1000,
         cost_threshold: float | None = None,
-        cost_gamma: float | None = SafetyOptions.cost_gamma,
-        cost_bootstrap_truncated: bool | None = SafetyOptions.cost_bootstrap_truncated,
-        cost_n_steps: int = SafetyOptions.cost_n_steps,
-        nonnegative_cost: bool = SafetyOptions.nonnegative_cost,
-        kappa_statistic: str = SafetyOptions.kappa_statistic,
-        kappa_init: float = SafetyOptions.kappa_init,
-        kappa_parametrization: str = SafetyOptions.kappa_parametrization,
-        kappa_actions: str = SafetyOptions.kappa_actions,
-        kappa_states: str = SafetyOptions.kappa_states,
-        kappa_signal: str = SafetyOptions.kappa_signal,
-        kappa_signal_every: int = SafetyOptions.kappa_signal_every,
-        damp_scale: float = SafetyOptions.damp_scale,
-        damp_clamp: bool = SafetyOptions.damp_clamp,
-        kappa_max: float | None = SafetyOptions.kappa_max,
-        kappa_min: float = SafetyOptions.kappa_min,
-        kappa_rule: str = SafetyOptions.kappa_rule,
-        pid: PIDGains | Mapping[str, Any] | None = None,
-        num_quantiles: int = IQNOptions.num_quantiles,
-        num_target_quantiles: int = IQNOptions.num_target_quantiles,
-        huber_kappa: float = IQNOptions.huber_kappa,
-        variance_loss: str = SafetyOptions.variance_loss,
-        variance_target: str = SafetyOptions.variance_target,
+        safety_head: SafetyHeadOptions | None = None,
+        signal: SignalOptions | None = None,
+        constraint: GradientLagrangian | PIDLagrangian | None = None,
+        alpha_init: float = KIT_OPTIONS["alpha_init"],
         fuse_critics: bool | None = None,
         direct_sampling: bool | None = None,
         num_qvalue_nets: int = 2,
-        num_safety_nets: int = SafetyOptions.num_safety_nets,
-        ensemble_target: str = SafetyOptions.ensemble_target,
-        ensemble_reading: str = SafetyOptions.ensemble_reading,
-        k_ucb: float = SafetyOptions.k_ucb,
-        k_ucb_lr: float = SafetyOptions.k_ucb_lr,
-        k_ucb_max: float = SafetyOptions.k_ucb_max,
-        prior_scale: float = SafetyOptions.prior_scale,
         loss_function: str = "l2",
         check_finite: bool = False,
         **sac_kwargs,
     ) -> None:
-        check_loss_options(locals())  # as the config is: one line naming the option
-        refuse_unknown_keywords(WCSACLoss.__init__, sac_kwargs)
+        head, signal, constraint = kit_parts(safety_head, signal, constraint)
+        refuse_unknown_keywords(WCSACLoss.__init__, sac_kwargs, PART_OF_OPTION)
         if sac_kwargs.pop("value_network", None) is not None:
             raise ValueError("WCSACLoss is SAC v2: it takes no value_network")
         self.risk_level = validate_risk_level(risk_level)
@@ -300,16 +250,13 @@ class WCSACLoss(SACLoss):
             finite_number(cost_threshold, "cost_threshold", minimum=0.0)
         else:  # (what the threshold is made from, checked now whatever γ is later)
             validate_max_episode_steps(max_episode_steps)
+        whole_count(num_qvalue_nets, "num_qvalue_nets")
         self.check_finite = bool(check_finite)
-        self.nonnegative_cost = bool(nonnegative_cost)
         self.cost_limit = float(cost_limit)
         self.max_episode_steps = int(max_episode_steps)
         self._explicit_cost_threshold = None if cost_threshold is None else float(cost_threshold)
-        # the options as given (each part below holds and checks its own)
-        self.kappa_parametrization = kappa_parametrization
-        self.variance_loss, self.variance_target_kind = variance_loss, variance_target
-        self.num_quantiles, self.num_target_quantiles = num_quantiles, num_target_quantiles
-        self.huber_kappa = huber_kappa
+        self.head_options, self.signal_options = head, signal  # (the parts' options as given)
+        self.variance_loss = head.variance_loss  # (TorchRL wraps a class's "*loss" names)
 
         super().__init__(
             actor_network,
@@ -317,55 +264,44 @@ class WCSACLoss(SACLoss):
             None,
             num_qvalue_nets=num_qvalue_nets,
             loss_function=loss_function,
+            alpha_init=alpha_init,
             **sac_kwargs,
         )
         convert_safety_network(
-            self, safety_network, sac_kwargs.get("separate_losses", False), num_safety_nets
+            self, safety_network, sac_kwargs.get("separate_losses", False), head.num_safety_nets
         )
-        self.num_safety_nets = int(num_safety_nets)
         self.cost_target = CostTarget(
             self.tensor_keys,
-            gamma=cost_gamma,
-            n_steps=cost_n_steps,
-            bootstrap_truncated=cost_bootstrap_truncated,
+            gamma=head.cost_gamma,
+            n_steps=head.cost_n_steps,
+            bootstrap_truncated=head.cost_bootstrap_truncated,
         )
         self.safety_head = make_safety_head(
             self.safety_network, self.tensor_keys, risk_level=self.risk_level,
-            nonnegative_cost=self.nonnegative_cost, variance_loss=variance_loss,
-            variance_target=variance_target, num_quantiles=num_quantiles,
-            num_target_quantiles=num_target_quantiles, huber_kappa=huber_kappa,
-            members=self.num_safety_nets, ensemble_target=ensemble_target,
-            ensemble_reading=ensemble_reading, k_ucb=k_ucb, k_ucb_lr=k_ucb_lr,
-            k_ucb_max=k_ucb_max, prior_scale=prior_scale,
+            nonnegative_cost=head.nonnegative_cost, variance_loss=head.variance_loss,
+            variance_target=head.variance_target, num_quantiles=head.num_quantiles,
+            num_target_quantiles=head.num_target_quantiles, huber_kappa=head.huber_kappa,
+            members=head.num_safety_nets, ensemble_target=head.ensemble_target,
+            ensemble_reading=head.ensemble_reading, k_ucb=head.k_ucb, k_ucb_lr=head.k_ucb_lr,
+            k_ucb_max=head.k_ucb_max, prior_scale=head.prior_scale,
         )  # fmt: skip
+        device = self.log_alpha.device
         for name in ("prior", "pessimism"):  # (buffers, moved in place: no optimizer's)
             part = getattr(self.safety_head, name, None)
-            part = None if part is None else part.to(self.log_alpha.device)
-            setattr(self, f"safety_{name}", part)
+            setattr(self, f"safety_{name}", None if part is None else part.to(device))
         self.constraint_signal = ConstraintSignal(
             self.safety_head,
             self.tensor_keys,
-            states=kappa_states,
-            actions=kappa_actions,
-            statistic=kappa_statistic,
-            signal=kappa_signal,
+            states=signal.kappa_states,
+            actions=signal.kappa_actions,
+            statistic=signal.kappa_statistic,
+            signal=signal.kappa_signal,
         )
-        check_signal_every(kappa_signal_every, kappa_states, kappa_statistic)
-        constraint = make_constraint(
-            kappa_rule, kappa_init=kappa_init, parametrization=kappa_parametrization,
-            damp_scale=damp_scale, kappa_max=kappa_max, kappa_min=kappa_min, pid=pid,
-            damp_clamp=damp_clamp,
-        )  # fmt: skip
-        device = self.log_alpha.device
         self.constraint = constraint.to(device)
         # the start-state tail held between reads (kappa_signal_every > 1 only: a loss
         # that reads it every update keeps the state dict it always had)
-        self.kappa_signal_every = int(kappa_signal_every)
-        self.kappa_signal_hold = (
-            HeldStatistic(self.kappa_signal_every).to(device)
-            if self.kappa_signal_every > 1
-            else None
-        )
+        every = signal.kappa_signal_every
+        self.kappa_signal_hold = HeldStatistic(every).to(device) if every > 1 else None
         self.register_load_state_dict_pre_hook(rename_kappa_raw)
         self.register_buffer("cost_threshold", torch.zeros((), device=device))
         # derived from cost_gamma / the value estimator: not part of the state dict
@@ -373,6 +309,16 @@ class WCSACLoss(SACLoss):
         self.make_value_estimator(ValueEstimators.TD0)
         self._set_in_keys()
         self._plan_fast_paths(actor_network, fuse_critics, direct_sampling)
+
+    # the parts' options, by name (what the config calls them)
+    num_safety_nets = property(lambda self: self.head_options.num_safety_nets)
+    nonnegative_cost = property(lambda self: self.head_options.nonnegative_cost)
+    variance_target_kind = property(lambda self: self.head_options.variance_target)
+    num_quantiles = property(lambda self: self.head_options.num_quantiles)
+    num_target_quantiles = property(lambda self: self.head_options.num_target_quantiles)
+    huber_kappa = property(lambda self: self.head_options.huber_kappa)
+    kappa_signal_every = property(lambda self: self.signal_options.kappa_signal_every)
+    kappa_parametrization = property(lambda self: getattr(self.constraint, "parametrization", None))
 
     def _plan_fast_paths(self, actor_network, fuse_critics, direct_sampling) -> None:
         """The critics' reading (fused where possible) and the direct actor sampling."""
@@ -384,15 +330,7 @@ class WCSACLoss(SACLoss):
             fuse=fuse_critics,
             direct=not self.deactivate_vmap,  # (a loop rounds unlike the vmapped call)
         )
-        self._actor_plan = (
-            tanh_normal_actor_plan(actor_network) if direct_sampling is not False else None
-        )
-        if direct_sampling and self._actor_plan is None:
-            raise ValueError(
-                "direct_sampling=True needs an actor built like wcsac_rl.modules.make_actor "
-                "(an MLP with ClampedLogStdNormalParams and a TanhNormal); use "
-                "direct_sampling=None to fall back automatically"
-            )
+        self._actor_plan = direct_actor_plan(actor_network, direct_sampling)
 
     # ------------------------------------------------------------------ set-up
     @property
@@ -457,32 +395,13 @@ class WCSACLoss(SACLoss):
 
     def _set_in_keys(self):
         super()._set_in_keys()
-        head = self.__dict__.get("safety_head")
-        if head is not None:
-            keys = set(self._in_keys)
-            keys.update(head.in_keys)
-            keys.update(("next", k) for k in head.in_keys if k != self.tensor_keys.action)
-            states = state_keys(self)
-            keys.update(self.cost_target.in_keys(states))
-            if self.kappa_states == "initial":
-                initial = self.tensor_keys.initial_states
-                keys.update(nested_key(initial, key) for key in states)
-            if self.kappa_signal != "critic" or head.reads_episode_costs:
-                keys.add(self.tensor_keys.episode_cvar)
-            self._in_keys = list(keys)
+        if "safety_head" in self.__dict__:  # (the parts exist: not in SACLoss.__init__)
+            self._in_keys = parts_in_keys(self, self._in_keys)
 
     @property
     def out_keys(self):
         if self._out_keys is None:
-            head = self.safety_head
-            keys = ["loss_actor", "loss_qvalue", "loss_alpha", *head.loss_names]
-            if self.constraint.rule == "gradient":
-                keys.append("loss_kappa")
-            keys += ["alpha", "kappa", *self.constraint.diagnostic_names, "entropy"]
-            keys += [*head.diagnostic_names, "cvar", "cost_threshold"]
-            if self.kappa_signal != "critic":
-                keys += ["episode_cvar", "constraint_cvar"]
-            self._out_keys = keys
+            self._out_keys = loss_out_keys(self)
         return self._out_keys
 
     @out_keys.setter
@@ -803,32 +722,10 @@ class WCSACLoss(SACLoss):
         check_finite_entries(tensordict, self.in_keys, type(self).__name__)
 
     def _data_keys(self) -> list[NestedKey]:
-        """The entries of ``in_keys`` a batch must hold: not those the loss's own networks
-        write (a composite actor's ``params``, a shared trunk's features), not the end
-        flags (``terminated`` falls back to ``done``; the n-step entries' flag the cost
-        target reads, naming it, is the one its bootstrap needs), not the cost (its own
-        message)."""
-        in_keys = tuple(self.in_keys)
-        cached = self.__dict__.get("_data_keys_cache")
-        if cached is not None and cached[0] == in_keys:
-            return cached[1]
-        networks = (self.actor_network, self.qvalue_network, self.safety_network)
-        produced = produced_keys(*networks)
-        optional = {
-            nested_key(outer, getattr(self.tensor_keys, name))
-            for outer, names in (("next", ("done", "terminated", "cost")),
-                                 (self.tensor_keys.nstep, ("done", "terminated")))
-            for name in names
-        }  # fmt: skip
-        keys = []
-        for key in in_keys:
-            key = nested_key(key)
-            inner = key[1:] if key[0] == "next" else key
-            if key not in optional and not any(out[: len(inner)] == inner for out in produced):
-                keys.append(key)
-        self.__dict__["_data_keys_cache"] = (in_keys, keys)  # (set_keys changes in_keys)
-        return keys
+        """The entries of ``in_keys`` a batch must hold (:func:`~wcsac_rl.objectives.inputs.data_keys`)."""
+        return data_keys(self)
 
+    @takes_tensordict
     @dispatch
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         check_nonempty_batch(tensordict, type(self).__name__)  # (shapes only: no sync)
@@ -837,11 +734,11 @@ class WCSACLoss(SACLoss):
             raise KeyError(missing)
         flags = [("next", self.tensor_keys.done), ("next", self.tensor_keys.terminated)]
         check_batch_entries(tensordict, self._data_keys(), flags, type(self).__name__)
+        check_critic_inputs(tensordict, self, type(self).__name__)
         if self.check_finite:
             self.check_inputs(tensordict)
         targets = self.compute_targets(tensordict)
-        # the fused critics' parameters are gathered once: trainable for the critic
-        # losses, detached for the actor's
+        # the fused critics' parameters, once: trainable for the critic losses, detached below
         layers = self.critics.layers(self._online_critics())
         values = self._online_values(tensordict, layers)  # shared by both critic losses
         loss_qvalue, q_metadata = self.qvalue_loss(tensordict, targets, values)

@@ -1,12 +1,12 @@
 """Training: config validation, builders of every piece, the trainers, checkpoints."""
 
-from wcsac_rl.training.config import ALGOS, ConfigError, TrainingError, validate_config
-from wcsac_rl.training.registry import TRAINERS, make_trainer, trainer_class
+from wcsac_rl.training.config import ConfigError, TrainingError, validate_config
+from wcsac_rl.training.registry import ALGORITHMS, Algorithm, make_trainer, trainer_class
 from wcsac_rl.training.trainer import RandomPolicyTrainer, Trainer, seed_everything
 
 __all__ = [
-    "ALGOS",
-    "TRAINERS",
+    "ALGORITHMS",
+    "Algorithm",
     "ConfigError",
     "RandomPolicyTrainer",
     "Trainer",

@@ -11,23 +11,32 @@ any other key is refused (:mod:`~wcsac_rl.training.config_keys`).
 from __future__ import annotations
 
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from types import MappingProxyType
 
 from omegaconf import DictConfig
 
-from wcsac_rl.training.config import OFF_POLICY_ALGOS
+from wcsac_rl.training.registry import ALGORITHMS, Algorithm
 
-__all__ = ["APPLIES_TO", "inapplicable", "warn_inapplicable"]
+__all__ = ["APPLIES_TO", "inapplicable", "readers", "warn_inapplicable"]
 
-APPLIES_TO = MappingProxyType(
+APPLIES_TO: Mapping[str, Callable[[Algorithm], bool]] = MappingProxyType(
     {
-        "risk_level": ("wcsac",),  # sac_lag is α = 1; sac, cpo, random have no CVaR
-        "compile": OFF_POLICY_ALGOS,  # the SAC family's update
-        "save_replay_buffer": OFF_POLICY_ALGOS,  # cpo and random keep no replay buffer
+        "risk_level": lambda a: a.reads_risk_level,  # a risk-neutral one is α = 1
+        "compile": lambda a: a.off_policy,  # the SAC family's update
+        "save_replay_buffer": lambda a: a.off_policy,  # only they keep a replay buffer
     }
 )
-"""Top-level option → the algorithms (``algo.name``) that read it."""
+"""Top-level option → which algorithms read it (a property of their registry entry)."""
+
+
+def readers(key: str) -> tuple[str, ...]:
+    """The algorithms (``algo.name``) that read the top-level option ``key``.
+
+    >>> readers("risk_level")
+    ('wcsac',)
+    """
+    return tuple(name for name, entry in ALGORITHMS.items() if APPLIES_TO[key](entry))
 
 
 def _given(overrides: Sequence[str]) -> list[str]:
@@ -53,15 +62,15 @@ def inapplicable(cfg: DictConfig, overrides: Sequence[str]) -> list[str]:
     algo = str(cfg.algo.name)
     lines = []
     for key in _given(overrides):
-        readers = APPLIES_TO[key]
-        if algo not in readers:
+        names = readers(key)
+        if algo not in names:
             value = next(
                 o.lstrip("+~").partition("=")[2]
                 for o in overrides
                 if o.lstrip("+~").partition("=")[0] == key
             )
-            who = " / ".join(f"algo={a}" for a in readers)
-            verb = "reads" if len(readers) == 1 else "read"
+            who = " / ".join(f"algo={a}" for a in names)
+            verb = "reads" if len(names) == 1 else "read"
             lines.append(
                 f"warning: {key}={value} does not apply to algo={algo} (only {who} {verb} it); "
                 "ignored"

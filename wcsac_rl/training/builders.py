@@ -39,11 +39,13 @@ from wcsac_rl.objectives import (
     SACLagLoss,
     StartStateBuffer,
     WCSACLoss,
+    loss_parts,
     param_groups,
 )
-from wcsac_rl.options import SAFETY_ALGOS, SafetyOptions
+from wcsac_rl.options import SafetyOptions
 from wcsac_rl.training.config import safety_options
 from wcsac_rl.training.devices import RunDevices, run_devices
+from wcsac_rl.training.registry import algorithm
 from wcsac_rl.training.replay import NStepReplayBuffer, nested_key
 
 __all__ = [
@@ -163,7 +165,7 @@ def make_agent(cfg: DictConfig, env: EnvBase, devices: RunDevices | None = None)
     )
     qvalues = [make_qvalue(obs_dim, act_dim, **shape) for _ in range(2)]
     safety = None
-    if cfg.algo.name in SAFETY_ALGOS:
+    if algorithm(cfg.algo.name).safety_critic:
         options = safety_options(cfg.algo)
         kwargs = safety_critic_kwargs(options)
         # one module, or num_safety_nets of them, each initialised on its own
@@ -201,19 +203,19 @@ def make_loss(cfg: DictConfig, agent: Agent, max_episode_steps: int) -> LossModu
         loss = SACLoss(agent.actor, agent.qvalues, num_qvalue_nets=2, **common)
     else:
         cls = SACLagLoss if algo.name in ("sac_lag", "cal") else WCSACLoss
-        # every option the loss reads, from the one definition (wcsac_rl/options.py):
-        # checked, typed, what a run saved before an option existed did where it lacks one
-        options = safety_options(algo).loss_kwargs()
-        if algo.name != "wcsac":
-            del options["risk_level"]  # (SAC-Lag and CAL are α = 1)
+        # the loss's parts from every option it reads, from the one definition
+        # (wcsac_rl/options.py): checked, typed, what a run saved before an option
+        # existed did where it lacks one
+        options = safety_options(algo)
+        if algo.name == "wcsac":  # (SAC-Lag and CAL are α = 1)
+            common["risk_level"] = options.risk_level
         loss = cls(
             agent.actor,
             agent.qvalues,
             agent.safety,
             cost_limit=float(cfg.cost_limit),
             max_episode_steps=int(max_episode_steps),
-            **options,
-            **common,
+            **{**loss_parts(options), **common},
         )
     # (its γ buffer is made on the default device unless told)
     loss.make_value_estimator(gamma=float(algo.gamma), device=run_devices(cfg).learner)
@@ -225,7 +227,7 @@ def make_collection_policy(cfg: DictConfig, loss: LossModule, policy: TanhNormal
     ``algo.shield.candidates >= 2`` (WCSAC, SAC-Lag), ``policy`` behind a
     :class:`~wcsac_rl.modules.CriticShield` reading ``loss``'s safety critic, its
     threshold ``algo.shield.scale`` × the loss's ``cost_threshold`` (read at each step)."""
-    if cfg.algo.name not in SAFETY_ALGOS:
+    if not algorithm(cfg.algo.name).safety_critic:
         return policy
     shield = safety_options(cfg.algo).shield
     if not shield.candidates:

@@ -31,6 +31,7 @@ __all__ = [
     "RESUME_CHANGEABLE",
     "StateMismatch",
     "check_compatible",
+    "check_current",
     "check_not_behind",
     "check_resume_changes",
     "check_run_config",
@@ -411,6 +412,12 @@ def _check_entries(state: dict[str, Any], path: Path) -> None:
     crafted file's ``config: 5`` or ``frames: "abc"`` is one line, not a traceback)."""
     if "config" in state:
         stored_config(state["config"], path)  # a mapping of resolved values
+        for section in ("algo", "env"):  # what every reader selects by name
+            if not isinstance(state["config"].get(section), dict):
+                raise ConfigError(
+                    f"{path}: its config's '{section}' entry must be a mapping of settings, "
+                    f"got {state['config'].get(section)!r}; pass a checkpoint written by train.py"
+                )
     frames = state.get("frames", 0)
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 0:
         raise ConfigError(
@@ -447,7 +454,9 @@ def _own_config_hint(path: Path) -> str:
 
 
 def check_compatible(saved_config: dict, cfg: DictConfig, path: Path) -> None:
-    """Refuse a checkpoint whose networks/loss were made by a different configuration."""
+    """Refuse a checkpoint whose networks/loss were made by a different configuration,
+    or whose config lacks options this kit reads (:func:`check_current`)."""
+    check_current(saved_config, path)
     keys = [key for key in IDENTITY_KEYS if _select(saved_config, key) != _select(cfg, key)]
     if keys:
         diffs = [
@@ -597,8 +606,8 @@ def _changeable(key: str) -> bool:
 
 def check_resume_changes(saved_config: dict, cfg: DictConfig, path: Path) -> None:
     """Refuse a resumed session whose config differs from the run's in a key that is not
-    :data:`RESUME_CHANGEABLE` (keys the run's config does not have yet are new options
-    and take their defaults)."""
+    :data:`RESUME_CHANGEABLE` (a run's config has every key this kit reads:
+    :func:`check_current`)."""
     saved = _leaves(
         saved_config
         if isinstance(saved_config, dict)
@@ -620,6 +629,49 @@ def check_resume_changes(saved_config: dict, cfg: DictConfig, path: Path) -> Non
         )
 
 
+RUN_OF_ANOTHER_COMMIT = 'docs/reproduce.md, "A run of another commit"'
+"""Where the command that continues a run of another commit's kit is documented."""
+
+
+def _recorded_commit(run_dir: Path) -> str | None:
+    """The commit the run's first session recorded (``provenance.json``), if a commit id."""
+    from wcsac_rl.training.provenance import read_provenance
+
+    records = read_provenance(run_dir)
+    code = records[0].get("code") if records else None
+    commit = code.get("commit") if isinstance(code, dict) else None
+    if isinstance(commit, str) and 7 <= len(commit) <= 40:
+        if all(c in "0123456789abcdef" for c in commit):
+            return commit
+    return None
+
+
+def check_current(cfg: Any, source: Path) -> None:
+    """Refuse, in one line, a stored config (a checkpoint's, a run's ``config.yaml``)
+    that lacks options today's kit reads: it was written by another commit's kit, which
+    the line names (the run's ``provenance.json``), with the command that continues it
+    there. A run's config is its whole configuration; nothing fills in what it lacks."""
+    from wcsac_rl.training.config_keys import missing_keys
+
+    missing = missing_keys(cfg)
+    if not missing:
+        return
+    source = Path(source)
+    run_dir = source.parent.parent if source.parent.name == CHECKPOINT_DIR else source.parent
+    more = f" and {len(missing) - 1} more option(s)" if len(missing) > 1 else ""
+    commit = _recorded_commit(run_dir)
+    if commit is None:
+        where = "by a commit it does not record (no provenance.json): find it in its study's page"
+        command = "git worktree add ../wcsac-<commit> <commit>"
+    else:
+        where, short = f"by commit {commit[:12]}", commit[:12]
+        command = f"git worktree add ../wcsac-{short} {short}"
+    raise ConfigError(
+        f"{run_dir} was written {where}, and its config lacks {missing[0]}{more} that this "
+        f"kit reads; continue it with that commit's kit: {command} ({RUN_OF_ANOTHER_COMMIT})"
+    )
+
+
 def resume_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
     """The config a resumed session runs with: the run's own (from its checkpoint), with
     only the command line's explicit ``overrides`` applied on top.
@@ -634,6 +686,7 @@ def resume_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
 
     path = find_checkpoint(cfg.resume)
     run = stored_config(load_checkpoint(path)["config"], path)  # nothing in it resolved
+    check_current(run, path)
     parsed = OverridesParser.create().parse_overrides(list(overrides))
     given = {override.key_or_group for override in parsed}
     trusted = OmegaConf.select(cfg, TRUST_KEY, default=False) is True  # this command's word

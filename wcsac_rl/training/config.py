@@ -12,7 +12,6 @@ from wcsac_rl.cli_args import SEED_MAX
 from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
 from wcsac_rl.options import (
-    SAFETY_ALGOS,
     SafetyOptions,
     check_ensemble_reading,
     check_ensemble_target,
@@ -23,20 +22,15 @@ from wcsac_rl.options import (
     read_options,
 )
 from wcsac_rl.training.errors import ConfigError, TrainingError
+from wcsac_rl.training.registry import ALGORITHMS, Algorithm, algorithm, resolve
 
 __all__ = [
-    "ALGOS",
-    "OFF_POLICY_ALGOS",
-    "ON_POLICY_ALGOS",
     "ConfigError",
     "TrainingError",
+    "check_cpo",
     "safety_options",
     "validate_config",
 ]
-
-OFF_POLICY_ALGOS = (*SAFETY_ALGOS, "sac")
-ON_POLICY_ALGOS = ("cpo",)
-ALGOS = (*OFF_POLICY_ALGOS, *ON_POLICY_ALGOS, "random")
 
 
 def _get(cfg: Mapping[str, Any], key: str) -> Any:
@@ -102,7 +96,8 @@ def _choice(cfg: Mapping[str, Any], key: str, allowed: tuple[str, ...]) -> None:
         raise ConfigError(f"{key} must be one of {', '.join(allowed)}, got {value!r}")
 
 
-def _validate_cpo(cfg: DictConfig) -> None:
+def check_cpo(cfg: DictConfig) -> None:
+    """CPO's own options (its registry entry's ``check``)."""
     for key in ("gamma", "lmbda", "cost_gamma", "cost_lmbda"):
         _number(cfg, f"algo.{key}", low=0.0, high=1.0)
     for key in ("max_kl", "value_lr"):
@@ -166,17 +161,15 @@ NODES = ("algo", "env", "logger", "algo.collector")
 """Entries that hold options (a value there is a mistake: ``algo.collector=4``)."""
 
 
-def _validate_choices(cfg: DictConfig) -> str:
-    """The algorithm and env must be known ones; returns the algorithm's name."""
+def _validate_choices(cfg: DictConfig) -> Algorithm:
+    """The algorithm and env must be known ones; returns the algorithm's entry."""
     from wcsac_rl.envs import PRESET_NAMES  # local: importing envs loads MuJoCo
 
     for node in (*NODES, *(("algo.network",) if _get(cfg, "algo.network") is not None else ())):
         value = _get(cfg, node)
         if not isinstance(value, Mapping):
             raise ConfigError(f"{node} must hold its options (a mapping), got {value!r}")
-    algo = cfg.algo.get("name")
-    if algo not in ALGOS:
-        raise ConfigError(f"unknown algo {algo!r}; choose one of {', '.join(ALGOS)}")
+    algo = algorithm(cfg.algo.get("name"))
     env = cfg.env.get("name")
     if env == "gymnasium":
         _validate_user_env(cfg)
@@ -201,16 +194,17 @@ def _validate_user_env(cfg: DictConfig) -> None:
         raise ConfigError(f"env.cost_key must name the info entry of the cost, got {cost_key!r}")
 
 
-def _validate_risk(cfg: DictConfig, algo: str) -> None:
+def _validate_risk(cfg: DictConfig, algo: Algorithm) -> None:
     try:
         validate_risk_level(cfg.risk_level)
-        if algo in SAFETY_ALGOS:
+        if algo.safety_critic:
             validate_risk_level(cfg.algo.risk_level, name="algo.risk_level")
     except ValueError as err:
         raise ConfigError(str(err)) from None
-    if algo in ("sac_lag", "cal") and float(cfg.algo.risk_level) != 1.0:
+    if algo.risk_neutral and float(cfg.algo.risk_level) != 1.0:
+        averse = " or ".join(f"algo={a.name}" for a in ALGORITHMS.values() if a.reads_risk_level)
         raise ConfigError(
-            f"algo={algo} is risk-neutral (algo.risk_level=1); use algo=wcsac for α < 1"
+            f"algo={algo.name} is risk-neutral (algo.risk_level=1); use {averse} for α < 1"
         )
     try:
         validate_cost_limit(cfg.cost_limit)
@@ -241,12 +235,12 @@ def check_run_name(value: Any) -> None:
 
 def _validate_run(cfg: DictConfig) -> None:
     """The run's schedule, checkpoints and switches (the top-level keys)."""
-    if cfg.get("run_name") is not None:
-        check_run_name(cfg.run_name)
     seed = _get(cfg, "seed")
     _positive_int(cfg, "seed", allow_zero=True)  # gymnasium and NumPy need seeds >= 0
     if seed > SEED_MAX:
         raise ConfigError(f"seed must be at most 2**63 - 1 = {SEED_MAX}, got {seed!r}")
+    if cfg.get("run_name") is not None:  # (after the seed its default is made from)
+        check_run_name(cfg.run_name)
     for key in ("total_frames", "epoch_frames", "threads", "checkpoint_every_epochs"):
         _positive_int(cfg, key)
     cores = machine_cores()
@@ -355,9 +349,9 @@ def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
     _validate_risk(cfg, algo)
     _validate_run(cfg)
     _validate_collector(cfg)
-    if algo in OFF_POLICY_ALGOS:
+    if algo.off_policy:
         _validate_off_policy(cfg)
-    if algo in SAFETY_ALGOS:
+    if algo.safety_critic:
         collector = cfg.algo.collector
         learning_frames = max(0, cfg.total_frames - collector.init_random_frames)
         _validate_safety_keys(
@@ -365,8 +359,8 @@ def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
             updates=int(learning_frames * float(collector.utd_ratio)),
             eval_episodes=int(cfg.eval_episodes),
         )
-    if algo in ON_POLICY_ALGOS:
-        _validate_cpo(cfg)
+    if algo.check is not None:
+        resolve(algo.check)(cfg)
     if cfg.logger.backend not in ("csv", "wandb", "tensorboard", "none"):
         raise ConfigError(
             f"logger.backend must be csv, wandb, tensorboard or none, got {cfg.logger.backend!r}"
@@ -443,8 +437,8 @@ def _check_device(device: Any) -> None:
 
 def safety_options(algo: DictConfig) -> SafetyOptions:
     """The WCSAC / SAC-Lag options of ``algo``, checked and typed
-    (:func:`~wcsac_rl.options.read_options`; an option a saved run lacks is
-    what it did), or one :class:`ConfigError` line naming ``algo.<key>``."""
+    (:func:`~wcsac_rl.options.read_options`), or one :class:`ConfigError` line naming
+    ``algo.<key>`` (a bad value, or a missing one)."""
     try:
         return read_options(SafetyOptions, algo, prefix="algo.")
     except ValueError as err:

@@ -24,14 +24,18 @@ from omegaconf import DictConfig, OmegaConf
 
 from wcsac_rl.config_dir import CONF_DIR as _CONF_DIR
 from wcsac_rl.training.errors import ConfigError
+from wcsac_rl.training.registry import ALGORITHMS
+from wcsac_rl.training.trust import TRUST_KEY
 
 __all__ = [
     "CONF_DIR",
     "FREE_FORM_KEYS",
+    "check_group_choices",
     "check_known_keys",
     "check_override_keys",
     "key_paths",
     "known_keys",
+    "missing_keys",
     "unknown_keys",
 ]
 
@@ -137,6 +141,25 @@ def unknown_keys(cfg: DictConfig | dict, extra: Iterable[str] = ()) -> list[str]
     return unknown
 
 
+def missing_keys(cfg: DictConfig | dict) -> list[str] | None:
+    """The keys the default config of ``cfg``'s own algorithm, env and logger has and
+    ``cfg`` lacks (a key under a missing one not listed again; not the trust flag, which
+    is a command's word, never a run's); ``None`` without ``conf/``. A stored run's
+    config lacking one was written by another commit's kit (:func:`~wcsac_rl.training.
+    checkpoint.check_current`)."""
+    reference = _reference(_choice_overrides(_choices(cfg)))
+    if reference is None:
+        return None
+    have = key_paths(cfg)
+    missing: list[str] = []
+    for path in _paths(_container(reference)):
+        if path.split(".")[0] in IGNORED_ROOTS or path == TRUST_KEY or path in have:
+            continue
+        if not any(path.startswith(f"{m}.") for m in missing):
+            missing.append(path)
+    return missing
+
+
 def _suggestion(key: str, known: Iterable[str]) -> str:
     """`` (did you mean <the closest known setting>?)``, or nothing if none is close."""
     known = set(known)
@@ -155,9 +178,10 @@ def _unknown_message(key: str, known: Iterable[str], where: str) -> str:
         and parts[1] in SafetyOptions.__dataclass_fields__
         and f"algo.{parts[1]}" not in known  # (the algorithm has no safety critic)
     ):
+        safe = [name for name, entry in ALGORITHMS.items() if entry.safety_critic]
         return (
             f"unknown config key {key}: an option of the safety critic and κ, which the "
-            f"{where} config does not have (algo=wcsac, sac_lag and cal do)"
+            f"{where} config does not have (algo={', '.join(safe[:-1])} and {safe[-1]} do)"
         )
     return (
         f"unknown config key {key}{_suggestion(key, known)}: not a key of the {where} config "
@@ -198,6 +222,40 @@ def _group_overrides(parsed: list) -> list[list[str]]:
     return groups
 
 
+def _group_options(group: str) -> list[str]:
+    """What ``group=...`` may choose: the files of ``conf/<group>/`` (for ``algo``, those
+    that are an algorithm or a variant of one)."""
+    if group == "algo":
+        from wcsac_rl.recipes import algorithm_files
+
+        return algorithm_files(CONF_DIR)
+    return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+
+
+def check_group_choices(overrides: list[str]) -> None:
+    """Refuse a config-group choice ``conf/`` has no file for (``algo=wcsca``,
+    ``env=dinamic``, each choice of a sweep) in one line naming the group's options
+    (Hydra's own refusal is a block of lines with its search path); what Hydra cannot
+    parse is left to it."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        parsed = OverridesParser.create().parse_overrides(list(overrides))
+    except HydraException:
+        return
+    for choices in _group_overrides(parsed):
+        for choice in choices:
+            group, _, name = choice.lstrip("+").partition("=")
+            if group.split("/")[0] in IGNORED_ROOTS or name == "null":
+                continue
+            if not (CONF_DIR / group / f"{name}.yaml").is_file():
+                raise ConfigError(
+                    f"unknown {group} {name!r}: {CONF_DIR.name}/{group}/ has no {name}.yaml; "
+                    f"choose one of {', '.join(_group_options(group))}"
+                )
+
+
 def _passes(override: Any, known: frozenset[str]) -> bool:
     """An override :func:`check_override_keys` leaves alone."""
     key = override.key_or_group
@@ -228,6 +286,7 @@ def check_override_keys(overrides: list[str]) -> None:
         parsed = OverridesParser.create().parse_overrides(list(overrides))
     except HydraException:
         return
+    check_group_choices(list(overrides))
     groups = _group_overrides(parsed)
     combos = list(itertools.islice(itertools.product(*groups), MAX_SWEEP_REFERENCES + 1))
     if len(combos) > MAX_SWEEP_REFERENCES:

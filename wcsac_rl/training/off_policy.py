@@ -1,5 +1,8 @@
 """Off-policy learning for WCSAC, SAC-Lag and SAC: replay buffer, UTD updates, polyak targets.
 
+The trainer of every off-policy entry of :data:`~wcsac_rl.training.registry.ALGORITHMS`:
+it builds the loss with the entry's ``loss`` function (:func:`~wcsac_rl.training.registry.make_loss`).
+
 After each collector batch (``algo.collector.frames_per_batch`` frames) the entries
 of the batch the loss reads (``loss.in_keys``) go into the replay buffer and
 ``frames_per_batch × utd_ratio`` gradient steps follow (the authors' schedule: 100
@@ -33,7 +36,8 @@ from torchrl import timeit
 
 from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
 from wcsac_rl.objectives.inputs import collected_keys
-from wcsac_rl.training import builders
+from wcsac_rl.rollouts.critic_calibration import supports_calibration
+from wcsac_rl.training import builders, registry
 from wcsac_rl.training.checkpoint import (
     CHECKPOINT_DIR,
     INITIAL_STATE_BUFFER_DIR,
@@ -47,6 +51,7 @@ from wcsac_rl.training.checkpoint import (
 )
 from wcsac_rl.training.replay import nested_key
 from wcsac_rl.training.trainer import Trainer, env_max_episode_steps
+from wcsac_rl.training.training_calibration import TrainingCalibration
 
 __all__ = ["OffPolicyTrainer"]
 
@@ -58,7 +63,7 @@ class OffPolicyTrainer(Trainer):
         cfg = self.cfg
         collector_cfg = cfg.algo.collector
         self.agent = builders.make_agent(cfg, self.env)
-        self.loss = builders.make_loss(cfg, self.agent, self.max_episode_steps)
+        self.loss = registry.make_loss(cfg, self.agent, self.max_episode_steps)
         self.target_updater = builders.make_target_updater(cfg, self.loss)
         self.optimizers = builders.make_optimizers(cfg, self.loss)
         # n-step cost entries (cost_n_steps > 1), added to each collected batch
@@ -91,6 +96,13 @@ class OffPolicyTrainer(Trainer):
         collection = builders.make_collection_policy(cfg, self.loss, self.policy)
         self.collection_policy = None if collection is self.policy else collection
         self.shield_steps = self.shield_replaced = 0  # of the epoch in progress
+        # the safety critic's reading of each collected batch against what its episodes
+        # then cost (train_calib/* columns; SAC has no safety critic)
+        self.training_calibration = (
+            TrainingCalibration(self.loss, cost_limit=float(cfg.cost_limit))
+            if supports_calibration(self.loss)
+            else None
+        )
         # (compiled lazily, at the first update)
         self._loss_forward = torch.compile(self.loss) if cfg.compile else self.loss
 
@@ -149,6 +161,9 @@ class OffPolicyTrainer(Trainer):
         ]
 
     def learn(self, batch: TensorDictBase) -> list[TensorDictBase]:
+        if self.training_calibration is not None:
+            with timeit("train_calib"):  # read before the updates that learn from it
+                self.training_calibration.add(batch)
         with timeit("replay_extend"):
             if self.postproc is not None:
                 batch = self.postproc(batch)
@@ -171,13 +186,19 @@ class OffPolicyTrainer(Trainer):
         return [out for out in outputs if out is not None]
 
     def collection_metrics(self) -> dict[str, float]:
-        """With a shield: ``train/shielded``, the fraction of the epoch's policy steps
-        (the random warm-up has none) whose action the shield replaced."""
-        if self.collection_policy is None:
-            return {}
-        steps, replaced = self.shield_steps, self.shield_replaced
-        self.shield_steps = self.shield_replaced = 0
-        return {"train/shielded": replaced / steps if steps else 0.0}
+        """With a safety critic, its reading of the epoch's training episodes against
+        their realised cost-to-go (``train_calib/*``,
+        :mod:`~wcsac_rl.training.training_calibration`); with a shield,
+        ``train/shielded``, the fraction of the epoch's policy steps (the random warm-up
+        has none) whose action the shield replaced."""
+        metrics = {}
+        if self.training_calibration is not None:
+            metrics.update(self.training_calibration.epoch_metrics())
+        if self.collection_policy is not None:
+            steps, replaced = self.shield_steps, self.shield_replaced
+            self.shield_steps = self.shield_replaced = 0
+            metrics["train/shielded"] = replaced / steps if steps else 0.0
+        return metrics
 
     def observe_test_episodes(self, results: list) -> None:
         if self.episode_window is not None and self.episode_window.test_window:
@@ -187,7 +208,7 @@ class OffPolicyTrainer(Trainer):
     def restore_policy(cls, cfg, learner_state, env):
         agent = builders.make_agent(cfg, env)
         max_steps = env_max_episode_steps(cfg)
-        loss = builders.make_loss(cfg, agent, max_steps)
+        loss = registry.make_loss(cfg, agent, max_steps)
         load_module_state(loss, learner_state.get("loss"))  # the actor shares these parameters
         return TanhNormalPolicy(agent.actor)
 
@@ -206,6 +227,8 @@ class OffPolicyTrainer(Trainer):
             state["episode_window"] = self.episode_window.state_dict()
         if self.collection_policy is not None:  # (the epoch in progress: a mid-epoch save)
             state["shield"] = {"steps": self.shield_steps, "replaced": self.shield_replaced}
+        if self.training_calibration is not None:  # (the epoch in progress, too)
+            state["training_calibration"] = self.training_calibration.state_dict()
         if self.cfg.save_replay_buffer and len(self.replay_buffer):
             state["buffers"] = self._save_buffers()
         return state
@@ -254,6 +277,8 @@ class OffPolicyTrainer(Trainer):
         if self.collection_policy is not None and "shield" in state:
             self.shield_steps = int(state["shield"]["steps"])
             self.shield_replaced = int(state["shield"]["replaced"])
+        if self.training_calibration is not None and "training_calibration" in state:
+            self.training_calibration.load_state_dict(state["training_calibration"])
         directory = self._buffers_to_load(state)
         if directory is not None:
             buffers = {REPLAY_BUFFER_DIR: self.replay_buffer}

@@ -13,7 +13,12 @@ from torchrl.envs import EnvBase
 
 from wcsac_rl.envs import CostKeyError, EnvSourceError
 from wcsac_rl.training import builders
-from wcsac_rl.training.checkpoint import StateMismatch, find_checkpoint, read_checkpoint
+from wcsac_rl.training.checkpoint import (
+    StateMismatch,
+    check_current,
+    find_checkpoint,
+    read_checkpoint,
+)
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.devices import on_cpu
 from wcsac_rl.training.registry import trainer_class
@@ -94,6 +99,7 @@ def load_run(
     checkpoint_path = find_checkpoint(path)
     checkpoint, digest = read_checkpoint(checkpoint_path)
     cfg = on_cpu(stored_config(checkpoint["config"], checkpoint_path))  # whatever it trained on
+    check_current(cfg, checkpoint_path)  # (a config of another commit's kit: refused)
     env = trusted_eval_env(
         cfg, checkpoint_path, trust_env_code=trust_env_code, seed=seed, num_envs=num_envs
     )

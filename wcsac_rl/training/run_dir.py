@@ -330,8 +330,13 @@ def check_progress_rows(run_dir: Path, epoch: int | None = None) -> None:
         reader = csv.reader(f)
         header = next(reader, None)
         rows = list(reader)
-    if not header or "epoch" not in header:
+    if not header:
         return
+    if "epoch" not in header:  # (a resume would append its rows under another header)
+        raise ConfigError(
+            f"{path}: its header has no 'epoch' column (got {', '.join(header)}); it is not "
+            "the run's progress log: restore the run's own progress.csv"
+        )
     col = header.index("epoch")
     expected = 1
     for number, row in enumerate(rows, start=2):  # (line numbers: the header is line 1)

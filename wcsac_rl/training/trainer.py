@@ -58,6 +58,7 @@ from wcsac_rl.training.progress import EpisodeTracker, LossMeans, ProgressWriter
 from wcsac_rl.training.provenance import session_provenance, write_provenance
 from wcsac_rl.training.run_dir import (
     AUTO_RESUME,
+    LOCK_FILE,
     RunLock,
     check_new_run_dir,
     check_own_files,
@@ -115,6 +116,17 @@ def env_max_episode_steps(cfg: DictConfig) -> int:
         raise ConfigError(f"env.kwargs of env={cfg.env.name}: {first}") from None
 
 
+def _remove_if_only_lock(run_dir: Path) -> None:
+    """Remove ``run_dir`` if it holds nothing but its lock file (a new run refused
+    after it took the lock, e.g. by its env's constructor, leaves no directory)."""
+    try:
+        if {p.name for p in run_dir.iterdir()} <= {LOCK_FILE}:
+            (run_dir / LOCK_FILE).unlink(missing_ok=True)
+            run_dir.rmdir()
+    except OSError:  # (another process wrote into it meanwhile: left as it is)
+        pass
+
+
 def _whole(checkpoint: dict[str, Any], key: str, path: Path) -> int:
     """A checkpoint's counter ``key`` (a whole number >= 0), or one line naming it."""
     value = checkpoint[key]
@@ -165,10 +177,13 @@ class Trainer:
         self.lock: RunLock | None = None
         self._resumed_from: Path | None = None  # the checkpoint a resume continues
         self.env = self.eval_env = self.logger = None
+        fresh = not self.run_dir.exists()  # (made by this call: removed again if refused)
         try:
             self._set_up(self._resume_checkpoint())
         except BaseException:
             self.close()  # releases the run directory's lock too
+            if fresh and self.run_dir == Path(run_dir):
+                _remove_if_only_lock(self.run_dir)
             raise
 
     def _set_up(self, checkpoint: dict[str, Any] | None) -> None:
@@ -285,6 +300,12 @@ class Trainer:
     def _resume_checkpoint(self) -> dict[str, Any] | None:
         """Take the run directory's lock; return the checkpoint to resume (``None``: new run)."""
         cfg = self.cfg
+        if cfg.get("resume") is not None and not str(cfg.resume).strip():
+            raise ConfigError(  # (`resume=$RUN` with RUN unset: never a new run instead)
+                f"resume={cfg.resume!r} names no run: give resume=<run directory>, "
+                "resume=<run dir>/checkpoints/<file>.pt or resume=auto, or leave resume out "
+                "for a new run"
+            )
         if cfg.resume == AUTO_RESUME:
             return self._auto_resume_checkpoint()
         if cfg.resume:

@@ -1,0 +1,163 @@
+"""The report's tables as LaTeX ``booktabs`` tables (``<table>.tex`` beside ``<table>.md``).
+
+:func:`markdown_to_latex` turns every pipe table of a Markdown text the report wrote
+into a ``table`` environment (``\\toprule`` / ``\\midrule`` / ``\\bottomrule``, the
+columns aligned as the Markdown's ``---:`` says), captioned with the text's title (its
+``# `` line) and, for a second table, the ``## `` heading above it. Cells keep their
+text: ``**x**`` becomes ``\\textbf{x}``, LaTeX's special characters are escaped and the
+symbols the tables use (α, ≤, ±, ⌈ ⌉, …) are written in math mode, so the file compiles
+with ``\\usepackage{booktabs}`` alone. Plain string building: the same table gives the
+same bytes.
+"""
+
+from __future__ import annotations
+
+import re
+
+__all__ = ["latex_path", "latex_text", "markdown_to_latex"]
+
+_SPECIAL = {
+    "\\": r"\textbackslash{}",
+    "&": r"\&",
+    "%": r"\%",
+    "$": r"\$",
+    "#": r"\#",
+    "_": r"\_",
+    "{": r"\{",
+    "}": r"\}",
+    "~": r"\textasciitilde{}",
+    "^": r"\textasciicircum{}",
+}
+_SYMBOLS = {
+    "α": r"$\alpha$",
+    "β": r"$\beta$",
+    "γ": r"$\gamma$",
+    "κ": r"$\kappa$",
+    "Γ": r"$\Gamma$",
+    "≤": r"$\leq$",
+    "≥": r"$\geq$",
+    "±": r"$\pm$",
+    "×": r"$\times$",
+    "·": r"$\cdot$",
+    "⌈": r"$\lceil$",
+    "⌉": r"$\rceil$",
+    "→": r"$\rightarrow$",
+    "↑": r"$\uparrow$",
+    "½": r"$\frac{1}{2}$",
+    "–": "--",
+    "—": "---",
+    "…": r"\ldots{}",
+    "\u2009": r"\,",
+    "\ufffd": "?",
+}
+
+
+def latex_text(text: str) -> str:
+    """``text`` as LaTeX: special characters escaped, the tables' symbols in math mode,
+    ``**bold**`` as ``\\textbf{bold}`` and `` `code` `` as ``\\texttt{code}``.
+
+    >>> latex_text("**12.50** [1.0, 2.0] 5% of C_α ≤ d")
+    '\\\\textbf{12.50} [1.0, 2.0] 5\\\\% of C\\\\_$\\\\alpha$ $\\\\leq$ d'
+    """
+    out: list[str] = []
+    for part in re.split(r"(\*\*[^*]+\*\*|`[^`]+`)", text):
+        if part.startswith("**") and part.endswith("**") and len(part) > 4:
+            out.append(r"\textbf{" + latex_text(part[2:-2]) + "}")
+        elif part.startswith("`") and part.endswith("`") and len(part) > 2:
+            out.append(r"\texttt{" + latex_text(part[1:-1]) + "}")
+        else:
+            out.append("".join(_SPECIAL.get(c, _SYMBOLS.get(c, c)) for c in part))
+    return "".join(out)
+
+
+def _cells(line: str) -> list[str]:
+    """A Markdown table line's cells (``\\|`` inside a cell kept as a bar)."""
+    inner = line.strip()
+    inner = inner[1:] if inner.startswith("|") else inner
+    inner = inner[:-1] if inner.endswith("|") and not inner.endswith("\\|") else inner
+    return [cell.strip().replace("\\|", "|") for cell in re.split(r"(?<!\\)\|", inner)]
+
+
+def _alignment(separator: str) -> str:
+    columns = []
+    for cell in _cells(separator):
+        right, left = cell.endswith(":"), cell.startswith(":")
+        columns.append("c" if right and left else "r" if right else "l")
+    return "".join(columns)
+
+
+def _is_separator(line: str) -> bool:
+    return bool(re.fullmatch(r"\|?(\s*:?-+:?\s*\|)+\s*:?-*:?\s*", line.strip()))
+
+
+def _tables(markdown: str) -> list[tuple[str, list[str]]]:
+    """``(heading, table lines)`` per pipe table: the nearest ``#`` heading above it."""
+    found: list[tuple[str, list[str]]] = []
+    heading, block = "", []
+    lines = markdown.splitlines()
+    for i, line in enumerate([*lines, ""]):
+        if line.startswith("|"):
+            block.append(line)
+            continue
+        if len(block) >= 2 and _is_separator(block[1]):
+            found.append((heading, block))
+        block = []
+        if line.startswith("#") and i < len(lines):
+            heading = line.lstrip("#").strip()
+    return found
+
+
+def markdown_to_latex(markdown: str) -> str:
+    """Every pipe table of ``markdown`` as a booktabs ``table`` (see the module docstring).
+
+    >>> print(markdown_to_latex("# T\\n\\n| a | b |\\n|---|---:|\\n| x_1 | **2** |\\n"))
+    % booktabs tables (\\usepackage{booktabs}); from the Markdown table of the same name
+    \\begin{table}[ht]
+    \\centering
+    \\caption{T}
+    \\begin{tabular}{lr}
+    \\toprule
+    a & b \\\\
+    \\midrule
+    x\\_1 & \\textbf{2} \\\\
+    \\bottomrule
+    \\end{tabular}
+    \\end{table}
+    <BLANKLINE>
+
+    Raises:
+        ValueError: ``markdown`` has no table, or a row has another number of cells
+            than its header.
+    """
+    tables = _tables(markdown)
+    if not tables:
+        raise ValueError("the Markdown text has no table to write as LaTeX")
+    out = ["% booktabs tables (\\usepackage{booktabs}); from the Markdown table of the same name"]
+    for heading, lines in tables:
+        header, align, body = _cells(lines[0]), _alignment(lines[1]), lines[2:]
+        if len(align) != len(header):
+            raise ValueError(f"table {heading!r}: its separator has {len(align)} columns")
+        out += [r"\begin{table}[ht]", r"\centering"]
+        if heading:
+            out.append(r"\caption{" + latex_text(heading) + "}")
+        out += [r"\begin{tabular}{" + align + "}", r"\toprule"]
+        out.append(" & ".join(latex_text(cell) for cell in header) + r" \\")
+        out.append(r"\midrule")
+        for line in body:
+            cells = _cells(line)
+            if len(cells) != len(header):
+                raise ValueError(
+                    f"table {heading!r}: a row has {len(cells)} cells, its header "
+                    f"{len(header)}: {line!r}"
+                )
+            out.append(" & ".join(latex_text(cell) for cell in cells) + r" \\")
+        out += [r"\bottomrule", r"\end{tabular}", r"\end{table}"]
+    return "\n".join(out) + "\n"
+
+
+def latex_path(markdown_name: str) -> str:
+    """The ``.tex`` file beside a Markdown table: ``table1.md`` → ``table1.tex``."""
+    stem, dot, suffix = markdown_name.rpartition(".")
+    if not dot or suffix != "md":
+        raise ValueError(f"{markdown_name!r} is not a Markdown file name (.md)")
+    return f"{stem}.tex"
