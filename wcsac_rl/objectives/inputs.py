@@ -136,12 +136,20 @@ def check_critic_inputs(tensordict: TensorDictBase, loss, what: str) -> None:
     network = loss.qvalue_network
     params = loss.qvalue_network_params.values(True, True)
     dtype = next(iter(params), torch.empty(0)).dtype
-    keys = [nested_key(key) for key in network.in_keys]
-    first = None
-    if not isinstance(network, TensorDictSequential):  # (a trunk's features: not the batch's)
-        leaves = (m for m in network.modules() if not list(m.children()))
-        first = next((m for m in leaves if list(m.parameters(recurse=False))), None)
-        first = first if type(first) is torch.nn.Linear else None  # (an MLP on the entries)
+    cached = loss.__dict__.get("_critic_inputs_cache")  # (the network's structure, once)
+    if (
+        cached is None
+        or cached[0] is not network
+        or cached[1] != list(map(nested_key, network.in_keys))
+    ):
+        first = None
+        if not isinstance(network, TensorDictSequential):  # (a trunk's features: not the batch's)
+            leaves = (m for m in network.modules() if not list(m.children()))
+            first = next((m for m in leaves if list(m.parameters(recurse=False))), None)
+            first = first if type(first) is torch.nn.Linear else None  # (an MLP on the entries)
+        cached = (network, [nested_key(key) for key in network.in_keys], first)
+        loss.__dict__["_critic_inputs_cache"] = cached
+    _, keys, first = cached
     entries = [(key, tensordict.get(key, None)) for key in keys]
     entries = [(key, value) for key, value in entries if isinstance(value, torch.Tensor)]
     for key, value in entries:
