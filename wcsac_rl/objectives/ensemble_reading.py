@@ -28,8 +28,6 @@ with their parameters stacked ``[E, ...]``. This module gives it
 
 from __future__ import annotations
 
-import math
-
 import torch
 from tensordict import TensorDictBase
 from torch import Tensor, nn
@@ -38,6 +36,7 @@ from wcsac_rl.modules.mlp import ACTIVATIONS, MLPLayout, mlp_layout, torchrl_mlp
 from wcsac_rl.modules.quantile_critic import IQNSafetyCritic, _cosines
 from wcsac_rl.modules.safety_critic import GaussianSafetyCritic, softplus_variance
 from wcsac_rl.objectives.critic_ensemble import EnsembleMember, evaluate_ensemble, stack_layers
+from wcsac_rl.objectives.risk import upper_tail_mean
 
 __all__ = ["AdaptivePessimism", "RandomPrior", "StackedMembers", "ucb", "upper_tail_mean"]
 
@@ -52,27 +51,6 @@ def ucb(values: Tensor, k_ucb: float) -> Tensor:
     """
     std, mean = torch.std_mean(values, dim=0, correction=1)
     return mean + k_ucb * std
-
-
-def upper_tail_mean(atoms: Tensor, risk_level: float) -> Tensor:
-    """The mean of the upper ``risk_level`` share of the ``M`` equal-weight atoms in the
-    last dimension of ``atoms`` ``[*B, M]``, the atom at the VaR counted in part (the
-    CVaR_α of the discrete distribution they make; with ``M·α`` an integer, the mean of
-    the largest ``M·α``): ``[*B]``. Static shapes, no host synchronisation.
-
-    >>> upper_tail_mean(torch.tensor([[4.0, 0.0, 3.0, 1.0, 2.0]]), 0.5)  # 4, 3 and ½·2
-    tensor([3.2000])
-    """
-    count = atoms.shape[-1]
-    mass = round(count * float(risk_level), 9)  # (M·α's float noise above an integer)
-    if mass <= 1.0:
-        return atoms.max(-1)[0]
-    whole = math.floor(mass)
-    top = torch.topk(atoms, min(count, math.ceil(mass)), dim=-1).values
-    weights = torch.ones(top.shape[-1], dtype=atoms.dtype, device=atoms.device)
-    if top.shape[-1] > whole:
-        weights[whole] = mass - whole
-    return (top * weights).sum(-1) / mass
 
 
 class AdaptivePessimism(nn.Module):

@@ -22,6 +22,7 @@ __all__ = [
     "gaussian_cvar_multiplier",
     "gaussian_mixture_cvar",
     "quantile_mixture_cvar",
+    "upper_tail_mean",
     "validate_risk_level",
 ]
 
@@ -279,17 +280,30 @@ def quantile_mixture_cvar(
         return _weighted_pool_cvar(quantiles, weights, alpha)
     if alpha == 1.0:
         return pooled.mean()
+    return upper_tail_mean(pooled, alpha)
+
+
+def upper_tail_mean(atoms: torch.Tensor, risk_level: float) -> torch.Tensor:
+    """The mean of the upper ``risk_level`` share of the ``M`` equal-weight atoms in the
+    last dimension of ``atoms`` ``[*B, M]``, the atom at the VaR counted in part (the
+    CVaR_α of the discrete distribution they make; with ``M·α`` an integer, the mean of
+    the largest ``M·α``): ``[*B]``. Static shapes, no host synchronisation.
+
+    >>> upper_tail_mean(torch.tensor([[4.0, 0.0, 3.0, 1.0, 2.0]]), 0.5)  # 4, 3 and ½·2
+    tensor([3.2000])
+    """
+    count = atoms.shape[-1]
     # M·α in floating point can land just above an integer: round that noise away
     # (not below one atom: a tail lighter than one atom is the largest atom)
-    mass = round(count * alpha, 9)
+    mass = round(count * float(risk_level), 9)
     if mass <= 1.0:
-        return pooled.max()
+        return atoms.max(-1)[0]
     whole = math.floor(mass)
-    top = torch.topk(pooled, min(count, math.ceil(mass))).values
-    weights = torch.ones(top.shape[0], dtype=pooled.dtype, device=pooled.device)
-    if top.shape[0] > whole:
+    top = torch.topk(atoms, min(count, math.ceil(mass)), dim=-1).values
+    weights = torch.ones(top.shape[-1], dtype=atoms.dtype, device=atoms.device)
+    if top.shape[-1] > whole:
         weights[whole] = mass - whole
-    return (top * weights).sum() / mass
+    return (top * weights).sum(-1) / mass
 
 
 def _weighted_pool_cvar(quantiles: torch.Tensor, weights: torch.Tensor, alpha: float):
