@@ -147,3 +147,23 @@ def test_the_pages_count_the_held_out_runs_that_are_committed():
             assert counts == {runs}, (page.name, counts, runs)
         else:
             assert counts <= {runs}, (page.name, counts, runs)
+
+
+MAX_STUDY_PAGE_LINES = 300  # a study's page; its round-by-round log goes in a LOG.md beside it
+
+
+def _study_pages():
+    pages = [*RESULTS.glob("*/RESULTS.md"), *RESULTS.glob("*/README.md")]
+    return sorted(p for p in pages if p.parent != RESULTS)
+
+
+def test_every_study_page_is_within_its_length_and_indexed():
+    """Each study's page is at most MAX_STUDY_PAGE_LINES lines, and results/README.md links
+    every study folder (and single-page study) under results/."""
+    index = (RESULTS / "README.md").read_text()
+    for page in _study_pages():
+        lines = len(page.read_text().splitlines())
+        assert lines <= MAX_STUDY_PAGE_LINES, (str(page.relative_to(RESULTS)), lines)
+        assert f"]({page.parent.name}/{page.name})" in index, page.parent.name
+    for page in RESULTS.glob("*.md"):
+        assert page.name == "README.md" or f"]({page.name})" in index, page.name
