@@ -43,6 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_update import (
     Sizes,
     Variant,
+    add_timing_arguments,
     flops_per_update,
     kit_networks,
     pipeline_batch,
@@ -101,12 +102,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--threads", type=int, default=1)
-    parser.add_argument("--rounds", type=int, default=5)
-    parser.add_argument("--updates", type=int, default=20, help="updates per round")
-    parser.add_argument("--warmup", type=int, default=3, help="untimed updates per variant")
-    parser.add_argument("--batch", type=int, default=256)
-    parser.add_argument("--width", type=int, default=256, help="hidden units (2 layers)")
+    add_timing_arguments(parser)
     parser.add_argument("--json", type=Path, help="also write the rows here as JSON")
     args = parser.parse_args(argv)
     retain_freed_memory()  # as training does (retain_freed_memory: true)

@@ -579,16 +579,22 @@ def training_loop(
 
 
 # ------------------------------------------------------------------ main
-def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
+def add_timing_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options every update benchmark shares: threads, interleaved rounds of timed
+    updates after untimed warm-up ones, and the sizes (batch, hidden width)."""
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--updates", type=int, default=20, help="updates per round")
     parser.add_argument("--warmup", type=int, default=3, help="untimed updates per variant")
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--width", type=int, default=256, help="hidden units (2 layers)")
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    add_timing_arguments(parser)
     parser.add_argument("--options", nargs="+", choices=OPTION_SETS, default=list(OPTION_SETS))
     parser.add_argument(
         "--variants",
