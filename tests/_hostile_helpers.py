@@ -1,7 +1,7 @@
-"""Shared builders of the hostile-input suite (not collected: no ``test_`` prefix).
-
-The same conventions as ``tests/test_red_team.py`` (a tiny trained run shared by a
-module, every file of it hashed before and after each test), written once here."""
+"""Shared builders of the hostile-input suites, ``tests/test_red_team.py`` and
+``tests/test_hostile_inputs.py`` (not collected: no ``test_`` prefix): a tiny trained run
+shared by a module, every file of it hashed before and after each test, one-line error
+checks, written once here."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from _training_helpers import ROOT, compose_config
+from _training_helpers import ROOT, compose_config, tree_digests
 
 from wcsac_rl.training import make_trainer
 
@@ -32,6 +32,18 @@ def train_tiny(run_dir: Path, *overrides: str) -> Path:
     finally:
         trainer.close()
     return run_dir
+
+
+def files_unchanged(request, fixture: str, message: str):
+    """The body of a module's autouse fixture: for a test that uses the module's shared
+    ``fixture`` (a folder of runs), every file below it is byte-identical after the test."""
+    if fixture not in request.fixturenames:
+        yield
+        return
+    root = request.getfixturevalue(fixture)
+    before = tree_digests(root)
+    yield
+    assert tree_digests(root) == before, message
 
 
 def copy_run(run: Path, tmp_path: Path, name: str | None = None) -> Path:

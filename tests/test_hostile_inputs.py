@@ -31,6 +31,7 @@ from _hostile_helpers import (
     TINY,
     copy_run,
     error_lines,
+    files_unchanged,
     one_line,
     parametrize,
     train_py,
@@ -64,14 +65,7 @@ def runs(tmp_path_factory) -> Path:
 
 @pytest.fixture(autouse=True)
 def unchanged(request):
-    """Every file of the shared run is byte-identical after each test."""
-    if "runs" not in request.fixturenames:
-        yield
-        return
-    root = request.getfixturevalue("runs")
-    before = snapshot(root)
-    yield
-    assert snapshot(root) == before, "a command changed a file of the shared run"
+    yield from files_unchanged(request, "runs", "a command changed a file of the shared run")
 
 
 # ------------------------------------------------------------ train (in process)

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from _hostile_helpers import TINY, copy_run, error_lines, files_unchanged, one_line, train_tiny
 from _loss_helpers import make_batch, make_loss
 from _training_helpers import ROOT, compose_config, tree_digests
 from omegaconf import OmegaConf
@@ -41,18 +42,6 @@ from wcsac_rl.training import ConfigError, TrainingError, make_trainer
 from wcsac_rl.training.checkpoint import load_checkpoint, resume_config
 from wcsac_rl.training.restore import load_run
 
-TINY = ("env=tiny", "env.max_episode_steps=50")
-
-
-def _train(run_dir: Path, *overrides: str) -> Path:
-    trainer = make_trainer(compose_config(*TINY, *overrides), run_dir)
-    try:
-        trainer.run()
-    finally:
-        trainer.close()
-    return run_dir
-
-
 snapshot = tree_digests
 
 
@@ -62,40 +51,16 @@ def runs(tmp_path_factory) -> Path:
     ``wcsac`` (α = 0.5, 800 frames, ``frames-400.pt`` kept, evaluated), ``sac_lag``
     (400 frames) and ``random`` (400 frames)."""
     root = tmp_path_factory.mktemp("red_team") / "runs"
-    _train(root / "wcsac", "risk_level=0.5", "keep_checkpoints_at=[1]")
+    train_tiny(root / "wcsac", "risk_level=0.5", "keep_checkpoints_at=[1]")
     evaluate_run(root / "wcsac", episodes=2, progress=False)
-    _train(root / "sac_lag", "algo=sac_lag", "total_frames=400")
-    _train(root / "random", "algo=random", "total_frames=400")
+    train_tiny(root / "sac_lag", "algo=sac_lag", "total_frames=400")
+    train_tiny(root / "random", "algo=random", "total_frames=400")
     return root
 
 
 @pytest.fixture(autouse=True)
 def unchanged(request):
-    """Every file of the shared runs is byte-identical after each test."""
-    if "runs" not in request.fixturenames:
-        yield
-        return
-    root = request.getfixturevalue("runs")
-    before = snapshot(root)
-    yield
-    assert snapshot(root) == before, "a refused command changed a file of the runs"
-
-
-def _one_line(message: str, *needles: str) -> None:
-    assert "\n" not in message.strip(), message
-    assert "Traceback" not in message
-    for needle in needles:
-        assert needle in message, f"{needle!r} not in {message!r}"
-
-
-def _error_lines(text: str) -> list[str]:
-    return [line for line in text.splitlines() if line.startswith("error:")]
-
-
-def _copy(runs: Path, name: str, tmp_path: Path) -> Path:
-    target = tmp_path / name
-    shutil.copytree(runs / name, target)
-    return target
+    yield from files_unchanged(request, "runs", "a refused command changed a file of the runs")
 
 
 # ------------------------------------------------------------- train.py (subprocess)
@@ -129,9 +94,9 @@ def test_train_py(runs, tmp_path, override, message):
     )
     assert result.returncode == 1, result.stderr[-2000:]
     assert "Traceback" not in result.stderr
-    errors = _error_lines(result.stderr)
+    errors = error_lines(result.stderr)
     assert len(errors) == 1
-    _one_line(errors[0], message)
+    one_line(errors[0], message)
     assert not session.exists()  # a refused command leaves no run directory
     assert list(tmp_path.iterdir()) == []  # nor any other (run_name=../../../x: none outside)
 
@@ -197,7 +162,7 @@ def test_train_config(tmp_path, monkeypatch, override, message):
     monkeypatch.delenv("WCSAC_UNSET", raising=False)
     with pytest.raises(ConfigError) as err:
         make_trainer(compose_config(*TINY, override), tmp_path / "run")
-    _one_line(str(err.value), message)
+    one_line(str(err.value), message)
     assert not (tmp_path / "run").exists()  # refused before anything was built
 
 
@@ -215,7 +180,7 @@ def _truncated(run: Path) -> Path:
 
 
 def _foreign_checkpoint(runs: Path, tmp_path: Path) -> Path:
-    run = _copy(runs, "sac_lag", tmp_path)
+    run = copy_run(runs / "sac_lag", tmp_path)
     shutil.copyfile(runs / "wcsac" / "checkpoints" / "last.pt", run / "checkpoints" / "last.pt")
     return run
 
@@ -251,7 +216,7 @@ CRAFTED = {
 
 
 def _crafted(runs: Path, tmp_path: Path, kind: str) -> Path:
-    run = _copy(runs, "wcsac", tmp_path)
+    run = copy_run(runs / "wcsac", tmp_path)
     path = run / "checkpoints" / "last.pt"
     state = load_checkpoint(path)
     CRAFTED[kind](state)
@@ -270,7 +235,7 @@ def test_resume(runs, tmp_path, command, message):
         target = str(tmp_path / "last.pt")
         shutil.copyfile(run / "checkpoints" / "last.pt", target)
     elif target == "TRUNCATED":
-        copy = _copy(runs, "wcsac", tmp_path)
+        copy = copy_run(runs / "wcsac", tmp_path)
         _truncated(copy)
         target = str(copy)
     elif target == "FOREIGN":
@@ -278,7 +243,7 @@ def test_resume(runs, tmp_path, command, message):
     elif target in CRAFTED:
         target = str(_crafted(runs, tmp_path, target))
     elif target in ("PROGRESS_SYMLINK", "DUPLICATE_EPOCHS"):
-        copy = _copy(runs, "wcsac", tmp_path)
+        copy = copy_run(runs / "wcsac", tmp_path)
         progress = copy / "progress.csv"
         if target == "PROGRESS_SYMLINK":  # (a resume would append to the outside file)
             outside = tmp_path / "outside.csv"
@@ -293,14 +258,14 @@ def test_resume(runs, tmp_path, command, message):
     before = snapshot(tmp_path)
     with pytest.raises(ConfigError) as err:
         _resume(target, *overrides)
-    _one_line(str(err.value), message)
+    one_line(str(err.value), message)
     assert snapshot(tmp_path) == before
 
 
 def test_resume_auto_of_another_algorithm(runs):
     with pytest.raises(ConfigError) as err:
         make_trainer(compose_config(*TINY, "algo=sac_lag", "resume=auto"), runs / "wcsac")
-    _one_line(str(err.value), "another configuration (algo.name: checkpoint='wcsac'")
+    one_line(str(err.value), "another configuration (algo.name: checkpoint='wcsac'")
 
 
 # ----------------------------------------------------------------------- evaluate
@@ -329,7 +294,7 @@ def _target(runs: Path, tmp_path: Path, kind: str, name: str = "wcsac") -> Path:
     if kind == "NOT_A_RUN_FILE":
         (tmp_path / "notes.txt").write_text("x")
         return tmp_path / "notes.txt"
-    run = _copy(runs, name, tmp_path)
+    run = copy_run(runs / name, tmp_path)
     if kind == "TRUNCATED":
         _truncated(run)
     elif kind == "WIDER":
@@ -344,9 +309,9 @@ def test_evaluate(runs, tmp_path, capsys, kind, message):
     code = evaluate_main([str(target), "--episodes", "1", "--no-progress"])
     err = capsys.readouterr().err
     assert code == 1 and "Traceback" not in err
-    errors = _error_lines(err)
+    errors = error_lines(err)
     assert len(errors) == 1
-    _one_line(errors[0], message, str(target))
+    one_line(errors[0], message, str(target))
     assert snapshot(tmp_path) == before
 
 
@@ -366,9 +331,9 @@ def test_calibration(runs, tmp_path, capsys, kind, name, message):
     code = calibration_main([str(target), "--episodes", "1", "--no-progress"])
     err = capsys.readouterr().err
     assert code == 1 and "Traceback" not in err
-    errors = _error_lines(err)
+    errors = error_lines(err)
     assert len(errors) == 1
-    _one_line(errors[0], message)
+    one_line(errors[0], message)
     assert snapshot(tmp_path) == before
 
 
@@ -418,9 +383,9 @@ def test_report(runs, tmp_path, capsys, kind, args, message):
     code = report_main([str(target), "--out", str(out), *draw, *args])
     err = capsys.readouterr().err
     assert code == 1 and "Traceback" not in err
-    errors = _error_lines(err)
+    errors = error_lines(err)
     assert len(errors) == 1
-    _one_line(errors[0], message)
+    one_line(errors[0], message)
     assert snapshot(tmp_path) == before
     assert not out.exists() or not [p for p in out.rglob("*") if p.name.endswith(".tmp")]
 
@@ -455,24 +420,24 @@ def _edit_evaluation(run: Path, case: str) -> None:
 def test_report_reads_only_valid_evaluations(runs, tmp_path, capsys, case, message):
     """An evaluation whose fields are not what ``wcsac-evaluate`` writes is skipped with one
     warning naming the file and the field; with nothing else to report, one error line."""
-    run = _copy(runs, "wcsac", tmp_path)
+    run = copy_run(runs / "wcsac", tmp_path)
     _edit_evaluation(run, case)
     (run / "progress.csv").unlink()  # (the evaluation alone: nothing else to report)
     before = snapshot(tmp_path)
     code = report_main([str(run), "--out", str(tmp_path / "report"), "--no-trajectories"])
     captured = capsys.readouterr()
     assert code == 1 and "Traceback" not in captured.err + captured.out
-    (error,) = _error_lines(captured.err)
-    _one_line(error, "nothing to report under")
+    (error,) = error_lines(captured.err)
+    one_line(error, "nothing to report under")
     (warning,) = [line for line in captured.out.splitlines() if line.startswith("warning:")]
-    _one_line(warning, "warning: skipped: ", message)
+    one_line(warning, "warning: skipped: ", message)
     assert snapshot(tmp_path) == before
 
 
 def test_report_resolves_nothing_in_a_runs_config(runs, tmp_path, capsys, monkeypatch):
     """A config.yaml whose seed is ``${oc.env:WCSAC_SECRET}``: the report reads no
     environment variable for it; the run's curves are skipped with one warning."""
-    run = _copy(runs, "wcsac", tmp_path)
+    run = copy_run(runs / "wcsac", tmp_path)
     config = run / "config.yaml"
     config.write_text(config.read_text().replace("seed: 0", "seed: ${oc.env:WCSAC_SECRET}"))
     monkeypatch.setenv("WCSAC_SECRET", "0")
@@ -480,13 +445,13 @@ def test_report_resolves_nothing_in_a_runs_config(runs, tmp_path, capsys, monkey
     captured = capsys.readouterr()
     assert code == 0, captured.err
     (warning,) = [line for line in captured.out.splitlines() if "interpolation" in line]
-    _one_line(warning, "warning: skipped ", "its config holds an interpolation at seed")
+    one_line(warning, "warning: skipped ", "its config holds an interpolation at seed")
 
 
 def test_report_refuses_a_progress_csv_that_logs_an_epoch_twice(runs, tmp_path, capsys):
     """Epochs 1, 2, 1: the run's curves and runs.md entry are skipped with one warning
     (its frames and time would be read from a repeated row)."""
-    run = _copy(runs, "wcsac", tmp_path)
+    run = copy_run(runs / "wcsac", tmp_path)
     progress = run / "progress.csv"
     lines = progress.read_text().splitlines(keepends=True)
     progress.write_text("".join([*lines, lines[1]]))
@@ -494,13 +459,13 @@ def test_report_refuses_a_progress_csv_that_logs_an_epoch_twice(runs, tmp_path, 
     captured = capsys.readouterr()
     assert code == 0, captured.err
     (warning,) = [line for line in captured.out.splitlines() if "logs epoch" in line]
-    _one_line(warning, "warning: skipped ", "progress.csv: line 4 logs epoch 1 again")
+    one_line(warning, "warning: skipped ", "progress.csv: line 4 logs epoch 1 again")
     assert not (tmp_path / "report" / "runs.md").exists()  # (its only run was skipped)
 
 
 def test_calibration_of_a_run_whose_env_module_is_gone(runs, tmp_path, capsys):
     """A run of an own env whose module no longer imports: one line naming the module."""
-    run = _copy(runs, "wcsac", tmp_path)
+    run = copy_run(runs / "wcsac", tmp_path)
     path = run / "checkpoints" / "last.pt"
     state = load_checkpoint(path)
     state["config"]["env"] = {
@@ -515,7 +480,7 @@ def test_calibration_of_a_run_whose_env_module_is_gone(runs, tmp_path, capsys):
     args = [str(run), "--episodes", "1", "--no-progress", "--trust-env-code"]
     code, lines, text = _cli(calibration_main, args, capsys)
     assert code == 1 and "Traceback" not in text and len(lines) == 1, text
-    _one_line(lines[0], "env.id=gone_envs:make: no module named 'gone_envs' on the Python path")
+    one_line(lines[0], "env.id=gone_envs:make: no module named 'gone_envs' on the Python path")
     assert snapshot(tmp_path) == before
 
 
@@ -560,9 +525,9 @@ def test_report_does_not_overwrite_without_force(runs, tmp_path, capsys):
     (out / "table1.md").write_text("mine\n")
     before = snapshot(tmp_path)
     code = report_main([str(runs / "wcsac"), "--out", str(out), "--no-trajectories"])
-    errors = _error_lines(capsys.readouterr().err)
+    errors = error_lines(capsys.readouterr().err)
     assert code == 1 and len(errors) == 1
-    _one_line(errors[0], "already has table1.md", "pass --force to overwrite")
+    one_line(errors[0], "already has table1.md", "pass --force to overwrite")
     assert snapshot(tmp_path) == before
 
 
@@ -631,7 +596,7 @@ def _name_os_system(run: Path, marker: Path) -> None:
 def hostile(runs, tmp_path) -> tuple[Path, Path]:
     """A run directory whose files name ``env.id=os:system``, and the marker file its
     command would create."""
-    run = _copy(runs, "wcsac", tmp_path)
+    run = copy_run(runs / "wcsac", tmp_path)
     marker = tmp_path / "MARKER"
     _name_os_system(run, marker)
     return run, marker
@@ -643,7 +608,7 @@ UNTRUSTED = "the run's config names code to run (env.id=os:system imports the mo
 def _cli(main, args: list[str], capsys) -> tuple[int, list[str], str]:
     code = main(args)
     err = capsys.readouterr().err
-    return code, _error_lines(err), err
+    return code, error_lines(err), err
 
 
 CODE_FROM_RUN_FILES = [
@@ -686,7 +651,7 @@ def test_code_named_by_a_run_is_not_run(hostile, tmp_path, capsys, command, mess
         assert code == 1 and "Traceback" not in text
     assert not marker.exists(), "the command in the run's files ran"
     assert len(lines) == 1, text
-    _one_line(lines[0], UNTRUSTED, message)
+    one_line(lines[0], UNTRUSTED, message)
     assert snapshot(tmp_path) == before
 
 
@@ -702,9 +667,9 @@ def test_train_py_resume_of_a_run_naming_code_runs_nothing(hostile, tmp_path):
         timeout=600,
     )
     assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr[-2000:]
-    errors = _error_lines(result.stderr)
+    errors = error_lines(result.stderr)
     assert len(errors) == 1, result.stderr
-    _one_line(errors[0], UNTRUSTED, "add trust_env_code=true to the command line")
+    one_line(errors[0], UNTRUSTED, "add trust_env_code=true to the command line")
     assert not marker.exists()
     assert snapshot(tmp_path) == before  # (and no outputs/ directory)
 
@@ -712,7 +677,7 @@ def test_train_py_resume_of_a_run_naming_code_runs_nothing(hostile, tmp_path):
 def test_a_stored_config_is_never_resolved(runs, tmp_path, monkeypatch):
     """``${oc.env:...}`` in a checkpoint's config is refused naming the key: no
     environment variable is read because a file says so."""
-    run = _copy(runs, "wcsac", tmp_path)
+    run = copy_run(runs / "wcsac", tmp_path)
     path = run / "checkpoints" / "last.pt"
     state = load_checkpoint(path)
     state["config"]["cost_limit"] = "${oc.env:WCSAC_SECRET}"
@@ -722,7 +687,7 @@ def test_a_stored_config_is_never_resolved(runs, tmp_path, monkeypatch):
     for call in (lambda: _resume(run), lambda: load_run(run)):
         with pytest.raises(ConfigError) as err:
             call()
-        _one_line(
+        one_line(
             str(err.value),
             "its config holds an interpolation at cost_limit ('${oc.env:WCSAC_SECRET}')",
         )
@@ -762,7 +727,7 @@ def test_the_users_own_env_runs_with_the_flag(own_env_run, tmp_path, capsys):
         if main is not report_main:  # (a report without Figure 5 reads records only)
             code, lines, text = _cli(main, args, capsys)
             assert code == 1 and len(lines) == 1, text
-            _one_line(lines[0], "env.id=own_envs:make imports the module 'own_envs'")
+            one_line(lines[0], "env.id=own_envs:make imports the module 'own_envs'")
         code, lines, text = _cli(main, [*args, "--trust-env-code"], capsys)
         assert code == 0, text
     assert json.loads((run / "evaluation.json").read_text())["env"] == "gymnasium"
@@ -849,7 +814,7 @@ def test_an_own_env_that_fails_mid_run_stops_in_one_line(tmp_path, monkeypatch, 
     finally:
         trainer.close()
         sys.modules.pop("failing_envs", None)
-    _one_line(str(err.value), message, "training stopped ")
+    one_line(str(err.value), message, "training stopped ")
 
 
 def _failing_env(tmp_path: Path, monkeypatch) -> None:
@@ -875,7 +840,7 @@ def test_an_own_env_that_fails_before_the_first_checkpoint_leaves_nothing(
     for run_dir in (tmp_path / "new" / "run", mine):
         with pytest.raises(TrainingError) as err:
             run_training(cfg, run_dir)
-        _one_line(str(err.value), f"{how}" if how != "shape" else "4 numbers", "removed")
+        one_line(str(err.value), f"{how}" if how != "shape" else "4 numbers", "removed")
         assert "no checkpoint had been written yet" in str(err.value)
     assert not (tmp_path / "new" / "run").exists()
     assert mine.is_dir() and not any(mine.iterdir())
@@ -900,7 +865,7 @@ def test_an_own_env_that_fails_after_a_checkpoint_keeps_the_run(tmp_path, monkey
     with pytest.raises(TrainingError) as err:
         run_training(cfg, tmp_path / "run")
     sys.modules.pop("failing_envs", None)
-    _one_line(str(err.value), "step() raised RuntimeError", "is kept")
+    one_line(str(err.value), "step() raised RuntimeError", "is kept")
     assert "removed" not in str(err.value)
     assert (tmp_path / "run" / "checkpoints").is_dir()
     assert (tmp_path / "run" / "progress.csv").is_file()
@@ -923,8 +888,8 @@ def test_train_py_removes_the_run_directory_of_a_run_stopped_before_any_checkpoi
             env=env,
         )
         assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
-        (error,) = _error_lines(result.stderr)
-        _one_line(error, "reset() raised RuntimeError", "is removed")
+        (error,) = error_lines(result.stderr)
+        one_line(error, "reset() raised RuntimeError", "is removed")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["failing_envs.py"]
 
 
@@ -969,8 +934,8 @@ def test_a_refused_run_keeps_a_directory_it_did_not_create(tmp_path):
     before = _everything(directory)
     result = _train_py(tmp_path, *TINY, "algo.lr=abc", f"hydra.run.dir={directory}")
     assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr[-2000:]
-    (error,) = _error_lines(result.stderr)
-    _one_line(error, "algo.lr must be > 0 (a number), got 'abc'")
+    (error,) = error_lines(result.stderr)
+    one_line(error, "algo.lr must be > 0 (a number), got 'abc'")
     assert _everything(directory) == before
 
 
@@ -980,7 +945,7 @@ def test_a_refused_run_writes_no_records_into_another_run(runs, tmp_path, live):
     lock held), is refused, and that run's Hydra records still say what they said."""
     from wcsac_rl.training.run_dir import RunLock
 
-    run = _copy(runs, "wcsac", tmp_path)
+    run = copy_run(runs / "wcsac", tmp_path)
     _hydra_records(run)
     lock = RunLock(run) if live else None
     try:
@@ -990,8 +955,8 @@ def test_a_refused_run_writes_no_records_into_another_run(runs, tmp_path, live):
         if lock is not None:
             lock.release()
     assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr[-2000:]
-    (error,) = _error_lines(result.stderr)
-    _one_line(error, "is in use by another run" if live else "already holds a run")
+    (error,) = error_lines(result.stderr)
+    one_line(error, "is in use by another run" if live else "already holds a run")
     assert snapshot(run) == before
     assert not [p for p in run.iterdir() if p.name.startswith(".hydra-")]
 
@@ -1184,7 +1149,7 @@ MINOR = [
 def test_minor(tmp_path, monkeypatch, capsys, name, case, message):
     """The full-disk message says what is kept, Hydra's lexer errors and a seed that
     overflows are one line naming the option, a stopped run names the command it ran."""
-    _one_line(case(tmp_path, monkeypatch, capsys), message)
+    one_line(case(tmp_path, monkeypatch, capsys), message)
 
 
 # ----------------------------------------------------- the table in docs/guarantees.md
