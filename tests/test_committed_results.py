@@ -6,7 +6,9 @@ results and code cannot drift apart silently."""
 from __future__ import annotations
 
 import csv
+import json
 import re
+from collections import Counter
 
 import pytest
 from _training_helpers import ROOT
@@ -44,7 +46,19 @@ def test_report_makes_the_committed_tables_again(folder, tmp_path):
         [committed / "runs"], tmp_path, cost_limit=cost_limit, trajectories=False,
         log=lambda _: None,
     )  # fmt: skip
-    assert report.warnings == []
+    # a study in progress may hold rows of one run so far: the report leaves them out of
+    # the statistics over runs in one warning, naming exactly those rows
+    labels = Counter(
+        json.loads((run / "evaluation.json").read_text())["label"]
+        for run in (committed / "runs").iterdir()
+    )
+    single = sorted(label for label, count in labels.items() if count == 1)
+    if single:
+        assert len(report.warnings) == 1, report.warnings
+        named = report.warnings[0].split(": ", 1)[1].split(", ")
+        assert sorted(name.rsplit(" (", 1)[0] for name in named) == single
+    else:
+        assert report.warnings == []
     for name in (TABLE_MD, TABLE_VS_PAPER, RUNS_MD, TRAINING_SAFETY_MD):  # rounded numbers
         assert (tmp_path / name).is_file() == (committed / name).is_file(), name
         if (committed / name).is_file():
