@@ -341,6 +341,16 @@ def test_the_runs_score_and_cost_return_figures_draw_each_row_in_its_style(tmp_p
         if not line.get_label().startswith("budget")
     }
     assert curves == expected
+    # each curve is marked exactly at its own row's runs, at the share of runs <= each;
+    # x is linear up to d = 15 and logarithmic above it
+    for line in ax.get_lines():
+        if line.get_label().startswith("budget"):
+            continue
+        name = line.get_label().rsplit(" (", 1)[0]
+        runs = sorted(run["C0.1"] for run in stats.runs if run["algorithm"] == name)
+        x, y = line.get_xydata()[line.get_markevery()].T
+        assert x.tolist() == runs and y.tolist() == pytest.approx([1 / 3, 2 / 3, 1.0])
+    assert ax.get_xscale() == "symlog" and ax.xaxis.get_transform().linthresh == 15.0
     ax = captured["cr.png"].axes[0]
     points = {
         c.get_label(): (to_hex(c.lines[0].get_color()), c.lines[0].get_marker())

@@ -4,8 +4,9 @@
   per run (filled: held-out seed; hollow: in-sample), the row's IQM over runs (black
   diamond) with its 95 % bootstrap interval, the budget d dashed on the cost panels;
 * :func:`plot_score_distribution` — ``fig_score_distribution.png``: the fraction of a row's
-  runs with C0.1 <= x against x, one step curve per row, with a 95 % bootstrap band over
-  runs (rliable's score distribution, for a cost: higher is better).
+  runs with C0.1 <= x against x, one step curve per row marked at each of its runs, with a
+  95 % bootstrap band over runs (rliable's score distribution, for a cost: higher is
+  better); x is linear up to the budget d and logarithmic above it.
 
 Built on ``matplotlib.figure.Figure`` (no pyplot), each row in its colour and marker of the
 report (``styles``: :func:`~wcsac_rl.evaluation.plots.row_styles`), and written by
@@ -21,6 +22,7 @@ from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.ticker import FormatStrFormatter, NullLocator
 
 from wcsac_rl.evaluation import plots
 from wcsac_rl.evaluation.plots import RowStyle
@@ -162,7 +164,7 @@ def plot_score_distribution(
             color=color,
             linewidth=1.8,
             marker=styles[label].marker,
-            markevery=max(1, len(grid) // 8),
+            markevery=[int(i) for i in np.searchsorted(grid, np.unique(runs))],
             markersize=5,
             label=f"{name} ({len(runs)} run{'s' if len(runs) != 1 else ''})",
         )
@@ -173,6 +175,14 @@ def plot_score_distribution(
         linewidth=1,
         label=f"budget d = {stats.cost_limit:g}",
     )
+    # linear up to d, logarithmic above it: the runs near the budget stay apart however
+    # far the worst run lies
+    limit = max(float(stats.cost_limit), 1.0)
+    ax.set_xscale("symlog", linthresh=limit, linscale=1.5)
+    above = [v * 10**e for e in range(6) for v in (1, 2, 5) if 1.5 * limit < v * 10**e <= right]
+    ax.set_xticks([0.0, limit / 3, 2 * limit / 3, limit, *above])
+    ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+    ax.xaxis.set_minor_locator(NullLocator())
     ax.set_xlim(0.0, right)
     ax.set_ylim(-0.02, 1.02)
     ax.set_xlabel("x: C0.1 of a run (mean cost of its worst 10 % of test episodes)")
