@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
-from matplotlib.ticker import FormatStrFormatter, NullLocator
+from matplotlib.ticker import FuncFormatter, NullLocator
 
 from wcsac_rl.evaluation import plots
 from wcsac_rl.evaluation.plots import RowStyle
@@ -181,7 +181,7 @@ def plot_score_distribution(
     ax.set_xscale("symlog", linthresh=limit, linscale=1.5)
     above = [v * 10**e for e in range(6) for v in (1, 2, 5) if 1.5 * limit < v * 10**e <= right]
     ax.set_xticks([0.0, limit / 3, 2 * limit / 3, limit, *above])
-    ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}" if v < 1000 else f"{v:.0f}"))
     ax.xaxis.set_minor_locator(NullLocator())
     ax.set_xlim(0.0, right)
     ax.set_ylim(-0.02, 1.02)
