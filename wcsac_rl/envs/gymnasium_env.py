@@ -30,6 +30,7 @@ import numpy as np
 from gymnasium.envs.registration import load_env_creator
 from gymnasium.wrappers import TimeLimit
 
+from wcsac_rl._messages import first_line
 from wcsac_rl.envs.info import COST_KEY, CostKeyError
 
 __all__ = [
@@ -51,12 +52,6 @@ class EnvSourceError(ValueError):
     """A user's env cannot be found, built or used (the message is one line)."""
 
 
-def _first_line(err: BaseException) -> str:
-    text = str(err).strip()
-    first = text.splitlines()[0].rstrip(".") if text else ""
-    return f"{type(err).__name__}: {first}" if first else type(err).__name__
-
-
 def _import(module: str, env_id: str) -> Any:
     try:
         return importlib.import_module(module)
@@ -67,11 +62,11 @@ def _import(module: str, env_id: str) -> Any:
                 f"directory on PYTHONPATH); {HOW_TO_NAME}"
             ) from None
         raise EnvSourceError(
-            f"env.id={env_id}: importing {module!r} failed ({_first_line(err)})"
+            f"env.id={env_id}: importing {module!r} failed ({first_line(err, with_type=True)})"
         ) from None
     except Exception as err:
         raise EnvSourceError(
-            f"env.id={env_id}: importing {module!r} failed ({_first_line(err)})"
+            f"env.id={env_id}: importing {module!r} failed ({first_line(err, with_type=True)})"
         ) from None
 
 
@@ -81,7 +76,9 @@ def _registered(env_id: str, kwargs: dict[str, Any]) -> tuple[gym.Env, int | Non
     try:
         spec = gym.spec(env_id)
     except gym.error.Error as err:
-        raise EnvSourceError(f"env.id={env_id}: {_first_line(err)}; {HOW_TO_NAME}") from None
+        raise EnvSourceError(
+            f"env.id={env_id}: {first_line(err, with_type=True)}; {HOW_TO_NAME}"
+        ) from None
     try:
         creator = (
             spec.entry_point if callable(spec.entry_point) else load_env_creator(spec.entry_point)
@@ -89,7 +86,7 @@ def _registered(env_id: str, kwargs: dict[str, Any]) -> tuple[gym.Env, int | Non
     except Exception as err:
         raise EnvSourceError(
             f"env.id={env_id}: its entry point {spec.entry_point!r} does not load "
-            f"({_first_line(err)})"
+            f"({first_line(err, with_type=True)})"
         ) from None
     return _call(creator, env_id, {**spec.kwargs, **kwargs}), spec.max_episode_steps
 
@@ -99,7 +96,7 @@ def _call(creator: Any, env_id: str, kwargs: dict[str, Any]) -> gym.Env:
         env = creator(**kwargs)
     except Exception as err:
         raise EnvSourceError(
-            f"env.id={env_id}: building the env raised {_first_line(err)}"
+            f"env.id={env_id}: building the env raised {first_line(err, with_type=True)}"
         ) from None
     if not isinstance(env, gym.Env):
         raise EnvSourceError(
@@ -217,14 +214,16 @@ class CostFromStep(gym.Wrapper):
         try:
             return self.env.reset(**kwargs)
         except Exception as err:  # your env's own error: one line naming it and the call
-            raise EnvSourceError(f"env.id={self.name}: reset() raised {_first_line(err)}") from None
+            raise EnvSourceError(
+                f"env.id={self.name}: reset() raised {first_line(err, with_type=True)}"
+            ) from None
 
     def step(self, action: Any):
         try:
             result = self.env.step(action)
         except Exception as err:  # your env's own error: one line naming it and the call
             raise EnvSourceError(
-                f"env.id={self.name}: step() raised {_first_line(err)} at step "
+                f"env.id={self.name}: step() raised {first_line(err, with_type=True)} at step "
                 f"{self._steps + 1} of an episode"
             ) from None
         self._steps += 1
@@ -322,7 +321,7 @@ def user_env_info(
             raise
         except Exception as err:
             raise EnvSourceError(
-                f"env.id={env_id}: a probing reset and step raised {_first_line(err)}"
+                f"env.id={env_id}: a probing reset and step raised {first_line(err, with_type=True)}"
             ) from None
         return {
             "name": GYMNASIUM,

@@ -19,6 +19,7 @@ from typing import Any
 
 import torch
 
+from wcsac_rl._messages import first_line
 from wcsac_rl.rollouts.critic_calibration import (
     CALIBRATION_KEYS,
     PREFIX,
@@ -120,9 +121,8 @@ def load_safety_run(
         raise ConfigError(f"checkpoint {path}: {err}") from None
     except (KeyError, RuntimeError) as err:
         env.close()
-        first = str(err).strip().splitlines()[0] if str(err).strip() else repr(err)
         raise ConfigError(
-            f"{path}: the checkpoint's loss does not fit its config ({first})"
+            f"{path}: the checkpoint's loss does not fit its config ({first_line(err)})"
         ) from None
     if not supports_calibration(loss):
         env.close()

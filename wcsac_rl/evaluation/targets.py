@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from wcsac_rl._messages import first_line
 from wcsac_rl.evaluation.run_statistics import RUN_METRICS
 
 __all__ = [
@@ -111,8 +112,7 @@ def read_targets(path: Path) -> dict[str, list[Target]]:
     except OSError as err:
         raise TargetsError(f"cannot read the targets file {path}: {err.strerror or err}") from None
     except yaml.YAMLError as err:
-        first = str(err).splitlines()[0] if str(err) else type(err).__name__
-        raise TargetsError(f"the targets file {path} is not YAML: {first}") from None
+        raise TargetsError(f"the targets file {path} is not YAML: {first_line(err)}") from None
     if not isinstance(data, Mapping) or not data:
         raise TargetsError(f"the targets file {path} must map row labels to their targets")
     targets: dict[str, list[Target]] = {}

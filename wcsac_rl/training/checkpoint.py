@@ -13,6 +13,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from wcsac_rl._messages import first_line
 from wcsac_rl.training.config import ConfigError, TrainingError
 from wcsac_rl.training.preemption import DeferredSignals
 from wcsac_rl.training.safe_load import check_buffer_files, load_data
@@ -88,21 +89,17 @@ _DISK_FULL_ERRNOS = {errno.ENOSPC, getattr(errno, "EDQUOT", errno.ENOSPC)}
 _DISK_FULL_MESSAGES = ("unexpected pos", "file write failed", "no space left")
 
 
-def _first_line(err: BaseException) -> str:
-    return str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-
-
 def is_disk_full(err: BaseException) -> bool:
     """Whether a failed write failed because the disk (or the quota) is full."""
     if isinstance(err, OSError) and err.errno in _DISK_FULL_ERRNOS:
         return True
-    return any(m in _first_line(err).lower() for m in _DISK_FULL_MESSAGES)
+    return any(m in first_line(err).lower() for m in _DISK_FULL_MESSAGES)
 
 
 def write_error_reason(err: BaseException, directory: Path) -> str:
     """A short reason for a failed write into ``directory`` (says so when the disk is full)."""
     if not is_disk_full(err):
-        return _first_line(err)
+        return first_line(err)
     try:
         free = shutil.disk_usage(directory).free
         return f"no space left on its disk ({free / 2**20:.1f} MB free)"
@@ -390,7 +387,7 @@ def read_checkpoint(
     try:
         data = Path(path).read_bytes()
     except OSError as err:
-        raise ConfigError(f"cannot read checkpoint {path}: {_first_line(err)}") from None
+        raise ConfigError(f"cannot read checkpoint {path}: {first_line(err)}") from None
     state = load_data(data, path)  # data only: nothing in the file runs
     if not isinstance(state, dict):
         raise ConfigError(

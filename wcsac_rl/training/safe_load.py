@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from wcsac_rl._messages import first_line
 from wcsac_rl.training.config import ConfigError
 
 __all__ = ["check_buffer_files", "load_data"]
@@ -183,8 +184,7 @@ def load_data(data: bytes, path: Path) -> Any:
             f"cannot read checkpoint {path} as data ({reason}); {_NOT_EXECUTED}"
         ) from None
     except Exception as err:  # a corrupt or foreign file: one clear line
-        reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise ConfigError(f"cannot read checkpoint {path}: {reason}") from None
+        raise ConfigError(f"cannot read checkpoint {path}: {first_line(err)}") from None
 
 
 # ------------------------------------------------------------ saved buffers
