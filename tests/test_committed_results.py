@@ -177,3 +177,36 @@ def test_every_study_page_is_within_its_length_and_indexed():
         assert f"]({page.parent.name}/{page.name})" in index, page.parent.name
     for page in RESULTS.glob("*.md"):
         assert page.name == "README.md" or f"]({page.name})" in index, page.name
+
+
+def _improvement_pairs(folder):
+    """The (A, B) row pairs of a study's committed improvement.csv, in its order."""
+    path = RESULTS / folder / IMPROVEMENT_CSV
+    if not path.is_file():
+        return []
+    pairs = [(row["a"], row["b"]) for row in _csv_rows(path)]
+    return list(dict.fromkeys(pairs))
+
+
+@pytest.mark.parametrize("study", sorted(HELD_OUT_RUNS_PLANNED))
+def test_a_held_out_study_is_every_file_its_report_makes_of_its_runs(study, tmp_path):
+    """The study's report, made again from its committed runs with its own pairs
+    (``--study --improvement``), writes exactly the committed files: tables, LaTeX and
+    figures byte for byte (PNG and PDF: matplotlib is pinned and its metadata fixed), the
+    CSVs' full float reprs within 1e-9 (summation order on another CPU)."""
+    committed = RESULTS / study
+    heading = (committed / TRAINING_SAFETY_MD).read_text().splitlines()[0]
+    cost_limit = float(re.fullmatch(r"# .*, budget d = (\S+)", heading).group(1))
+    pairs = _improvement_pairs(study)
+    build_report(
+        [committed / "runs"], tmp_path, cost_limit=cost_limit, trajectories=False,
+        improvement=pairs, study=bool(pairs), log=lambda _: None,
+    )  # fmt: skip
+    made = sorted(p.name for p in tmp_path.iterdir())
+    assert made, study
+    for name in made:
+        assert (committed / name).is_file(), f"{study}: the report makes {name}, not committed"
+        if name.endswith(".csv"):
+            _assert_same_csv(tmp_path / name, committed / name)
+        else:
+            assert (tmp_path / name).read_bytes() == (committed / name).read_bytes(), name
