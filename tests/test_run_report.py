@@ -106,7 +106,7 @@ def test_three_runs_a_row_iqm_is_their_mean_and_the_pairs_read_as_in_sample(twic
         assert float(row["C0.1_iqm"]) == pytest.approx(sum(mine) / 3, abs=ABS)
         assert float(row["C0.1_lo"]) <= float(row["C0.1_iqm"]) <= float(row["C0.1_hi"])
     pairs = {(r["a"], r["b"], r["metric"]): r for r in _rows(out / IMPROVEMENT_CSV)}
-    assert list(pairs) == [(a, b, m) for a, b in PAIRS for m in ("C0.1", "EC")]
+    assert list(pairs) == [(a, b, m) for a, b in PAIRS for m in ("C0.1", "EC", "ER")]
     # every WCSAC-0.1 run has a lower C0.1 than every SAC-Lag run: P = 1 in all resamples
     ours = [float(v["C0.1"]) for v in values if v["label"] == "wcsac_0.1"]
     theirs = [float(v["C0.1"]) for v in values if v["label"] == "sac_lag"]
@@ -120,6 +120,14 @@ def test_three_runs_a_row_iqm_is_their_mean_and_the_pairs_read_as_in_sample(twic
     matched = pairs[("wcsac_0.1", "sac_lag_d1.5", "C0.1")]
     assert float(matched["p_a_lower"]) == pytest.approx(by_hand, abs=ABS)
     assert float(matched["lo"]) <= 0.5 and matched["reading"] == "within noise"
+    # the return too: P(a run of A returns less), by hand over the 9 pairs of runs
+    er = {
+        lab: [float(v["ER"]) for v in values if v["label"] == lab]
+        for lab in ("wcsac_0.1", "sac_lag")
+    }
+    by_hand = sum((x < y) + 0.5 * (x == y) for x in er["wcsac_0.1"] for y in er["sac_lag"]) / 9
+    returns = pairs[("wcsac_0.1", "sac_lag", "ER")]
+    assert float(returns["p_a_lower"]) == pytest.approx(by_hand, abs=ABS)
     md = (out / RUN_STATISTICS_MD).read_text()
     assert (
         "| WCSAC-0.1 | SAC-Lag (d=1.5) | C0.1 | " in md and "| 3 (0), 3 (0) | within noise |" in md
@@ -295,7 +303,7 @@ def _study(tmp_path, seeds, shift):
 
 def test_ten_held_out_runs_a_row_that_separate_make_a_claim(tmp_path):
     stats = _study(tmp_path, range(100, 110), shift=50.0)
-    c01, ec = stats.improvements
+    c01, ec, _er = stats.improvements
     assert (c01["metric"], c01["p_a_lower"], c01["lo"], c01["hi"]) == ("C0.1", 1.0, 1.0, 1.0)
     assert c01["reading"] == ec["reading"] == "a lower"
     row = stats.rows[0]

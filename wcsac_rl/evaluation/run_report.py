@@ -95,8 +95,9 @@ FIG_SCORE = "fig_score_distribution.png"
 
 CLAIM_RUNS = 10
 """Held-out runs per row an ordering claim needs (docs/evaluation_protocol.md)."""
-IMPROVEMENT_METRICS = ("C0.1", "EC")
-"""The costs the probability of improvement is given on."""
+IMPROVEMENT_METRICS = ("C0.1", "EC", "ER")
+"""The measures the probability of improvement is given on: the costs C0.1 and EC, and the
+return ER (there a lower value is the worse one)."""
 
 EXECUTION_KEYS = (
     "seed",
@@ -519,7 +520,7 @@ def run_statistics_markdown(stats: RunStatistics) -> str:
         lines += [
             "## Probability of improvement",
             "",
-            "| A | B | cost | P(run of A lower) | runs A, B (held-out) | reading |",
+            "| A | B | measure | P(run of A lower) | runs A, B (held-out) | reading |",
             "|---|---|---|---:|---|---|",
         ]
         for entry in stats.improvements:
@@ -533,9 +534,10 @@ def run_statistics_markdown(stats: RunStatistics) -> str:
             "",
             "P(run of A lower): the probability that a run of A has a lower value than a run "
             "of B, ties counting half (P(X < Y) + ½ P(X = Y) over all pairs of runs), with "
-            "its 95 % bootstrap interval (the runs of each row resampled independently). An "
-            "ordering is read only where that interval excludes 0.5, and claimed only from "
-            f"held-out runs, at least {CLAIM_RUNS} a row; otherwise: within noise.",
+            "its 95 % bootstrap interval (the runs of each row resampled independently); on "
+            "ER, a lower value is the lower return. An ordering is read only where that "
+            "interval excludes 0.5, and claimed only from held-out runs, at least "
+            f"{CLAIM_RUNS} a row; otherwise: within noise.",
             "",
         ]
     return "\n".join(lines)
