@@ -23,8 +23,8 @@ Table-1 row (``algo.label``, seeds pooled) and writes into ``--out`` (default
   100-109) or in-sample, machine (CPU, from ``provenance.json``), EC, C0.1, ER, goals;
 * ``run_statistics.md`` / ``.csv`` — per row, the interquartile mean over runs of EC,
   C0.1, ER and goals with its 95 % bootstrap interval; with ``--improvement A:B`` (any
-  number of times) the probability that a run of A has a lower C0.1 (and EC, and ER) than a run
-  of B, with its interval (also ``improvement.csv``);
+  number of times) the probability that a run of A has a lower C0.1 (and EC, and ER)
+  than a run of B, with its interval (also ``improvement.csv``);
 * ``fig_runs.png`` — one dot per run of EC, C0.1, ER, the IQM and its interval, d drawn;
   ``fig_score_distribution.png`` — the fraction of runs with C0.1 <= x per row;
   ``fig_cost_return.png`` — each row at its (EC, ER) with their intervals, d drawn
