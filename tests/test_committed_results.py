@@ -33,16 +33,30 @@ def test_the_laptop_table_1_is_committed():
     assert set(LAPTOP_TABLE_1) <= set(FOLDERS)
 
 
+def _improvement_pairs(folder):
+    """The (A, B) row pairs of a study's committed improvement.csv, in its order."""
+    path = RESULTS / folder / IMPROVEMENT_CSV
+    if not path.is_file():
+        return []
+    pairs = [(row["a"], row["b"]) for row in _csv_rows(path)]
+    return list(dict.fromkeys(pairs))
+
+
 @pytest.mark.parametrize("folder", FOLDERS)
 def test_report_makes_the_committed_tables_again(folder, tmp_path):
+    """The report of a study's committed runs, with its own pairs (``--study --improvement``
+    where it has an improvement.csv), writes its committed tables again; a held-out study's
+    report is every committed file: tables, LaTeX and figures byte for byte (PNG and PDF:
+    matplotlib is pinned and its metadata fixed), the CSVs within 1e-9."""
     committed = RESULTS / folder
     # the budget the committed report was made with (a study whose runs train under
     # several limits, e.g. the matched-mean control, is reported against one d)
     heading = (committed / TRAINING_SAFETY_MD).read_text().splitlines()[0]
     cost_limit = float(re.fullmatch(r"# .*, budget d = (\S+)", heading).group(1))
+    pairs = _improvement_pairs(folder)
     report = build_report(
         [committed / "runs"], tmp_path, cost_limit=cost_limit, trajectories=False,
-        log=lambda _: None,
+        improvement=pairs, study=bool(pairs), log=lambda _: None,
     )  # fmt: skip
     # a study in progress may hold rows of one run so far: the report leaves them out of
     # the statistics over runs in one warning, naming exactly those rows
@@ -62,6 +76,13 @@ def test_report_makes_the_committed_tables_again(folder, tmp_path):
     # ~200 * 600 * 2**-52 ≈ 3e-11; 1e-9 bounds that and nothing a code change would do
     for name in (TABLE_CSV, TRAINING_SAFETY_CSV):
         _assert_same_csv(tmp_path / name, committed / name)
+    if folder in HELD_OUT_RUNS_PLANNED:
+        for name in sorted(p.name for p in tmp_path.iterdir()):
+            assert (committed / name).is_file(), f"the report makes {name}, not committed"
+            if name.endswith(".csv"):
+                _assert_same_csv(tmp_path / name, committed / name)
+            else:
+                assert (tmp_path / name).read_bytes() == (committed / name).read_bytes(), name
 
 
 def _assert_same_csv(made_path, kept_path):
@@ -177,36 +198,3 @@ def test_every_study_page_is_within_its_length_and_indexed():
         assert f"]({page.parent.name}/{page.name})" in index, page.parent.name
     for page in RESULTS.glob("*.md"):
         assert page.name == "README.md" or f"]({page.name})" in index, page.name
-
-
-def _improvement_pairs(folder):
-    """The (A, B) row pairs of a study's committed improvement.csv, in its order."""
-    path = RESULTS / folder / IMPROVEMENT_CSV
-    if not path.is_file():
-        return []
-    pairs = [(row["a"], row["b"]) for row in _csv_rows(path)]
-    return list(dict.fromkeys(pairs))
-
-
-@pytest.mark.parametrize("study", sorted(HELD_OUT_RUNS_PLANNED))
-def test_a_held_out_study_is_every_file_its_report_makes_of_its_runs(study, tmp_path):
-    """The study's report, made again from its committed runs with its own pairs
-    (``--study --improvement``), writes exactly the committed files: tables, LaTeX and
-    figures byte for byte (PNG and PDF: matplotlib is pinned and its metadata fixed), the
-    CSVs' full float reprs within 1e-9 (summation order on another CPU)."""
-    committed = RESULTS / study
-    heading = (committed / TRAINING_SAFETY_MD).read_text().splitlines()[0]
-    cost_limit = float(re.fullmatch(r"# .*, budget d = (\S+)", heading).group(1))
-    pairs = _improvement_pairs(study)
-    build_report(
-        [committed / "runs"], tmp_path, cost_limit=cost_limit, trajectories=False,
-        improvement=pairs, study=bool(pairs), log=lambda _: None,
-    )  # fmt: skip
-    made = sorted(p.name for p in tmp_path.iterdir())
-    assert made, study
-    for name in made:
-        assert (committed / name).is_file(), f"{study}: the report makes {name}, not committed"
-        if name.endswith(".csv"):
-            _assert_same_csv(tmp_path / name, committed / name)
-        else:
-            assert (tmp_path / name).read_bytes() == (committed / name).read_bytes(), name
