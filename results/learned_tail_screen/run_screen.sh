@@ -5,7 +5,7 @@
 #   ARCHIVE=/path/to/main/results/learned_tail_screen/runs \
 #     nohup results/learned_tail_screen/run_screen.sh wcsac_prestudy_0.1 0 wcsac_prestudy_0.1 1 &
 set -euo pipefail
-: "${ARCHIVE:?set ARCHIVE to the main checkout's results/learned_tail_screen/runs}"
+: "${ARCHIVE:?set ARCHIVE to the runs/ folder of this study in the main checkout}"
 export OMP_NUM_THREADS=1 MUJOCO_GL=egl
 PY=.venv/bin/python
 
