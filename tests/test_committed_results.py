@@ -9,6 +9,7 @@ import csv
 import re
 
 import pytest
+from _pdf import pdf_drawing
 from _training_helpers import ROOT
 
 from wcsac_rl.evaluation.reporting import (
@@ -46,8 +47,10 @@ def _improvement_pairs(folder):
 def test_report_makes_the_committed_tables_again(folder, tmp_path):
     """The report of a study's committed runs, with its own pairs (``--study --improvement``
     where it has an improvement.csv), writes its committed tables again; a held-out study's
-    report is every committed file: tables, LaTeX and figures byte for byte (PNG and PDF:
-    matplotlib is pinned and its metadata fixed), the CSVs within 1e-9."""
+    report is every committed file: tables, LaTeX and PNG figures byte for byte (matplotlib
+    is pinned and its metadata fixed), the PDFs by what they draw (their embedded font
+    programs follow the machine's fontTools and fonts: ``_pdf.pdf_drawing``), the CSVs
+    within 1e-9."""
     committed = RESULTS / folder
     # the budget the committed report was made with (a study whose runs train under
     # several limits, e.g. the matched-mean control, is reported against one d)
@@ -81,6 +84,8 @@ def test_report_makes_the_committed_tables_again(folder, tmp_path):
             assert (committed / name).is_file(), f"the report makes {name}, not committed"
             if name.endswith(".csv"):
                 _assert_same_csv(tmp_path / name, committed / name)
+            elif name.endswith(".pdf"):
+                assert pdf_drawing(tmp_path / name) == pdf_drawing(committed / name), name
             else:
                 assert (tmp_path / name).read_bytes() == (committed / name).read_bytes(), name
 
