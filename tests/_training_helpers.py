@@ -76,9 +76,11 @@ COMMON_COLUMNS = {
     "train/peak_epoch_cost",
     "train/numerical_failures",
     "train/skipped_updates",
+    "train/goal_rate",
     "eval/episode_return",
     "eval/episode_cost",
     "eval/episode_length",
+    "eval/goal_rate",
     "time/fps",
     "time/ups",
 }

@@ -231,6 +231,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     from wcsac_rl.evaluation.archive import ArchiveError, archive_run
     from wcsac_rl.evaluation.evaluator import EvaluationExistsError
+    from wcsac_rl.evaluation.outcomes import OUTCOME_TITLES
     from wcsac_rl.evaluation.sweeps import all_sweep_jobs
     from wcsac_rl.training.config import ConfigError
 
@@ -242,10 +243,15 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     def report(directory: Path, evaluation) -> None:
         m = evaluation.summary["metrics"]
+        outcomes = ", ".join(
+            f"{OUTCOME_TITLES[name]} {count}"
+            for name, count in evaluation.summary["outcomes"].items()
+            if count
+        )
         done.append(str(directory))
         print(
             f"{directory}: {m['episodes']} episodes  EC {m['EC']:.2f}  C0.1 {m['C0.1']:.2f}  "
-            f"ER {m['ER']:.2f}  over budget {100 * m['over_budget']:.1f}%",
+            f"ER {m['ER']:.2f}  over budget {100 * m['over_budget']:.1f}%  ({outcomes})",
             flush=True,
         )
 

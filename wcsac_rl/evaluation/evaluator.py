@@ -44,7 +44,8 @@ from tqdm.auto import tqdm
 
 from wcsac_rl.evaluation.defaults import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
 from wcsac_rl.evaluation.metrics import table1_metrics
-from wcsac_rl.evaluation.runs import EVALUATION_CSV, EVALUATION_JSON
+from wcsac_rl.evaluation.outcomes import outcome_counts
+from wcsac_rl.evaluation.runs import EVALUATION_CSV, EVALUATION_JSON, env_has_layout
 from wcsac_rl.rollouts.episodes import EpisodeResult, run_episodes
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.registry import find_algorithm
@@ -104,8 +105,11 @@ class Evaluation:
         return [e.ret for e in self.episodes]
 
 
-def summarize(episodes: list[EpisodeResult], cost_limit: float) -> dict[str, Any]:
-    """The evaluation summary: Table-1 ``metrics`` plus mean length, goals, failures."""
+def summarize(
+    episodes: list[EpisodeResult], cost_limit: float, env: str | None = None
+) -> dict[str, Any]:
+    """The evaluation summary: Table-1 ``metrics`` plus mean length, goals, failures and
+    the episodes per outcome class of ``env`` (:mod:`~wcsac_rl.evaluation.outcomes`)."""
     n = len(episodes)
     return {
         "metrics": table1_metrics(
@@ -114,6 +118,7 @@ def summarize(episodes: list[EpisodeResult], cost_limit: float) -> dict[str, Any
         "mean_length": sum(e.length for e in episodes) / n,
         "goals_per_episode": sum(e.goal_reached for e in episodes) / n,
         "numerical_failures": sum(bool(e.numerical_failure) for e in episodes),
+        "outcomes": outcome_counts(episodes, env_has_layout(env)),
     }
 
 
@@ -222,7 +227,7 @@ def read_evaluation(directory: str | os.PathLike) -> Evaluation:
         raise ConfigError(
             f"{json_path}: not an evaluation (a JSON object), got {type(data).__name__}"
         )
-    summary_keys = ("metrics", "mean_length", "goals_per_episode", "numerical_failures")
+    summary_keys = ("metrics", "mean_length", "goals_per_episode", "numerical_failures", "outcomes")
     summary = {k: data.pop(k) for k in summary_keys if k in data}
     for key in ("label", "env", "cost_limit"):
         if key not in data:
@@ -465,7 +470,7 @@ def evaluate_run(
         directory=restored.run_dir,
         meta=meta,
         episodes=results,
-        summary=summarize(results, float(cfg.cost_limit)),
+        summary=summarize(results, float(cfg.cost_limit), str(cfg.env.name)),
     )
     write_evaluation(evaluation, force=force)
     return evaluation
@@ -533,7 +538,10 @@ def evaluate_random_policy(
         "created": _now(),
     }
     evaluation = Evaluation(
-        directory=out_dir, meta=meta, episodes=results, summary=summarize(results, cost_limit)
+        directory=out_dir,
+        meta=meta,
+        episodes=results,
+        summary=summarize(results, cost_limit, env_name),
     )
     write_evaluation(evaluation, force=force)
     return evaluation

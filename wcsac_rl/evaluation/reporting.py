@@ -39,6 +39,9 @@ groups them by Table-1 row (``algo.label``; seeds pooled) and writes
 ``fig_score_distribution.png``
 ``fig_cost_return.png``          each row at (EC, ER) with their 95 % intervals, d drawn
                                  (:mod:`~wcsac_rl.evaluation.cost_return`)
+``outcomes.md``/``.csv``,        each run's test episodes by outcome (goal reached or not,
+``fig_outcomes.png``             with or without cost, numerical failure), whether it
+                                 learned, a stacked bar per run (:mod:`~wcsac_rl.evaluation.outcomes`)
 ===============================  ============================================================
 
 Every figure is written as PNG and PDF (:data:`FORMATS`), every Markdown table also as a
@@ -85,6 +88,15 @@ from wcsac_rl.evaluation.evaluator import (
 from wcsac_rl.evaluation.intervals import INTERVAL_METRICS, seed_bootstrap
 from wcsac_rl.evaluation.latex import latex_path, markdown_to_latex
 from wcsac_rl.evaluation.metrics import RISK_LEVELS, aggregate_seeds, cvar_key
+from wcsac_rl.evaluation.outcomes import (
+    FIG_OUTCOMES,
+    OUTCOMES_CSV,
+    OUTCOMES_MD,
+    outcome_rows,
+    outcomes_csv,
+    outcomes_markdown,
+    plot_outcomes,
+)
 from wcsac_rl.evaluation.paper import paper_comparison_markdown
 from wcsac_rl.evaluation.run_report import (
     RunStatistics,
@@ -984,7 +996,8 @@ def _plan_outputs(
     if evaluations:
         rows = table1_rows(evaluations, cost_limit)
         comparison = paper_comparison_markdown(rows, env, cost_limit) if env else None
-        names += [TABLE_MD, TABLE_CSV, FIG6, FIG_COST_RETURN]
+        names += [TABLE_MD, TABLE_CSV, FIG6, FIG_COST_RETURN, OUTCOMES_MD, OUTCOMES_CSV]
+        names.append(FIG_OUTCOMES)
         if comparison is not None:
             names.append(TABLE_VS_PAPER)
     copies: list[tuple[Path, Path]] = []
@@ -1037,8 +1050,8 @@ def _write_table1(
     styles: dict[str, plots.RowStyle],
     warn: Callable[[str], None],
 ) -> list[Path]:
-    """Table 1 (Markdown, CSV, LaTeX; beside the paper's), Figure 6 and the cost-return
-    figure, each row in its ``styles``."""
+    """Table 1 (Markdown, CSV, LaTeX; beside the paper's), Figure 6, the cost-return
+    figure (each row in its ``styles``) and the runs' episode outcomes."""
     from wcsac_rl.evaluation.cost_return import plot_cost_return
 
     title_env = env_title(env) if env else "?"
@@ -1074,7 +1087,13 @@ def _write_table1(
         styles=styles,
         formats=FORMATS,
     )
-    return files + _files(out_dir, [FIG6, FIG_COST_RETURN])
+    outcomes = outcome_rows(evaluations, goals)
+    files += _write_table(out_dir / OUTCOMES_MD, outcomes_markdown(outcomes, title_env, goals))
+    files.append(_write_text(out_dir / OUTCOMES_CSV, outcomes_csv(outcomes, goals)))
+    plot_outcomes(
+        outcomes, out_dir / FIG_OUTCOMES, title=title_env, has_goals=goals, formats=FORMATS
+    )
+    return files + _files(out_dir, [FIG6, FIG_COST_RETURN, FIG_OUTCOMES])
 
 
 def _write_training(

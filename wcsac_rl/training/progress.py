@@ -129,13 +129,17 @@ class LossMeans:
 class EpisodeTracker:
     """Training-episode statistics from collector batches (``RewardSum``/``CostSum`` keys).
 
-    Per epoch: returns, costs and lengths of the episodes that finished; over the
-    whole run: frames and total cost, for the paper's cost rate.
+    Per epoch: returns, costs and lengths of the episodes that finished, and which of
+    them reached a goal (an env that writes ``goal_reached``: ``train/goal_rate``, the
+    per-epoch sign that the task is being learned); over the whole run: frames and total
+    cost, for the paper's cost rate. A batch's last dimension is time (TorchRL's
+    collectors), the ones before it the envs.
     """
 
     def __init__(self, frames: int = 0, total_cost: float = 0.0) -> None:
         self.frames = frames
         self.total_cost = total_cost
+        self._goal_seen: torch.Tensor | None = None  # per env: a goal in its current episode
         self.reset_epoch()
 
     def reset_epoch(self) -> None:
@@ -144,6 +148,7 @@ class EpisodeTracker:
         self.returns: list[float] = []
         self.costs: list[float] = []
         self.lengths: list[int] = []
+        self.reached: list[bool] = []  # per finished episode (an env with goals)
         self.failures = 0
 
     def add(self, batch: TensorDictBase) -> None:
@@ -152,11 +157,31 @@ class EpisodeTracker:
         self.returns += nxt.get("episode_reward").squeeze(-1)[done].tolist()
         self.costs += nxt.get("episode_cost").squeeze(-1)[done].tolist()
         self.lengths += nxt.get("step_count").squeeze(-1)[done].tolist()
+        goal = nxt.get("goal_reached", None)
+        if goal is not None:
+            self._add_goals(goal.reshape(done.shape).bool().cpu(), done.cpu())
         failure = nxt.get("numerical_failure", None)
         if failure is not None:
             self.failures += int(failure.sum())
         self.frames += batch.numel()
         self.total_cost += float(nxt.get("cost").sum())
+
+    def _add_goals(self, goal: torch.Tensor, done: torch.Tensor) -> None:
+        """Whether each episode that finished in the batch reached a goal at any of its
+        steps, those before the batch included (``goal``, ``done``: ``[*envs, time]``)."""
+        if goal.dim() == 0 or goal.numel() == 0:
+            return
+        seen = self._goal_seen
+        if seen is None or seen.shape != goal.shape[:-1]:
+            seen = torch.zeros(goal.shape[:-1], dtype=torch.bool)
+        seen = seen.clone()
+        for t in range(goal.shape[-1]):
+            seen |= goal[..., t]
+            ended = done[..., t]
+            if ended.any():
+                self.reached += seen[ended].tolist()
+                seen[ended] = False
+        self._goal_seen = seen
 
     def epoch_metrics(self) -> dict[str, float]:
         # float32 means, as the sums were (the same numbers as when these were tensors)
@@ -175,4 +200,5 @@ class EpisodeTracker:
             "train/episode_length": mean(lengths),
             "train/cost_rate": self.total_cost / self.frames if self.frames else math.nan,
             "train/numerical_failures": self.failures,
+            "train/goal_rate": sum(self.reached) / len(self.reached) if self.reached else math.nan,
         }

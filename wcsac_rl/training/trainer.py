@@ -605,7 +605,12 @@ class Trainer:
                 max_steps=self.max_episode_steps,
             )
         self.observe_test_episodes(results)
-        return {**{f"eval/{k}": v for k, v in summarize_episodes(results).items()}, **calib}
+        row = {f"eval/{k}": v for k, v in summarize_episodes(results).items()}
+        # the share of test episodes that reached a goal (an env that reports goals)
+        if "goal_reached" in self.eval_env.full_observation_spec.keys(True, True):
+            reached = [r.goal_reached > 0 for r in results]
+            row["eval/goal_rate"] = sum(reached) / len(reached) if reached else math.nan
+        return {**row, **calib}
 
     def observe_test_episodes(self, results: list) -> None:
         """The epoch's test episodes (``EpisodeResult``), for a learner that reads them."""
