@@ -46,11 +46,19 @@ NEW_KEYS = {
     # user's word on this call: never read from a run, docs/guarantees.md): a new key.
     "trust_env_code",
 }
-ADDED_OPTIONS = ("ensemble_reading", "k_ucb", "k_ucb_lr", "k_ucb_max", "prior_scale", "damp_clamp")
+ADDED_OPTIONS = (
+    "ensemble_reading",
+    "k_ucb",
+    "k_ucb_lr",
+    "k_ucb_max",
+    "prior_scale",
+    "damp_clamp",
+    "kappa_hold_goal_rate",
+)
 # ... and the safety-critic options added after the recording (the ensemble's readings,
-# random priors, adaptive pessimism, the clamped damping): present wherever the safety
-# options are, each at SafetyOptions' default, which reads the ensemble and damps κ as
-# before they existed.
+# random priors, adaptive pessimism, the clamped damping, κ held until the task is
+# learned): present wherever the safety options are, each at SafetyOptions' default,
+# which reads the ensemble, damps and moves κ as before they existed.
 PAPER_VARIANTS = ("wcsac_paper", "sac_lag_paper")
 PAPER_LEAKED = {
     # the kit's recipe leaked into the paper variants: the episode window of κ's

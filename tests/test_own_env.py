@@ -9,6 +9,8 @@ stderr, no traceback, and no run directory.
 
 from __future__ import annotations
 
+import csv
+import math
 import os
 import subprocess
 import sys
@@ -263,3 +265,27 @@ def test_the_report_of_a_sweep_of_the_users_env(user_module, tmp_path, capsys):
         assert not [c for c in header if c.startswith("goals")], name
     for name in ("table1.tex", "run_values.md", "run_statistics.md"):
         assert "goals" not in (out / name).read_text(), name
+    # the episode outcomes are the classes that apply without a goal, and no goal rate
+    assert {"outcomes.md", "outcomes.csv", "fig_outcomes.png"} <= names
+    assert (out / "outcomes.csv").read_text().splitlines()[0] == (
+        "label,algorithm,seed,run,cost_free,cost,failure,episodes"
+    )
+    assert (
+        "| cost-free | with cost | numerical failure | episodes | run |"
+        in (out / "outcomes.md").read_text()
+    )
+    with (sweep / "0_wcsac_0.5_gymnasium_seed0" / "progress.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert all(math.isnan(float(row["train/goal_rate"])) for row in rows)
+    assert "eval/goal_rate" not in rows[0]
+
+
+def test_a_goal_hold_on_a_users_env_is_one_clear_error(user_module, tmp_path):
+    """κ held until the training episodes reach the goal would never move on an env
+    without goals."""
+    from wcsac_rl.train import compose_config
+    from wcsac_rl.training import ConfigError, make_trainer
+
+    overrides = ("env=gymnasium", "env.id=user_envs:five", "algo.kappa_hold_goal_rate=0.9")
+    with pytest.raises(ConfigError, match="reports no goals: κ would never move"):
+        make_trainer(compose_config(*overrides), tmp_path / "run")

@@ -421,6 +421,16 @@ class SafetyOptions:
         low_open=True,
         reader="optimizer",
     )
+    kappa_hold_goal_rate: float = option(
+        0.0,
+        "κ held where it starts (its optimizer not stepped) until an epoch in which at "
+        "least this share of the finished training episodes reached the goal "
+        "(train/goal_rate; kappa_rule=gradient, an env with goals); 0: never held",
+        "number",
+        low=0.0,
+        high=1.0,
+        reader="trainer",
+    )
     damp_scale: float = option(
         0.0, "MDMM damping of κ in the actor loss (kappa_rule=gradient)", "number", low=0.0
     )

@@ -40,6 +40,7 @@ __all__ = [
     "Preset",
     "env_title",
     "get_preset",
+    "has_goals",
     "make_gym_env",
     "preset_options",
     "register_envs",
@@ -177,6 +178,19 @@ def get_preset(name: str) -> Preset:
         f"unknown env {name!r}; valid names are {list(PRESET_NAMES)} "
         f"(or the gymnasium ids {list(_BY_GYM_ID)})"
     )
+
+
+def has_goals(name: str | None) -> bool:
+    """Whether episodes of env ``name`` have a goal to reach (and a layout: hazards): the
+    kit's presets do; a user's ``env=gymnasium`` env does not (its ``goal_reached`` entry
+    is always False). ``None`` (no env known): as a preset."""
+    if name is None:
+        return True
+    try:
+        get_preset(name)
+    except ValueError:
+        return False
+    return True
 
 
 def env_title(name: str) -> str:

@@ -15,7 +15,7 @@ import re
 from collections.abc import Iterable
 from pathlib import Path
 
-from wcsac_rl.envs.presets import env_title, get_preset
+from wcsac_rl.envs.presets import env_title, has_goals
 from wcsac_rl.training.checkpoint import CHECKPOINT_DIR, LAST_CHECKPOINT
 from wcsac_rl.training.registry import ALGORITHMS, row_algorithm
 
@@ -47,17 +47,11 @@ ROW_ORDER: tuple[str, ...] = tuple(row for entry in ALGORITHMS.values() for row 
 
 
 def env_has_layout(env: str | None) -> bool:
-    """Whether runs of ``env`` have a layout (hazards, goal) and goals to count: the
-    kit's envs (the point-goal presets and tiny) do; a user's ``env=gymnasium`` env
-    does not (its ``goal_reached`` is always 0), so its report leaves out Figure 5's
-    trajectories and the goals columns. ``None`` (no env known): as a preset."""
-    if env is None:
-        return True
-    try:
-        get_preset(env)
-    except ValueError:
-        return False
-    return True
+    """Whether runs of ``env`` have a layout (hazards, goal) and goals to count
+    (:func:`~wcsac_rl.envs.presets.has_goals`): a user's ``env=gymnasium`` env does not,
+    so its report leaves out Figure 5's trajectories and the goals columns. ``None`` (no
+    env known): as a preset."""
+    return has_goals(env)
 
 
 _TRAILING_NUMBER = re.compile(r"[0-9]+(?:\.[0-9]+)?$")

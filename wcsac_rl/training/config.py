@@ -487,6 +487,12 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int)
             "algo.kappa_test_window reads the test episodes, but eval_episodes=0 runs "
             "none: set eval_episodes > 0 or algo.kappa_test_window=0"
         )
+    if options.kappa_hold_goal_rate > 0 and options.kappa_rule != "gradient":
+        raise ConfigError(
+            f"algo.kappa_hold_goal_rate={options.kappa_hold_goal_rate:g} holds κ's optimizer "
+            f"until the task is learned: it needs algo.kappa_rule=gradient, got "
+            f"{options.kappa_rule}"
+        )
     try:
         check_kappa_bound(
             options.kappa_init,

@@ -28,12 +28,14 @@ test episodes (each epoch's ``eval_episodes``).
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
 from tensordict import TensorDictBase
 from torchrl import timeit
 
+from wcsac_rl.envs.presets import has_goals
 from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
 from wcsac_rl.objectives.inputs import collected_keys
 from wcsac_rl.rollouts.critic_calibration import supports_calibration
@@ -49,6 +51,7 @@ from wcsac_rl.training.checkpoint import (
     save_buffers,
     verify_buffers,
 )
+from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.replay import nested_key
 from wcsac_rl.training.trainer import Trainer, env_max_episode_steps
 from wcsac_rl.training.training_calibration import TrainingCalibration
@@ -78,6 +81,15 @@ class OffPolicyTrainer(Trainer):
         self.initial_state_buffer = None
         if getattr(self.loss, "kappa_states", "replay") == "initial":
             self.initial_state_buffer = builders.make_initial_state_buffer(cfg, self.loss)
+        # algo.kappa_hold_goal_rate: κ's optimizer waits for the task to be learned
+        self.kappa_hold_goal_rate = float(cfg.algo.get("kappa_hold_goal_rate", 0.0))
+        self.kappa_held = self.kappa_hold_goal_rate > 0
+        if self.kappa_held and not has_goals(cfg.env.name):
+            raise ConfigError(
+                f"algo.kappa_hold_goal_rate={self.kappa_hold_goal_rate:g} holds κ until "
+                f"the training episodes reach the goal, but env={cfg.env.name} reports no "
+                "goals: κ would never move; set algo.kappa_hold_goal_rate=0"
+            )
         self.episode_window = None
         head = getattr(self.loss, "safety_head", None)
         if getattr(self.loss, "kappa_signal", "critic") != "critic" or (
@@ -143,8 +155,9 @@ class OffPolicyTrainer(Trainer):
                 optimizer.zero_grad(set_to_none=True)
             self.skip_update("gradient")
             return None
-        for optimizer in self.optimizers.values():
-            optimizer.step()
+        for name, optimizer in self.optimizers.items():
+            if not (name == "kappa" and self.kappa_held):  # (held: not stepped at all)
+                optimizer.step()
             optimizer.zero_grad(set_to_none=True)
         self.target_updater.step()
         self.updates += 1
@@ -185,6 +198,14 @@ class OffPolicyTrainer(Trainer):
             outputs = [self.update(self.sample()) for _ in range(self.updates_per_batch)]
         return [out for out in outputs if out is not None]
 
+    def observe_training_episodes(self, metrics: dict[str, float]) -> None:
+        """With ``algo.kappa_hold_goal_rate``: release κ after the first epoch whose
+        ``train/goal_rate`` reached it (for good: a later slower epoch does not hold it
+        again)."""
+        rate = metrics.get("train/goal_rate", math.nan)
+        if self.kappa_held and rate >= self.kappa_hold_goal_rate:  # (NaN: no episode ended)
+            self.kappa_held = False
+
     def collection_metrics(self) -> dict[str, float]:
         """With a safety critic, its reading of the epoch's training episodes against
         their realised cost-to-go (``train_calib/*``,
@@ -198,6 +219,8 @@ class OffPolicyTrainer(Trainer):
             steps, replaced = self.shield_steps, self.shield_replaced
             self.shield_steps = self.shield_replaced = 0
             metrics["train/shielded"] = replaced / steps if steps else 0.0
+        if self.kappa_hold_goal_rate > 0:  # 1: κ was held through the epoch that ended
+            metrics["train/kappa_held"] = float(self.kappa_held)
         return metrics
 
     def observe_test_episodes(self, results: list) -> None:
@@ -229,6 +252,8 @@ class OffPolicyTrainer(Trainer):
             state["shield"] = {"steps": self.shield_steps, "replaced": self.shield_replaced}
         if self.training_calibration is not None:  # (the epoch in progress, too)
             state["training_calibration"] = self.training_calibration.state_dict()
+        if self.kappa_hold_goal_rate > 0:
+            state["kappa_held"] = self.kappa_held
         if self.cfg.save_replay_buffer and len(self.replay_buffer):
             state["buffers"] = self._save_buffers()
         return state
@@ -279,6 +304,8 @@ class OffPolicyTrainer(Trainer):
             self.shield_replaced = int(state["shield"]["replaced"])
         if self.training_calibration is not None and "training_calibration" in state:
             self.training_calibration.load_state_dict(state["training_calibration"])
+        if self.kappa_hold_goal_rate > 0:
+            self.kappa_held = bool(state.get("kappa_held", self.kappa_held))
         directory = self._buffers_to_load(state)
         if directory is not None:
             buffers = {REPLAY_BUFFER_DIR: self.replay_buffer}

@@ -130,15 +130,16 @@ class EpisodeTracker:
     """Training-episode statistics from collector batches (``RewardSum``/``CostSum`` keys).
 
     Per epoch: returns, costs and lengths of the episodes that finished, and which of
-    them reached a goal (an env that writes ``goal_reached``: ``train/goal_rate``, the
-    per-epoch sign that the task is being learned); over the whole run: frames and total
-    cost, for the paper's cost rate. A batch's last dimension is time (TorchRL's
-    collectors), the ones before it the envs.
+    them reached a goal (``goals``: an env with goals that writes ``goal_reached``;
+    ``train/goal_rate``, the per-epoch sign that the task is being learned, NaN
+    otherwise); over the whole run: frames and total cost, for the paper's cost rate. A
+    batch's last dimension is time (TorchRL's collectors), the ones before it the envs.
     """
 
-    def __init__(self, frames: int = 0, total_cost: float = 0.0) -> None:
+    def __init__(self, frames: int = 0, total_cost: float = 0.0, goals: bool = True) -> None:
         self.frames = frames
         self.total_cost = total_cost
+        self.goals = goals
         self._goal_seen: torch.Tensor | None = None  # per env: a goal in its current episode
         self.reset_epoch()
 
@@ -157,7 +158,7 @@ class EpisodeTracker:
         self.returns += nxt.get("episode_reward").squeeze(-1)[done].tolist()
         self.costs += nxt.get("episode_cost").squeeze(-1)[done].tolist()
         self.lengths += nxt.get("step_count").squeeze(-1)[done].tolist()
-        goal = nxt.get("goal_reached", None)
+        goal = nxt.get("goal_reached", None) if self.goals else None
         if goal is not None:
             self._add_goals(goal.reshape(done.shape).bool().cpu(), done.cpu())
         failure = nxt.get("numerical_failure", None)

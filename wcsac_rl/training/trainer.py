@@ -31,6 +31,7 @@ from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
 from wcsac_rl.envs import CostKeyError, EnvSourceError, NonFiniteStepError
+from wcsac_rl.envs.presets import has_goals
 from wcsac_rl.objectives.inputs import nonfinite_entry
 from wcsac_rl.rollouts import critic_calibration as calibration
 from wcsac_rl.rollouts.episodes import run_episodes, summarize_episodes
@@ -215,7 +216,7 @@ class Trainer:
         self.nonfinite_streak = 0  # ... of which the last ones in a row
         self.epoch = 0
         self.elapsed = 0.0  # training wall time over all sessions of this run
-        self.tracker = EpisodeTracker()
+        self.tracker = EpisodeTracker(goals=has_goals(cfg.env.name))
         self.training_safety = TrainingSafety(float(cfg.cost_limit))  # running over the run
         # the epoch in progress (carried over by a checkpoint taken mid-epoch)
         self.loss_means = LossMeans(self.loss_keys)
@@ -365,6 +366,9 @@ class Trainer:
     def learn(self, batch: TensorDictBase) -> list[TensorDictBase]:
         """Learn from one collected batch; return the loss outputs to average per epoch."""
         return []
+
+    def observe_training_episodes(self, metrics: dict[str, float]) -> None:
+        """The epoch's ``train/*`` episode statistics, for a learner that reads them."""
 
     def collection_metrics(self) -> dict[str, float]:
         """The epoch's ``train/*`` columns about how the learner collected (a shield's
@@ -550,6 +554,7 @@ class Trainer:
         }
         row.update(self.tracker.epoch_metrics())
         self.tracker.reset_epoch()
+        self.observe_training_episodes(row)
         self.training_safety.add_epoch(
             self.tracker.frames, row["train/episode_cost"], self.tracker.total_cost
         )
@@ -606,8 +611,8 @@ class Trainer:
             )
         self.observe_test_episodes(results)
         row = {f"eval/{k}": v for k, v in summarize_episodes(results).items()}
-        # the share of test episodes that reached a goal (an env that reports goals)
-        if "goal_reached" in self.eval_env.full_observation_spec.keys(True, True):
+        # the share of test episodes that reached a goal (an env with goals)
+        if has_goals(self.cfg.env.name):
             reached = [r.goal_reached > 0 for r in results]
             row["eval/goal_rate"] = sum(reached) / len(reached) if reached else math.nan
         return {**row, **calib}
@@ -721,7 +726,9 @@ class Trainer:
 
     def _load_state(self, state: dict[str, Any]) -> None:
         self.tracker = EpisodeTracker(
-            frames=int(state["frames"]), total_cost=float(state["total_cost"])
+            frames=int(state["frames"]),
+            total_cost=float(state["total_cost"]),
+            goals=has_goals(self.cfg.env.name),
         )
         self.updates = int(state["updates"])
         self.skipped_updates = int(state.get("skipped_updates", 0))
