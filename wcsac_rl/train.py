@@ -198,6 +198,7 @@ def main(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
     from wcsac_rl.training.preemption import Preempted
+    from wcsac_rl.training.run_dir import RunInUseError
 
     user_errors = _user_errors()
     hydra_cfg = HydraConfig.get()
@@ -207,12 +208,16 @@ def main(cfg: DictConfig) -> None:
     with ConsoleLog() as log:
         try:
             trainer = _build(cfg, run_dir, hydra_cfg.overrides.task)
+        except RunInUseError as err:  # another process owns the directory: only ours goes
+            _discard_staged(staged)
+            _exit_with(f"error: {err}")
         except user_errors as err:
             _discard(run_dir, staged)  # a refused command leaves nothing behind
             _exit_with(f"error: {err}")
         except BaseException:
             _discard(run_dir, staged)
             raise
+        _reopen_run_logs(trainer.run_dir)
         _keep_records(run_dir, staged)
         log.attach(trainer.run_dir / LOG_FILE)
         _say_recipe(trainer.cfg)
@@ -304,6 +309,33 @@ def _keep_records(run_dir: Path, staged: Path | None) -> None:
     for path in staged.iterdir():
         os.replace(path, target / path.name)
     staged.rmdir()
+
+
+def _discard_staged(staged: Path | None) -> None:
+    """Remove this command's own staged Hydra records (named by its pid), nothing else."""
+    import shutil
+
+    if staged is not None and staged.is_dir() and not staged.is_symlink():
+        shutil.rmtree(staged, ignore_errors=True)
+
+
+def _reopen_run_logs(run_dir: Path) -> None:
+    """Hydra's job log handler opened ``<run dir>/train.log`` before the run took its
+    directory; the run may since have given its files their own copies (a run copied
+    with hard links: :func:`~wcsac_rl.training.run_dir.own_copies`), so the handlers
+    writing into the run directory open their file again (the run's own)."""
+    for handler in logging.getLogger().handlers:
+        if (
+            isinstance(handler, logging.FileHandler)
+            and Path(handler.baseFilename).parent == Path(run_dir).absolute()
+        ):
+            handler.acquire()
+            try:
+                if handler.stream is not None:
+                    handler.stream.close()
+                handler.stream = handler._open()
+            finally:
+                handler.release()
 
 
 def _discard(run_dir: Path, staged: Path | None = None) -> None:
@@ -597,7 +629,7 @@ def run_training(
     if run_dir is None:
         now = datetime.datetime.now()
         run_dir = Path("outputs") / f"{now:%Y-%m-%d}" / f"{now:%H-%M-%S}_{cfg.run_name}"
-    from wcsac_rl.training.run_dir import discard_unused_run_dir
+    from wcsac_rl.training.run_dir import RunInUseError, discard_unused_run_dir
 
     run_dir = Path(run_dir).absolute()
     existed = run_dir.exists()
@@ -605,6 +637,8 @@ def run_training(
     with ConsoleLog() as log:
         try:
             trainer = _build(cfg, run_dir, overrides)
+        except RunInUseError:
+            raise  # (another process owns the directory: nothing here is this call's)
         except BaseException:
             if not existed:
                 _discard(run_dir)

@@ -33,6 +33,7 @@ from wcsac_rl.training.config import ConfigError
 __all__ = [
     "AUTO_RESUME",
     "LOCK_FILE",
+    "RunInUseError",
     "RunLock",
     "check_new_run_dir",
     "check_own_files",
@@ -41,6 +42,7 @@ __all__ = [
     "cut_records_to",
     "discard_unused_run_dir",
     "lock_holder",
+    "own_copies",
     "replace_text",
     "unwritable_reason",
 ]
@@ -111,6 +113,11 @@ def lock_holder(run_dir: Path) -> str | None:
         os.close(fd)
 
 
+class RunInUseError(ConfigError):
+    """Another live process holds the run directory's lock: this process owns nothing in
+    it and must remove nothing there but what it alone made (its own staged records)."""
+
+
 class RunLock:
     """Hold ``<run dir>/.lock`` exclusively until :meth:`release` (or the process ends).
 
@@ -146,7 +153,7 @@ class RunLock:
         else:
             holder = os.pread(fd, 200, 0).decode(errors="replace").strip() or "unknown"
             os.close(fd)
-            raise ConfigError(
+            raise RunInUseError(
                 f"{self.path.parent} is in use by another run ({holder}); wait for it to "
                 "finish or choose another directory"
             ) from None
@@ -193,7 +200,8 @@ def discard_unused_run_dir(
     since: float | None = None,
     created: bool = False,
 ) -> bool:
-    """Undo what a refused command wrote into ``run_dir``: only what it created itself.
+    """Undo what a refused command wrote into ``run_dir``: only what it created itself,
+    and nothing while another live process holds the directory's lock (its owner).
 
     ``created``: the command made the directory (it is removed). Otherwise ``existed``
     names the directory's entries before the command (``None``: not known). The
@@ -207,6 +215,8 @@ def discard_unused_run_dir(
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir() or run_dir.is_symlink():
+        return False
+    if lock_holder(run_dir) is not None:  # a live process owns it: nothing here is ours
         return False
     if created:
         shutil.rmtree(run_dir, ignore_errors=True)
@@ -298,18 +308,40 @@ def check_restartable_run_dir(run_dir: Path) -> None:
         )
 
 
+def _run_entries(run_dir: Path) -> list[Path]:
+    """A run's entries: everything below it (but wandb's own folder, which links its
+    latest run), links not followed."""
+    paths = []
+    for parent, dirs, files in os.walk(run_dir, followlinks=False):
+        dirs[:] = [d for d in dirs if d != "wandb"]
+        paths += [Path(parent) / name for name in [*dirs, *files]]
+    return sorted(paths)
+
+
+def own_copies(run_dir: Path) -> list[Path]:
+    """Give every file of the run that is shared with another path (a hard link: ``cp
+    -al RUN COPY``) a copy of its own, written beside it and renamed over it, so that
+    what a resume appends or writes never reaches the other run. Call it holding the
+    run's lock (:class:`RunLock`). Returns the files copied."""
+    import shutil
+
+    copied = []
+    for path in _run_entries(Path(run_dir)):
+        if path.is_symlink() or not path.is_file() or path.stat().st_nlink < 2:
+            continue
+        private = path.with_name(f".{path.name}.own")
+        shutil.copy2(path, private)
+        os.replace(private, path)
+        copied.append(path)
+    return copied
+
+
 def check_own_files(run_dir: Path) -> None:
     """Refuse (one line) to continue a run one of whose entries is a symbolic link: a
     resume appends to ``progress.csv`` and the logger's files and writes over its
     checkpoints, and through a link it would write outside the run."""
     run_dir = Path(run_dir)
-    paths = list(run_dir.iterdir())  # its records, and below checkpoints/ and logs/
-    for top in ("checkpoints", "logs"):
-        if (run_dir / top).is_dir() and not (run_dir / top).is_symlink():
-            for parent, dirs, files in os.walk(run_dir / top, followlinks=False):
-                dirs[:] = [d for d in dirs if d != "wandb"]  # (wandb links its latest run)
-                paths += [Path(parent) / name for name in [*dirs, *files]]
-    for path in sorted(paths):
+    for path in _run_entries(run_dir):
         if path.is_symlink():
             raise ConfigError(
                 f"{path} is a symbolic link (to {os.readlink(path)}); a resume writes into "

@@ -66,6 +66,8 @@ from wcsac_rl.training.run_dir import (
     check_progress_rows,
     check_restartable_run_dir,
     cut_records_to,
+    lock_holder,
+    own_copies,
     replace_text,
 )
 from wcsac_rl.training.runtime import retain_freed_memory
@@ -121,6 +123,8 @@ def _remove_if_only_lock(run_dir: Path) -> None:
     """Remove ``run_dir`` if it holds nothing but its lock file (a new run refused
     after it took the lock, e.g. by its env's constructor, leaves no directory)."""
     try:
+        if lock_holder(run_dir) is not None:  # (another live process owns it)
+            return
         if {p.name for p in run_dir.iterdir()} <= {LOCK_FILE}:
             (run_dir / LOCK_FILE).unlink(missing_ok=True)
             run_dir.rmdir()
@@ -230,6 +234,7 @@ class Trainer:
                 self.load_learner_state(checkpoint.get("learner", {}))
             except StateMismatch as err:
                 raise ConfigError(f"checkpoint {self._resumed_from}: {err}") from None
+            self._own_copies()
             # rows logged after this checkpoint (by a session killed before its next
             # checkpoint) are dropped: the resumed session logs those epochs again
             dropped = cut_records_to(self.run_dir, epoch=self.epoch, frames=self.tracker.frames)
@@ -338,11 +343,23 @@ class Trainer:
         path = self.checkpoint_path
         if not path.is_file():
             check_restartable_run_dir(self.run_dir)
+            self._own_copies()
             return None
         checkpoint = load_checkpoint(path, required=RESUME_ENTRIES)
         self._check_resumable(checkpoint, path)
         print(f"{self.run_dir}: resuming from {path} ({int(checkpoint['frames'])} frames)")
         return checkpoint
+
+    def _own_copies(self) -> None:
+        """A run copied with hard links (``cp -al``) shares its files with the original:
+        each gets a copy of its own before this session writes (:func:`own_copies`)."""
+        copied = own_copies(self.run_dir)
+        if copied:
+            print(
+                f"{self.run_dir}: {len(copied)} file(s) shared with another path by hard "
+                "links (a copy made with cp -al?) now have their own copies; what this "
+                "session writes stays in this run"
+            )
 
     def _check_resumable(self, checkpoint: dict[str, Any], path: Path) -> None:
         """What every resume verifies before it writes anything: the checkpoint's
