@@ -655,6 +655,19 @@ def test_code_named_by_a_run_is_not_run(hostile, tmp_path, capsys, command, mess
     assert snapshot(tmp_path) == before
 
 
+@pytest.mark.parametrize("given", ["false", "true", 1, "yes", None])
+def test_only_true_trusts_a_runs_code(hostile, tmp_path, given):
+    """Trust is a bool: a string (``"false"`` read from an environment variable), a number
+    or None is refused in one line naming it; the run's code never runs."""
+    run, marker = hostile
+    before = snapshot(tmp_path)
+    with pytest.raises(ConfigError) as err:
+        load_run(run, trust_env_code=given)
+    one_line(str(err.value), f"trust_env_code must be True or False (a bool), got {given!r}")
+    assert not marker.exists(), "the command in the run's files ran"
+    assert snapshot(tmp_path) == before
+
+
 def test_train_py_resume_of_a_run_naming_code_runs_nothing(hostile, tmp_path):
     """``train.py resume=RUN`` (a subprocess: what a user types) refuses in one line."""
     run, marker = hostile

@@ -11,11 +11,12 @@ the runs themselves (no Figure 5: it needs the checkpoints).
 from __future__ import annotations
 
 import filecmp
-import shutil
+import os
 from pathlib import Path
 
 from wcsac_rl.evaluation.runs import EVALUATION_CSV, EVALUATION_JSON
 from wcsac_rl.training.config import ConfigError
+from wcsac_rl.training.run_dir import replace_file
 
 __all__ = ["ARCHIVED_FILES", "ArchiveError", "archive_run", "archived_records", "needs_copy"]
 
@@ -66,6 +67,12 @@ def archive_run(directory: Path, archive_dir: Path, *, force: bool = False) -> P
     if not any(path.name == EVALUATION_JSON for path in records):
         raise ArchiveError(f"{directory}: not evaluated (no {EVALUATION_JSON}): nothing to archive")
     target = Path(archive_dir).expanduser() / directory.resolve().name
+    if target.is_symlink() or (target.exists() and not target.is_dir()):
+        what = f"a symbolic link (to {os.readlink(target)})" if target.is_symlink() else "a file"
+        raise ArchiveError(
+            f"{target} is {what}; an archived run's records go into a folder of its own: "
+            "remove it or archive elsewhere"
+        )
     # the records not already there byte for byte; of those, the ones there with other bytes
     pending = [path for path in records if needs_copy(path, target / path.name)]
     differing = [path.name for path in pending if (target / path.name).is_file()]
@@ -76,5 +83,5 @@ def archive_run(directory: Path, archive_dir: Path, *, force: bool = False) -> P
         )
     target.mkdir(parents=True, exist_ok=True)
     for path in pending:
-        shutil.copyfile(path, target / path.name)
+        replace_file(target / path.name, path.read_bytes())
     return target

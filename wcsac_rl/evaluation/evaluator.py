@@ -172,10 +172,15 @@ def stale_evaluation(directory: str | os.PathLike) -> str | None:
 
 
 def _atomic_write(path: Path, write: Callable[[Any], None]) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as f:
-        write(f)
-    os.replace(tmp, path)
+    """What ``write`` writes to a text stream, as a new file renamed into place
+    (:func:`~wcsac_rl.training.run_dir.replace_file`)."""
+    import io
+
+    from wcsac_rl.training.run_dir import replace_file
+
+    buffer = io.StringIO(newline="")
+    write(buffer)
+    replace_file(path, buffer.getvalue())
 
 
 def write_evaluation(evaluation: Evaluation, *, force: bool = False) -> tuple[Path, Path]:

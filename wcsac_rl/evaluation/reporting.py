@@ -123,7 +123,7 @@ from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
 from wcsac_rl.training.provenance import read_provenance
 from wcsac_rl.training.registry import find_algorithm, row_algorithm
-from wcsac_rl.training.run_dir import check_progress_rows
+from wcsac_rl.training.run_dir import check_progress_rows, replace_file
 from wcsac_rl.training.trust import interpolation_in, plain_select, stored_config
 
 __all__ = [
@@ -451,16 +451,9 @@ def _common(values: dict[str, set], what: str, flag: str) -> Any:
 
 
 def _write_text(path: Path, text: str) -> Path:
-    """Write ``text`` (UTF-8; a run name that is not is shown with U+FFFD) atomically:
-    a temporary file renamed into place, removed again if anything fails."""
-    tmp = path.with_name(path.name + ".tmp")
-    try:
-        tmp.write_text(display_text(text), encoding="utf-8")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
+    """Write ``text`` (UTF-8; a run name that is not is shown with U+FFFD) as a new file
+    renamed into place (:func:`~wcsac_rl.training.run_dir.replace_file`)."""
+    return replace_file(path, display_text(text))
 
 
 ENSEMBLE_KEYS = tuple(

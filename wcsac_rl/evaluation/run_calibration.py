@@ -36,6 +36,7 @@ from wcsac_rl.rollouts.episodes import EpisodeResult
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
 from wcsac_rl.training.registry import ALGORITHMS, find_algorithm, make_loss
+from wcsac_rl.training.run_dir import replace_file
 from wcsac_rl.training.training_calibration import TRAIN_PREFIX, TRAINING_CALIBRATION_KEYS
 
 __all__ = [
@@ -163,9 +164,7 @@ def _finite_or_none(value: Any) -> Any:
 
 
 def _atomic_write_json(path: Path, data: dict[str, Any]) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=2, allow_nan=False) + "\n")
-    os.replace(tmp, path)
+    replace_file(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
 
 
 def check_can_write(run_dir: Path, force: bool) -> None:

@@ -41,6 +41,7 @@ from typing import Any
 
 from wcsac_rl._messages import first_line
 from wcsac_rl.evaluation.run_statistics import RUN_METRICS
+from wcsac_rl.training.run_dir import replace_file
 
 __all__ = [
     "TARGETS_CSV",
@@ -231,9 +232,7 @@ def write_targets(report: Path, targets_file: Path) -> list[Path]:
     tables = targets_tables(Path(report), read_targets(Path(targets_file)))
     written = []
     for name, text in tables.items():
-        path = Path(report) / name
-        path.write_text(text, encoding="utf-8")
-        written.append(path)
+        written.append(replace_file(Path(report) / name, text))
     return written
 
 

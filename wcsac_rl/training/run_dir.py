@@ -43,6 +43,7 @@ __all__ = [
     "discard_unused_run_dir",
     "lock_holder",
     "own_copies",
+    "replace_file",
     "replace_text",
     "unwritable_reason",
 ]
@@ -387,21 +388,34 @@ def check_progress_rows(run_dir: Path, epoch: int | None = None) -> None:
         expected += 1
 
 
-def replace_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically (a temporary file, flushed, then renamed)."""
-    from wcsac_rl.training.preemption import DeferredSignals
-
-    tmp = path.with_name(path.name + ".tmp")
+def replace_file(path: str | os.PathLike, data: str | bytes) -> Path:
+    """Write ``data`` (text as UTF-8) to ``path`` as a new file renamed into place, the one
+    way the kit writes a record: a link at ``path`` (symbolic, or a hard link shared with
+    another run) is replaced, never written through; the temporary file beside it is
+    created exclusively and never follows a link; it is removed again if anything fails
+    (a full disk, a stop)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    payload = data.encode("utf-8") if isinstance(data, str) else bytes(data)
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
     try:
-        with DeferredSignals():  # a stop signal waits until the file is in place
-            with tmp.open("w", newline="") as f:
-                f.write(text)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
+        with os.fdopen(os.open(tmp, flags, 0o644), "wb") as f:
+            f.write(payload)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+    return path
+
+
+def replace_text(path: Path, text: str) -> None:
+    """:func:`replace_file`, a stop signal waiting until the file is in place."""
+    from wcsac_rl.training.preemption import DeferredSignals
+
+    with DeferredSignals():
+        replace_file(path, text)
 
 
 def _number(text: str | None) -> float | None:

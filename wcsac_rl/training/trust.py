@@ -38,6 +38,7 @@ __all__ = [
     "UntrustedEnvCode",
     "allow_env_code",
     "check_env_code",
+    "check_trust",
     "env_code_allowed",
     "interpolation_in",
     "plain_select",
@@ -140,6 +141,18 @@ def _named_code(cfg: Any) -> str | None:
     return env_id if isinstance(env_id, str) else repr(env_id)
 
 
+def check_trust(value: Any, name: str = TRUST_KEY) -> bool:
+    """``value`` if it is a bool, else one :class:`~wcsac_rl.training.ConfigError` line:
+    trust is given only by ``True`` (a string such as ``"false"`` read from an
+    environment variable would otherwise count as trust)."""
+    if not isinstance(value, bool):
+        raise ConfigError(
+            f"{name} must be True or False (a bool), got {value!r} "
+            f"({type(value).__name__}); only True trusts a run's code"
+        )
+    return value
+
+
 def check_env_code(
     cfg: Any, source: str | Path, *, trusted: bool, given_id: str | None = None, allow: str
 ) -> None:
@@ -148,6 +161,7 @@ def check_env_code(
     allowed: by ``trusted`` (the command's flag; :func:`allow_env_code` counts too) or
     by naming the same ``env.id`` on this command's line (``given_id``). ``allow`` says
     how to allow it (the flag of the command). Nothing is imported here."""
+    check_trust(trusted)
     env_id = _named_code(cfg)
     if env_id is None or trusted or env_code_allowed() or given_id == env_id:
         return
