@@ -44,6 +44,14 @@ RUN_STATISTICS_FILES = (
 )
 # every figure as PNG and PDF, every table as Markdown (+ LaTeX) and CSV
 TABLE_FILES = ("table1.md", "table1.csv", "table1.tex")
+# each run's test episodes by outcome: a table and one stacked bar per run
+OUTCOME_FILES = (
+    "outcomes.md",
+    "outcomes.csv",
+    "outcomes.tex",
+    "fig_outcomes.png",
+    "fig_outcomes.pdf",
+)
 TRAINING_FILES = (
     "runs.md",
     "runs.tex",
@@ -112,6 +120,7 @@ def test_report_writes_every_file(report):
             *_figure("fig5_random_seed0"),
             *_figure("fig6_evaluation"),
             *_figure("fig_cost_return"),
+            *OUTCOME_FILES,
             *TRAINING_FILES,
             *RUN_STATISTICS_FILES,
         ]
@@ -127,13 +136,13 @@ def test_every_figure_is_png_and_pdf_and_every_table_markdown_csv_and_latex(repo
     result, _ = report
     out = result.out_dir
     pngs = sorted(out.glob("*.png"))
-    assert len(pngs) == 8
+    assert len(pngs) == 9
     for png in pngs:
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert png.with_suffix(".pdf").read_bytes()[:5] == b"%PDF-", png.name
     tables = sorted(out.glob("*.md"))
     assert [p.stem for p in tables] == [
-        "run_statistics", "run_values", "runs", "table1", "training_safety",
+        "outcomes", "run_statistics", "run_values", "runs", "table1", "training_safety",
     ]  # fmt: skip
     for md in tables:
         tex = md.with_suffix(".tex").read_text()
@@ -353,6 +362,7 @@ def test_existing_report_is_not_overwritten_without_force(report, sweep):
         *_figure("fig4_training_curves"),
         *_figure("fig6_evaluation"),
         *_figure("fig_cost_return"),
+        *OUTCOME_FILES,
         *TRAINING_FILES,
         *RUN_STATISTICS_FILES,
     }
@@ -504,7 +514,7 @@ def test_report_cli(sweep, tmp_path, capsys):
     assert "# Table 1 — TinyHazard, budget d = 15" in proc.stdout
     assert "| WCSAC-0.5 |" in proc.stdout
     # Figures 4, 5 (3 files), 6; runs, scores, cost-return: each as PNG and PDF
-    assert len(list(out.glob("*.png"))) == len(list(out.glob("*.pdf"))) == 8
+    assert len(list(out.glob("*.png"))) == len(list(out.glob("*.pdf"))) == 9
     # the same again without --force: one error line, exit code 1 (in-process: fast)
     from wcsac_rl.report import main
 
