@@ -20,9 +20,9 @@ Prints, with one torch thread by default:
   timed at each option set of ``--options`` (:data:`OPTION_SETS`): ``kit`` (what
   ``python train.py`` runs, ``conf/algo/wcsac.yaml``: the IQN safety critic, κ on the larger of
   its start-state CVaR and the empirical CVaR_α of the last training episodes),
-  ``defaults`` (``WCSACLoss``'s own defaults, ``SafetyOptions()``: the Gaussian
-  critic, 10-step cost targets, κ on the tail statistic at episode start states) and
-  ``paper`` (``PAPER_OPTIONS`` = ``algo=wcsac_paper``). Its batch comes through the
+  ``defaults`` (``SafetyOptions()``' defaults: the Gaussian critic, 10-step cost
+  targets, κ on the tail statistic at episode start states) and ``paper``
+  (``PAPER_OPTIONS`` = ``algo=wcsac_paper``, ``WCSACLoss``'s own defaults). Its batch comes through the
   kit's pipeline, as the trainer builds it: collected trajectories →
   ``make_postproc(loss)`` (the n-step cost entries) → the replay rows the loss reads
   → a uniform sample → ``StartStateBuffer.attach`` (a start state per row) →
@@ -119,9 +119,8 @@ CONFIG_OVERRIDES = {
     "paper": ("algo=wcsac_paper",),
 }
 """The option sets each ``WCSACLoss`` variant is timed at (``--options``), as the config
-composes them: ``kit`` is ``python train.py``'s default (the loss's own defaults),
-``defaults`` ``SafetyOptions()``' defaults, ``paper``
-``PAPER_OPTIONS``. The end-to-end loop runs these configs."""
+composes them: ``kit`` is ``python train.py``'s default, ``defaults``
+``SafetyOptions()``' defaults, ``paper`` ``PAPER_OPTIONS`` (the loss's own defaults). The end-to-end loop runs these configs."""
 OPTION_SETS = tuple(CONFIG_OVERRIDES)
 
 

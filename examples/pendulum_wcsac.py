@@ -4,11 +4,11 @@ TorchRL's SAC example flow — env, collector, replay buffer, ``SACLoss``, ``Sof
 one optimizer — with ``SACLoss`` swapped for ``WCSACLoss`` and a made-up cost: 1 at every
 step where the pendulum spins faster than ``speed_limit`` rad/s. What the swap adds
 (marked ``# WCSAC`` below, each line or block): the cost transform, a safety critic (the
-kit's IQN one), ``NStepCost`` as the collector's postproc, a ``StartStateBuffer`` and an
-``EpisodeCostWindow`` (the loss's defaults, the kit's recipe ``KIT_OPTIONS``, read n-step
-cost targets, episode start states and the recent episodes' cost;
-``WCSACLoss(..., **loss_parts(PAPER_OPTIONS))`` needs none of them), the optimizer's
-parameter groups (κ at its own learning rate) and the episodes' cost in the log.
+kit's IQN one), the kit's recipe (``**loss_parts(KIT_OPTIONS)``), ``NStepCost`` as the
+collector's postproc, a ``StartStateBuffer`` and an ``EpisodeCostWindow`` (the recipe reads
+n-step cost targets, episode start states and the recent episodes' cost; the loss's
+defaults, the paper's WCSAC, need none of them), the optimizer's parameter groups (κ at
+its own learning rate) and the episodes' cost in the log.
 
 Each iteration collects one 200-step episode (Pendulum's time limit) and prints its
 return and cost; the last line is a verdict: whether the policy's last episodes return
@@ -34,6 +34,7 @@ from wcsac_rl.objectives import (
     EpisodeCostWindow,
     NStepCost,
     StartStateBuffer,
+    loss_parts,
     param_groups,
 )
 
@@ -103,6 +104,7 @@ def main(frames: int = 20_000, seed: int = 0, init_random_frames: int = 1_000) -
         risk_level=0.5,  # WCSAC: α
         cost_limit=COST_LIMIT,  # WCSAC: d, fast steps per 200-step episode
         max_episode_steps=EPISODE_STEPS,  # WCSAC: the episodes' length
+        **loss_parts(KIT_OPTIONS),  # WCSAC: the kit's recipe
     )
     loss.make_value_estimator(gamma=0.99)
     nstep = NStepCost.for_loss(loss)  # WCSAC

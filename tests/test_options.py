@@ -70,11 +70,12 @@ def test_the_parts_options_are_the_fields():
     assert set(LOSS_OPTIONS) - {"risk_level"} <= set(PART_OF_OPTION)
 
 
-def test_the_loss_defaults_are_the_kits_recipe():
+def test_the_loss_defaults_are_the_papers_recipe():
     """``WCSACLoss``'s own keywords are at most SACLoss's count (22; SACLoss's own pass
     through ``**sac_kwargs`` and count as SACLoss's), and with none but the networks,
-    α and d it is the kit's StaticEnv recipe: ``loss_parts(KIT_OPTIONS)``."""
-    from wcsac_rl.objectives import KIT_OPTIONS, loss_parts
+    α and d it is the paper's WCSAC for its critic's kind (``loss_parts(PAPER_OPTIONS)``),
+    β from SACLoss's 1."""
+    from wcsac_rl.objectives import PAPER_OPTIONS, loss_parts
 
     own = [
         p.name
@@ -82,17 +83,20 @@ def test_the_loss_defaults_are_the_kits_recipe():
         if p.kind is inspect.Parameter.KEYWORD_ONLY
     ]
     assert len(own) <= 22, own
-    kit = loss_parts(KIT_OPTIONS)
-    networks = make_loss(kind="iqn")
-    plain = WCSACLoss(
-        networks.actor_network, [networks.qvalue_network] * 2, networks.safety_network
-    )
-    for built in (plain,):
-        assert (built.head_options, built.signal_options) == (kit["safety_head"], kit["signal"])
-        assert type(built.constraint) is type(kit["constraint"])
-        assert repr(built.constraint) == repr(kit["constraint"])
-        assert float(built.kappa) == pytest.approx(float(kit["constraint"].kappa))
-        assert float(built.log_alpha.exp()) == pytest.approx(KIT_OPTIONS["alpha_init"])
+    for kind in ("gaussian", "iqn"):
+        paper = loss_parts({**PAPER_OPTIONS, "safety_critic": kind})
+        networks = make_loss(kind=kind)
+        built = WCSACLoss(
+            networks.actor_network, [networks.qvalue_network] * 2, networks.safety_network
+        )
+        assert (built.head_options, built.signal_options) == (
+            paper["safety_head"],
+            paper["signal"],
+        )
+        assert type(built.constraint) is type(paper["constraint"])
+        assert repr(built.constraint) == repr(paper["constraint"])
+        assert float(built.kappa) == pytest.approx(float(paper["constraint"].kappa))
+        assert float(built.log_alpha.exp()) == pytest.approx(1.0)
 
 
 @pytest.mark.parametrize("name", LOSS_OPTIONS)

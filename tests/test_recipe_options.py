@@ -2,7 +2,7 @@
 ``recipe_options(algorithm, layout)``, with ``PAPER_OPTIONS``) are what ``train.py``
 composes, key by key, for every algorithm with a safety critic on every layout; the
 loss the trainer builds from a composed config is the loss a user's own loop builds
-from the named recipe; and ``WCSACLoss`` with no option is the kit's StaticEnv recipe."""
+from the named recipe; and ``WCSACLoss`` with no option is the paper's (``algo=wcsac_paper``)."""
 
 from __future__ import annotations
 
@@ -131,26 +131,34 @@ def test_the_trainers_loss_is_the_named_recipes_loss(algorithm, layout):
     )
 
 
-def test_the_loss_with_no_option_is_the_kits_static_recipe():
-    """``WCSACLoss(actor, qvalue, safety_critic, risk_level=..., cost_limit=...)`` with
-    the kit's IQN critic is what ``train.py algo=wcsac env=static`` builds."""
+@pytest.mark.parametrize(
+    "algo, parts", [("wcsac", None), ("wcsac_paper", "defaults")], ids=["kit", "paper"]
+)
+def test_the_loss_a_user_builds_is_what_train_py_builds(algo, parts):
+    """``WCSACLoss(actor, qvalue, safety_critic, risk_level=..., cost_limit=...,
+    **loss_parts(KIT_OPTIONS))`` with the kit's IQN critic is what ``train.py algo=wcsac
+    env=static`` builds; with no parts, the loss's defaults, it is what ``train.py
+    algo=wcsac_paper env=static`` builds."""
     from wcsac_rl.envs import make_env
     from wcsac_rl.training import builders
 
-    cfg = _composed("wcsac", "static")
+    cfg = _composed(algo, "static")
     env = make_env("tiny", seed=0)
     try:
         agent = builders.make_agent(cfg, env)
         trained = builders.make_loss(cfg, agent, 1000)
     finally:
         env.close()
-    assert cfg.algo.safety_critic == KIT_OPTIONS["safety_critic"] == "iqn"
-    plain = WCSACLoss(agent.actor, agent.qvalues, agent.safety, risk_level=0.1, cost_limit=15.0)
-    _same_parts(plain, loss_parts(KIT_OPTIONS))
-    _same_parts(trained, loss_parts(KIT_OPTIONS))
+    given = loss_parts(KIT_OPTIONS) if parts is None else {}
+    plain = WCSACLoss(
+        agent.actor, agent.qvalues, agent.safety, risk_level=0.1, cost_limit=15.0, **given
+    )
+    expected = loss_parts(KIT_OPTIONS if parts is None else PAPER_OPTIONS)
+    _same_parts(plain, expected)
+    _same_parts(trained, expected)
     for name in ("risk_level", "cost_limit", "max_episode_steps", "cost_gamma", "cost_n_steps"):
         assert getattr(plain, name) == getattr(trained, name), name
-    assert plain.safety_critic_kind == trained.safety_critic_kind == "iqn"
+    assert plain.safety_critic_kind == trained.safety_critic_kind
     assert float(plain.cost_threshold) == float(trained.cost_threshold)
     assert float(plain.target_entropy) == float(trained.target_entropy)
     assert plain.loss_function == trained.loss_function == "l2"

@@ -24,9 +24,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
+from wcsac_rl.modules.quantile_critic import IQNSafetyCritic
 from wcsac_rl.objectives.constraint import GradientLagrangian, PIDLagrangian, make_constraint
 from wcsac_rl.objectives.constraint_signal import check_signal_states
 from wcsac_rl.options import (
+    PAPER_OPTIONS,
     IQNOptions,
     PIDGains,
     SafetyOptions,
@@ -36,13 +38,13 @@ from wcsac_rl.options import (
     check_fields,
     check_signal_every,
 )
-from wcsac_rl.recipes import KIT_OPTIONS, TRAINER_KEYS
+from wcsac_rl.recipes import TRAINER_KEYS
 
 __all__ = [
     "PART_OF_OPTION",
     "SafetyHeadOptions",
     "SignalOptions",
-    "kit_parts",
+    "default_parts",
     "loss_parts",
     "options_constraint",
 ]
@@ -260,19 +262,24 @@ PART_OF_OPTION: Mapping[str, str] = {
 does not take is refused naming its part)."""
 
 
-def kit_parts(
+def default_parts(
+    safety_network: Any,
     safety_head: SafetyHeadOptions | None,
     signal: SignalOptions | None,
     constraint: GradientLagrangian | PIDLagrangian | None,
 ) -> tuple[SafetyHeadOptions, SignalOptions, GradientLagrangian | PIDLagrangian]:
-    """The parts given, and the kit's (:data:`~wcsac_rl.recipes.KIT_OPTIONS`) for those
-    that are ``None``; a part of the wrong kind is refused in one line naming it."""
+    """The parts given, and the paper's (:data:`~wcsac_rl.options.PAPER_OPTIONS`, for the
+    kind of ``safety_network``: Gaussian or IQN) for those that are ``None``: read only
+    what any TorchRL batch holds (no n-step entries, start states or episode window). A
+    part of the wrong kind is refused in one line naming it."""
     given = {"safety_head": safety_head, "signal": signal, "constraint": constraint}
     for name, value in given.items():
         kind, label = _PARTS[name]
         if value is not None and not isinstance(value, kind):
             raise ValueError(f"{name} must be a {label}, got {type(value).__name__}")
     if None in given.values():
-        kit = loss_parts(KIT_OPTIONS)
-        given = {name: kit[name] if value is None else value for name, value in given.items()}
+        first = safety_network[0] if isinstance(safety_network, (list, tuple)) else safety_network
+        iqn = isinstance(getattr(first, "module", None), IQNSafetyCritic)
+        paper = loss_parts({**PAPER_OPTIONS, "safety_critic": "iqn" if iqn else "gaussian"})
+        given = {name: paper[name] if value is None else value for name, value in given.items()}
     return given["safety_head"], given["signal"], given["constraint"]

@@ -60,7 +60,7 @@ from wcsac_rl.objectives.loss_options import (
     PART_OF_OPTION,
     SafetyHeadOptions,
     SignalOptions,
-    kit_parts,
+    default_parts,
 )
 from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
 from wcsac_rl.objectives.safety_head import SafetyValues
@@ -75,7 +75,7 @@ from wcsac_rl.objectives.torchrl_compat import (
     sample_alive,
 )
 from wcsac_rl.options import PAPER_OPTIONS, SafetyOptions
-from wcsac_rl.recipes import KIT_OPTIONS
+from wcsac_rl.recipes import KIT_OPTIONS, TRAINER_KEYS
 
 __all__ = [
     "KIT_OPTIONS",
@@ -90,10 +90,13 @@ class WCSACLoss(SACLoss):
     r"""The WCSAC loss: SAC with a safety critic and a CVaR constraint.
 
     TorchRL-style: the networks, a handful of keywords, the parts as objects
-    (``docs/architecture.md``). Not given, a part is the kit's StaticEnv recipe's
-    (``KIT_OPTIONS``: what ``train.py algo=wcsac env=static`` runs, with an IQN critic);
-    ``**loss_parts(recipe)`` gives them for another (``PAPER_OPTIONS``,
-    ``kit_options("dynamic")``). ``benchmarks/plain_wcsac.py`` is the plain-PyTorch
+    (``docs/architecture.md``). Not given, a part is the paper's (``PAPER_OPTIONS`` for
+    the safety network's kind, β from 1 as SACLoss's): the published WCSAC, reading only
+    what any TorchRL batch holds (observation, action, next reward / done / terminated /
+    cost). ``**loss_parts(recipe)`` gives the parts of another recipe: the kit's
+    (``KIT_OPTIONS``, what ``train.py algo=wcsac env=static`` runs, with an IQN critic;
+    ``kit_options("dynamic")``), whose n-step cost, start states and episode window the
+    kit's transforms write. ``benchmarks/plain_wcsac.py`` is the plain-PyTorch
     reference of the paper's update (``tests/test_plain_reference.py``).
 
     Args:
@@ -124,7 +127,7 @@ class WCSACLoss(SACLoss):
         constraint (GradientLagrangian or PIDLagrangian, optional): κ and its rule
             (:mod:`wcsac_rl.objectives.constraint`), owned by this loss from now on; the
             PID rule steps in :meth:`forward` while the loss is in training mode.
-        alpha_init (float): the initial entropy weight β; the kit's 0.1.
+        alpha_init (float): the initial entropy weight β; SACLoss's 1 (the kit's recipe: 0.1).
         fuse_critics, direct_sampling (bool, optional): the critics as one batched
             ensemble (:mod:`~wcsac_rl.objectives.critic_ensemble`), the actor's actions
             drawn from its parameters; ``None``: when possible. Same values either way.
@@ -153,28 +156,25 @@ class WCSACLoss(SACLoss):
         >>> from torchrl.objectives import SoftUpdate
         >>> from wcsac_rl import WCSACLoss
         >>> from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-        >>> from wcsac_rl.objectives import EpisodeCostWindow, NStepCost, StartStateBuffer
         >>> actor = make_actor(4, Bounded(-1.0, 1.0, shape=(2,)))
-        >>> loss = WCSACLoss(  # the kit's recipe: an IQN safety critic
-        ...     actor, [make_qvalue(4, 2) for _ in range(2)], make_safety_critic(4, 2, kind="iqn"),
+        >>> loss = WCSACLoss(  # the paper's WCSAC: a Gaussian safety critic
+        ...     actor, [make_qvalue(4, 2) for _ in range(2)], make_safety_critic(4, 2),
         ...     risk_level=0.1, cost_limit=15.0, max_episode_steps=1000)
         >>> updater = SoftUpdate(loss, tau=0.005)
-        >>> traj = TensorDict({  # one env's first 8 steps, as a collector hands them over
-        ...     "observation": torch.randn(1, 8, 4), "action": torch.rand(1, 8, 2) * 2 - 1,
-        ...     "step_count": torch.arange(8).reshape(1, 8, 1),
-        ...     "next": {"observation": torch.randn(1, 8, 4), "reward": torch.randn(1, 8, 1),
-        ...              "cost": torch.bernoulli(torch.full((1, 8, 1), 0.1)),
-        ...              "done": torch.zeros(1, 8, 1, dtype=torch.bool),
-        ...              "terminated": torch.zeros(1, 8, 1, dtype=torch.bool)}}, [1, 8])
-        >>> traj = NStepCost.for_loss(loss)(traj)  # n-step cost targets
-        >>> starts = StartStateBuffer.for_loss(loss)  # κ looks at episode start states ...
-        >>> starts.add_starts(traj)
-        1
-        >>> episodes = EpisodeCostWindow.for_loss(loss, window=10)  # ... and recent episodes
-        >>> out = loss(episodes.attach(starts.attach(traj.reshape(-1))))
+        >>> batch = TensorDict({  # a replay batch of any TorchRL collector
+        ...     "observation": torch.randn(8, 4), "action": torch.rand(8, 2) * 2 - 1,
+        ...     "next": {"observation": torch.randn(8, 4), "reward": torch.randn(8, 1),
+        ...              "cost": torch.bernoulli(torch.full((8, 1), 0.1)),
+        ...              "done": torch.zeros(8, 1, dtype=torch.bool),
+        ...              "terminated": torch.zeros(8, 1, dtype=torch.bool)}}, [8])
+        >>> out = loss(batch)
         >>> sum(v for k, v in out.items() if k.startswith("loss_")).backward()
         >>> sorted(k for k in out.keys() if k.startswith("loss_"))
-        ['loss_actor', 'loss_alpha', 'loss_cost_quantile', 'loss_kappa', 'loss_qvalue']
+        ['loss_actor', 'loss_alpha', 'loss_cost_value', 'loss_cost_variance', 'loss_kappa', 'loss_qvalue']
+
+    The kit's recipe, ``WCSACLoss(..., **loss_parts(KIT_OPTIONS))`` with an IQN critic,
+    reads n-step cost entries, episode start states and a recent-episodes window
+    (``NStepCost``, ``StartStateBuffer``, ``EpisodeCostWindow``: ``docs/loss.md``).
     """
 
     @dataclass
@@ -231,7 +231,7 @@ class WCSACLoss(SACLoss):
         safety_head: SafetyHeadOptions | None = None,
         signal: SignalOptions | None = None,
         constraint: GradientLagrangian | PIDLagrangian | None = None,
-        alpha_init: float = KIT_OPTIONS["alpha_init"],
+        alpha_init: float = TRAINER_KEYS["alpha_init"],
         fuse_critics: bool | None = None,
         direct_sampling: bool | None = None,
         num_qvalue_nets: int = 2,
@@ -239,7 +239,7 @@ class WCSACLoss(SACLoss):
         check_finite: bool = False,
         **sac_kwargs,
     ) -> None:
-        head, signal, constraint = kit_parts(safety_head, signal, constraint)
+        head, signal, constraint = default_parts(safety_network, safety_head, signal, constraint)
         refuse_unknown_keywords(WCSACLoss.__init__, sac_kwargs, PART_OF_OPTION)
         if sac_kwargs.pop("value_network", None) is not None:
             raise ValueError("WCSACLoss is SAC v2: it takes no value_network")
