@@ -219,7 +219,7 @@ class OffPolicyTrainer(Trainer):
             steps, replaced = self.shield_steps, self.shield_replaced
             self.shield_steps = self.shield_replaced = 0
             metrics["train/shielded"] = replaced / steps if steps else 0.0
-        if self.kappa_hold_goal_rate > 0:  # 1: κ was held through the epoch that ended
+        if self.kappa_hold_goal_rate > 0:  # 1: still held after this epoch (0: released)
             metrics["train/kappa_held"] = float(self.kappa_held)
         return metrics
 
