@@ -49,17 +49,25 @@ def make_preset_loss(name: str) -> WCSACLoss:
     return loss
 
 
-def make_preset_batch(loss: WCSACLoss) -> TensorDict:
-    """Two envs' 12-step episodes (costs, a terminal step), with the n-step entries and
-    start states the loss's options read."""
-    g = torch.Generator().manual_seed(1)
-    shape = (2, 12)
-    terminated = torch.zeros(*shape, 1, dtype=torch.bool)
+def episode_flags() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``terminated``, ``done`` (``[2, 12, 1]``) and ``step_count`` (``[2, 12]``) of two
+    envs' 12 steps: env 0's episode terminates at step 7 and a second one starts, both
+    are cut at step 11."""
+    terminated = torch.zeros(2, 12, 1, dtype=torch.bool)
     terminated[0, 7] = True
     done = terminated.clone()
     done[:, -1] = True
     step = torch.arange(12).expand(2, 12).clone()
     step[0, 8:] = torch.arange(4)
+    return terminated, done, step
+
+
+def make_preset_batch(loss: WCSACLoss) -> TensorDict:
+    """Two envs' 12-step episodes (costs, a terminal step), with the n-step entries and
+    start states the loss's options read."""
+    g = torch.Generator().manual_seed(1)
+    shape = (2, 12)
+    terminated, done, step = episode_flags()
     traj = TensorDict(
         {
             "observation": torch.randn(*shape, OBS_DIM, generator=g),
@@ -89,7 +97,12 @@ def make_preset_batch(loss: WCSACLoss) -> TensorDict:
 def preset_outputs(name: str) -> dict[str, torch.Tensor]:
     """``out/<key>`` for every loss output and ``grad/<parameter>`` after one backward."""
     loss = make_preset_loss(name)
-    batch = make_preset_batch(loss)
+    return outputs_and_gradients(loss, make_preset_batch(loss))
+
+
+def outputs_and_gradients(loss, batch) -> dict[str, torch.Tensor]:
+    """``out/<key>`` for every output of ``loss(batch)`` and ``grad/<parameter>`` after
+    one backward of their sum (the loss's own draws seeded)."""
     torch.manual_seed(5)
     out = loss(batch)
     sum(v for k, v in out.items() if k.startswith("loss_")).backward()

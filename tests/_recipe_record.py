@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 from _composed_configs import ALL_ALGOS, CONF, _sweep_rows, compose_leaves, env_overrides, key
 from _composed_configs import ENVS as CONFIG_ENVS
+from _loss_reference import episode_flags, outputs_and_gradients
 from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 
@@ -83,12 +84,7 @@ def _batch(cfg, loss, obs_dim: int, act_dim: int) -> TensorDict:
 
     g = torch.Generator().manual_seed(1)
     shape = (2, 12)
-    terminated = torch.zeros(*shape, 1, dtype=torch.bool)
-    terminated[0, 7] = True
-    done = terminated.clone()
-    done[:, -1] = True
-    step = torch.arange(12).expand(2, 12).clone()
-    step[0, 8:] = torch.arange(4)
+    terminated, done, step = episode_flags()
     cost = torch.bernoulli(torch.full((*shape, 1), 0.3), generator=g)
     traj = TensorDict(
         {
@@ -137,14 +133,7 @@ def recipe_outputs(algo: str, env: str) -> dict[str, torch.Tensor]:
     loss = registry.make_loss(cfg, agent, 12)
     obs_dim = specs.observation_spec["observation"].shape[-1]
     batch = _batch(cfg, loss, obs_dim, specs.action_spec_unbatched.shape[-1])
-    torch.manual_seed(5)
-    out = loss(batch)
-    sum(v for k, v in out.items() if k.startswith("loss_")).backward()
-    record = {f"out/{k}": v.detach().clone() for k, v in out.items()}
-    for name, param in loss.named_parameters():
-        if param.grad is not None:
-            record[f"grad/{name}"] = param.grad.clone()
-    return record
+    return outputs_and_gradients(loss, batch)
 
 
 if __name__ == "__main__":
