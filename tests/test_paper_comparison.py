@@ -75,3 +75,15 @@ def test_the_numbers_are_the_papers_as_docs_paper_md_quotes_them():
     for name, cells in quoted.items():
         row = PAPER_TABLE1["static"][names[name]]
         assert [float(c) for c in cells] == [row[k] for k in ("EC", "C0.9", "C0.5", "C0.1", "ER")]
+
+
+def test_rows_compared_only_through_another_label_give_no_ordering():
+    """A report of paper-variant rows alone (``wcsac_paper_0.1`` beside the paper's
+    WCSAC-0.1) writes the side-by-side table and says there is no ordering, instead of
+    failing."""
+    from wcsac_rl.evaluation.paper import paper_comparison_markdown
+
+    row = {"label": "wcsac_paper_0.1", "EC": 2.0, "C0.9": 2.2, "C0.5": 4.0, "C0.1": 20.0, "ER": 0.1}
+    text = paper_comparison_markdown([row], "static", 15.0)
+    assert "| WCSAC-paper-0.1 | WCSAC-0.1 |" in text
+    assert "No ordering: 0 of the paper's own rows here." in text
