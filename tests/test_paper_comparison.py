@@ -86,4 +86,4 @@ def test_rows_compared_only_through_another_label_give_no_ordering():
     row = {"label": "wcsac_paper_0.1", "EC": 2.0, "C0.9": 2.2, "C0.5": 4.0, "C0.1": 20.0, "ER": 0.1}
     text = paper_comparison_markdown([row], "static", 15.0)
     assert "| WCSAC-paper-0.1 | WCSAC-0.1 |" in text
-    assert "No ordering: 0 of the paper's own rows here." in text
+    assert "No ordering: none of the paper's own rows here." in text

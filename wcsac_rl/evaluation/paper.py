@@ -95,9 +95,9 @@ def paper_comparison_markdown(
         lines.append("| " + " | ".join(cells) + " |")
     same = [label for label in compared if label in paper]  # the paper's own labels only
     lines.append("")
-    if len(same) < 2:  # (an ordering needs two of the paper's own rows here)
-        lines += [f"No ordering: {len(same)} of the paper's own rows here.", ""]
-    for key in ("C0.1", "EC") if len(same) >= 2 else ():
+    if not same:  # (rows compared only through another label: nothing to order)
+        lines += ["No ordering: none of the paper's own rows here.", ""]
+    for key in ("C0.1", "EC") if same else ():
         here = {label: float(ours[label][key]) for label in same}
         there = {label: paper[label][key] for label in same}
         verdict = "the same order" if _ranked(here) == _ranked(there) else "a different order"
