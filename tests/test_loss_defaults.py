@@ -82,3 +82,30 @@ def test_two_default_losses_share_no_part():
     assert first.constraint is not second.constraint
     first.constraint.kappa_raw.data.fill_(3.0)
     assert float(second.constraint.kappa) == pytest.approx(torch.log(torch.tensor(2.0)).item())
+
+
+def test_a_users_own_iqn_module_gets_the_iqn_defaults():
+    """A safety critic the user wrapped in their own module is recognised as an IQN one by
+    the quantile fractions it reads (as the head builder recognises it), so the default
+    parts are the paper's for an IQN critic and the loss trains."""
+    from tensordict.nn import TensorDictModule
+
+    class Wrapped(torch.nn.Module):
+        def __init__(self, inner):
+            super().__init__()
+            self.inner = inner
+
+        def forward(self, *inputs):
+            return self.inner(*inputs)
+
+    kit = make_safety_critic(4, 2, kind="iqn")
+    own = TensorDictModule(Wrapped(kit.module), in_keys=kit.in_keys, out_keys=kit.out_keys)
+    torch.manual_seed(0)
+    loss = WCSACLoss(
+        make_actor(4, SPEC), [make_qvalue(4, 2) for _ in range(2)], own,
+        risk_level=0.1, cost_limit=15.0, action_spec=SPEC,
+    )  # fmt: skip
+    assert loss.safety_critic_kind == "iqn"
+    assert loss.head_options == loss_parts({**PAPER_OPTIONS, "safety_critic": "iqn"})["safety_head"]
+    out = loss(_plain_batch(16, "float32 [B,1]"))
+    assert torch.isfinite(sum(v for k, v in out.items() if k.startswith("loss_")))

@@ -24,9 +24,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
-from wcsac_rl.modules.quantile_critic import IQNSafetyCritic
 from wcsac_rl.objectives.constraint import GradientLagrangian, PIDLagrangian, make_constraint
 from wcsac_rl.objectives.constraint_signal import check_signal_states
+from wcsac_rl.objectives.safety_head import is_iqn_critic
 from wcsac_rl.options import (
     PAPER_OPTIONS,
     IQNOptions,
@@ -279,7 +279,7 @@ def default_parts(
             raise ValueError(f"{name} must be a {label}, got {type(value).__name__}")
     if None in given.values():
         first = safety_network[0] if isinstance(safety_network, (list, tuple)) else safety_network
-        iqn = isinstance(getattr(first, "module", None), IQNSafetyCritic)
-        paper = loss_parts({**PAPER_OPTIONS, "safety_critic": "iqn" if iqn else "gaussian"})
+        kind = "iqn" if is_iqn_critic(first) else "gaussian"
+        paper = loss_parts({**PAPER_OPTIONS, "safety_critic": kind})
         given = {name: paper[name] if value is None else value for name, value in given.items()}
     return given["safety_head"], given["signal"], given["constraint"]

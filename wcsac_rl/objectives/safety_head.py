@@ -28,7 +28,7 @@ their targets, which ``SoftUpdate`` finds by name) and hands them to every call.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -60,6 +60,7 @@ __all__ = [
     "IQNHead",
     "SafetyHead",
     "SafetyValues",
+    "is_iqn_critic",
 ]
 
 
@@ -584,6 +585,15 @@ def _check_count(name: str, count) -> None:
         raise ValueError(f"{name} must be an integer >= 1, got {count}")
 
 
+def is_iqn_critic(network: Any, quantile_fractions: Any = "quantile_fractions") -> bool:
+    """Whether ``network`` (a safety critic module) is an implicit quantile network: the
+    kit's :class:`~wcsac_rl.modules.IQNSafetyCritic`, or any module reading the quantile
+    fractions τ (``quantile_fractions``, the loss's key)."""
+    return isinstance(getattr(network, "module", None), IQNSafetyCritic) or (
+        quantile_fractions in list(getattr(network, "in_keys", ()))
+    )
+
+
 def _make_member_head(
     network,
     keys,
@@ -607,8 +617,7 @@ def _make_member_head(
     if not huber_kappa > 0:
         raise ValueError(f"huber_kappa must be > 0 (the Huber threshold), got {huber_kappa}")
     common = {"risk_level": risk_level, "nonnegative_cost": nonnegative_cost}
-    iqn = isinstance(getattr(network, "module", None), IQNSafetyCritic)
-    if not (iqn or keys.quantile_fractions in list(network.in_keys)):
+    if not is_iqn_critic(network, keys.quantile_fractions):
         return GaussianHead(
             network, keys, variance_loss=variance_loss, variance_target=variance_target, **common
         )
