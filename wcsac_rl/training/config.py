@@ -9,6 +9,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from wcsac_rl.cli_args import SEED_MAX
+from wcsac_rl.envs.presets import has_goals
 from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
 from wcsac_rl.options import (
@@ -358,6 +359,7 @@ def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
             cfg.algo,
             updates=int(learning_frames * float(collector.utd_ratio)),
             eval_episodes=int(cfg.eval_episodes),
+            env=str(cfg.env.name),
         )
     if algo.check is not None:
         resolve(algo.check)(cfg)
@@ -445,7 +447,7 @@ def safety_options(algo: DictConfig) -> SafetyOptions:
         raise ConfigError(str(err)) from None
 
 
-def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int) -> None:
+def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int, env: str) -> None:
     """The WCSAC / SAC-Lag options of ``conf/algo``: every field of
     :class:`~wcsac_rl.options.SafetyOptions` (its type and range, from its
     metadata: the loss checks with the same function), then what relates two options
@@ -492,6 +494,12 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int)
             f"algo.kappa_hold_goal_rate={options.kappa_hold_goal_rate:g} holds κ's optimizer "
             f"until the task is learned: it needs algo.kappa_rule=gradient, got "
             f"{options.kappa_rule}"
+        )
+    if options.kappa_hold_goal_rate > 0 and not has_goals(env):
+        raise ConfigError(
+            f"algo.kappa_hold_goal_rate={options.kappa_hold_goal_rate:g} holds κ until "
+            f"the training episodes reach the goal, but env={env} reports no goals: κ "
+            "would never move; set algo.kappa_hold_goal_rate=0"
         )
     try:
         check_kappa_bound(

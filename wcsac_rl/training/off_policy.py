@@ -35,7 +35,6 @@ import torch
 from tensordict import TensorDictBase
 from torchrl import timeit
 
-from wcsac_rl.envs.presets import has_goals
 from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
 from wcsac_rl.objectives.inputs import collected_keys
 from wcsac_rl.rollouts.critic_calibration import supports_calibration
@@ -51,7 +50,6 @@ from wcsac_rl.training.checkpoint import (
     save_buffers,
     verify_buffers,
 )
-from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.replay import nested_key
 from wcsac_rl.training.trainer import Trainer, env_max_episode_steps
 from wcsac_rl.training.training_calibration import TrainingCalibration
@@ -83,13 +81,7 @@ class OffPolicyTrainer(Trainer):
             self.initial_state_buffer = builders.make_initial_state_buffer(cfg, self.loss)
         # algo.kappa_hold_goal_rate: κ's optimizer waits for the task to be learned
         self.kappa_hold_goal_rate = float(cfg.algo.get("kappa_hold_goal_rate", 0.0))
-        self.kappa_held = self.kappa_hold_goal_rate > 0
-        if self.kappa_held and not has_goals(cfg.env.name):
-            raise ConfigError(
-                f"algo.kappa_hold_goal_rate={self.kappa_hold_goal_rate:g} holds κ until "
-                f"the training episodes reach the goal, but env={cfg.env.name} reports no "
-                "goals: κ would never move; set algo.kappa_hold_goal_rate=0"
-            )
+        self.kappa_held = self.kappa_hold_goal_rate > 0  # (its rules: validate_config)
         self.episode_window = None
         head = getattr(self.loss, "safety_head", None)
         if getattr(self.loss, "kappa_signal", "critic") != "critic" or (
