@@ -344,12 +344,10 @@ def _discard(run_dir: Path, staged: Path | None = None) -> None:
     made for it, ``outputs/<date>/``, if that is now empty); a directory that existed
     keeps everything it held (:func:`~wcsac_rl.training.run_dir.discard_unused_run_dir`)."""
     import os
-    import shutil
 
     from wcsac_rl.training.run_dir import discard_unused_run_dir
 
-    if staged is not None:
-        shutil.rmtree(staged, ignore_errors=True)
+    _discard_staged(staged)
     noted = _BEFORE.get("dir") == Path(os.path.abspath(run_dir))
     existed = _BEFORE.get("existed") if noted else None
     created = noted and existed is None
