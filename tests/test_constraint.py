@@ -116,14 +116,14 @@ def test_pid_step_averages_a_batch_of_signals():
 @pytest.mark.parametrize(
     ("gains", "message"),
     [
-        ({"kp": -0.1}, "pid.kp must be a finite number >= 0"),
-        ({"ki": -1e-4}, "pid.ki must be a finite number >= 0"),
-        ({"kd": math.inf}, "pid.kd must be a finite number >= 0"),
+        ({"kp": -0.1}, "pid.kp must be a finite number in [0, 1e+06]"),
+        ({"ki": -1e-4}, "pid.ki must be a finite number in [0, 1e+06]"),
+        ({"kd": math.inf}, "pid.kd must be a finite number in [0, 1e+06]"),
         ({"d_delay": 0}, "pid.d_delay must be an integer >= 1"),
         ({"d_delay": 2.5}, "pid.d_delay must be an integer >= 1"),
         ({"p_ema": 1.0}, "pid.p_ema must be in [0, 1)"),
         ({"d_ema": -0.1}, "pid.d_ema must be in [0, 1)"),
-        ({"max_kappa": 0.0}, "pid.max_kappa must be a finite number > 0"),
+        ({"max_kappa": 0.0}, "pid.max_kappa must be a finite number in (0, 1e+06]"),
     ],
 )
 def test_bad_gains_are_refused_by_name(gains, message):
@@ -252,7 +252,9 @@ def test_pid_i_error_max_bounds_what_a_violation_adds_to_the_integral():
 @pytest.mark.parametrize("rule", ["gradient", "pid"])
 @pytest.mark.parametrize("kappa_min", [-0.1, math.nan, math.inf, "0.1"])
 def test_a_bad_kappa_min_is_refused_by_name(rule, kappa_min):
-    with pytest.raises(ValueError, match=re.escape("kappa_min must be a finite number >= 0")):
+    with pytest.raises(
+        ValueError, match=re.escape("kappa_min must be a finite number in [0, 1e+06]")
+    ):
         make_constraint(rule, kappa_init=0.5, kappa_min=kappa_min)
 
 
@@ -449,13 +451,13 @@ def test_the_trainer_steps_the_pid_and_resume_continues_its_state(tmp_path):
             "algo.kappa_rule=lagrange",
             "algo.kappa_rule must be one of gradient, pid, got 'lagrange'",
         ),
-        ("algo.pid.kp=-0.5", "algo.pid.kp must be a finite number >= 0, got -0.5"),
-        ("algo.pid.kd=abc", "algo.pid.kd must be a finite number >= 0, got 'abc'"),
+        ("algo.pid.kp=-0.5", "algo.pid.kp must be a finite number in [0, 1e+06], got -0.5"),
+        ("algo.pid.kd=abc", "algo.pid.kd must be a finite number in [0, 1e+06], got 'abc'"),
         ("algo.pid.d_delay=0", "algo.pid.d_delay must be an integer >= 1"),
-        ("algo.pid.max_kappa=-1", "algo.pid.max_kappa must be a finite number > 0"),
+        ("algo.pid.max_kappa=-1", "algo.pid.max_kappa must be a finite number in (0, 1e+06]"),
         (
             "algo.pid.i_error_max=0",
-            "algo.pid.i_error_max must be null or a finite number > 0, got 0",
+            "algo.pid.i_error_max must be null or a finite number in (0, 1e+06], got 0",
         ),
         ("+algo.pid.kq=1", "unknown PID option algo.pid.kq"),
     ],
@@ -474,9 +476,9 @@ def test_bad_pid_config_is_one_line_naming_the_option(tmp_path, override, messag
             "algo.kappa_max must be a finite number >= algo.kappa_init (0.693147, where κ "
             "starts), got 0.1",
         ),
-        (["algo.kappa_max=-1"], "algo.kappa_max must be null or > 0 (a number), got -1"),
-        (["algo.kappa_min=-0.1"], "algo.kappa_min must be a finite number >= 0, got -0.1"),
-        (["algo.kappa_min=inf"], "algo.kappa_min must be a finite number >= 0, got inf"),
+        (["algo.kappa_max=-1"], "algo.kappa_max must be null or in (0, 1e+06] (a number), got -1"),
+        (["algo.kappa_min=-0.1"], "algo.kappa_min must be a finite number in [0, 1e+06], got -0.1"),
+        (["algo.kappa_min=inf"], "algo.kappa_min must be a finite number in [0, 1e+06], got inf"),
         (
             ["algo.kappa_rule=pid", "algo.kappa_init=0.1", "algo.kappa_max=0.1"],
             "algo.kappa_max=0.1 bounds the gradient rule's κ; with algo.kappa_rule=pid the "
@@ -487,7 +489,7 @@ def test_bad_pid_config_is_one_line_naming_the_option(tmp_path, override, messag
             "algo.kappa_init must be > 0 with the gradient rule (κ is softplus or exp of a "
             "parameter; algo.kappa_rule=pid may start at 0), got 0",
         ),
-        (["algo.kappa_rule=pid", "algo.kappa_init=-1"], "algo.kappa_init must be >= 0"),
+        (["algo.kappa_rule=pid", "algo.kappa_init=-1"], "algo.kappa_init must be in [0, 1e+06]"),
     ],
 )
 def test_bad_kappa_max_config_is_one_line_naming_the_option(tmp_path, overrides, message):
@@ -579,7 +581,7 @@ def test_a_refused_command_leaves_no_run_directory(tmp_path):
     )
     assert result.returncode == 1
     assert result.stderr.strip().splitlines()[-1] == (
-        "error: algo.pid.ki must be a finite number >= 0, got -1"
+        "error: algo.pid.ki must be a finite number in [0, 1e+06], got -1"
     )
     assert "Traceback" not in result.stderr
     assert not run.exists()

@@ -32,12 +32,12 @@ BAD = [
     ),
     (
         ["algo.num_safety_nets=4", "algo.ensemble_reading=ucb", "algo.k_ucb=-0.5"],
-        "algo.k_ucb must be >= 0 (a number), got -0.5",
+        "algo.k_ucb must be in [0, 1e+06] (a number), got -0.5",
     ),
-    (["algo=cal", "algo.k_ucb=-1"], "algo.k_ucb must be >= 0 (a number), got -1"),
+    (["algo=cal", "algo.k_ucb=-1"], "algo.k_ucb must be in [0, 1e+06] (a number), got -1"),
     (
         ["algo.num_safety_nets=4", "algo.prior_scale=-1"],
-        "algo.prior_scale must be >= 0 (a number), got -1",
+        "algo.prior_scale must be in [0, 1e+06] (a number), got -1",
     ),
     (
         ["algo.prior_scale=0.5"],
@@ -93,11 +93,11 @@ CLI = [
     ),
     (
         ["algo.num_safety_nets=4", "algo.ensemble_reading=ucb", "algo.k_ucb=-1"],
-        "error: algo.k_ucb must be >= 0 (a number), got -1",
+        "error: algo.k_ucb must be in [0, 1e+06] (a number), got -1",
     ),
     (
         ["algo.num_safety_nets=4", "algo.prior_scale=-0.5"],
-        "error: algo.prior_scale must be >= 0 (a number), got -0.5",
+        "error: algo.prior_scale must be in [0, 1e+06] (a number), got -0.5",
     ),
     (
         ["algo=sac", "algo.num_safety_nets=4"],

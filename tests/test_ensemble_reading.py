@@ -271,10 +271,10 @@ def test_a_prior_loss_round_trips_its_state_dict():
             {"prior_scale": 1.0},
             "prior_scale > 0 reads an ensemble of safety critics: it needs num_safety_nets >= 2, got 1",
         ),
-        ({"num_safety_nets": 2, "k_ucb": -0.5}, "k_ucb must be >= 0 (a number), got -0.5"),
+        ({"num_safety_nets": 2, "k_ucb": -0.5}, "k_ucb must be in [0, 1e+06] (a number), got -0.5"),
         (
             {"num_safety_nets": 2, "prior_scale": -1.0},
-            "prior_scale must be >= 0 (a number), got -1.0",
+            "prior_scale must be in [0, 1e+06] (a number), got -1.0",
         ),
         (
             {"num_safety_nets": 2, "ensemble_reading": "mean"},
@@ -306,10 +306,13 @@ def test_the_loss_refuses_a_bad_ensemble_option_in_one_line(kwargs, line):
             ["algo.ensemble_reading=ucb"],
             "algo.ensemble_reading=ucb reads an ensemble of safety critics: it needs algo.num_safety_nets >= 2, got 1",
         ),
-        (["algo.num_safety_nets=4", "algo.k_ucb=-1"], "algo.k_ucb must be >= 0 (a number), got -1"),
+        (
+            ["algo.num_safety_nets=4", "algo.k_ucb=-1"],
+            "algo.k_ucb must be in [0, 1e+06] (a number), got -1",
+        ),
         (
             ["algo.num_safety_nets=4", "algo.prior_scale=-0.1"],
-            "algo.prior_scale must be >= 0 (a number), got -0.1",
+            "algo.prior_scale must be in [0, 1e+06] (a number), got -0.1",
         ),
         (
             ["algo.num_safety_nets=2", "algo.safety_critic=gaussian", "algo.ensemble_reading=tqc"],
@@ -443,7 +446,7 @@ def test_the_loss_adapts_k_ucb_from_the_batchs_episode_costs_and_reads_it():
         ),
         (
             {"ensemble_reading": "ucb", "k_ucb_lr": -0.1},
-            "k_ucb_lr must be >= 0 (a number), got -0.1",
+            "k_ucb_lr must be in [0, 1e+06] (a number), got -0.1",
         ),
     ],
 )

@@ -7,6 +7,8 @@ from the named recipe; and ``WCSACLoss`` with no option is the paper's (``algo=w
 from __future__ import annotations
 
 import math
+import shutil
+from collections.abc import Mapping
 from pathlib import Path
 
 import pytest
@@ -23,7 +25,7 @@ from wcsac_rl.objectives import (
     recipe_options,
 )
 from wcsac_rl.options import SafetyOptions, config_defaults
-from wcsac_rl.recipes import LAYOUTS, RECIPE_ALGORITHMS, TRAINER_KEYS, algorithm_files
+from wcsac_rl.recipes import LAYOUTS, RECIPE_ALGORITHMS, TRAINER_KEYS, _compose, _safety_algorithms
 
 CONF = Path(__file__).resolve().parents[1] / "conf"
 NOT_RECIPE = {"name", "label", "recipe"}  # (what the node is called, not what it sets)
@@ -32,7 +34,7 @@ NOT_RECIPE = {"name", "label", "recipe"}  # (what the node is called, not what i
 def _flat(node: dict, prefix: str = "") -> dict:
     out = {}
     for key, value in node.items():
-        if isinstance(value, dict):
+        if isinstance(value, Mapping):
             out |= _flat(value, f"{prefix}{key}.")
         else:
             out[f"{prefix}{key}"] = value
@@ -52,18 +54,36 @@ def _base() -> dict:
     return _flat({**off_policy, **config_defaults(SafetyOptions)})
 
 
-def test_the_layouts_trainer_keys_and_algorithms_are_the_configs():
-    """``LAYOUTS`` are the envs of conf/env/, ``TRAINER_KEYS`` off_policy.yaml's values, and
-    ``RECIPE_ALGORITHMS`` the files of conf/algo/ that compose the safety options."""
-    assert sorted(LAYOUTS) == sorted(p.stem for p in (CONF / "env").glob("*.yaml"))
-    off_policy = OmegaConf.to_container(OmegaConf.load(CONF / "algo" / "off_policy.yaml"))
-    assert {k: off_policy[k] for k in TRAINER_KEYS} == dict(TRAINER_KEYS)
-    with_safety = [
-        name
-        for name in algorithm_files(CONF)
-        if "/schema/safety_options" in (CONF / "algo" / f"{name}.yaml").read_text()
-    ]
-    assert sorted(RECIPE_ALGORITHMS) == sorted(with_safety)
+def _conf_copy(tmp_path: Path) -> Path:
+    conf = tmp_path / "conf"
+    shutil.copytree(CONF, conf)
+    return conf
+
+
+def test_a_recipe_is_read_from_its_yaml_files_only(tmp_path):
+    """Editing ``conf/algo/wcsac.yaml`` (or its layout file) is the whole of changing the
+    recipe: the named recipe is read from the files, not kept beside them."""
+    conf = _conf_copy(tmp_path)
+    path = conf / "algo" / "wcsac.yaml"
+    path.write_text(path.read_text().replace("kappa_lr_scale: 0.3", "kappa_lr_scale: 0.7"))
+    layout = conf / "algo" / "layout" / "wcsac_dynamic.yaml"
+    layout.write_text(layout.read_text().replace("cost_n_steps: 50", "cost_n_steps: 20"))
+    assert _compose(conf, "wcsac", "static")["kappa_lr_scale"] == 0.7
+    assert _compose(conf, "wcsac", "dynamic")["cost_n_steps"] == 20
+    assert _compose(CONF, "wcsac", "static")["kappa_lr_scale"] == 0.3
+    assert RECIPE_ALGORITHMS == _safety_algorithms(conf)
+
+
+def test_a_defaults_entry_the_reader_does_not_know_is_refused_naming_the_file(tmp_path):
+    conf = _conf_copy(tmp_path)
+    path = conf / "algo" / "wcsac.yaml"
+    path.write_text(path.read_text().replace("  - _self_\n", "  - sac_lag\n  - _self_\n", 1))
+    with pytest.raises(ValueError) as err:
+        _compose(conf, "wcsac", "static")
+    assert str(err.value).startswith(
+        "conf/algo/wcsac.yaml: the defaults entry 'sac_lag' is not one"
+    )
+    assert "\n" not in str(err.value)
 
 
 @pytest.mark.parametrize("layout", LAYOUTS)
@@ -186,7 +206,7 @@ def test_the_loss_a_user_builds_is_what_train_py_builds(algo, parts):
         (lambda: loss_parts({"pid": {"kq": 1.0}}), "unknown option pid.kq in the recipe"),
         (
             lambda: loss_parts({"kappa_init": -1.0}),
-            "kappa_init must be >= 0 (a number), got -1.0",
+            "kappa_init must be in [0, 1e+06] (a number), got -1.0",
         ),
     ],
     ids=["algorithm", "layout", "option", "gain", "value"],

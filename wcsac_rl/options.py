@@ -30,6 +30,7 @@ from types import MappingProxyType
 from typing import Any
 
 __all__ = [
+    "ALPHA_INIT",
     "CONSTRAINT_RULES",
     "ENSEMBLE_READINGS",
     "ENSEMBLE_TARGETS",
@@ -40,6 +41,7 @@ __all__ = [
     "KAPPA_STATES",
     "KAPPA_STATISTICS",
     "LOSS_OPTIONS",
+    "NUMBER_CEILING",
     "PAPER_OPTIONS",
     "SAFETY_ALGOS",
     "SAFETY_CRITIC_KINDS",
@@ -93,17 +95,24 @@ KAPPA_PARAMETRIZATIONS = ("softplus", "log")
 """How κ moves and how the gradient rule writes it (:mod:`~wcsac_rl.objectives.constraint`)."""
 
 
+NUMBER_CEILING = 1.0e6
+"""The largest value of a number option with no range of its own (a weight, a scale, an
+initial multiplier, a gain): the losses are float32, whose 7 significant digits lose the
+reward's and the cost's terms (of order 1) beside a term weighted by more than this, and
+whose range overflows long before 1e300."""
+
+
 # ------------------------------------------------------------------ field metadata
 @dataclass(frozen=True)
 class Option:
     """What one field may be (its ``metadata["option"]``), and who reads it.
 
     ``kind``: ``"number"`` (finite, within ``low``/``high``; ``*_open``: the bound
-    excluded), ``"integer"`` (``>= low``), ``"flag"`` (true or false), ``"choice"`` (one
-    of ``choices``), ``"risk_level"`` (α in (0, 1]) or ``"group"`` (a nested dataclass).
+    excluded; with no ``high``, at most :data:`NUMBER_CEILING`), ``"integer"``
+    (``>= low``), ``"flag"`` (true or false), ``"choice"`` (one of ``choices``), ``"risk_level"`` (α in (0, 1]) or ``"group"`` (a nested dataclass).
     ``nullable``: null is allowed too. ``unit``: the note in parentheses of the message
-    (``"episodes"``); ``finite_words``: say "a finite number >= 0" rather than
-    ">= 0 (a number)" (the PID gains' wording). ``reader``: the part that reads it
+    (``"episodes"``); ``finite_words``: say "a finite number in [0, 1e+06]" rather than
+    "in [0, 1e+06] (a number)" (the PID gains' wording). ``reader``: the part that reads it
     (``"loss"``: a keyword of :class:`~wcsac_rl.objectives.WCSACLoss`).
     """
 
@@ -122,6 +131,13 @@ class Option:
     unknown_label: str | None = None  # a group: refuse unknown keys as "unknown <label> option"
     members: str = "options"  # a group: what its fields are called ("the gains are ...")
 
+    @property
+    def upper(self) -> float | None:
+        """The largest value allowed: ``high``, or a number's :data:`NUMBER_CEILING`."""
+        if self.high is None and self.kind == "number":
+            return NUMBER_CEILING
+        return self.high
+
     def requirement(self) -> str:
         """What the value must be, as the messages say it (``"> 0 (a number)"``)."""
         null = "null or " if self.nullable else ""
@@ -132,7 +148,7 @@ class Option:
         unit = f" ({self.unit})" if self.unit else ""
         if self.kind == "integer":
             return f"{null}an integer >= {self.low:g}{unit}"
-        bounds = range_text(self.low, self.high, self.low_open, self.high_open)
+        bounds = range_text(self.low, self.upper, self.low_open, self.high_open)
         if self.finite_words:
             return f"{null}a finite number {bounds}".rstrip()
         if not bounds:
@@ -153,7 +169,10 @@ class Option:
         return (
             math.isfinite(value)
             and (self.low is None or (value > self.low if self.low_open else value >= self.low))
-            and (self.high is None or (value < self.high if self.high_open else value <= self.high))
+            and (
+                self.upper is None
+                or (value < self.upper if self.high_open else value <= self.upper)
+            )
         )
 
     def coerce(self, value: Any) -> Any:
@@ -162,6 +181,15 @@ class Option:
             return None
         cast = {"number": float, "risk_level": float, "integer": int, "flag": bool, "choice": str}
         return cast[self.kind](value)
+
+
+ALPHA_INIT = Option(
+    "the entropy weight β's initial value (SACLoss's alpha_init; off_policy.yaml)",
+    "number",
+    low=0.0,
+    low_open=True,
+)
+"""What ``alpha_init`` may be, for the loss and the config (``algo.alpha_init``)."""
 
 
 def range_text(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:
@@ -188,6 +216,11 @@ def group_spec(doc: str, **spec: Any) -> dict[str, Option]:
 def option_spec(cls: type, name: str) -> Option:
     """The :class:`Option` of ``cls``'s field ``name``."""
     return cls.__dataclass_fields__[name].metadata["option"]
+
+
+def option_default(cls: type, name: str) -> Any:
+    """``cls``'s field ``name``'s default."""
+    return cls.__dataclass_fields__[name].default
 
 
 def check_value(key: str, value: Any, spec: Option) -> None:
@@ -274,7 +307,7 @@ class PIDGains:
     Units: the error is in cost units (the signal's: an episode's cost at the
     default ``kappa_states="initial"``) and κ is dimensionless, so a gain is κ per
     cost unit (``ki``: per cost unit and update). Each field's metadata says what it
-    may be; a bad one is refused by name (``pid.kp must be a finite number >= 0``).
+    may be; a bad one is refused by name (``pid.kp must be a finite number in [0, 1e+06]``).
     """
 
     kp: float = option(
@@ -766,6 +799,11 @@ def check_ensemble_reading(
             f"{prefix}{what} reads an ensemble of safety critics: it needs "
             f"{prefix}num_safety_nets >= 2, got {num_safety_nets}"
         )
+    if reading != "ucb" and k_ucb != option_default(SafetyOptions, "k_ucb"):
+        raise ValueError(
+            f"{prefix}k_ucb={k_ucb:g} weighs the members' spread in the UCB reading, which "
+            f"this one does not read: it needs {prefix}ensemble_reading=ucb, got {reading}"
+        )
     if k_ucb_lr > 0 and reading != "ucb":
         raise ValueError(
             f"{prefix}k_ucb_lr={k_ucb_lr:g} adapts the UCB reading's k_ucb: it needs "
@@ -811,6 +849,7 @@ def check_signal_every(every: int, states: str, statistic: str, prefix: str = ""
 
 PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(
     {
+        "variance_loss": "w2",
         "variance_target": "moment",
         "cost_gamma": None,
         "cost_n_steps": 1,
@@ -821,8 +860,9 @@ PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(
         "kappa_rule": "gradient",
     }
 )
-"""The safety critic and κ as the paper writes them (Eq. 7–8, one-step targets with the
-reward's γ, κ on the mean Γ over replay states against the per-step threshold):
+"""The safety critic and κ as the paper writes them (Eq. 7–8 with the variance head trained
+by the 2-Wasserstein TD, one-step targets with the reward's γ, κ on the mean Γ over
+replay states against the per-step threshold):
 ``WCSACLoss(..., **loss_parts(PAPER_OPTIONS))``, ``dataclasses.replace(SafetyOptions(),
 **PAPER_OPTIONS)``. The kit's recipes differ, on StaticEnv evidence (docs/defaults.md;
 ``wcsac_rl.recipes.KIT_OPTIONS``); ``algo=wcsac_paper`` is the same in the config."""

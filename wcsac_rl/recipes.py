@@ -1,15 +1,16 @@
 """Each algorithm's training recipe as a named object, which files hold it, and the
 groups a user picks from.
 
-:func:`recipe_options` is what an algorithm's recipe sets on a layout over
-``SafetyOptions``' defaults and ``off_policy.yaml``'s, the same as its config files
-compose (a test composes every algorithm × layout and compares them key by key):
+A recipe is written once, in ``conf/algo/``; :func:`recipe_options` reads it from there
+(what an algorithm's files set on a layout over ``SafetyOptions``' defaults and
+``off_policy.yaml``'s, merged in their defaults list's order as Hydra composes them; a
+test composes every algorithm × layout with Hydra and compares key by key).
 ``KIT_OPTIONS`` (``kit_options("static")``) is WCSAC's on StaticEnv, what ``train.py
-algo=wcsac env=static`` runs and what :class:`~wcsac_rl.objectives.WCSACLoss`'s own
-defaults are; ``kit_options("dynamic")`` DynamicEnv's; ``PAPER_OPTIONS``
-(:mod:`wcsac_rl.options`) the paper's. A user's own loop builds the loss from one with
-:func:`~wcsac_rl.objectives.loss_options.loss_parts` and reads the trainer's keys
-(``actor_lr``, ``kappa_lr_scale``, ``kappa_episode_window``) from it.
+algo=wcsac env=static`` runs; ``kit_options("dynamic")`` DynamicEnv's; ``PAPER_OPTIONS``
+(:mod:`wcsac_rl.options`, ``algo=wcsac_paper``) the paper's, which are
+:class:`~wcsac_rl.objectives.WCSACLoss`'s own defaults. A user's own loop builds the loss
+from one with :func:`~wcsac_rl.objectives.loss_options.loss_parts` and reads the
+trainer's keys (``actor_lr``, ``kappa_lr_scale``, ``kappa_episode_window``) from it.
 
 Each algorithm is one file of ``conf/algo/`` (one that names its algorithm or its row:
 ``name:`` / ``label:``),
@@ -24,8 +25,8 @@ first and keeps in its ``config.yaml``.
 A layout file Hydra would never read (named for no algorithm, for no env, or for an
 algorithm whose file reads no layout file) is refused in one line by :func:`check_layouts`,
 and a freshly composed ``algo.recipe`` must name exactly the files that shaped it
-(:func:`check_recipe`). This module imports nothing heavy: ``wcsac-train --help``
-lists the groups with :func:`config_groups`.
+(:func:`check_recipe`). This module imports nothing heavy (it reads a few small YAML
+files at import): ``wcsac-train --help`` lists the groups with :func:`config_groups`.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from typing import Any
 
 import yaml
 
-from wcsac_rl.options import PAPER_OPTIONS
+from wcsac_rl.options import PAPER_OPTIONS, SAFETY_ALGOS
 
 __all__ = [
     "KIT_OPTIONS",
@@ -56,107 +57,107 @@ __all__ = [
 ]
 
 # ------------------------------------------------------------------ the recipes
-TRAINER_KEYS: Mapping[str, Any] = MappingProxyType(
-    {"alpha_init": 1.0, "actor_lr": None, "lr": 1.0e-3}
-)
-"""The keys of ``conf/algo/off_policy.yaml`` a recipe may set besides ``SafetyOptions``'
-fields, with that file's values (``alpha_init`` is SACLoss's too)."""
+_META = ("defaults", "name", "label", "recipe")
+"""Keys of an algorithm's file that say what it is, not what it sets."""
+_TRAINER = ("alpha_init", "actor_lr", "lr")
+_SCHEMA = "/schema/safety_options"
+_PAPER = "/schema/paper_options"
 
-LAYOUTS = ("static", "dynamic", "point_goal1", "point_goal2", "tiny", "gymnasium")
-"""The layouts a recipe may differ on: the envs of ``conf/env/``."""
 
-KIT_OPTIONS: Mapping[str, Any] = MappingProxyType(
-    {
-        "safety_critic": "iqn",
-        "kappa_signal": "max",
-        "kappa_episode_window": 10,
-        "kappa_lr_scale": 0.3,
-        "alpha_init": 0.1,
-        "actor_lr": 3.0e-4,
+def _conf() -> Path:
+    from wcsac_rl.config_dir import CONF_DIR
+
+    return CONF_DIR
+
+
+def _merge(node: dict, update: Mapping[str, Any]) -> None:
+    """Hydra's merge of ``update`` into ``node``: nested mappings key by key."""
+    for key, value in update.items():
+        if isinstance(value, Mapping) and isinstance(node.get(key), Mapping):
+            _merge(node[key], value)
+        else:
+            node[key] = dict(value) if isinstance(value, Mapping) else value
+
+
+def _own_keys(path: Path) -> dict[str, Any]:
+    """What a recipe file sets: every key but its identity (``_META``) and an
+    interpolation (``risk_level: ${risk_level}``: the run's own, not the recipe's)."""
+    return {
+        k: v
+        for k, v in _load(path).items()
+        if k not in _META and not (isinstance(v, str) and v.startswith("${"))
     }
-)
-"""The kit's WCSAC recipe on StaticEnv (``conf/algo/wcsac.yaml``; every layout but
-DynamicEnv): the IQN safety critic, κ on the larger of the critic's Γ and the last 10
-training episodes' empirical CVaR_α at 0.3 × lr, β from 0.1 and the actor at 3e-4.
-Its loss options are :class:`~wcsac_rl.objectives.WCSACLoss`'s defaults; evidence:
-docs/defaults.md."""
 
-_DYNAMIC_PID = {"kappa_rule": "pid", "cost_n_steps": 50, "actor_lr": 1.0e-3}
-_AUTHORS_KAPPA_ADVICE = {"kappa_lr_scale": 50.0, "damp_scale": 10.0}
-_SAC_LAG = {"risk_level": 1.0, "variance": False}
-_CAL = {
-    "risk_level": 1.0,
-    "variance": False,
-    "num_safety_nets": 4,
-    "ensemble_reading": "ucb",
-    "damp_scale": 10.0,
-    "damp_clamp": True,
-    "kappa_states": "replay",
-    "kappa_actions": "replay",
-    "kappa_statistic": "mean",
-    "kappa_parametrization": "log",
-    "kappa_init": 0.6931,
-    "cost_gamma": 0.99,
-    "cost_n_steps": 1,
-    "nonnegative_cost": False,
-    "lr": 3.0e-4,
-}
-_PAPER_LAYOUTS = {
-    layout: _AUTHORS_KAPPA_ADVICE for layout in ("dynamic", "point_goal1", "point_goal2")
-}
-# algorithm -> (its recipe on every layout, what differs on a layout): conf/algo/<algorithm>.yaml
-# and conf/algo/layout/<algorithm>_<layout>.yaml, whose comments hold the evidence
-_RECIPES: dict[str, tuple[Mapping[str, Any], dict[str, Mapping[str, Any]]]] = {
-    "wcsac": (
-        KIT_OPTIONS,
-        {"dynamic": {**_DYNAMIC_PID, "kappa_init": 0.1, "kappa_min": 0.1, "pid": {"ki": 0.0}}},
-    ),
-    "wcsac_paper": (PAPER_OPTIONS, _PAPER_LAYOUTS),
-    "sac_lag": (
-        {**_SAC_LAG, **{k: v for k, v in KIT_OPTIONS.items() if k != "safety_critic"}},
-        {
-            "static": {"safety_critic": "iqn"},
-            "dynamic": {
-                **_DYNAMIC_PID,
-                "safety_critic": "iqn",
-                "kappa_init": 0.02,
-                "kappa_min": 0.02,
-                "pid": {"ki": 0.0, "max_kappa": 0.3},
-            },
-        },
-    ),
-    "sac_lag_paper": ({**PAPER_OPTIONS, **_SAC_LAG}, _PAPER_LAYOUTS),
-    "cal": (_CAL, {}),
-}
-RECIPE_ALGORITHMS = tuple(_RECIPES)
-"""The algorithms with a safety critic whose recipes :func:`recipe_options` gives."""
+
+def _compose(conf_dir: Path, algorithm: str, layout: str) -> dict[str, Any]:
+    """What ``conf/algo/<algorithm>.yaml`` sets on ``layout`` over ``off_policy.yaml`` and
+    SafetyOptions' defaults, read in its defaults list's order as Hydra composes it. A
+    defaults entry this reader does not know is refused naming the file (the recipe test
+    composes every algorithm × layout with Hydra and compares)."""
+    path = conf_dir / "algo" / f"{algorithm}.yaml"
+    node: dict[str, Any] = {}
+    for entry in _load(path).get("defaults") or ["_self_"]:
+        if entry in ("off_policy", _SCHEMA):
+            continue  # (the baseline the recipe is read against)
+        if entry == _PAPER:
+            _merge(node, PAPER_OPTIONS)
+        elif entry == "_self_":
+            _merge(node, _own_keys(path))
+        elif isinstance(entry, dict) and f"optional {LAYOUT_DIR}" in entry:
+            layout_path = conf_dir / "algo" / LAYOUT_DIR / f"{algorithm}_{layout}.yaml"
+            if layout_path.is_file():
+                _merge(node, _own_keys(layout_path))
+        else:
+            raise ValueError(
+                f"{conf_dir.name}/algo/{path.name}: the defaults entry {entry!r} is not one "
+                f"a recipe is read from (off_policy, {_SCHEMA}, {_PAPER}, _self_, optional "
+                f"{LAYOUT_DIR}: <algorithm>_${{env}})"
+            )
+    return node
+
+
+def _frozen(node: Mapping[str, Any]) -> Mapping[str, Any]:
+    """``node`` read-only all the way down (a nested mapping a read-only copy too)."""
+    return MappingProxyType(
+        {k: _frozen(v) if isinstance(v, Mapping) else v for k, v in node.items()}
+    )
+
+
+def _safety_algorithms(conf_dir: Path) -> tuple[str, ...]:
+    """The files of ``conf/algo/`` whose algorithm has a safety critic (``name:`` one of
+    :data:`~wcsac_rl.options.SAFETY_ALGOS`)."""
+    return tuple(
+        a
+        for a in algorithm_files(conf_dir)
+        if _load(conf_dir / "algo" / f"{a}.yaml").get("name") in SAFETY_ALGOS
+    )
 
 
 def recipe_options(algorithm: str, layout: str = "static") -> Mapping[str, Any]:
     """What ``algo=<algorithm> env=<layout>`` sets over ``SafetyOptions``' defaults and
-    ``off_policy.yaml``'s (a nested ``pid`` mapping: the gains it sets), read-only; a
-    WCSAC variant's ``risk_level`` is the run's own (``risk_level=...``), not the
+    ``off_policy.yaml``'s, read from its files (``conf/algo/<algorithm>.yaml`` and its
+    layout file): read-only all the way down (a nested ``pid`` mapping: the gains it
+    sets). A WCSAC variant's ``risk_level`` is the run's own (``risk_level=...``), not the
     recipe's. An unknown algorithm or layout: one ``ValueError`` line naming it.
 
     Example:
         >>> recipe_options("wcsac", "dynamic")["kappa_rule"]
         'pid'
     """
-    if algorithm not in _RECIPES:
+    conf_dir = _conf()
+    if algorithm not in RECIPE_ALGORITHMS:
         raise ValueError(
             f"no recipe for algorithm {algorithm!r}: the algorithms with a safety critic "
             f"are {', '.join(RECIPE_ALGORITHMS)}"
         )
     if layout not in LAYOUTS:
         raise ValueError(f"no layout {layout!r}: the layouts are {', '.join(LAYOUTS)}")
-    base, layouts = _RECIPES[algorithm]
-    return MappingProxyType({**base, **layouts.get(layout, {})})
+    return _frozen(_compose(conf_dir, algorithm, layout))
 
 
 def kit_options(layout: str = "static") -> Mapping[str, Any]:
-    """The kit's WCSAC recipe on ``layout``: :data:`KIT_OPTIONS` and, on DynamicEnv, the
-    PID rule from κ = 0.1 with that floor and no integral term, 50-step cost targets and
-    the actor at SAC's rate (``conf/algo/layout/wcsac_dynamic.yaml``, with its evidence).
+    """The kit's WCSAC recipe on ``layout`` (``conf/algo/wcsac.yaml`` and, on DynamicEnv,
+    ``conf/algo/layout/wcsac_dynamic.yaml``, each with its evidence):
     ``recipe_options("wcsac", layout)``.
 
     Example:
@@ -288,3 +289,23 @@ def config_groups(conf_dir: Path) -> str:
         if options:
             lines.append(f"{group.name}: {', '.join(options)}")
     return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ read once, at import
+LAYOUTS: tuple[str, ...] = tuple(_envs(_conf()))
+"""The layouts a recipe may differ on: the envs of ``conf/env/``."""
+
+RECIPE_ALGORITHMS: tuple[str, ...] = _safety_algorithms(_conf())
+"""The algorithms with a safety critic whose recipes :func:`recipe_options` gives."""
+
+TRAINER_KEYS: Mapping[str, Any] = MappingProxyType(
+    {k: _load(_conf() / "algo" / "off_policy.yaml")[k] for k in _TRAINER}
+)
+"""The keys of ``conf/algo/off_policy.yaml`` a recipe may set besides ``SafetyOptions``'
+fields, with that file's values (``alpha_init`` is SACLoss's too)."""
+
+KIT_OPTIONS: Mapping[str, Any] = recipe_options("wcsac", "static")
+"""The kit's WCSAC recipe on StaticEnv, as ``conf/algo/wcsac.yaml`` writes it (every layout
+but DynamicEnv): what ``train.py algo=wcsac env=static`` runs. A user's loop builds its
+loss with ``WCSACLoss(..., **loss_parts(KIT_OPTIONS))`` (and an IQN critic); evidence:
+docs/defaults.md."""

@@ -20,6 +20,7 @@ defined once); a bad value is refused in one ``ValueError`` line naming it.
 
 from __future__ import annotations
 
+import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
@@ -28,6 +29,7 @@ from wcsac_rl.objectives.constraint import GradientLagrangian, PIDLagrangian, ma
 from wcsac_rl.objectives.constraint_signal import check_signal_states
 from wcsac_rl.objectives.safety_head import is_iqn_critic
 from wcsac_rl.options import (
+    ALPHA_INIT,
     PAPER_OPTIONS,
     IQNOptions,
     PIDGains,
@@ -37,6 +39,7 @@ from wcsac_rl.options import (
     check_ensemble_target,
     check_fields,
     check_signal_every,
+    check_value,
 )
 from wcsac_rl.recipes import TRAINER_KEYS
 
@@ -44,6 +47,7 @@ __all__ = [
     "PART_OF_OPTION",
     "SafetyHeadOptions",
     "SignalOptions",
+    "claim_constraint",
     "default_parts",
     "loss_parts",
     "options_constraint",
@@ -215,7 +219,7 @@ def loss_parts(recipe: SafetyOptions | Mapping[str, Any] | None = None) -> dict[
         options = recipe
     else:
         recipe = dict(recipe or {})
-        alpha_init = float(recipe.get("alpha_init", alpha_init))
+        alpha_init = recipe.get("alpha_init", alpha_init)  # (checked by the loss)
         options = _safety_options(recipe)
     head = {f.name: getattr(options, f.name, None) for f in fields(SafetyHeadOptions)}
     head.update({name: getattr(options.iqn, name) for name in _IQN_HEAD})
@@ -262,16 +266,40 @@ PART_OF_OPTION: Mapping[str, str] = {
 does not take is refused naming its part)."""
 
 
+_OWNERS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def claim_constraint(
+    loss: Any, constraint: GradientLagrangian | PIDLagrangian
+) -> GradientLagrangian | PIDLagrangian:
+    """Make ``constraint`` ``loss``'s own (returned): a constraint (κ and its state) already
+    held by another live loss is refused in one line, since training either loss would
+    move the other's κ. A copy (``copy.deepcopy``) is a new constraint and may be claimed."""
+    owner = _OWNERS.get(constraint)
+    holder = None if owner is None else owner()
+    if holder is not None and holder is not loss:
+        raise ValueError(
+            f"constraint is another {type(holder).__name__}'s (its {type(constraint).__name__} "
+            "holds that loss's κ, which training this one would move): give each loss its "
+            "own, e.g. a new loss_parts(recipe) per loss or copy.deepcopy(constraint)"
+        )
+    _OWNERS[constraint] = weakref.ref(loss)
+    return constraint
+
+
 def default_parts(
     safety_network: Any,
     safety_head: SafetyHeadOptions | None,
     signal: SignalOptions | None,
     constraint: GradientLagrangian | PIDLagrangian | None,
+    alpha_init: Any = TRAINER_KEYS["alpha_init"],
 ) -> tuple[SafetyHeadOptions, SignalOptions, GradientLagrangian | PIDLagrangian]:
     """The parts given, and the paper's (:data:`~wcsac_rl.options.PAPER_OPTIONS`, for the
     kind of ``safety_network``: Gaussian or IQN) for those that are ``None``: read only
     what any TorchRL batch holds (no n-step entries, start states or episode window). A
-    part of the wrong kind is refused in one line naming it."""
+    part of the wrong kind, or an ``alpha_init`` that is not a number in its range, is
+    refused in one line naming it."""
+    check_value("alpha_init", alpha_init, ALPHA_INIT)
     given = {"safety_head": safety_head, "signal": signal, "constraint": constraint}
     for name, value in given.items():
         kind, label = _PARTS[name]

@@ -60,6 +60,7 @@ from wcsac_rl.objectives.loss_options import (
     PART_OF_OPTION,
     SafetyHeadOptions,
     SignalOptions,
+    claim_constraint,
     default_parts,
 )
 from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
@@ -74,12 +75,10 @@ from wcsac_rl.objectives.torchrl_compat import (
     refuse_unknown_keywords,
     sample_alive,
 )
-from wcsac_rl.options import PAPER_OPTIONS, SafetyOptions
-from wcsac_rl.recipes import KIT_OPTIONS, TRAINER_KEYS
+from wcsac_rl.options import SafetyOptions
+from wcsac_rl.recipes import TRAINER_KEYS
 
 __all__ = [
-    "KIT_OPTIONS",
-    "PAPER_OPTIONS",
     "CriticValues",
     "WCSACLoss",
     "per_step_cost_threshold",
@@ -239,7 +238,8 @@ class WCSACLoss(SACLoss):
         check_finite: bool = False,
         **sac_kwargs,
     ) -> None:
-        head, signal, constraint = default_parts(safety_network, safety_head, signal, constraint)
+        given = (safety_head, signal, constraint, alpha_init)
+        head, signal, constraint = default_parts(safety_network, *given)
         refuse_unknown_keywords(WCSACLoss.__init__, sac_kwargs, PART_OF_OPTION)
         if sac_kwargs.pop("value_network", None) is not None:
             raise ValueError("WCSACLoss is SAC v2: it takes no value_network")
@@ -297,7 +297,7 @@ class WCSACLoss(SACLoss):
             statistic=signal.kappa_statistic,
             signal=signal.kappa_signal,
         )
-        self.constraint = constraint.to(device)
+        self.constraint = claim_constraint(self, constraint).to(device)
         # the start-state tail held between reads (kappa_signal_every > 1 only: a loss
         # that reads it every update keeps the state dict it always had)
         every = signal.kappa_signal_every

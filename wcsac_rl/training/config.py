@@ -13,12 +13,14 @@ from wcsac_rl.envs.presets import has_goals
 from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
 from wcsac_rl.options import (
+    ALPHA_INIT,
     SafetyOptions,
     check_ensemble_reading,
     check_ensemble_target,
     check_kappa_bound,
     check_shield_candidates,
     check_signal_every,
+    check_value,
     range_text,
     read_options,
 )
@@ -140,7 +142,10 @@ def _validate_off_policy(cfg: DictConfig) -> None:
     _number(cfg, "algo.gamma", low=0.0, high=1.0)
     _number(cfg, "algo.lr", low=0.0, low_open=True)
     _number(cfg, "algo.actor_lr", low=0.0, low_open=True, allow_none=True)  # null: algo.lr
-    _number(cfg, "algo.alpha_init", low=0.0, low_open=True)
+    try:
+        check_value("algo.alpha_init", _get(cfg, "algo.alpha_init"), ALPHA_INIT)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     if cfg.algo.target_entropy != "auto":
         try:
             _number(cfg, "algo.target_entropy")
