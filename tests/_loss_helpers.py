@@ -70,9 +70,13 @@ def make_batch(
     return td
 
 
+GAUSSIAN_HEAD = ("variance_loss", "variance_target")
+"""The Gaussian head's options (an IQN critic has no variance head: they stay at the schema's)."""
+
+
 def paper_options(kind: str = "gaussian") -> dict:
-    """``PAPER_OPTIONS`` for a safety critic of ``kind`` (an IQN critic has no variance target)."""
-    return {k: v for k, v in PAPER_OPTIONS.items() if kind == "gaussian" or k != "variance_target"}
+    """``PAPER_OPTIONS`` for a safety critic of ``kind`` (an IQN critic has no variance head)."""
+    return {k: v for k, v in PAPER_OPTIONS.items() if kind == "gaussian" or k not in GAUSSIAN_HEAD}
 
 
 IQN_OPTIONS = tuple(IQNOptions.__dataclass_fields__)

@@ -169,6 +169,7 @@ def test_each_results_page_shows_its_committed_table(folder):
 HELD_OUT_RUNS_PLANNED = {
     "heldout_static": 30,  # three rows × seeds 100-109
     "heldout_dynamic": 4,  # two rows × seeds 100, 101
+    "heldout_learned_tail": 20,  # two rows × seeds 110-119
 }
 
 

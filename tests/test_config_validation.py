@@ -22,8 +22,8 @@ BAD_VALUES = [
     ("algo.gamma=1.5", "algo.gamma must be in [0, 1] (a number), got 1.5"),
     ("algo.collector.utd_ratio=abc", "algo.collector.utd_ratio must be > 0 (a number)"),
     ("algo.target_entropy=abc", "algo.target_entropy must be auto (-|A|) or a finite number"),
-    ("algo.network.width=0", "algo.network.width must be an integer > 0, got 0"),
-    ("algo.network.depth=-1", "algo.network.depth must be an integer >= 0, got -1"),
+    ("algo.network.width=0", "algo.network.width must be an integer in [1, 16384], got 0"),
+    ("algo.network.depth=-1", "algo.network.depth must be an integer in [0, 64], got -1"),
     ("algo.network.activation=foo", "algo.network.activation must be one of relu, tanh"),
     (
         "algo.network.log_std_min=5",

@@ -4,7 +4,9 @@
 WCSAC with the paper's options, WCSAC with an IQN critic, SAC-Lag, SAC-Lag with the
 paper's options), every output and every parameter gradient of one forward/backward on
 a fixed batch, recorded with ``tests/_loss_reference.py`` on b61cb3e, before the loss
-was restructured. A refactor of the loss must leave them unchanged.
+was restructured; WCSAC with the paper's options recorded again when the paper's recipe
+took the paper's 2-Wasserstein variance loss (only its variance loss and the variance
+network's gradients changed). A refactor of the loss must leave them unchanged.
 """
 
 from __future__ import annotations

@@ -178,19 +178,19 @@ def test_changing_a_default_changes_the_composed_config_and_the_loss_it_builds(m
     @dataclasses.dataclass(frozen=True)
     class Changed(SafetyOptions):
         kappa_init: float = option(1.5, "another default", "number", low=0.0, low_open=True)
-        cost_n_steps: int = option(3, "another default", "integer", low=1)
+        kappa_signal_every: int = option(3, "another default", "integer", low=1)
 
     monkeypatch.setattr(config_schema, "SafetyOptions", Changed)
     config_schema.register_configs()
     try:
         cfg = compose_config("algo=wcsac", "env=tiny")
-        assert (cfg.algo.kappa_init, cfg.algo.cost_n_steps) == (1.5, 3)
+        assert (cfg.algo.kappa_init, cfg.algo.kappa_signal_every) == (1.5, 3)
         env = make_env("tiny", seed=0)
         try:
             loss = builders.make_loss(cfg, builders.make_agent(cfg, env), 100)
         finally:
             env.close()
-        assert float(loss.kappa) == pytest.approx(1.5) and loss.cost_n_steps == 3
+        assert float(loss.kappa) == pytest.approx(1.5) and loss.kappa_signal_every == 3
     finally:
         monkeypatch.undo()
         config_schema.register_configs()

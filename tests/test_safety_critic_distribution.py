@@ -43,7 +43,7 @@ def _loss(variance_loss: str, obs_dim: int, seed: int = 0, **kwargs) -> WCSACLos
         make_actor(obs_dim, Bounded(-1.0, 1.0, shape=(1,)), width=16),
         [make_qvalue(obs_dim, 1, width=16) for _ in range(2)],
         make_safety_critic(obs_dim, 1, width=64),
-        **flat_parts(risk_level=0.5, variance_loss=variance_loss, **{**PAPER_OPTIONS, **kwargs}),
+        **flat_parts(risk_level=0.5, **{**PAPER_OPTIONS, "variance_loss": variance_loss, **kwargs}),
     )
     loss.make_value_estimator(gamma=GAMMA)
     return loss

@@ -524,7 +524,7 @@ def test_risk_level_outside_unit_interval_is_refused_with_its_meaning(alpha):
         ({"kappa_init": 0.0}, "kappa_init must be > 0"),
         ({"kappa_parametrization": "relu"}, "kappa_parametrization must be one of"),
         ({"kappa_actions": "target"}, "kappa_actions must be one of"),
-        ({"damp_scale": -1.0}, "damp_scale must be >= 0"),
+        ({"damp_scale": -1.0}, r"damp_scale must be in \[0, 1e\+06\]"),
         ({"variance_loss": "l1"}, "variance_loss must be one of"),
         ({"variance_target": "second"}, "variance_target must be one of"),
         ({"kappa_states": "start"}, "kappa_states must be one of"),

@@ -20,7 +20,7 @@ Table-1 row (``algo.label``, seeds pooled) and writes into ``--out`` (default
   cumulative training cost, epochs over d (all, after 50 k frames), peak epoch cost,
   frames from which every epoch stayed ≤ d (per seed and the mean over seeds);
 * ``run_values.md`` / ``.csv`` — the runs one by one: row, seed, held-out (seeds
-  100-109) or in-sample, machine (CPU, from ``provenance.json``), EC, C0.1, ER, goals;
+  100-119) or in-sample, machine (CPU, from ``provenance.json``), EC, C0.1, ER, goals;
 * ``run_statistics.md`` / ``.csv`` — per row, the interquartile mean over runs of EC,
   C0.1, ER and goals with its 95 % bootstrap interval; with ``--improvement A:B`` (any
   number of times) the probability that a run of A has a lower C0.1 (and EC, and ER)

@@ -50,6 +50,7 @@ from wcsac_rl.rollouts.episodes import EpisodeResult, run_episodes
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.registry import find_algorithm
 from wcsac_rl.training.restore import RestoredRun
+from wcsac_rl.training.safe_load import load_json, load_yaml
 
 __all__ = [
     "CSV_COLUMNS",
@@ -151,7 +152,7 @@ def stale_evaluation(directory: str | os.PathLike) -> str | None:
     if not checkpoint.is_file():
         return None
     try:
-        meta = json.loads((directory / EVALUATION_JSON).read_text())
+        meta = load_json(directory / EVALUATION_JSON)
     except (OSError, ValueError):
         return "its evaluation.json cannot be read"
     if not isinstance(meta, dict) or meta.get("checkpoint") is None:
@@ -216,7 +217,7 @@ def read_evaluation(directory: str | os.PathLike) -> Evaluation:
     directory = Path(directory)
     json_path, csv_path = directory / EVALUATION_JSON, directory / EVALUATION_CSV
     try:
-        data = json.loads(json_path.read_text())
+        data = load_json(json_path)
         with csv_path.open(newline="") as f:
             rows = list(csv.DictReader(f))
         episodes = [_episode(r, i, csv_path) for i, r in enumerate(rows)]
@@ -376,7 +377,6 @@ def check_env_code_allowed(run_dir: str | os.PathLike) -> None:
 
 def _training_seed(run_dir: Path) -> int:
     """The run's training seed: from ``config.yaml``, else from its checkpoint."""
-    from omegaconf import OmegaConf
 
     from wcsac_rl.training.checkpoint import find_checkpoint, load_checkpoint
     from wcsac_rl.training.trust import plain_select
@@ -385,7 +385,7 @@ def _training_seed(run_dir: Path) -> int:
     config_yaml = run_dir / "config.yaml"
     if config_yaml.is_file() and not config_yaml.is_symlink():
         try:  # (read as data: nothing in it is resolved)
-            seed = plain_select(OmegaConf.load(config_yaml), "seed")
+            seed = plain_select(load_yaml(config_yaml), "seed")
         except Exception:  # a damaged config.yaml: the checkpoint says it too
             seed = None
         if isinstance(seed, int) and not isinstance(seed, bool):

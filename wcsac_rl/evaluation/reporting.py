@@ -124,6 +124,7 @@ from wcsac_rl.training.progress import read_progress
 from wcsac_rl.training.provenance import read_provenance
 from wcsac_rl.training.registry import find_algorithm, row_algorithm
 from wcsac_rl.training.run_dir import check_progress_rows, replace_file
+from wcsac_rl.training.safe_load import load_yaml
 from wcsac_rl.training.trust import interpolation_in, plain_select, stored_config
 
 __all__ = [
@@ -219,7 +220,7 @@ class Report:
 
 
 def _read_run(directory: Path) -> RunRecord:
-    cfg = stored_config(OmegaConf.load(directory / "config.yaml"), directory / "config.yaml")
+    cfg = stored_config(load_yaml(directory / "config.yaml"), directory / "config.yaml")
     progress_csv = directory / "progress.csv"
     check_progress_rows(directory)  # (an epoch logged twice: its frames would be wrong)
     progress = read_progress(progress_csv) if progress_csv.is_file() else None
@@ -488,7 +489,7 @@ def _session_config(directory: Path) -> Any:
     )
     for path in [*reversed(resumed), directory / "config.yaml"]:
         try:
-            return OmegaConf.load(path)
+            return load_yaml(path)
         except Exception:  # missing or damaged: the next one
             continue
     return None

@@ -37,6 +37,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from wcsac_rl.training.checkpoint import CHECKPOINT_DIR, LAST_CHECKPOINT
+from wcsac_rl.training.safe_load import load_yaml
 
 __all__ = [
     "MULTIRUN_YAML",
@@ -110,7 +111,7 @@ def expected_overrides(multirun: Path) -> list[tuple[list[str], list[str]]] | No
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    cfg = OmegaConf.load(multirun)
+    cfg = load_yaml(multirun)
     sweeper = OmegaConf.select(cfg, "hydra.sweeper", default=None)
     if sweeper is None or sweeper.get("_target_") != BASIC_SWEEPER:
         return None
@@ -133,7 +134,7 @@ def _job_dirs(root: Path) -> dict[tuple[str, ...], Path]:
     for dirpath, dirnames, _files in os.walk(root):
         dirnames[:] = sorted(d for d in dirnames if d not in (".submitit", CHECKPOINT_DIR))
         if ".hydra" in dirnames and (Path(dirpath) / ".hydra" / "overrides.yaml").is_file():
-            overrides = OmegaConf.load(Path(dirpath) / ".hydra" / "overrides.yaml")
+            overrides = load_yaml(Path(dirpath) / ".hydra" / "overrides.yaml")
             jobs.setdefault(tuple(str(o) for o in overrides), Path(dirpath))
             dirnames[:] = []
     return jobs

@@ -26,6 +26,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from wcsac_rl.training.progress import read_progress
+from wcsac_rl.training.safe_load import load_json
 
 __all__ = ["COLUMNS", "compare_runs", "format_table", "run_row"]
 
@@ -61,7 +62,7 @@ def _read_json(path: Path) -> dict | None:
     if not path.exists():
         return None
     try:
-        record = json.loads(path.read_text())
+        record = load_json(path)
     except json.JSONDecodeError as err:
         raise ValueError(f"{path}: not JSON ({err})") from None
     if not isinstance(record, dict) or not isinstance(record.get("metrics"), dict):

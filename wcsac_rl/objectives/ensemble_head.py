@@ -28,7 +28,12 @@ from wcsac_rl.objectives.safety_head import (
     _check_count,
     _make_member_head,
 )
-from wcsac_rl.options import check_ensemble_reading, check_ensemble_target
+from wcsac_rl.options import (
+    IQNOptions,
+    SafetyOptions,
+    check_ensemble_reading,
+    check_ensemble_target,
+)
 
 __all__ = ["EnsembleHead", "make_safety_head"]
 
@@ -356,19 +361,19 @@ def make_safety_head(
     keys,
     *,
     risk_level: float,
-    nonnegative_cost: bool = True,
-    variance_loss: str = "glm",
-    variance_target: str = "td",
-    num_quantiles: int = 20,
-    num_target_quantiles: int = 20,
-    huber_kappa: float = 1.0,
-    members: int = 1,
-    ensemble_target: str = "own",
-    ensemble_reading: str = "max",
-    k_ucb: float = 0.5,
-    prior_scale: float = 0.0,
-    k_ucb_lr: float = 0.0,
-    k_ucb_max: float = 2.0,
+    nonnegative_cost: bool = SafetyOptions.nonnegative_cost,
+    variance_loss: str = SafetyOptions.variance_loss,
+    variance_target: str = SafetyOptions.variance_target,
+    num_quantiles: int = IQNOptions.num_quantiles,
+    num_target_quantiles: int = IQNOptions.num_target_quantiles,
+    huber_kappa: float = IQNOptions.huber_kappa,
+    members: int = SafetyOptions.num_safety_nets,
+    ensemble_target: str = SafetyOptions.ensemble_target,
+    ensemble_reading: str = SafetyOptions.ensemble_reading,
+    k_ucb: float = SafetyOptions.k_ucb,
+    prior_scale: float = SafetyOptions.prior_scale,
+    k_ucb_lr: float = SafetyOptions.k_ucb_lr,
+    k_ucb_max: float = SafetyOptions.k_ucb_max,
 ) -> GaussianHead | IQNHead | EnsembleHead:
     """The head for ``network``: the one place that decides the safety critic's kind.
 

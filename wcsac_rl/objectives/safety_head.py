@@ -52,6 +52,8 @@ from wcsac_rl.objectives.variance import variance_regression_loss
 from wcsac_rl.options import (
     VARIANCE_LOSSES,
     VARIANCE_TARGETS,
+    IQNOptions,
+    SafetyOptions,
 )
 
 __all__ = [
@@ -215,8 +217,8 @@ class GaussianHead(SafetyHead):
         *,
         risk_level: float,
         nonnegative_cost: bool,
-        variance_loss: str = "glm",
-        variance_target: str = "td",
+        variance_loss: str = SafetyOptions.variance_loss,
+        variance_target: str = SafetyOptions.variance_target,
     ) -> None:
         super().__init__(network, keys, risk_level=risk_level, nonnegative_cost=nonnegative_cost)
         self.variance_loss = variance_loss
@@ -414,9 +416,9 @@ class IQNHead(SafetyHead):
         *,
         risk_level: float,
         nonnegative_cost: bool,
-        num_quantiles: int = 20,
-        num_target_quantiles: int = 20,
-        huber_kappa: float = 1.0,
+        num_quantiles: int = IQNOptions.num_quantiles,
+        num_target_quantiles: int = IQNOptions.num_target_quantiles,
+        huber_kappa: float = IQNOptions.huber_kappa,
     ) -> None:
         super().__init__(network, keys, risk_level=risk_level, nonnegative_cost=nonnegative_cost)
         self.num_quantiles = int(num_quantiles)
@@ -621,12 +623,13 @@ def _make_member_head(
         return GaussianHead(
             network, keys, variance_loss=variance_loss, variance_target=variance_target, **common
         )
-    if (variance_loss, variance_target) != ("glm", "td"):
+    defaults = (SafetyOptions.variance_loss, SafetyOptions.variance_target)
+    if (variance_loss, variance_target) != defaults:
         raise ValueError(
             f"variance_loss={variance_loss!r} and variance_target={variance_target!r} "
             "configure the Gaussian critic's variance head; an IQN safety critic has "
             "none (it learns quantiles with the quantile Huber loss): leave them at "
-            "their defaults ('glm', 'td')"
+            f"their defaults {defaults}"
         )
     return IQNHead(
         network,

@@ -16,7 +16,14 @@ from omegaconf import DictConfig, OmegaConf
 from wcsac_rl._messages import first_line
 from wcsac_rl.training.config import ConfigError, TrainingError
 from wcsac_rl.training.preemption import DeferredSignals
-from wcsac_rl.training.safe_load import check_buffer_files, load_data
+from wcsac_rl.training.safe_load import (
+    MAX_CHECKPOINT_BYTES,
+    UnreadableRecord,
+    check_buffer_files,
+    check_size,
+    load_data,
+    load_yaml,
+)
 from wcsac_rl.training.trust import (
     TRUST_KEY,
     check_env_code,
@@ -385,9 +392,12 @@ def read_checkpoint(
     data is refused with a :class:`~wcsac_rl.training.ConfigError`, and nothing in it runs.
     """
     try:
+        check_size(Path(path), MAX_CHECKPOINT_BYTES, "checkpoint")
         data = Path(path).read_bytes()
     except OSError as err:
         raise ConfigError(f"cannot read checkpoint {path}: {first_line(err)}") from None
+    except UnreadableRecord as err:
+        raise ConfigError(str(err)) from None
     state = load_data(data, path)  # data only: nothing in the file runs
     if not isinstance(state, dict):
         raise ConfigError(
@@ -430,6 +440,10 @@ def _check_entries(state: dict[str, Any], path: Path) -> None:
 
 def checkpoint_digest(path: Path) -> str:
     """SHA-256 of a checkpoint file (see :func:`read_checkpoint`)."""
+    try:
+        check_size(Path(path), MAX_CHECKPOINT_BYTES, "checkpoint")
+    except UnreadableRecord as err:
+        raise ConfigError(str(err)) from None
     return _file_digest(Path(path))
 
 
@@ -482,7 +496,7 @@ def run_config_record(run_dir: Path) -> tuple[Path, dict] | None:
         if not path.is_file() or path.is_symlink():
             continue
         try:
-            record = OmegaConf.load(path)
+            record = load_yaml(path)
         except Exception:  # a damaged record says nothing: try the next one
             continue
         if isinstance(record, DictConfig):

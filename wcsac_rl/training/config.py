@@ -28,9 +28,11 @@ from wcsac_rl.training.errors import ConfigError, TrainingError
 from wcsac_rl.training.registry import ALGORITHMS, Algorithm, algorithm, resolve
 
 __all__ = [
+    "SIZE_LIMITS",
     "ConfigError",
     "TrainingError",
     "check_cpo",
+    "check_sizes",
     "safety_options",
     "validate_config",
 ]
@@ -50,12 +52,38 @@ def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
+SIZE_LIMITS = {
+    "algo.network.width": 16_384,
+    "algo.network.depth": 64,
+    "env.max_episode_steps": 1_000_000,
+}
+"""The largest network and episode a config may ask for (a 16 384-wide layer is a GiB of
+weights; the paper's are 256 wide, its episodes 1 000 steps): checked for a new run and
+for a stored one before anything is built from it (:func:`check_sizes`)."""
+
+
 def _positive_int(cfg: Mapping[str, Any], key: str, *, allow_zero: bool = False) -> int:
     value = _get(cfg, key)
-    if not (_is_int(value) and (value >= 0 if allow_zero else value > 0)):
+    high = SIZE_LIMITS.get(key)
+    low_ok = _is_int(value) and (value >= 0 if allow_zero else value > 0)
+    if not (low_ok and (high is None or value <= high)):
         bound = ">= 0" if allow_zero else "> 0"
+        if high is not None:
+            bound = f"in [{0 if allow_zero else 1}, {high}]"
         raise ConfigError(f"{key} must be an integer {bound}, got {value!r}")
     return value
+
+
+def check_sizes(cfg: Mapping[str, Any], source: Any) -> None:
+    """A stored config's sizes (:data:`SIZE_LIMITS`) within their limits before a network
+    or an env is built from it: one :class:`ConfigError` line naming ``source``."""
+    for key in SIZE_LIMITS:
+        if _get(cfg, key) is None:
+            continue
+        try:
+            _positive_int(cfg, key, allow_zero=key == "algo.network.depth")
+        except ConfigError as err:
+            raise ConfigError(f"{source}: its config's {err}: not built") from None
 
 
 def _number(

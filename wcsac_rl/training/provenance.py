@@ -173,10 +173,12 @@ def write_provenance(run_dir: Path, record: dict[str, Any], *, resumed: bool) ->
 def read_provenance(run_dir: Path) -> list[dict[str, Any]]:
     """The run's session records, first session first; a file that is not a JSON
     object (a half-written or hand-edited one) is skipped."""
+    from wcsac_rl.training.safe_load import load_json  # (torch: only when reading)
+
     records = []
     for path in provenance_files(run_dir):
         try:
-            record = json.loads(path.read_text())
+            record = load_json(path)
         except (OSError, ValueError):
             continue
         if isinstance(record, dict):

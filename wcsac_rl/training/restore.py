@@ -19,7 +19,7 @@ from wcsac_rl.training.checkpoint import (
     find_checkpoint,
     read_checkpoint,
 )
-from wcsac_rl.training.config import ConfigError
+from wcsac_rl.training.config import ConfigError, check_sizes
 from wcsac_rl.training.devices import on_cpu
 from wcsac_rl.training.registry import trainer_class
 from wcsac_rl.training.trust import TRUST_FLAG, check_env_code, stored_config
@@ -100,6 +100,7 @@ def load_run(
     checkpoint, digest = read_checkpoint(checkpoint_path)
     cfg = on_cpu(stored_config(checkpoint["config"], checkpoint_path))  # whatever it trained on
     check_current(cfg, checkpoint_path)  # (a config of another commit's kit: refused)
+    check_sizes(cfg, checkpoint_path)  # (a network or an episode nothing could build or run)
     env = trusted_eval_env(
         cfg, checkpoint_path, trust_env_code=trust_env_code, seed=seed, num_envs=num_envs
     )

@@ -20,11 +20,19 @@ SHA-256 manifest in the checkpoint detects damage, not a hostile run directory
 buffer directory :func:`check_buffer_files` admits only its data files (``*.json``,
 ``*.memmap``) and a ``prefetch.pkl`` that holds plain data only (checked by an
 unpickler that can build nothing but plain data).
+
+A run's text records are bounded before they are parsed: a YAML file whose aliases would
+expand past :data:`MAX_YAML_NODES` nodes (a "billion laughs" file), a JSON file nested
+deeper than Python's parser recurses, or any record larger than
+:data:`MAX_RECORD_BYTES` is refused in one line naming the file (:func:`load_yaml`,
+:func:`load_json`, :class:`UnreadableRecord`); a checkpoint larger than
+:data:`MAX_CHECKPOINT_BYTES` is not read (:func:`check_size`).
 """
 
 from __future__ import annotations
 
 import io
+import json
 import math
 import pickle
 from pathlib import Path
@@ -32,11 +40,95 @@ from typing import Any
 
 import numpy as np
 import torch
+import yaml
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from wcsac_rl._messages import first_line
 from wcsac_rl.training.config import ConfigError
 
-__all__ = ["check_buffer_files", "load_data"]
+__all__ = [
+    "MAX_CHECKPOINT_BYTES",
+    "MAX_RECORD_BYTES",
+    "MAX_YAML_NODES",
+    "UnreadableRecord",
+    "check_buffer_files",
+    "check_size",
+    "load_data",
+    "load_json",
+    "load_yaml",
+]
+
+MAX_RECORD_BYTES = 64 * 2**20
+"""The largest text record read from a run (``config.yaml``, ``evaluation.json``, ...:
+kilobytes when the kit writes them)."""
+MAX_YAML_NODES = 100_000
+"""The most nodes a run's YAML record may expand to (a composed config has ~300)."""
+MAX_CHECKPOINT_BYTES = 4 * 2**30
+"""The largest checkpoint read (networks and optimisers: megabytes at the paper's sizes;
+a saved replay buffer is its own files)."""
+
+
+class UnreadableRecord(ValueError):
+    """A run's record that is refused before it is parsed; the message names the file."""
+
+
+def check_size(path: Path, limit: int, what: str = "record") -> None:
+    """Raise :class:`UnreadableRecord` if ``path`` is larger than ``limit`` bytes (read
+    from its size, not its contents: a sparse file costs nothing to refuse)."""
+    size = Path(path).stat().st_size
+    if size > limit:
+        raise UnreadableRecord(
+            f"{path}: {size / 2**30:.2f} GiB, larger than any {what} the kit writes "
+            f"(at most {limit / 2**30:g} GiB read): not read"
+        )
+
+
+def _expanded_nodes(node: yaml.Node, seen: dict[int, int]) -> int:
+    """How many nodes ``node`` stands for once every alias is expanded (each distinct node
+    counted once, its count reused wherever an alias repeats it)."""
+    if id(node) in seen:
+        return seen[id(node)]
+    count = 1
+    if isinstance(node, yaml.MappingNode):
+        count += sum(_expanded_nodes(k, seen) + _expanded_nodes(v, seen) for k, v in node.value)
+    elif isinstance(node, yaml.SequenceNode):
+        count += sum(_expanded_nodes(item, seen) for item in node.value)
+    seen[id(node)] = min(count, MAX_YAML_NODES + 1)
+    return seen[id(node)]
+
+
+def load_yaml(path: Path) -> DictConfig | ListConfig:
+    """``OmegaConf.load(path)`` of a run's record, bounded: a file larger than
+    :data:`MAX_RECORD_BYTES`, nested deeper than the parser recurses, or expanding past
+    :data:`MAX_YAML_NODES` nodes through its aliases is refused with one
+    :class:`UnreadableRecord` line naming it, before anything is built from it."""
+    path = Path(path)
+    check_size(path, MAX_RECORD_BYTES)
+    text = path.read_text(encoding="utf-8")
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+        nodes = 0 if root is None else _expanded_nodes(root, {})
+    except RecursionError:
+        raise UnreadableRecord(f"{path}: nested too deeply to read") from None
+    if nodes > MAX_YAML_NODES:
+        raise UnreadableRecord(
+            f"{path}: its aliases expand to more than {MAX_YAML_NODES} nodes (a composed "
+            "config has a few hundred): not read"
+        )
+    return OmegaConf.create(text)
+
+
+def load_json(path: Path) -> Any:
+    """``json.loads`` of a run's record, bounded: a file larger than
+    :data:`MAX_RECORD_BYTES` or nested deeper than the parser recurses is refused with
+    one :class:`UnreadableRecord` line naming it."""
+    path = Path(path)
+    check_size(path, MAX_RECORD_BYTES)
+    try:
+        return json.loads(path.read_text())
+    except RecursionError:
+        raise UnreadableRecord(f"{path}: nested too deeply to read") from None
+
 
 _NOT_EXECUTED = "it was not executed — wcsac_rl only loads checkpoints as data"
 
