@@ -162,3 +162,25 @@ def linear_quantile_critic() -> TensorDictModule:
         in_keys=["observation", "action", "quantile_fractions"],
         out_keys=["cost_quantiles"],
     )
+
+
+def plain_batch(n: int, cost_shape: str = "float32 [B,1]", seed: int = 0) -> TensorDict:
+    """What a TorchRL collector and replay buffer hand over: nothing of the kit's."""
+    g = torch.Generator().manual_seed(seed)
+    cost = torch.bernoulli(torch.full((n, 1), 0.2), generator=g)
+    if cost_shape == "float64 [B]":  # TorchRL's SafetyGymnasiumEnv
+        cost = cost.squeeze(-1).double()
+    return TensorDict(
+        {
+            "observation": torch.randn(n, 4, generator=g),
+            "action": torch.rand(n, 2, generator=g) * 2 - 1,
+            "next": {
+                "observation": torch.randn(n, 4, generator=g),
+                "reward": torch.randn(n, 1, generator=g),
+                "cost": cost,
+                "done": torch.zeros(n, 1, dtype=torch.bool),
+                "terminated": torch.zeros(n, 1, dtype=torch.bool),
+            },
+        },
+        [n],
+    )

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from tensordict import TensorDict
+from _loss_helpers import plain_batch
 from torchrl.data import Bounded
 
 from wcsac_rl import WCSACLoss
@@ -14,28 +14,6 @@ from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives import PAPER_OPTIONS, loss_parts
 
 SPEC = Bounded(-1.0, 1.0, shape=(2,))
-
-
-def _plain_batch(n: int, cost_shape: str, seed: int = 0) -> TensorDict:
-    """What a TorchRL collector and replay buffer hand over: nothing of the kit's."""
-    g = torch.Generator().manual_seed(seed)
-    cost = torch.bernoulli(torch.full((n, 1), 0.2), generator=g)
-    if cost_shape == "float64 [B]":  # TorchRL's SafetyGymnasiumEnv
-        cost = cost.squeeze(-1).double()
-    return TensorDict(
-        {
-            "observation": torch.randn(n, 4, generator=g),
-            "action": torch.rand(n, 2, generator=g) * 2 - 1,
-            "next": {
-                "observation": torch.randn(n, 4, generator=g),
-                "reward": torch.randn(n, 1, generator=g),
-                "cost": cost,
-                "done": torch.zeros(n, 1, dtype=torch.bool),
-                "terminated": torch.zeros(n, 1, dtype=torch.bool),
-            },
-        },
-        [n],
-    )
 
 
 def _loss(kind: str = "gaussian") -> WCSACLoss:
@@ -53,7 +31,7 @@ def test_the_defaults_train_on_a_plain_torchrl_batch(kind, cost_shape):
     optim = torch.optim.Adam(loss.parameters(), lr=1e-3)
     before = {name: p.detach().clone() for name, p in loss.named_parameters()}
     for step in range(5):
-        out = loss(_plain_batch(32, cost_shape, seed=step))
+        out = loss(plain_batch(32, cost_shape, seed=step))
         total = sum(v for k, v in out.items() if k.startswith("loss_"))
         assert torch.isfinite(total)
         optim.zero_grad()
@@ -107,5 +85,5 @@ def test_a_users_own_iqn_module_gets_the_iqn_defaults():
     )  # fmt: skip
     assert loss.safety_critic_kind == "iqn"
     assert loss.head_options == loss_parts({**PAPER_OPTIONS, "safety_critic": "iqn"})["safety_head"]
-    out = loss(_plain_batch(16, "float32 [B,1]"))
+    out = loss(plain_batch(16, "float32 [B,1]"))
     assert torch.isfinite(sum(v for k, v in out.items() if k.startswith("loss_")))

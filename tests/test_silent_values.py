@@ -8,6 +8,7 @@ import copy
 
 import pytest
 import torch
+from _loss_helpers import plain_batch
 from _training_helpers import compose_config
 from torchrl.data import Bounded
 
@@ -61,7 +62,7 @@ def test_the_config_refuses_the_same_value_with_the_same_words(name, value, mess
 def test_the_largest_allowed_value_still_gives_finite_losses():
     """The ceiling is not itself a value that overflows the float32 losses."""
     loss = _loss(**loss_parts({**PAPER_OPTIONS, "kappa_init": NUMBER_CEILING}))
-    out = loss(_batch())
+    out = loss(plain_batch(16, seed=1))
     assert all(torch.isfinite(v) for k, v in out.items() if k.startswith("loss_"))
 
 
@@ -102,7 +103,7 @@ def test_one_constraint_is_not_shared_by_two_losses():
     optim = torch.optim.Adam([first.constraint.kappa_raw], lr=0.5)
     for _ in range(3):
         optim.zero_grad()
-        first(_batch())["loss_kappa"].backward()
+        first(plain_batch(16, seed=1))["loss_kappa"].backward()
         optim.step()
     assert float(first.constraint.kappa) != start
     assert float(second.constraint.kappa) == start
@@ -118,23 +119,3 @@ def test_a_constraint_is_free_again_once_its_loss_is_gone():
 
     gc.collect()
     assert _loss(**parts).constraint is parts["constraint"]
-
-
-def _batch(n: int = 16):
-    from tensordict import TensorDict
-
-    g = torch.Generator().manual_seed(1)
-    return TensorDict(
-        {
-            "observation": torch.randn(n, 4, generator=g),
-            "action": torch.rand(n, 2, generator=g) * 2 - 1,
-            "next": {
-                "observation": torch.randn(n, 4, generator=g),
-                "reward": torch.randn(n, 1, generator=g),
-                "cost": torch.bernoulli(torch.full((n, 1), 0.3), generator=g),
-                "done": torch.zeros(n, 1, dtype=torch.bool),
-                "terminated": torch.zeros(n, 1, dtype=torch.bool),
-            },
-        },
-        [n],
-    )
