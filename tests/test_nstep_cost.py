@@ -69,6 +69,37 @@ def test_nstep_entries_equal_a_step_by_step_walk_of_each_trajectory(n):
     assert (ended & ~term).any()  # the data have truncations to tell apart
 
 
+def _with_step_count(td: TensorDict) -> TensorDict:
+    """``td`` with the ``step_count`` its episodes give (0 at each start)."""
+    done = td["next", "done"].squeeze(-1)
+    count = torch.zeros(td.shape, dtype=torch.int64)
+    for t in range(1, td.shape[-1]):
+        count[:, t] = torch.where(done[:, t - 1], 0, count[:, t - 1] + 1)
+    td["step_count"] = count.unsqueeze(-1)
+    return td
+
+
+def test_a_time_major_batch_is_refused_or_read_along_its_named_time_dimension():
+    """A ``[time, envs]`` batch would sum costs across envs: refused in one line where its
+    ``step_count`` shows it; read along time where the time dimension is named (TorchRL's
+    ``"time"``), giving the entries of the same batch laid out ``[envs, time]``."""
+    env_major = _with_step_count(_trajectories())
+    expected = NStepCost(3, gamma=0.9)(env_major.clone())["nstep"]
+    time_major = env_major.transpose(0, 1).contiguous()
+    with pytest.raises(ValueError) as err:
+        NStepCost(3, gamma=0.9)(time_major.clone())
+    assert "last dimension is not time" in str(err.value) and "\n" not in str(err.value)
+    named = time_major.clone()
+    named.refine_names("time", None)
+    got = NStepCost(3, gamma=0.9)(named)["nstep"]
+    for key in ("cost", "steps", "observation", "terminated", "done"):
+        assert torch.equal(got[key], expected[key].transpose(0, 1)), key
+    # the env-major batch with its step_count passes the check, unchanged
+    assert torch.equal(
+        expected["steps"], NStepCost(3, gamma=0.9)(_trajectories())["nstep"]["steps"]
+    )
+
+
 def test_one_step_entries_are_the_transition_itself():
     td = _trajectories()
     out = NStepCost(1, gamma=0.5)(td.clone())["nstep"]

@@ -106,6 +106,13 @@ class NStepCost(nn.Module):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         if tensordict.ndim == 0:
             raise ValueError("NStepCost needs a batch whose last dimension is time")
+        time_dim = _named_time_dim(tensordict)
+        if time_dim is not None and time_dim != tensordict.ndim - 1:
+            # a batch whose dimension named "time" is not the last (TorchRL's names)
+            moved = tensordict.transpose(time_dim, tensordict.ndim - 1)
+            self.forward(moved)
+            tensordict.set(self.out_key, moved.get(self.out_key).transpose(time_dim, -1))
+            return tensordict
         steps_ahead = tensordict.get("steps_to_next_obs", None)
         if steps_ahead is not None and bool((steps_ahead > 1).any()):
             raise ValueError(
@@ -124,6 +131,7 @@ class NStepCost(nn.Module):
         cost = nxt.get(self.cost_key)
         flat_cost = cost.reshape(shape).to(torch.float64)
         done = nxt.get(self.done_key).reshape(shape)
+        _check_time_is_last(tensordict, done)
         horizon = shape[-1]
         time = torch.arange(horizon, device=flat_cost.device)
 
@@ -153,6 +161,35 @@ class NStepCost(nn.Module):
         out["done"] = at_last(nxt.get(self.done_key))
         tensordict.set(self.out_key, TensorDict(out, batch_size=shape))
         return tensordict
+
+
+def _named_time_dim(tensordict: TensorDictBase) -> int | None:
+    """The dimension TorchRL named ``"time"`` (its collectors name the last one), if any."""
+    try:
+        names = tensordict.names
+    except (RuntimeError, ValueError):  # (a lazy stack or a batch that cannot hold names)
+        return None
+    return names.index("time") if "time" in names else None
+
+
+def _check_time_is_last(tensordict: TensorDictBase, done: torch.Tensor) -> None:
+    """Refuse a batch whose ``step_count`` shows its last dimension is not time: along
+    time, each step's count is the one before it plus one, unless an episode ended (or
+    was reset) in between. One ``ValueError`` line; nothing to check without the entry.
+    (A host synchronisation per call: this runs in the collector's postproc.)"""
+    count = tensordict.get("step_count", None)
+    if count is None or tensordict.shape[-1] < 2:
+        return
+    count = count.reshape(tensordict.shape)
+    advanced = count[..., 1:] == count[..., :-1] + 1
+    restarted = done[..., :-1] | (count[..., 1:] == 0)
+    if not bool((advanced | restarted).all()):
+        raise ValueError(
+            f"NStepCost: the batch's last dimension is not time (its step_count does not "
+            f"advance by one along it; batch shape {list(tensordict.shape)}): give "
+            "[envs, time] as TorchRL's collectors do, or name the time dimension 'time' "
+            "(tensordict.refine_names(..., 'time'))"
+        )
 
 
 def _tuple(key: NestedKey) -> tuple[str, ...]:
