@@ -742,6 +742,12 @@ def _shape(value: Any) -> str:
     return str(list(value.shape)) if isinstance(value, torch.Tensor) else type(value).__name__
 
 
+CONFIG_DERIVED = ("alpha_init", "cost_threshold", "_target_entropy", "_value_estimator.gamma")
+"""A loss's state entries made from its config (β's start, the constraint's threshold from
+the cost limit, the target entropy, γ), which cannot change on resume: a checkpoint's
+must equal what the config gives."""
+
+
 def load_module_state(module: torch.nn.Module, state: Any, what: str = "loss") -> None:
     """``module.load_state_dict(state)``, or one :class:`StateMismatch` line naming the
     first entry whose shape differs (networks of another width or depth than the config
@@ -758,7 +764,9 @@ def load_module_state(module: torch.nn.Module, state: Any, what: str = "loss") -
                 f"its networks do not fit its config: {key} is {_shape(saved)} in the "
                 f"checkpoint, {_shape(value)} as configured"
             )
-    for key, _ in module.named_parameters():
+    weights = [key for key, _ in module.named_parameters()]
+    weights += [key for key, _ in module.named_buffers() if "params" in key]  # (targets)
+    for key in weights:
         saved = state.get(key)
         if isinstance(saved, torch.Tensor) and saved.is_floating_point():
             bad = ~torch.isfinite(saved)
@@ -768,6 +776,14 @@ def load_module_state(module: torch.nn.Module, state: Any, what: str = "loss") -
                     f"or infinite value(s) of {saved.numel()}; a policy or critic with them "
                     "acts and learns on NaN (resume from an earlier checkpoint, or start over)"
                 )
+    for key in CONFIG_DERIVED:
+        saved, now = state.get(key), expected.get(key)
+        if isinstance(saved, torch.Tensor) and now is not None and not torch.equal(saved, now):
+            raise StateMismatch(
+                f"its {key} is {saved.tolist()}, but its config gives {now.tolist()}: a "
+                "checkpoint whose state disagrees with its run's config (edited or damaged) "
+                "is not resumed"
+            )
     try:
         module.load_state_dict(state)
     except (RuntimeError, ValueError, KeyError, TypeError) as err:
@@ -782,6 +798,15 @@ def load_optimizer_state(optimizer: torch.optim.Optimizer, state: dict[str, Any]
     ``Optimizer.load_state_dict`` also brings back the saved ``lr``, which would make a
     learning rate changed on resume silently ignored.
     """
+    for index, moments in (state.get("state") or {}).items() if isinstance(state, dict) else ():
+        for name, value in moments.items() if isinstance(moments, dict) else ():
+            if isinstance(value, torch.Tensor) and value.is_floating_point():
+                if not bool(torch.isfinite(value).all()):
+                    raise StateMismatch(
+                        f"its optimizer state holds non-finite values ({name} of parameter "
+                        f"{index}): its next step would make the networks NaN (resume from "
+                        "an earlier checkpoint, or start over)"
+                    )
     lrs = [group["lr"] for group in optimizer.param_groups]
     optimizer.load_state_dict(state)
     for group, lr in zip(optimizer.param_groups, lrs):
