@@ -41,6 +41,8 @@ from wcsac_rl.options import (
     PIDGains,
     SafetyOptions,
     check_kappa_bound,
+    check_value,
+    option_spec,
 )
 
 __all__ = [
@@ -51,6 +53,13 @@ __all__ = [
     "PIDLagrangian",
     "make_constraint",
 ]
+
+
+def _check_options(**values: float) -> None:
+    """Each value as the recipe's option of that name allows it (one ``ValueError`` line
+    naming it): a constraint built directly gets the config's checks."""
+    for key, value in values.items():
+        check_value(key, value, option_spec(SafetyOptions, key))
 
 
 def _inverse_softplus(x: float) -> float:
@@ -104,6 +113,7 @@ class GradientLagrangian(nn.Module):
         damp_clamp: bool = False,
     ) -> None:
         super().__init__()
+        _check_options(kappa_init=kappa_init, damp_scale=damp_scale, kappa_min=kappa_min)
         if parametrization not in KAPPA_PARAMETRIZATIONS:
             raise ValueError(
                 f"kappa_parametrization must be one of {KAPPA_PARAMETRIZATIONS}, "
@@ -231,6 +241,11 @@ class PIDLagrangian(nn.Module):
     ) -> None:
         super().__init__()
         gains = PIDGains() if gains is None else gains
+        if not isinstance(gains, PIDGains):
+            raise TypeError(
+                f"gains must be a PIDGains (e.g. PIDGains(kp=1.0)), got {type(gains).__name__}"
+            )
+        _check_options(kappa_init=kappa_init, kappa_min=kappa_min)
         if not kappa_init >= 0:
             raise ValueError(f"kappa_init must be >= 0 with the PID rule, got {kappa_init}")
         if kappa_init > gains.max_kappa:

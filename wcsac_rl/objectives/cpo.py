@@ -65,6 +65,7 @@ from torchrl.objectives.utils import ValueEstimators, _reduce, distance_loss
 from torchrl.objectives.value import GAE
 
 from wcsac_rl.objectives.budget import validate_cost_limit, validate_max_episode_steps
+from wcsac_rl.objectives.checked_loss import CheckedLoss
 
 __all__ = ["CPODirection", "CPOLoss", "conjugate_gradient", "cpo_direction"]
 
@@ -243,7 +244,7 @@ def cpo_direction(
     return CPODirection(step, case, lam, nu, q, r, s, c)
 
 
-class CPOLoss(LossModule):
+class CPOLoss(CheckedLoss, LossModule):
     r"""Constrained Policy Optimization: surrogates, value losses and the CPO policy step.
 
     CPO's policy update is not a gradient step, so this loss has two faces:

@@ -125,7 +125,8 @@ def check_batch_entries(
 
 def check_critic_inputs(tensordict: TensorDictBase, loss, what: str) -> None:
     """A ``TypeError`` when a batch entry the reward critics read is not of the networks'
-    floating dtype, and, for a critic that is one module over its entries (the kit's),
+    floating dtype, a ``ValueError`` when it is on another device or the reward's shape
+    is not the done flag's (:func:`check_reward_shape`), and, for a critic that is one module over its entries (the kit's),
     a ``ValueError`` when those entries do not add up to the inputs its first layer
     takes; each naming the entries. Looks at shapes and dtypes only (no host
     synchronisation; not under ``torch.compile``)."""
@@ -135,7 +136,9 @@ def check_critic_inputs(tensordict: TensorDictBase, loss, what: str) -> None:
         return
     network = loss.qvalue_network
     params = loss.qvalue_network_params.values(True, True)
-    dtype = next(iter(params), torch.empty(0)).dtype
+    first_param = next(iter(params), torch.empty(0))
+    dtype, device = first_param.dtype, first_param.device
+    check_reward_shape(tensordict, loss.tensor_keys, what)
     cached = loss.__dict__.get("_critic_inputs_cache")  # (the network's structure, once)
     if (
         cached is None
@@ -153,6 +156,12 @@ def check_critic_inputs(tensordict: TensorDictBase, loss, what: str) -> None:
     entries = [(key, tensordict.get(key, None)) for key in keys]
     entries = [(key, value) for key, value in entries if isinstance(value, torch.Tensor)]
     for key, value in entries:
+        if value.device != device:
+            shown = key[0] if isinstance(key, tuple) and len(key) == 1 else key
+            raise ValueError(
+                f"{what}: batch entry {shown!r} is on {value.device}, the networks' parameters "
+                f"on {device}; move the batch (.to({str(device)!r})) or the loss"
+            )
         if value.is_floating_point() and value.dtype != dtype:
             raise TypeError(
                 f"{what}: batch entry {key!r} is {value.dtype}, the networks' parameters "
@@ -167,6 +176,20 @@ def check_critic_inputs(tensordict: TensorDictBase, loss, what: str) -> None:
             f"{what}: the batch's entries ({shown} numbers) make {sum(widths.values())} "
             f"critic inputs; the critics take {first.in_features}"
         )
+
+
+def check_reward_shape(tensordict: TensorDictBase, keys, what: str) -> None:
+    """A ``ValueError`` when ``("next", reward)`` and ``("next", done)`` differ in shape
+    (TorchRL's value estimators need them equal: ``[B, 1]`` for a TorchRL env)."""
+    reward = tensordict.get(("next", keys.reward), None)
+    done = tensordict.get(("next", keys.done), None)
+    if isinstance(reward, torch.Tensor) and isinstance(done, torch.Tensor):
+        if reward.shape != done.shape:
+            raise ValueError(
+                f"{what}: batch entry ('next', {keys.reward!r}) has shape "
+                f"{list(reward.shape)}, ('next', {keys.done!r}) {list(done.shape)}; they "
+                "must be equal (a TorchRL env writes both [B, 1]: reward.unsqueeze(-1))"
+            )
 
 
 def nonfinite_entry(

@@ -215,6 +215,11 @@ def loss_parts(recipe: SafetyOptions | Mapping[str, Any] | None = None) -> dict[
         ('replay', 1, 1.0)
     """
     alpha_init = TRAINER_KEYS["alpha_init"]
+    if not isinstance(recipe, (SafetyOptions, Mapping, type(None))):
+        raise TypeError(
+            "loss_parts takes a recipe: a mapping of options (e.g. PAPER_OPTIONS, "
+            f"kit_options()) or a SafetyOptions, got {type(recipe).__name__} {recipe!r:.60}"
+        )
     if isinstance(recipe, SafetyOptions):
         options = recipe
     else:

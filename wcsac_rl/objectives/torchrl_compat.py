@@ -145,6 +145,7 @@ def convert_safety_network(
         if num_safety_nets == 1:
             safety_network = safety_network[0]
         else:
+            check_same_structure(safety_network)
             loss.convert_to_functional(
                 list(safety_network), "safety_network", num_safety_nets, create_target_params=True
             )
@@ -164,6 +165,31 @@ def convert_safety_network(
         if id(value) in shared:
             copy = torch.nn.Parameter(value.detach().clone(), value.requires_grad)
             loss.safety_network_params.set(key, copy)
+
+
+def check_same_structure(critics) -> None:
+    """A ``ValueError`` naming the first member of an ensemble of safety critics whose
+    class or parameter shapes differ from the first member's: the members' parameters
+    are stacked, so they must be one network drawn several times."""
+    first = critics[0]
+    shapes = {name: tuple(p.shape) for name, p in first.named_parameters()}
+    for i, critic in enumerate(critics[1:], start=1):
+        other = {name: tuple(p.shape) for name, p in critic.named_parameters()}
+        if type(getattr(critic, "module", critic)) is not type(getattr(first, "module", first)) or (
+            other.keys() != shapes.keys()
+        ):
+            raise ValueError(
+                f"safety critic {i} of the ensemble is not the same network as critic 0 "
+                "(other layers); an ensemble's members must be one structure (e.g. "
+                "make_safety_critic(...) with the same kind and width, called per member)"
+            )
+        for name, shape in shapes.items():
+            if other[name] != shape:
+                raise ValueError(
+                    f"safety critic {i} of the ensemble has {name} of shape "
+                    f"{list(other[name])}, critic 0 {list(shape)}; an ensemble's members "
+                    "must be one structure (the same kind and width)"
+                )
 
 
 def refuse_unknown_keywords(

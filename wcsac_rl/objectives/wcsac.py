@@ -23,11 +23,7 @@ from torch import Tensor
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import SACLoss
 from torchrl.objectives.sac import compute_rsample_log_prob
-from torchrl.objectives.utils import (
-    ValueEstimators,
-    _cache_values,
-    distance_loss,
-)
+from torchrl.objectives.utils import ValueEstimators, _cache_values, distance_loss
 
 from wcsac_rl.modules.tanh_normal import sample_tanh_normal
 from wcsac_rl.objectives.budget import (
@@ -35,6 +31,7 @@ from wcsac_rl.objectives.budget import (
     validate_cost_limit,
     validate_max_episode_steps,
 )
+from wcsac_rl.objectives.checked_loss import CheckedLoss
 from wcsac_rl.objectives.constraint import GradientLagrangian, PIDLagrangian, rename_kappa_raw
 from wcsac_rl.objectives.constraint_signal import ConstraintSignal, HeldStatistic
 from wcsac_rl.objectives.cost_target import CostTarget
@@ -85,7 +82,7 @@ __all__ = [
 ]
 
 
-class WCSACLoss(SACLoss):
+class WCSACLoss(CheckedLoss, SACLoss):
     r"""The WCSAC loss: SAC with a safety critic and a CVaR constraint.
 
     TorchRL-style: the networks, a handful of keywords, the parts as objects
