@@ -22,7 +22,11 @@ A bound is met by a value equal to it. A row's runs are its lines in ``run_value
 a metric with no value for one of them (a NaN ``safe_from_frames``: the run ended over
 d) counts as not met. Bad input (a file that is not such a mapping, a row or a metric the
 report does not have, a bound that is not a number) is one :class:`TargetsError` line, and
-nothing is written.
+nothing is written. So is a key the targets file gives twice (YAML would keep the last
+silently), a report line whose seed is not a whole number or whose run (row and seed) an
+earlier line gives, a file that is not UTF-8 text, and a table that cannot be written (a
+full disk, a read-only folder): both tables are staged beside their places first, then
+renamed into them.
 
 Command line: ``python -m wcsac_rl.evaluation.targets REPORT_DIR TARGETS.yaml``.
 """
@@ -33,6 +37,7 @@ import argparse
 import csv
 import io
 import math
+import os
 import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -104,24 +109,85 @@ class Target:
         return f"{BOUNDS[self.bound]} {self.value:g}"
 
 
-def read_targets(path: Path) -> dict[str, list[Target]]:
-    """The targets of ``path`` (the YAML above), in the file's order."""
+class _DuplicateKey(Exception):
+    """A mapping of the targets file names ``key`` on ``line`` and again on ``again``."""
+
+    def __init__(self, key: Any, line: int, again: int) -> None:
+        super().__init__(key, line, again)
+        self.key, self.line, self.again = key, line, again
+
+
+def _unique_key_loader():
+    """A YAML safe loader that refuses a mapping giving one key twice (YAML keeps the last)."""
+    import yaml
+
+    class UniqueKeyLoader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            seen: dict[Any, int] = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key, line = self.construct_object(key_node, deep=True), key_node.start_mark.line
+                try:
+                    if key in seen:
+                        raise _DuplicateKey(key, seen[key] + 1, line + 1)
+                    seen[key] = line
+                except TypeError:  # an unhashable key: the safe loader's own error
+                    break
+            return super().construct_mapping(node, deep=deep)
+
+    return UniqueKeyLoader
+
+
+def _load_targets_yaml(path: Path) -> Any:
     import yaml
 
     try:
-        data = yaml.safe_load(Path(path).read_text(encoding="utf-8"))
+        text = Path(path).read_bytes().decode("utf-8")
+        return yaml.load(text, Loader=_unique_key_loader())
     except OSError as err:
         raise TargetsError(f"cannot read the targets file {path}: {err.strerror or err}") from None
-    except yaml.YAMLError as err:
-        raise TargetsError(f"the targets file {path} is not YAML: {first_line(err)}") from None
+    except UnicodeDecodeError as err:
+        raise TargetsError(
+            f"the targets file {path} is not UTF-8 text ({err.reason} at byte {err.start})"
+        ) from None
+    except _DuplicateKey as dup:
+        raise TargetsError(
+            f"{path}: line {dup.again}: {dup.key!r} is given twice (first on line {dup.line}); "
+            "give each row, and each metric of a row, once"
+        ) from None
+    except (yaml.YAMLError, ValueError, RecursionError) as err:
+        raise TargetsError(f"the targets file {path} is not YAML: {_yaml_problem(err)}") from None
+
+
+def _yaml_problem(err: Exception) -> str:
+    """What a YAML error says is wrong, with its line where it has one."""
+    import yaml
+
+    mark = getattr(err, "problem_mark", None)
+    if isinstance(err, yaml.MarkedYAMLError) and err.problem and mark is not None:
+        return f"line {mark.line + 1}: {err.problem}"
+    return first_line(err)
+
+
+def read_targets(path: Path) -> dict[str, list[Target]]:
+    """The targets of ``path`` (the YAML above), in the file's order."""
+    data = _load_targets_yaml(path)
     if not isinstance(data, Mapping) or not data:
         raise TargetsError(f"the targets file {path} must map row labels to their targets")
     targets: dict[str, list[Target]] = {}
     for label, metrics in data.items():
         if not isinstance(metrics, Mapping) or not metrics:
             raise TargetsError(f"{path}: row {label!r} must map metrics to bounds")
+        if str(label) in targets:
+            raise TargetsError(f"{path}: row {str(label)!r} is given twice (as {label!r})")
         targets[str(label)] = [_target(path, str(label), m, b) for m, b in metrics.items()]
     return targets
+
+
+def _shown(value: Any, limit: int = 40) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}… ({len(text)} characters)"
 
 
 def _target(path: Path, label: str, metric: Any, bound: Any) -> Target:
@@ -132,19 +198,43 @@ def _target(path: Path, label: str, metric: Any, bound: Any) -> Target:
     if not isinstance(bound, Mapping) or len(bound) != 1 or next(iter(bound)) not in BOUNDS:
         raise TargetsError(f"{where} must be {{at_most: <number>}} or {{at_least: <number>}}")
     kind, value = next(iter(bound.items()))
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise TargetsError(f"{where}: {kind} must be a finite number, got {value!r}")
-    return Target(str(metric), kind, float(value))
+    number = math.nan
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        try:
+            number = float(value)
+        except OverflowError:  # an integer past the largest float
+            pass
+    if not math.isfinite(number):
+        raise TargetsError(f"{where}: {kind} must be a finite number, got {_shown(value)}")
+    return Target(str(metric), kind, number)
 
 
-def _read_csv(path: Path) -> list[dict[str, str]]:
+Rows = list[tuple[int, dict[str, str]]]
+
+
+def _read_csv(path: Path, required: Sequence[str]) -> Rows:
+    """The lines of the CSV file ``path`` as (line number, column → text); its header must
+    hold the ``required`` columns."""
     try:
-        with path.open(newline="", encoding="utf-8") as f:
-            return list(csv.DictReader(f))
+        with path.open(newline="", encoding="utf-8-sig") as f:
+            reader = csv.DictReader(f)
+            rows = [(reader.line_num, line) for line in reader]
+            columns = reader.fieldnames or []
     except OSError as err:
         raise TargetsError(
             f"cannot read {path}: {err.strerror or err} (write the report with --study first)"
         ) from None
+    except UnicodeDecodeError as err:
+        raise TargetsError(f"{path} is not UTF-8 text ({err.reason} at byte {err.start})") from None
+    except csv.Error as err:
+        raise TargetsError(f"{path}: line {reader.line_num}: not CSV: {first_line(err)}") from None
+    missing = [c for c in required if c not in columns]
+    if missing:
+        raise TargetsError(
+            f"{path} has no column {', '.join(missing)} (its columns must include "
+            f"{', '.join(required)})"
+        )
+    return rows
 
 
 def _number(text: str | None, where: str) -> float:
@@ -154,31 +244,88 @@ def _number(text: str | None, where: str) -> float:
         raise TargetsError(f"{where}: not a number: {text!r}") from None
 
 
-def _per_run_values(report: Path) -> tuple[dict[str, dict[int, dict[str, float]]], dict]:
-    """Row label → seed → metric → value, from the report's two CSV files; and row label →
-    the row's name (its ``algorithm`` column)."""
-    values: dict[str, dict[int, dict[str, float]]] = {}
+def _seed(text: str | None, where: str) -> int:
+    """A seed's text as its integer: a whole, finite number (``100`` or ``100.0``)."""
+    try:
+        return int(text)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        pass
+    value = math.nan
+    try:
+        value = float(text)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        pass
+    if not math.isfinite(value) or not value.is_integer():
+        raise TargetsError(f"{where}: a seed must be a whole number, got {_shown(text)}")
+    return int(value)
+
+
+RunValues = dict[str, dict[int, dict[str, float]]]
+
+
+def _run_values(path: Path) -> tuple[RunValues, dict[str, str]]:
+    """Row label → seed → metric → value, from ``run_values.csv``; and row label → the
+    row's name (its ``algorithm`` column)."""
+    values: RunValues = {}
     names: dict[str, str] = {}
-    path = report / RUN_VALUES_FILE
-    for line in _read_csv(path):
-        names[line["label"]] = line.get("algorithm") or line["label"]
-        seed = int(_number(line.get("seed"), f"{path}: seed"))
-        values.setdefault(line["label"], {})[seed] = {
-            m: _number(line.get(m), f"{path}: {line['label']} seed {seed} {m}")
+    first: dict[tuple[str, int], int] = {}
+    for n, line in _read_csv(path, ("label", "seed", *RUN_VALUE_METRICS)):
+        label = line["label"]
+        seed = _seed(line["seed"], f"{path}: line {n}: row {label!r}")
+        if (label, seed) in first:
+            raise TargetsError(
+                f"{path}: line {n}: row {label!r} has seed {seed} twice "
+                f"(first on line {first[label, seed]}); give each run one line"
+            )
+        first[label, seed] = n
+        names[label] = line.get("algorithm") or label
+        values.setdefault(label, {})[seed] = {
+            m: _number(line[m], f"{path}: line {n}: {label} seed {seed} {m}")
             for m in RUN_VALUE_METRICS
         }
-    path = report / TRAINING_SAFETY_FILE
-    for line in _read_csv(path):
-        label, seeds = line["label"], line.get("seed_list", "").split()
-        for metric in TRAINING_SAFETY_METRICS:
-            per_seed = line.get(f"{metric}_per_seed", "").split()
-            if len(per_seed) != len(seeds):
-                raise TargetsError(f"{path}: {label}'s {metric}_per_seed has not one per seed")
-            for seed, text in zip(seeds, per_seed, strict=True):
-                run = values.get(label, {}).get(int(seed))
-                if run is not None:
-                    run[metric] = _number(text, f"{path}: {label} seed {seed} {metric}")
     return values, names
+
+
+def _seed_list(text: str | None, where: str) -> list[int]:
+    """The seeds of a ``seed_list`` cell ("100 101 102"), each once."""
+    seeds = [_seed(s, f"{where}: seed_list") for s in (text or "").split()]
+    if len(set(seeds)) != len(seeds):
+        raise TargetsError(f"{where}: seed_list names a seed twice: {text!r}")
+    return seeds
+
+
+def _add_training_safety(path: Path, values: RunValues) -> None:
+    """Add the per-seed metrics of ``training_safety.csv`` to the runs of ``values``."""
+    first: dict[str, int] = {}
+    for n, line in _read_csv(path, ("label", "seed_list")):
+        label = line["label"]
+        where = f"{path}: line {n}: row {label!r}"
+        if label in first:
+            raise TargetsError(f"{where} is given twice (first on line {first[label]})")
+        first[label] = n
+        seeds = _seed_list(line["seed_list"], where)
+        for metric in TRAINING_SAFETY_METRICS:
+            per_seed = (line.get(f"{metric}_per_seed") or "").split()
+            if len(per_seed) != len(seeds):
+                raise TargetsError(f"{where}: {metric}_per_seed has not one per seed")
+            for seed, text in zip(seeds, per_seed, strict=True):
+                run = values.get(label, {}).get(seed)
+                if run is not None:
+                    run[metric] = _number(text, f"{where}: seed {seed} {metric}")
+
+
+def _per_run_values(report: Path) -> tuple[RunValues, dict[str, str]]:
+    """Row label → seed → metric → value, from the report's two CSV files; and row label →
+    the row's name (its ``algorithm`` column)."""
+    values, names = _run_values(report / RUN_VALUES_FILE)
+    _add_training_safety(report / TRAINING_SAFETY_FILE, values)
+    return values, names
+
+
+def _cell(text: str) -> str:
+    """``text`` as one Markdown table cell: its ``|`` (and ``\\``) escaped, on one line."""
+    one_line = " ".join(text.splitlines())
+    return one_line.replace("\\", "\\\\").replace("|", "\\|")
 
 
 def targets_tables(report: Path, targets: Mapping[str, Sequence[Target]]) -> dict[str, str]:
@@ -222,18 +369,34 @@ def targets_tables(report: Path, targets: Mapping[str, Sequence[Target]]) -> dic
                     ]
                 )
             cells[target.metric] = f"{met} of {len(runs)} ({target.text()})"
-        lines.append(f"| {names[label]} | {len(runs)} | " + " | ".join(cells.values()) + " |")
+        lines.append(
+            f"| {_cell(names[label])} | {len(runs)} | " + " | ".join(cells.values()) + " |"
+        )
     markdown = "\n".join(lines) + "\n"
     return {TARGETS_MD: markdown, TARGETS_CSV: buf.getvalue()}
 
 
 def write_targets(report: Path, targets_file: Path) -> list[Path]:
-    """Write ``targets.md`` and ``targets.csv`` into ``report`` (all checked first)."""
-    tables = targets_tables(Path(report), read_targets(Path(targets_file)))
-    written = []
-    for name, text in tables.items():
-        written.append(replace_file(Path(report) / name, text))
-    return written
+    """Write ``targets.md`` and ``targets.csv`` into ``report`` (all checked first): both
+    staged beside their places, then renamed into them, so a failed write (a full disk, a
+    read-only folder) leaves neither, and no staged file, behind: one :class:`TargetsError`."""
+    report = Path(report)
+    tables = targets_tables(report, read_targets(Path(targets_file)))
+    paths = [report / name for name in tables]
+    staged: list[Path] = []
+    path = paths[0]
+    try:
+        for path, text in zip(paths, tables.values(), strict=True):
+            staged.append(replace_file(path.with_name(f".{path.name}.{os.getpid()}.new"), text))
+        for path, new in zip(paths, staged, strict=True):
+            os.replace(new, path)
+    except BaseException as err:  # a full disk, a read-only folder, a stop: none left
+        for new in staged:
+            new.unlink(missing_ok=True)
+        if isinstance(err, OSError):
+            raise TargetsError(f"cannot write {path}: {err.strerror or err}") from None
+        raise
+    return paths
 
 
 def main(argv: Sequence[str] | None = None) -> int:
