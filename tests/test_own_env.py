@@ -289,3 +289,29 @@ def test_a_goal_hold_on_a_users_env_is_one_clear_error(user_module, tmp_path):
     overrides = ("env=gymnasium", "env.id=user_envs:five", "algo.kappa_hold_goal_rate=0.9")
     with pytest.raises(ConfigError, match="reports no goals: κ would never move"):
         make_trainer(compose_config(*overrides), tmp_path / "run")
+
+
+def test_a_cost_entry_that_is_none_is_named_as_none():  # red-team G6
+    """The key is there and its value is None: said so, not "no 'cost' entry"."""
+    import gymnasium as gym
+
+    from wcsac_rl.envs.gymnasium_env import CostFromStep
+
+    class NoneCost(gym.Env):
+        observation_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+        action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+        def reset(self, *, seed=None, options=None):
+            return np.zeros(1, np.float32), {}
+
+        def step(self, action):
+            return np.zeros(1, np.float32), 0.0, False, False, {"cost": None}
+
+    env = CostFromStep(NoneCost(), name="none_cost")
+    env.reset(seed=0)
+    with pytest.raises(CostKeyError) as err:
+        env.step(np.zeros(1, np.float32))
+    assert str(err.value) == (
+        "env.id=none_cost: the cost at step 1 is None (its info's 'cost' entry); put the "
+        "step's cost there as a number"
+    )

@@ -81,3 +81,62 @@ def test_train_py_refuses_to_resume_a_checkpoint_whose_threshold_was_edited(tmp_
     assert done.returncode != 0 and "Traceback" not in done.stderr
     errors = [line for line in done.stderr.splitlines() if line.startswith("error:")]
     assert len(errors) == 1 and "its cost_threshold is 1000000000.0" in errors[0]
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory):
+    run = train_tiny(tmp_path_factory.mktemp("counters") / "run", "total_frames=400")
+    return run, torch.load(run / "checkpoints" / "last.pt", weights_only=True)
+
+
+TAMPERED_COUNTERS = [
+    (("epoch_progress", "costs"), ["abc"], "epoch_progress.costs must be a list of numbers"),  # C5
+    (("epoch_progress", "returns"), [float("nan")], "epoch_progress.returns must be a list"),
+    (("epoch_progress", "start_frames"), 10**9, "epoch_progress.start_frames must be at most"),
+    (("training_safety", "epochs_over_limit"), -5, "training_safety.epochs_over_limit must be a whole number >= 0"),  # C6
+    (("training_safety", "epochs_over_limit"), 10**6, "training_safety.epochs_over_limit must be at most its 'epochs'"),
+    (("updates",), -1, "its 'updates' entry must be a whole number >= 0"),
+    (("epoch",), 2.5, "its 'epoch' entry must be a whole number >= 0"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("where", "value", "words"), TAMPERED_COUNTERS)
+def test_a_counter_the_trainer_could_not_have_written_is_refused(
+    tiny_checkpoint, where, value, words
+):
+    from wcsac_rl.training import ConfigError
+    from wcsac_rl.training.checkpoint import check_counters
+
+    _, saved = tiny_checkpoint
+    check_counters(saved, "last.pt")  # (as written: accepted)
+    state = {**saved, **{k: dict(saved[k]) for k in ("epoch_progress", "training_safety")}}
+    node = state
+    for key in where[:-1]:
+        node = node[key]
+    node[where[-1]] = value
+    with pytest.raises(ConfigError) as err:
+        check_counters(state, "last.pt")
+    assert words in str(err.value) and "\n" not in str(err.value)
+
+
+def test_train_py_refuses_a_tampered_counter_before_writing_anything(tiny_checkpoint, tmp_path):
+    """C5 end to end: no traceback, and the resume records nothing."""
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_checkpoint[0], run)
+    path = run / "checkpoints" / "last.pt"
+    checkpoint = torch.load(path, weights_only=True)
+    checkpoint["epoch_progress"]["costs"] = ["abc"]
+    torch.save(checkpoint, path)
+    before = sorted(p.name for p in run.iterdir())
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "train.py"), f"resume={run}", "total_frames=800"],
+        capture_output=True, text=True, timeout=300, cwd=tmp_path,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )  # fmt: skip
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    errors = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(errors) == 1 and "epoch_progress.costs must be" in errors[0], errors
+    assert sorted(p.name for p in run.iterdir()) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]

@@ -108,6 +108,31 @@ def test_an_option_the_algorithm_does_not_read_is_one_warning_line(capsys):
     )
 
 
+def test_an_algorithm_replacing_a_rows_is_said_in_one_warning():  # red-team E1
+    overrides = ["+row=wcsac_0.1", "algo=sac_lag"]
+    (line,) = inapplicable(compose_config(*overrides), overrides)
+    assert line.startswith("warning: algo=sac_lag replaces the algorithm of row=wcsac_0.1")
+    assert "(algo=wcsac): this run is sac_lag, labelled sac_lag" in line
+    for same in (["+row=wcsac_0.1"], ["+row=wcsac_0.1", "algo=wcsac"]):
+        assert inapplicable(compose_config(*same), same) == []
+
+
+def test_an_option_some_jobs_of_an_experiment_lack_is_refused_before_any_starts(tmp_path):
+    """red-team E6: the random and CPO rows have no algo.collector.init_random_frames;
+    one line naming a job that lacks it, and no sweep directory."""
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "train.py"), "experiment=table1_static_reduced",
+         "total_frames=400", "algo.collector.init_random_frames=200"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )  # fmt: skip
+    assert done.returncode == 1
+    lines = [line for line in done.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and "algo.collector.init_random_frames" in lines[0], lines
+    assert "experiment=table1_static_reduced +row=" in lines[0]
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_compose_config_refuses_an_unknown_key_naming_the_closest():
     with pytest.raises(ConfigError, match=r"algo\.batchsize \(did you mean algo\.batch_size\?\)"):
         compose_config("algo.batchsize=64")

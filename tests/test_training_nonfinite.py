@@ -101,6 +101,7 @@ def test_skipped_updates_are_logged_and_a_streak_stops_the_run_with_one_line(tmp
     # (the recipe's IQN critic, conf/algo/wcsac.yaml: its one TD loss)
     assert "5 updates in a row" in message and "loss_cost_quantile" in message
     assert "max_nonfinite_updates" in message
+    assert f"the last checkpoint {trainer.checkpoint_path} is kept" in message
     with (tmp_path / "run" / "progress.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
     # epoch 1 (400 frames: 50 updates after each of its 2 batches) logged both
@@ -110,6 +111,21 @@ def test_skipped_updates_are_logged_and_a_streak_stops_the_run_with_one_line(tmp
     state = load_checkpoint(trainer.checkpoint_path)["learner"]["loss"]
     assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point())
     assert all(torch.isfinite(v).all() for v in _parameters(trainer).values())
+
+
+def test_a_streak_before_the_first_checkpoint_does_not_say_one_is_kept(tmp_path):
+    """A run that cannot update from its start (red-team CF1, CF2) says that no
+    checkpoint was written, which train.py then removes with the run; not "kept"."""
+    trainer = _trainer(tmp_path, "max_nonfinite_updates=2")
+    try:
+        trainer.skip_update("loss_actor")
+        with pytest.raises(TrainingError) as err:
+            trainer.skip_update("loss_actor")
+    finally:
+        trainer.close()
+    message = str(err.value)
+    assert "no checkpoint had been written yet" in message and "is kept" not in message
+    assert "the algorithm's options" in message
 
 
 def test_max_nonfinite_updates_is_validated(tmp_path):

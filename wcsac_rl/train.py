@@ -166,10 +166,33 @@ def _build(cfg: DictConfig, run_dir: Path, overrides: Sequence[str] | None) -> T
     from wcsac_rl.training.run_dir import AUTO_RESUME
 
     overrides = list(overrides or ())
+    if cfg.get("resume") == AUTO_RESUME:
+        _check_auto_resume_dir()
     if cfg.get("resume") and cfg.resume != AUTO_RESUME:
         cfg = resume_config(cfg, overrides)
     warn_inapplicable(cfg, overrides)
     return make_trainer(cfg, run_dir, overrides=overrides)
+
+
+def _check_auto_resume_dir() -> None:
+    """resume=auto continues the run in the directory the command names: refused (one
+    line) where that directory is a new timestamped one each time (Hydra's default)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+    from omegaconf import OmegaConf
+
+    from wcsac_rl.training import ConfigError
+
+    hydra_cfg = HydraConfig.get()
+    key = "sweep" if hydra_cfg.mode == RunMode.MULTIRUN else "run"
+    template = str(OmegaConf.to_container(hydra_cfg[key], resolve=False)["dir"])
+    if "${now:" in template:
+        raise ConfigError(
+            f"resume=auto continues the run in the directory the command names, but "
+            f"hydra.{key}.dir is a new timestamped one each time ({template}): nothing "
+            f"can be continued there; name it (hydra.{key}.dir=outputs/my_run resume=auto) "
+            "or continue a run by its path (resume=outputs/<date>/<time>_<name>)"
+        )
 
 
 def _say_recipe(cfg: DictConfig) -> None:
@@ -217,8 +240,11 @@ def main(cfg: DictConfig) -> None:
         except BaseException:
             _discard(run_dir, staged)
             raise
-        _reopen_run_logs(trainer.run_dir)
-        _keep_records(run_dir, staged)
+        if trainer.run_dir.resolve() != run_dir.resolve():  # resume=RUN_DIR: another run's
+            _leave_hydra_dir(run_dir, trainer.run_dir, staged)
+        else:
+            _reopen_run_logs(trainer.run_dir)
+            _keep_records(run_dir, staged)
         log.attach(trainer.run_dir / LOG_FILE)
         _say_recipe(trainer.cfg)
         try:
@@ -336,6 +362,27 @@ def _reopen_run_logs(run_dir: Path) -> None:
                 handler.stream = handler._open()
             finally:
                 handler.release()
+
+
+def _leave_hydra_dir(hydra_dir: Path, run_dir: Path, staged: Path | None) -> None:
+    """A resume of another directory (``resume=RUN_DIR``): Hydra's own new directory
+    would stay behind empty (the run records this session's config itself), so its
+    log handlers write into the run's log instead and it is removed with what this
+    command put there."""
+    for handler in logging.getLogger().handlers:
+        if (
+            isinstance(handler, logging.FileHandler)
+            and Path(handler.baseFilename).parent == Path(hydra_dir).absolute()
+        ):
+            handler.acquire()
+            try:
+                if handler.stream is not None:
+                    handler.stream.close()
+                    handler.stream = None  # (opened again at the next record)
+                handler.baseFilename = str(Path(run_dir).absolute() / LOG_FILE)
+            finally:
+                handler.release()
+    _discard(hydra_dir, staged)
 
 
 def _discard(run_dir: Path, staged: Path | None = None) -> None:
@@ -463,9 +510,16 @@ def check_sweep_jobs(overrides: list[str], *, multirun: bool = True) -> None:
     from wcsac_rl.training.config import validate_config
     from wcsac_rl.training.errors import ConfigError
 
-    parsed = OverridesParser.create().parse_overrides(overrides)
+    parser = OverridesParser.create()
+    parsed = parser.parse_overrides(overrides)
     sweeps = [o for o in parsed if o.is_sweep_override() and not o.is_hydra_override()]
-    if sweeps and not multirun:
+    given = {o.get_key_element() for o in sweeps}
+    sweeps += [  # an experiment's own sweep (hydra.sweeper.params), where it runs one
+        o
+        for o in parser.parse_overrides(_config_sweeps(overrides, multirun))
+        if o.get_key_element() not in given
+    ]
+    if sweeps and not multirun and sweeps[0].input_line in overrides:
         key, _, value = sweeps[0].input_line.partition("=")
         raise ConfigError(
             f"{sweeps[0].input_line} is a sweep of values: add -m (--multirun) to run one job "
@@ -478,7 +532,48 @@ def check_sweep_jobs(overrides: list[str], *, multirun: bool = True) -> None:
     for sweep in sweeps:
         for value in sweep.sweep_string_iterator():
             job = [f"{o.get_key_element()}={value if o is sweep else first[id(o)]}" for o in sweeps]
-            validate_config(compose_config(*fixed, *job))
+            validate_config(_job_config(fixed, job))
+
+
+def _config_sweeps(overrides: list[str], multirun: bool) -> list[str]:
+    """The sweep an experiment's config runs (``hydra.sweeper.params`` as overrides,
+    ``+row=sac,wcsac_0.1``), where the command runs in MULTIRUN mode: none otherwise."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
+
+    if not any(o.lstrip("+").startswith("experiment=") for o in overrides):
+        return []
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            hydra_cfg = compose("config", overrides, return_hydra_config=True).hydra
+    except Exception:  # (composition errors: the command itself reports them)
+        return []
+    finally:
+        GlobalHydra.instance().clear()
+    if not (multirun or str(hydra_cfg.mode) == "RunMode.MULTIRUN"):
+        return []
+    params = OmegaConf.to_container(hydra_cfg.sweeper.get("params") or {}, resolve=False)
+    return [f"{key}={value}" for key, value in params.items()]
+
+
+def _job_config(fixed: list[str], job: list[str]) -> DictConfig:
+    """The config of one job of a sweep, a job that cannot be composed one line naming it."""
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    from wcsac_rl._messages import first_line
+    from wcsac_rl.training.errors import ConfigError
+
+    try:
+        return compose_config(*fixed, *job)
+    except (HydraException, OmegaConfBaseException) as err:
+        cause = f" ({first_line(err.__cause__)})" if err.__cause__ is not None else ""
+        raise ConfigError(
+            f"the sweep's job {' '.join(job)} cannot be composed: {first_line(err)}{cause}; "
+            "give that option only to the jobs that have it (a sweep of fewer rows)"
+        ) from None
 
 
 def check_override_syntax(overrides: list[str]) -> None:

@@ -232,6 +232,11 @@ class CostFromStep(gym.Wrapper):
         elif len(result) == 5:
             observation, reward, terminated, truncated, info = result
             cost = None if not isinstance(info, dict) else info.get(self.cost_key)
+            if cost is None and isinstance(info, dict) and self.cost_key in info:
+                raise CostKeyError(
+                    f"env.id={self.name}: the cost at step {self._steps} is None (its info's "
+                    f"{self.cost_key!r} entry); put the step's cost there as a number"
+                )
             if cost is None:
                 keys = sorted(map(str, info)) if isinstance(info, dict) else []
                 raise CostKeyError(

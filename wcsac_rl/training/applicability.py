@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
 from types import MappingProxyType
 
 from omegaconf import DictConfig
@@ -49,6 +50,38 @@ def _given(overrides: Sequence[str]) -> list[str]:
     return keys
 
 
+def _row_algorithm(row: str) -> str | None:
+    """The algorithm ``conf/row/<row>.yaml`` chooses (``None``: no such file, or none)."""
+    import yaml
+
+    from wcsac_rl.config_dir import CONF_DIR
+
+    path = Path(CONF_DIR) / "row" / f"{row}.yaml"
+    try:
+        defaults = (yaml.safe_load(path.read_text(encoding="utf-8")) or {}).get("defaults", [])
+    except (OSError, yaml.YAMLError, AttributeError):
+        return None
+    for entry in defaults:
+        if isinstance(entry, dict) and "override /algo" in entry:
+            return str(entry["override /algo"])
+    return None
+
+
+def _row_override(cfg: DictConfig, overrides: Sequence[str]) -> list[str]:
+    """A warning when a command names both a row (``+row=wcsac_0.1``) and ``algo=``
+    choosing another algorithm than the row's: the command line's wins, silently else."""
+    given = dict(o.lstrip("+~").partition("=")[::2] for o in overrides if "=" in o)
+    row, algo = given.get("row"), given.get("algo")
+    row_algo = _row_algorithm(row) if row and algo else None
+    if row_algo is None or row_algo == str(cfg.algo.name):
+        return []
+    return [
+        f"warning: algo={algo} replaces the algorithm of row={row} (algo={row_algo}): this "
+        f"run is {cfg.algo.name}, labelled {cfg.algo.get('label', cfg.algo.name)}, with the "
+        "row's other settings only where it reads them"
+    ]
+
+
 def inapplicable(cfg: DictConfig, overrides: Sequence[str]) -> list[str]:
     """One warning line per option of ``overrides`` that ``cfg``'s algorithm does not read.
 
@@ -60,7 +93,7 @@ def inapplicable(cfg: DictConfig, overrides: Sequence[str]) -> list[str]:
     []
     """
     algo = str(cfg.algo.name)
-    lines = []
+    lines = _row_override(cfg, overrides)
     for key in _given(overrides):
         names = readers(key)
         if algo not in names:

@@ -39,6 +39,7 @@ __all__ = [
     "RESUME_CHANGEABLE",
     "StateMismatch",
     "check_compatible",
+    "check_counters",
     "check_current",
     "check_not_behind",
     "check_resume_changes",
@@ -436,6 +437,68 @@ def _check_entries(state: dict[str, Any], path: Path) -> None:
             f"{path}: its 'learner' entry must hold the networks' states, got "
             f"{type(state['learner']).__name__}; pass a checkpoint written by train.py"
         )
+
+
+COUNTERS = ("frames", "updates", "skipped_updates", "epoch")
+"""A checkpoint's whole-number counters (each >= 0)."""
+
+EPOCH_PROGRESS = {
+    "start_frames": "count", "start_updates": "count", "failures": "count",
+    "skipped_updates": "count", "seconds": "number", "returns": "numbers",
+    "costs": "numbers", "lengths": "counts",
+}  # fmt: skip
+"""The entries of a checkpoint's ``epoch_progress`` (the epoch in progress) and what each is."""
+
+
+def _fits(value: Any, kind: str) -> bool:
+    def count(v: Any) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+    def number(v: Any) -> bool:
+        return isinstance(v, int | float) and not isinstance(v, bool) and np.isfinite(v)
+
+    test = {"count": count, "number": number, "counts": count, "numbers": number}[kind]
+    if kind in ("counts", "numbers"):
+        return isinstance(value, list) and all(test(v) for v in value)
+    return test(value)
+
+
+def check_counters(state: dict[str, Any], path: Path) -> None:
+    """The counters a resume continues from are what the trainer writes: whole numbers
+    >= 0 (frames, updates, epochs, the training-safety counts), finite numbers (the epoch
+    in progress's episode returns and costs), each count no larger than what contains it.
+    One :class:`~wcsac_rl.training.ConfigError` line naming the entry."""
+    from wcsac_rl.training.training_safety import TrainingSafety
+
+    def refuse(entry: str, value: Any, what: str) -> None:
+        raise ConfigError(
+            f"checkpoint {path}: its {entry} must be {what}, got {value!r:.80}; the file was "
+            "changed after train.py wrote it: resume from a checkpoint of the run"
+        )
+
+    for key in COUNTERS:
+        if key in state and not _fits(state[key], "count"):
+            refuse(f"'{key}' entry", state[key], "a whole number >= 0")
+    progress = state.get("epoch_progress") or {}
+    for key, kind in EPOCH_PROGRESS.items():
+        if key in progress and not _fits(progress[key], kind):
+            what = {"count": "a whole number >= 0", "number": "a finite number"}.get(kind)
+            refuse(f"epoch_progress.{key}", progress[key], what or f"a list of {kind}")
+    for key, limit in (("start_frames", "frames"), ("start_updates", "updates")):
+        if key in progress and progress[key] > state.get(limit, progress[key]):
+            refuse(f"epoch_progress.{key}", progress[key], f"at most its {limit!r} entry")
+    safety = state.get("training_safety")
+    if safety is not None:
+        fields = TrainingSafety.__dataclass_fields__
+        if not isinstance(safety, dict) or set(safety) != set(fields):
+            refuse("'training_safety' entry", safety, f"a mapping of {', '.join(fields)}")
+        for key in ("epochs", "epochs_over_limit", "epochs_over_limit_after_warmup"):
+            if not _fits(safety[key], "count"):
+                refuse(f"training_safety.{key}", safety[key], "a whole number >= 0")
+        for key, limit in (("epochs_over_limit", "epochs"),
+                           ("epochs_over_limit_after_warmup", "epochs_over_limit")):  # fmt: skip
+            if safety[key] > safety[limit]:
+                refuse(f"training_safety.{key}", safety[key], f"at most its {limit!r}")
 
 
 def checkpoint_digest(path: Path) -> str:

@@ -314,3 +314,12 @@ class OffPolicyTrainer(Trainer):
             # No saved buffer: refill it with the current policy before updating again.
             refill = max(self.init_random_frames, int(self.cfg.algo.batch_size))
             self.update_start_frames = self.tracker.frames + refill
+            total = int(self.cfg.total_frames)
+            none = total <= self.update_start_frames and self.tracker.frames < total
+            print(
+                f"resume: the replay buffer was not saved (save_replay_buffer=false); the "
+                f"next {refill} frames refill it, no update before frame "
+                f"{self.update_start_frames}"
+                + (f"; this session stops at total_frames={total}: no update" if none else ""),
+                flush=True,
+            )

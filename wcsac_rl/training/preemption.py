@@ -11,10 +11,10 @@ in progress, as on Ctrl-C) and then calls :meth:`StopSignals.forward`, which han
 signal to the handler that was installed before (submitit's, which requeues the job
 and exits); without one the trainer raises :class:`Preempted`.
 
-The run is then continued by running the same command again when it has
+The run is then continued by ``python train.py resume=RUN_DIR``, and, when it has
 ``resume=auto`` (a sweep of an ``experiment=...`` does: each job continues from its own
-run directory's checkpoint), else by ``python train.py resume=RUN_DIR``: the message of
-:class:`Preempted` names the one that applies.
+run directory's checkpoint), by running the same command again: the message of
+:class:`Preempted` (and of Ctrl-C) names them (:func:`how_to_continue`).
 
 While a checkpoint (or any of a run's records) is being written, :class:`DeferredSignals`
 holds back these signals and ``SIGINT``/``SIGHUP`` too: the write finishes (the file is
@@ -31,7 +31,14 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-__all__ = ["DEFERRED_SIGNALS", "STOP_SIGNALS", "DeferredSignals", "Preempted", "StopSignals"]
+__all__ = [
+    "DEFERRED_SIGNALS",
+    "STOP_SIGNALS",
+    "DeferredSignals",
+    "Preempted",
+    "StopSignals",
+    "how_to_continue",
+]
 
 STOP_SIGNALS: tuple[str, ...] = ("SIGTERM", "SIGUSR1", "SIGUSR2")
 """The signals after which a training run checkpoints and stops (``SIGINT``, Ctrl-C, is
@@ -55,6 +62,14 @@ def train_command() -> str:
     return "python train.py"
 
 
+def how_to_continue(run_dir: Path, *, resume_auto: bool = False) -> str:
+    """The command that continues the run in ``run_dir`` (``resume=RUN_DIR``, which always
+    does), and with ``resume=auto`` that the same command does too (resume=auto is only
+    accepted where the command names its directory)."""
+    how = f"continue it with: {train_command()} resume={run_dir}"
+    return f"{how} (or run the same command again: it has resume=auto)" if resume_auto else how
+
+
 class Preempted(Exception):
     """The run stopped on a signal after writing its checkpoint.
 
@@ -71,12 +86,7 @@ class Preempted(Exception):
         self.checkpoint = Path(checkpoint)
         self.frames = int(frames)
         self.signal_name = signal.Signals(self.signum).name
-        run_dir = self.checkpoint.parent.parent
-        how = (
-            "run the same command again to continue it (it has resume=auto)"
-            if resume_auto
-            else f"continue it with: {train_command()} resume={run_dir}"
-        )
+        how = how_to_continue(self.checkpoint.parent.parent, resume_auto=resume_auto)
         super().__init__(
             f"stopped by {self.signal_name} at {self.frames} frames; checkpoint written to "
             f"{self.checkpoint}: {how}"

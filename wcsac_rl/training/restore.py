@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,8 +15,10 @@ from torchrl.envs import EnvBase
 from wcsac_rl.envs import CostKeyError, EnvSourceError
 from wcsac_rl.training import builders
 from wcsac_rl.training.checkpoint import (
+    CHECKPOINT_DIR,
     StateMismatch,
     check_current,
+    check_run_config,
     find_checkpoint,
     read_checkpoint,
 )
@@ -72,6 +75,18 @@ def trusted_eval_env(
         raise ConfigError(f"{checkpoint_path}: {err}") from None
 
 
+def _check_arguments(seed: Any, num_envs: Any) -> None:
+    """``load_run``'s seed (a whole number or None) and num_envs (a whole number >= 1)."""
+
+    def whole(value: Any) -> bool:
+        return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+    if seed is not None and not whole(seed):
+        raise ConfigError(f"load_run: seed must be a whole number or None, got {seed!r}")
+    if not whole(num_envs) or num_envs < 1:
+        raise ConfigError(f"load_run: num_envs must be a whole number >= 1, got {num_envs!r}")
+
+
 def load_run(
     path: str | os.PathLike,
     *,
@@ -96,11 +111,14 @@ def load_run(
     that was not allowed (:class:`~wcsac_rl.training.trust.UntrustedEnvCode`, nothing
     imported).
     """
+    _check_arguments(seed, num_envs)
     checkpoint_path = find_checkpoint(path)
     checkpoint, digest = read_checkpoint(checkpoint_path)
     cfg = on_cpu(stored_config(checkpoint["config"], checkpoint_path))  # whatever it trained on
     check_current(cfg, checkpoint_path)  # (a config of another commit's kit: refused)
     check_sizes(cfg, checkpoint_path)  # (a network or an episode nothing could build or run)
+    if checkpoint_path.parent.name == CHECKPOINT_DIR:  # in a run: its algorithm is the run's
+        check_run_config(checkpoint["config"], checkpoint_path.parent.parent, checkpoint_path)
     env = trusted_eval_env(
         cfg, checkpoint_path, trust_env_code=trust_env_code, seed=seed, num_envs=num_envs
     )

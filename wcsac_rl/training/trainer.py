@@ -41,6 +41,7 @@ from wcsac_rl.training.checkpoint import (
     LAST_CHECKPOINT,
     StateMismatch,
     check_compatible,
+    check_counters,
     check_not_behind,
     check_resume_changes,
     check_run_config,
@@ -54,7 +55,7 @@ from wcsac_rl.training.checkpoint import (
 )
 from wcsac_rl.training.config import ConfigError, TrainingError, validate_config
 from wcsac_rl.training.config_keys import check_known_keys, key_paths
-from wcsac_rl.training.preemption import Preempted, StopSignals
+from wcsac_rl.training.preemption import Preempted, StopSignals, how_to_continue
 from wcsac_rl.training.progress import EpisodeTracker, LossMeans, ProgressWriter, read_progress
 from wcsac_rl.training.provenance import session_provenance, write_provenance
 from wcsac_rl.training.run_dir import (
@@ -229,6 +230,7 @@ class Trainer:
         self._epoch_clock: float | None = None  # when this session's part of it began
         self._checkpoint_frames: int | None = None  # frames of this session's last save
         if checkpoint is not None:
+            check_counters(checkpoint, self._resumed_from)
             self._load_state(checkpoint)
             try:
                 self.load_learner_state(checkpoint.get("learner", {}))
@@ -438,7 +440,13 @@ class Trainer:
         except KeyboardInterrupt:
             self._save_interrupted()  # with the epoch in progress: the resumed session completes its row
             pbar.close()
-            print(f"\ninterrupted: checkpoint written to {self.checkpoint_path}")
+            how = how_to_continue(self.run_dir, resume_auto=self.cfg.resume == AUTO_RESUME)
+            print(
+                f"\ninterrupted at {self.tracker.frames} frames; checkpoint written to "
+                f"{self.checkpoint_path}: {how}",
+                file=sys.stderr,
+                flush=True,
+            )
             raise
         except OSError as err:
             if err.errno not in WRITE_ERRNOS:
@@ -650,8 +658,7 @@ class Trainer:
         """Count an update not taken because ``what`` was not finite (NaN or inf).
 
         Raises :class:`TrainingError` once ``max_nonfinite_updates`` updates in a row
-        were skipped: the networks are still those of the last finite update, and the
-        last checkpoint is kept.
+        were skipped (the last checkpoint, if one was written, is kept).
         """
         self.skipped_updates += 1
         self.epoch_skipped_updates += 1
@@ -661,8 +668,8 @@ class Trainer:
             raise TrainingError(
                 f"{self.nonfinite_streak} updates in a row had a non-finite {what} and were "
                 f"skipped (at {self.tracker.frames} frames, {self.skipped_updates} skipped in "
-                f"all); the networks are those of the last finite update and "
-                f"{self.checkpoint_path} is kept. Check the env's rewards, costs and "
+                f"all; {self._kept_checkpoint()}). Check the algorithm's options (a "
+                "multiplier or scale near its ceiling), the env's rewards, costs and "
                 "observations, try a lower algo.lr, or raise max_nonfinite_updates"
             )
 
