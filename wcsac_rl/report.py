@@ -40,7 +40,8 @@ Each figure is written as PNG and PDF, each row in one colour and marker in all 
 each Markdown table also as a LaTeX booktabs table (``.tex``). On a user's own env
 (``env=gymnasium``: no layout to draw on) Figure 5 is skipped in one line and the tables
 have no goals columns. Existing files are not overwritten without ``--force``. Errors print one ``error:``
-line and exit with code 1.
+line and exit with code 1, and leave nothing written: the report is written whole or
+not at all (a full disk, a read-only directory: one line naming the file).
 
 Examples::
 
@@ -176,8 +177,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parse_args(argv)
     import torch
 
+    from wcsac_rl.evaluation.latex import markdown_text
     from wcsac_rl.evaluation.reporting import build_report
-    from wcsac_rl.evaluation.run_report import parse_improvement
+    from wcsac_rl.evaluation.run_report import parse_improvements
     from wcsac_rl.evaluation.trajectories import TrajectoryError, VideoError
     from wcsac_rl.training.config import ConfigError
     from wcsac_rl.training.trust import allow_env_code
@@ -185,7 +187,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     out = args.out if args.out is not None else args.paths[0] / "report"
     try:
-        pairs = [parse_improvement(text) for text in args.improvement]
+        pairs = parse_improvements(args.improvement)
         with allow_env_code(args.trust_env_code):  # the policies Figure 5 loads
             report = build_report(
                 args.paths,
@@ -208,7 +210,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                 study=args.study,
             )
     except (ConfigError, TrajectoryError, VideoError) as err:
-        print(f"error: {err}", file=sys.stderr)
+        print(f"error: {markdown_text(err)}", file=sys.stderr)  # (a name's line break as \n)
+        return 1
+    except OSError as err:  # a run's file that cannot be read (writes are ReportErrors)
+        where = f"{err.filename}: " if err.filename else ""
+        print(f"error: {markdown_text(where + (err.strerror or str(err)))}", file=sys.stderr)
         return 1
     table = out / "table1.md"
     if table in report.files:

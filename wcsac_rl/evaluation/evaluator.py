@@ -60,6 +60,7 @@ __all__ = [
     "EvaluationExistsError",
     "check_env_code_allowed",
     "check_random_policy",
+    "check_writable",
     "evaluate_random_policy",
     "evaluate_run",
     "load_policy",
@@ -70,6 +71,11 @@ __all__ = [
 ]
 
 CSV_COLUMNS = ("episode", "return", "cost", "length", "goals", "numerical_failure")
+MAX_EPISODE_VALUE = 1e150
+"""The largest magnitude of an ``evaluation.csv`` cell read: an episode's cost or return
+sums float32 steps (each below 3.4e38) over at most millions of steps, far below it; a
+larger value is no episode the evaluator wrote, and its sums and squares over a report's
+episodes would overflow to infinity."""
 
 
 class EvaluationExistsError(ConfigError):
@@ -172,23 +178,61 @@ def stale_evaluation(directory: str | os.PathLike) -> str | None:
     return f"evaluated at {evaluated} frames, its checkpoint now has {frames}"
 
 
-def _atomic_write(path: Path, write: Callable[[Any], None]) -> None:
-    """What ``write`` writes to a text stream, as a new file renamed into place
-    (:func:`~wcsac_rl.training.run_dir.replace_file`)."""
+def _text(write: Callable[[Any], None]) -> str:
+    """What ``write`` writes to a text stream."""
     import io
-
-    from wcsac_rl.training.run_dir import replace_file
 
     buffer = io.StringIO(newline="")
     write(buffer)
-    replace_file(path, buffer.getvalue())
+    return buffer.getvalue()
+
+
+def check_writable(directory: str | os.PathLike) -> None:
+    """Refuse, before any work, a directory no file can be written in (read-only, full,
+    not a directory: :func:`~wcsac_rl.training.run_dir.unwritable_reason`), in one line."""
+    from wcsac_rl.training.run_dir import unwritable_reason
+
+    reason = unwritable_reason(directory)
+    if reason is not None:
+        reason = reason.removeprefix(f"{Path(directory).expanduser().absolute()}: ")
+        raise ConfigError(f"cannot write {directory}: {reason}")
+
+
+def _write_both(files: dict[Path, str]) -> None:
+    """Write ``files`` together: each is written whole beside its place
+    (:func:`~wcsac_rl.training.run_dir.replace_file`, ``.<name>.<pid>.new``) and only then
+    are they renamed into place, so that a failure (a full disk, a read-only file system)
+    leaves the previous files as they were and no file of its own; one line naming the file."""
+    from wcsac_rl.training.run_dir import replace_file
+
+    staged = {path: path.with_name(f".{path.name}.{os.getpid()}.new") for path in files}
+    path = next(iter(files))
+    try:
+        for path, text in files.items():
+            replace_file(staged[path], text)
+        for path, new in staged.items():
+            os.replace(new, path)
+    except OSError as err:
+        raise ConfigError(f"cannot write {path}: {err.strerror or err}") from None
+    finally:
+        for new in staged.values():
+            new.unlink(missing_ok=True)
 
 
 def write_evaluation(evaluation: Evaluation, *, force: bool = False) -> tuple[Path, Path]:
-    """Write ``evaluation.csv`` then ``evaluation.json`` (each atomically) into its directory."""
+    """Write ``evaluation.csv`` and ``evaluation.json`` into its directory, both or
+    neither (:func:`_write_both`).
+
+    Raises:
+        ConfigError: the files exist and not ``force`` (:class:`EvaluationExistsError`),
+            or they cannot be written (one line naming the file and why).
+    """
     directory = Path(evaluation.directory)
     check_can_write(directory, force)
-    directory.mkdir(parents=True, exist_ok=True)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise ConfigError(f"cannot write {directory}: {err.strerror or err}") from None
     csv_path, json_path = directory / EVALUATION_CSV, directory / EVALUATION_JSON
 
     def write_csv(f: Any) -> None:
@@ -203,8 +247,7 @@ def write_evaluation(evaluation: Evaluation, *, force: bool = False) -> tuple[Pa
         json.dump({**evaluation.meta, **evaluation.summary}, f, indent=2, sort_keys=False)
         f.write("\n")
 
-    _atomic_write(csv_path, write_csv)
-    _atomic_write(json_path, write_json)
+    _write_both({csv_path: _text(write_csv), json_path: _text(write_json)})
     return csv_path, json_path
 
 
@@ -254,6 +297,12 @@ def _episode(row: dict[str, Any], index: int, path: Path) -> EpisodeResult:
         if not math.isfinite(value) or (kind is int and value != int(value)):
             what = "a whole number" if kind is int else "a finite number"
             raise ConfigError(f"{path}: episode row {index}: {column} must be {what}, got {text!r}")
+        if abs(value) > MAX_EPISODE_VALUE:
+            raise ConfigError(
+                f"{path}: episode row {index}: {column} {text!r} is larger than any episode's "
+                f"(at most {MAX_EPISODE_VALUE:g} in magnitude; summed over the episodes it "
+                "would overflow)"
+            )
         return kind(value)
 
     return EpisodeResult(
@@ -444,6 +493,7 @@ def evaluate_run(
     steps = int(max_episode_steps or env_max_episode_steps(cfg))
     label = str(cfg.algo.get("label", cfg.algo.name))
     try:
+        check_writable(restored.run_dir)  # (before the episodes, not after them)
         results = _run(
             restored.env,
             restored.policy,
@@ -518,6 +568,7 @@ def evaluate_random_policy(
     check_random_policy(env_name, cost_limit)
     out_dir = Path(out_dir)
     check_can_write(out_dir, force)
+    check_writable(out_dir)
     kwargs = {} if max_episode_steps is None else {"max_episode_steps": int(max_episode_steps)}
     steps = int(env_info(env_name, **kwargs)["max_episode_steps"])
     env_seed = int(seed) + int(seed_offset)

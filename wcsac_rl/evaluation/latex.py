@@ -8,13 +8,18 @@ text: ``**x**`` becomes ``\\textbf{x}``, LaTeX's special characters are escaped 
 symbols the tables use (α, ≤, ±, ⌈ ⌉, …) are written in math mode, so the file compiles
 with ``\\usepackage{booktabs}`` alone. Plain string building: the same table gives the
 same bytes.
+
+Text that comes from a run's files (a run directory's name, a row label, a machine's
+name) goes into a Markdown table through :func:`markdown_cell` and into a title or a
+line of text through :func:`markdown_text`: a bar cannot split its cell and a line break
+cannot end its row, in the Markdown and so in the LaTeX made from it.
 """
 
 from __future__ import annotations
 
 import re
 
-__all__ = ["latex_path", "latex_text", "markdown_to_latex"]
+__all__ = ["latex_path", "latex_text", "markdown_cell", "markdown_text", "markdown_to_latex"]
 
 _SPECIAL = {
     "\\": r"\textbackslash{}",
@@ -50,6 +55,31 @@ _SYMBOLS = {
     "\u2009": r"\,",
     "\ufffd": "?",
 }
+
+
+_CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\u2028\u2029]")
+"""Characters that end or garble a line of text: line breaks, tabs and other controls."""
+
+
+def markdown_text(text: object) -> str:
+    """``text`` on one line: each line break, tab or other control character written as
+    its Python escape (``\\n``, ``\\t``, ``\\x1b``); any other text unchanged.
+
+    >>> markdown_text("run\\nname"), markdown_text("WCSAC-0.5")
+    ('run\\\\nname', 'WCSAC-0.5')
+    """
+    return _CONTROL.sub(lambda m: repr(m.group())[1:-1], str(text))
+
+
+def markdown_cell(text: object) -> str:
+    """``text`` as one cell of a Markdown pipe table (:func:`markdown_text`, and each bar
+    ``|`` written ``\\|``, which :func:`markdown_to_latex` reads back as a bar); any other
+    text unchanged.
+
+    >>> markdown_cell("wcsac|x"), markdown_cell("sac_lag[cost_limit=1.5]")
+    ('wcsac\\\\|x', 'sac_lag[cost_limit=1.5]')
+    """
+    return markdown_text(text).replace("|", "\\|")
 
 
 def latex_text(text: str) -> str:

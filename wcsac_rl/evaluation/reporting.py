@@ -55,21 +55,28 @@ Below a sweep directory (``multirun.yaml``, from any launcher) every job of the 
 is accounted for: jobs that never started, failed, still run or stopped before
 ``total_frames`` are warnings and are listed by name under Table 1 (:mod:`~wcsac_rl.evaluation.sweeps`).
 Nothing is overwritten unless ``force``: the existing files are listed and nothing
-is done. A report covers one environment and one budget d (pass ``env`` /
-``cost_limit`` when the runs mix them).
+is done. A report is written whole or not at all: its files are made in a staging
+directory and moved into place once every one is, so one that fails (a full disk, a
+name that breaks a table) leaves nothing. Text from a run's files (its directory's name,
+its row label, the machine it ran on) is escaped in the Markdown and LaTeX tables
+(:func:`~wcsac_rl.evaluation.latex.markdown_cell`); an ``evaluation.json`` whose seed,
+algorithm, label or env is not its run's config's is refused. A report covers one
+environment and one budget d (pass ``env`` / ``cost_limit`` when the runs mix them).
 """
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import io
 import math
 import os
 import re
+import secrets
 import shutil
 from collections import defaultdict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -82,11 +89,12 @@ from wcsac_rl.evaluation.evaluator import (
     DEFAULT_SEED_OFFSET,
     Evaluation,
     check_env_code_allowed,
+    check_writable,
     read_evaluation,
     stale_evaluation,
 )
 from wcsac_rl.evaluation.intervals import INTERVAL_METRICS, seed_bootstrap
-from wcsac_rl.evaluation.latex import latex_path, markdown_to_latex
+from wcsac_rl.evaluation.latex import latex_path, markdown_cell, markdown_text, markdown_to_latex
 from wcsac_rl.evaluation.metrics import RISK_LEVELS, aggregate_seeds, cvar_key
 from wcsac_rl.evaluation.outcomes import (
     FIG_OUTCOMES,
@@ -105,6 +113,7 @@ from wcsac_rl.evaluation.run_report import (
     write_run_statistics,
 )
 from wcsac_rl.evaluation.runs import (
+    STAGING_SUFFIX,
     display_text,
     env_has_layout,
     env_title,
@@ -117,7 +126,15 @@ from wcsac_rl.evaluation.runs import (
     split_row_label,
 )
 from wcsac_rl.evaluation.sweeps import SweepJob, incomplete_jobs
-from wcsac_rl.evaluation.training_safety_table import TRAINING_SAFETY_FILES, training_safety_files
+from wcsac_rl.evaluation.training_safety_table import (
+    TRAINING_SAFETY_CSV,
+    TRAINING_SAFETY_FILES,
+    TRAINING_SAFETY_MD,
+    TRAINING_SAFETY_TEX,
+    training_safety_csv,
+    training_safety_markdown,
+    training_safety_rows,
+)
 from wcsac_rl.training.checkpoint import IDENTITY_KEYS, kept_checkpoints
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
@@ -270,7 +287,7 @@ def runs_markdown(runs: Sequence[RunRecord], env: str | None) -> str:
     time (``progress.csv``'s ``time_s``, all sessions), sessions and code commits —
     and the total training time."""
     lines = [
-        f"# Training runs — {env_title(env) if env else '?'}",
+        f"# Training runs — {markdown_text(env_title(env)) if env else '?'}",
         "",
         "| run | row | seed | frames | training wall time | sessions | code |",
         "|---|---|---:|---:|---:|---:|---|",
@@ -283,10 +300,10 @@ def runs_markdown(runs: Sequence[RunRecord], env: str | None) -> str:
         if math.isfinite(seconds):
             total += seconds
         frames_text = f"{int(frames)}" if math.isfinite(frames) else "?"
+        name, row = markdown_cell(run.directory.name), markdown_cell(row_name(run.label))
         lines.append(
-            f"| {run.directory.name} | {row_name(run.label)} | {run.seed} | {frames_text} | "
-            f"{_wall_text(seconds)} | {run.sessions} | "
-            f"{_code_text(run.provenance, run.sessions)} |"
+            f"| {name} | {row} | {run.seed} | {frames_text} | {_wall_text(seconds)} | "
+            f"{run.sessions} | {markdown_cell(_code_text(run.provenance, run.sessions))} |"
         )
     lines += [
         "",
@@ -380,14 +397,14 @@ def table1_markdown(
     metrics = ["EC", *cvars, "ER", *(["goals"] if goals else [])]
     header = ["Algorithm", *metrics, "over budget", "episodes (seeds)"]
     lines = [
-        f"# Table 1 — {env_title(env)}, budget d = {cost_limit:g}",
+        f"# Table 1 — {markdown_text(env_title(env))}, budget d = {cost_limit:g}",
         "",
         "| " + " | ".join(header) + " |",
         "|---|" + "---:|" * (len(header) - 1),
     ]
     for row in rows:
         bold = _constrained_column(row["label"])
-        cells = [row["algorithm"]]
+        cells = [markdown_cell(row["algorithm"])]
         for key in metrics:
             text = f"{row[key]:.2f}"
             text = f"**{text}**" if key == bold else text
@@ -424,9 +441,9 @@ def table1_markdown(
             "| job | status | sweep | detail |",
             "|---|---|---|---|",
         ]
-        lines += [
-            f"| {job.name} | {job.status} | {job.sweep} | {job.detail} |" for job in incomplete
-        ]
+        for job in incomplete:
+            cells = (job.name, job.status, job.sweep, job.detail)
+            lines.append("| " + " | ".join(markdown_cell(cell) for cell in cells) + " |")
         lines.append("")
     return "\n".join(lines)
 
@@ -479,6 +496,12 @@ largest member and at a UCB are two rows)."""
 def _session_config(directory: Path) -> Any:
     """The run's config as its last session ran it (``config.resume<k>.yaml`` with the
     largest k, else ``config.yaml``); ``None`` without a readable one."""
+    found = _session_config_file(directory)
+    return None if found is None else found[1]
+
+
+def _session_config_file(directory: Path) -> tuple[Path, Any] | None:
+    """``(path, config)`` of :func:`_session_config`; ``None`` without a readable one."""
     resumed = sorted(
         directory.glob("config.resume*.yaml"),
         key=lambda p: (
@@ -489,9 +512,39 @@ def _session_config(directory: Path) -> Any:
     )
     for path in [*reversed(resumed), directory / "config.yaml"]:
         try:
-            return load_yaml(path)
+            return path, load_yaml(path)
         except Exception:  # missing or damaged: the next one
             continue
+    return None
+
+
+RUN_FIELDS = {"seed": "seed", "algo": "algo.name", "label": "algo.label", "env": "env.name"}
+"""``evaluation.json`` fields and the config keys of the run they must equal: an
+evaluation copied from another run, or edited, is not counted as this run's (a held-out
+seed written over an in-sample run's would make it one)."""
+
+
+def _config_mismatch(ev: Evaluation) -> str | None:
+    """The first field in which ``ev`` disagrees with its run's config (the last
+    session's, :func:`_session_config`), with both values; ``None`` when they agree or
+    there is no config (the random policy evaluated without a run)."""
+    found = _session_config_file(Path(ev.directory))
+    if found is None:
+        return None
+    path, cfg = found
+    for field_name, key in RUN_FIELDS.items():
+        value = plain_select(cfg, key)
+        if field_name == "label" and value is None:
+            value = plain_select(cfg, "algo.name")  # (as the evaluator labels it)
+        recorded = ev.meta.get(field_name)
+        if value is None or recorded is None or recorded == value:
+            continue
+        if interpolation_in(value) is not None:  # (never resolved: not compared)
+            continue
+        return (
+            f"{Path(ev.directory) / 'evaluation.json'} has {field_name} {recorded!r}, its "
+            f"run's {path.name} {key} {value!r}"
+        )
     return None
 
 
@@ -701,8 +754,10 @@ def build_report(
 
     Raises:
         ReportError: nothing to report, mixed envs or budgets, existing files without
-            ``force``, a video that cannot be made, runs a study cannot pool — before
-            anything is written.
+            ``force``, a video that cannot be made, runs a study cannot pool, an
+            evaluation that is not its run's, an ``out_dir`` that cannot be written —
+            before anything is written; a write that fails (a full disk) — nothing of
+            the report is left (:func:`_staging`), as after any other error.
     """
     out_dir = Path(out_dir).expanduser()
     report = Report(out_dir=out_dir)
@@ -722,39 +777,107 @@ def build_report(
         video_format, stage_rows, force, warn,
         also=[] if statistics is None else statistics.file_names(FORMATS),
     )  # fmt: skip
-    out_dir.mkdir(parents=True, exist_ok=True)
     # one colour and marker per row, the same in every figure of the report
     styles = plots.row_styles([e.label for e in evaluations] + [r.label for r in runs])
-    if evaluations:
-        report.rows = rows
-        report.files += _write_table1(
-            out_dir, rows, env, cost_limit, comparison, evaluations, report.incomplete,
-            fig6_rows, fig6_ymax, styles, warn,
-        )  # fmt: skip
-        report.files += write_run_statistics(
-            statistics, out_dir, _write_text, styles=styles, formats=FORMATS
-        )
-    else:
-        warn("no evaluated runs: Table 1 and Figure 6 skipped")
-    runs_with_progress = [r for r in runs if r.progress]
-    if runs_with_progress:
-        report.files += _write_training(out_dir, runs_with_progress, env, cost_limit, styles, warn)
-    else:
-        warn("no training runs with progress.csv: Figure 4 skipped")
-    if sources:
-        report.files += _figure5(
-            sources, out_dir, episodes=trajectory_episodes, max_steps=trajectory_max_steps,
-            env_seed=trajectory_seed, video_format=video_format if video else None,
-            stage_rows=stage_rows, title_env=env_title(env) if env else "?", styles=styles,
-            log=log,
-        )  # fmt: skip
-    for source, target in copies:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(source, target)
-        report.files.append(target)
+    with _staging(out_dir) as stage:  # (all files or none: a failure leaves nothing)
+        if evaluations:
+            report.rows = rows
+            report.files += _write_table1(
+                stage, rows, env, cost_limit, comparison, evaluations, report.incomplete,
+                fig6_rows, fig6_ymax, styles, warn,
+            )  # fmt: skip
+            report.files += write_run_statistics(
+                statistics, stage, _write_text, styles=styles, formats=FORMATS
+            )
+        else:
+            warn("no evaluated runs: Table 1 and Figure 6 skipped")
+        trained = [r for r in runs if r.progress]
+        if trained:
+            report.files += _write_training(stage, trained, env, cost_limit, styles, warn)
+        else:
+            warn("no training runs with progress.csv: Figure 4 skipped")
+        if sources:
+            report.files += _figure5(
+                sources, stage, episodes=trajectory_episodes, max_steps=trajectory_max_steps,
+                env_seed=trajectory_seed, video_format=video_format if video else None,
+                stage_rows=stage_rows, title_env=env_title(env) if env else "?", styles=styles,
+                log=log,
+            )  # fmt: skip
+        for source, target in copies:
+            staged = stage / ARCHIVE_DIR / target.relative_to(archive_dir)
+            staged.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copyfile(source, staged)
+            report.files.append(staged)
+        report.files = [out_dir / path.relative_to(stage) for path in report.files]
     for path in report.files:
         log(f"wrote {path}")
     return report
+
+
+@contextlib.contextmanager
+def _staging(out_dir: Path) -> Iterator[Path]:
+    """A new, empty directory to write the report into; its files are moved into
+    ``out_dir`` once every one is written. A report that fails (a full disk, a read-only
+    file system, any error) leaves nothing of itself: the directory is removed, with the
+    directories made for it, and an ``OSError`` is a :class:`ReportError` naming the file.
+
+    The directory is beside ``out_dir`` when that does not exist yet (then renamed to it,
+    one step), inside it when it does (each file then renamed into place). A directory
+    no file can be written in is refused before anything is made."""
+    try:
+        check_writable(out_dir)
+    except ConfigError as err:
+        raise ReportError(str(err)) from None
+    fresh = not out_dir.exists()
+    home = out_dir.parent if fresh else out_dir
+    made = [d for d in (home, *home.parents) if not d.exists()]  # deepest first
+    token = f"{os.getpid()}.{secrets.token_hex(4)}{STAGING_SUFFIX}"
+    stage = home / f".{out_dir.name or 'report'}.{token}"
+    try:
+        home.mkdir(parents=True, exist_ok=True)
+        stage.mkdir()
+        yield stage
+        _move_into(stage, out_dir, fresh)
+    except BaseException as err:
+        shutil.rmtree(stage, ignore_errors=True)
+        for directory in made:
+            with contextlib.suppress(OSError):
+                directory.rmdir()
+        if isinstance(err, OSError):
+            raise ReportError(_write_error(err, stage, out_dir)) from None
+        raise
+    shutil.rmtree(stage, ignore_errors=True)  # (emptied)
+
+
+def _move_into(stage: Path, out_dir: Path, fresh: bool) -> None:
+    """The staged files into ``out_dir``: the directory renamed to it when ``fresh``, else
+    each file renamed onto its place (checked first: no place is a directory)."""
+    if fresh:
+        os.rename(stage, out_dir)
+        return
+    moves = [(p, out_dir / p.relative_to(stage)) for p in sorted(stage.rglob("*")) if p.is_file()]
+    for _, target in moves:
+        if target.is_dir() and not target.is_symlink():
+            raise ReportError(f"cannot write {target}: it is a directory; move it away")
+        target.parent.mkdir(parents=True, exist_ok=True)
+    for source, target in moves:
+        os.replace(source, target)
+
+
+def _write_error(err: OSError, stage: Path, out_dir: Path) -> str:
+    """One line for an ``OSError`` of writing the report: the report's file it was
+    writing (a staged name shown as the file it stands for), or a run's file it read."""
+    why = err.strerror or str(err)
+    name = err.filename2 or err.filename
+    if not name:
+        return f"cannot write {out_dir}: {why}"
+    path = Path(os.fsdecode(name))
+    if path == stage or stage in path.parents:
+        return f"cannot write {out_dir / path.relative_to(stage)}: {why}"
+    mine, out = path.absolute(), out_dir.absolute()
+    if _within(mine, out) or mine in out.parents:  # (the report's directory, or one above)
+        return f"cannot write {path}: {why}"
+    return f"cannot read {path}: {why}"
 
 
 def _printers(
@@ -764,7 +887,7 @@ def _printers(
     logging ``warning: <message>`` and keeping the message in ``report.warnings``."""
 
     def printable(message: str) -> None:
-        log(display_text(message))
+        log(markdown_text(display_text(message)))  # (one line, whatever a name holds)
 
     def warn(message: str) -> None:
         report.warnings.append(message)
@@ -829,6 +952,12 @@ def _read_records(
             warn(f"skipped: {err}")
             unreadable.append(directory.name)
             continue
+        mismatch = _config_mismatch(evaluations[-1])
+        if mismatch is not None:  # another run's numbers must not enter Table 1 either
+            raise ReportError(
+                f"{mismatch}: not this run's evaluation; evaluate it again "
+                f"(python -m wcsac_rl.evaluate --force {directory})"
+            )
         reason = stale_evaluation(directory)
         if reason is not None:
             stale.append(f"{directory.name} ({reason})")
@@ -1026,6 +1155,12 @@ def _plan_outputs(
     return rows, comparison, copies
 
 
+def _in_cells(rows: Sequence[dict[str, Any]], *keys: str) -> list[dict[str, Any]]:
+    """``rows`` with the text of ``keys`` as Markdown table cells (:func:`markdown_cell`),
+    for a Markdown table of rows whose CSV keeps the text as it is."""
+    return [{**row, **{key: markdown_cell(row[key]) for key in keys}} for row in rows]
+
+
 def _write_table(path: Path, text: str) -> list[Path]:
     """A Markdown table and the same as a LaTeX booktabs table beside it (``.tex``)."""
     return [_write_text(path, text), _write_text(path.with_suffix(".tex"), markdown_to_latex(text))]
@@ -1082,7 +1217,10 @@ def _write_table1(
         formats=FORMATS,
     )
     outcomes = outcome_rows(evaluations, goals)
-    files += _write_table(out_dir / OUTCOMES_MD, outcomes_markdown(outcomes, title_env, goals))
+    markdown = outcomes_markdown(
+        _in_cells(outcomes, "algorithm", "run"), markdown_text(title_env), goals
+    )
+    files += _write_table(out_dir / OUTCOMES_MD, markdown)
     files.append(_write_text(out_dir / OUTCOMES_CSV, outcomes_csv(outcomes, goals)))
     plot_outcomes(
         outcomes, out_dir / FIG_OUTCOMES, title=title_env, has_goals=goals, formats=FORMATS
@@ -1100,7 +1238,15 @@ def _write_training(
 ) -> list[Path]:
     """runs.md, the training-safety table and Figure 4 of the runs with progress."""
     files = _write_table(out_dir / RUNS_MD, runs_markdown(runs, env))
-    for name, text in training_safety_files(runs, env, cost_limit, warn).items():
+    rows = training_safety_rows(runs, cost_limit, env=env, warn=warn)
+    markdown = training_safety_markdown(
+        _in_cells(rows, "algorithm"), None if env is None else markdown_text(env), cost_limit
+    )
+    for name, text in (
+        (TRAINING_SAFETY_MD, markdown),
+        (TRAINING_SAFETY_CSV, training_safety_csv(rows)),
+        (TRAINING_SAFETY_TEX, markdown_to_latex(markdown)),
+    ):
         files.append(_write_text(out_dir / name, text))
     by_label: dict[str, list[dict[str, list[float]]]] = defaultdict(list)
     for run in sorted(runs, key=lambda r: (row_sort_key(r.label), r.seed)):

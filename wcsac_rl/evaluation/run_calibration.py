@@ -164,7 +164,12 @@ def _finite_or_none(value: Any) -> Any:
 
 
 def _atomic_write_json(path: Path, data: dict[str, Any]) -> None:
-    replace_file(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
+    """``data`` as a new file renamed into place (:func:`~wcsac_rl.training.run_dir.replace_file`:
+    nothing of it is left when it cannot be written); one line naming the file and why."""
+    try:
+        replace_file(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
+    except OSError as err:
+        raise ConfigError(f"cannot write {path}: {err.strerror or err}") from None
 
 
 def check_can_write(run_dir: Path, force: bool) -> None:
@@ -208,12 +213,14 @@ def calibrate_run(
 
     Raises:
         ConfigError: see :func:`load_safety_run`; :class:`CalibrationExistsError`
-            (checked before any work).
+            or a run directory that cannot be written (checked before any work);
+            ``calibration.json`` that cannot be written after all (a full disk).
     """
     from wcsac_rl.evaluation.evaluator import (
         DEFAULT_SEED_OFFSET,
         _side_by_side,
         _training_seed,
+        check_writable,
     )
     from wcsac_rl.training.trainer import env_max_episode_steps
 
@@ -223,6 +230,7 @@ def calibrate_run(
 
     run_dir = find_checkpoint(run_dir).parent.parent
     check_can_write(run_dir, force)
+    check_writable(run_dir)  # (before the episodes, not after them)
     seed_offset = DEFAULT_SEED_OFFSET if seed_offset is None else int(seed_offset)
     env_seed = _training_seed(run_dir) + seed_offset
     cfg, env, policy, loss, frames = load_safety_run(

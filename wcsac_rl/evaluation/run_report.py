@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 from collections import defaultdict
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -45,7 +46,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from wcsac_rl.evaluation.latex import latex_path, markdown_to_latex
+from wcsac_rl.evaluation.latex import latex_path, markdown_cell, markdown_text, markdown_to_latex
 from wcsac_rl.evaluation.plots import FIGURE_FORMATS, figure_paths
 from wcsac_rl.evaluation.run_statistics import (
     HELD_OUT_SEEDS,
@@ -78,8 +79,10 @@ __all__ = [
     "RUN_VALUES_TEX",
     "RunStatistics",
     "RunStatisticsError",
+    "check_improvement_pairs",
     "collect_run_statistics",
     "parse_improvement",
+    "parse_improvements",
     "write_run_statistics",
 ]
 
@@ -157,7 +160,33 @@ def parse_improvement(text: str) -> tuple[str, str]:
         raise RunStatisticsError(
             f"--improvement takes A:B, two row labels (e.g. wcsac_0.1:sac_lag), got {text!r}"
         )
+    check_improvement_pairs([(a, b)])
     return a, b
+
+
+def parse_improvements(texts: Sequence[str]) -> list[tuple[str, str]]:
+    """Every ``--improvement A:B`` (:func:`parse_improvement`), refusing a pair given twice.
+
+    >>> parse_improvements(["wcsac_0.1:sac_lag", "wcsac_0.1:sac_lag_d1.5"])
+    [('wcsac_0.1', 'sac_lag'), ('wcsac_0.1', 'sac_lag_d1.5')]
+    """
+    pairs = [parse_improvement(text) for text in texts]
+    check_improvement_pairs(pairs)
+    return pairs
+
+
+def check_improvement_pairs(pairs: Sequence[tuple[str, str]]) -> None:
+    """Refuse (:class:`RunStatisticsError`, one line) a row set against itself (its P is
+    0.5 by construction, no finding) and a pair asked for twice (its lines twice)."""
+    seen: set[tuple[str, str]] = set()
+    for a, b in pairs:
+        if a == b:
+            raise RunStatisticsError(
+                f"--improvement {a}:{b} sets row {a!r} against itself; name two different rows"
+            )
+        if (a, b) in seen:
+            raise RunStatisticsError(f"--improvement {a}:{b} is given twice; give each pair once")
+        seen.add((a, b))
 
 
 @dataclass
@@ -201,7 +230,9 @@ def _machine_text(records: Sequence[dict[str, Any]]) -> str:
     """The CPU model and kernel capability of each session (``provenance.json``)."""
     shown = []
     for record in records:
-        machine = record.get("machine") or {}
+        machine = record.get("machine") if isinstance(record, dict) else None
+        if not isinstance(machine, dict):
+            continue
         if not machine.get("processor") and not machine.get("cpu_capability"):
             continue
         text = str(machine.get("processor") or "?")
@@ -345,6 +376,13 @@ def _improvement(a: dict, b: dict, runs_a: list[dict], runs_b: list[dict]) -> li
 def _run_record(ev: Any, cost_limit: float, config_of: Callable[[Path], Any]) -> dict[str, Any]:
     seed = int(ev.meta.get("seed", -1))
     directory = Path(ev.directory)
+    values = run_values(ev.costs, ev.returns, [e.goal_reached for e in ev.episodes], cost_limit)
+    overflowed = [metric for metric in RUN_METRICS if not math.isfinite(values[metric])]
+    if overflowed:  # (finite episodes whose sum is not: 1e308 each)
+        raise RunStatisticsError(
+            f"run {directory.name}: its {', '.join(overflowed)} over its episodes is not a "
+            "finite number (the episode values are too large to add up)"
+        )
     return {
         "label": ev.label,
         "algorithm": row_name(ev.label),
@@ -352,7 +390,7 @@ def _run_record(ev: Any, cost_limit: float, config_of: Callable[[Path], Any]) ->
         "split": "held-out" if is_held_out(seed) else "in-sample",
         "machine": _machine_text(read_provenance(directory)),
         "run": directory.name,
-        **run_values(ev.costs, ev.returns, [e.goal_reached for e in ev.episodes], cost_limit),
+        **values,
         "_settings": _settings(directory, ev.meta, config_of),
     }
 
@@ -386,6 +424,7 @@ def collect_run_statistics(
         RunStatisticsError: in a study, the first problem, a pair naming an absent row or
             one of fewer than 2 runs, or a row of fewer than 2 runs.
     """
+    check_improvement_pairs(improvement)
     study = study or bool(improvement)
     if not evaluations:
         if study:
@@ -454,7 +493,8 @@ def _columns(stats: RunStatistics, columns: Sequence[str]) -> list[str]:
 
 
 def _title(stats: RunStatistics) -> str:
-    return f"{env_title(stats.env) if stats.env else '?'}, budget d = {stats.cost_limit:g}"
+    env = markdown_text(env_title(stats.env)) if stats.env else "?"
+    return f"{env}, budget d = {stats.cost_limit:g}"
 
 
 def run_values_markdown(stats: RunStatistics) -> str:
@@ -467,9 +507,9 @@ def run_values_markdown(stats: RunStatistics) -> str:
         "|---|---:|---|---|" + "---:|" * len(metrics) + "---:|---|",
     ]
     for run in stats.runs:
-        cells = [run["algorithm"], str(run["seed"]), run["split"], run["machine"]]
+        cells = [markdown_cell(run[key]) for key in ("algorithm", "seed", "split", "machine")]
         cells += [f"{run[m]:.2f}" for m in metrics]
-        cells += [str(run["episodes"]), run["run"]]
+        cells += [str(run["episodes"]), markdown_cell(run["run"])]
         lines.append("| " + " | ".join(cells) + " |")
     lo, hi = HELD_OUT_SEEDS[0], HELD_OUT_SEEDS[-1]
     lines += [
@@ -500,8 +540,8 @@ def run_statistics_markdown(stats: RunStatistics) -> str:
         "|---|---:|" + "---:|" * len(metrics) + "---|",
     ]
     for row in stats.rows:
-        cells = [row["algorithm"], f"{row['runs']} ({row['held_out_runs']})"]
-        cells += [_cell(row, m) for m in metrics] + [row["machines"]]
+        cells = [markdown_cell(row["algorithm"]), f"{row['runs']} ({row['held_out_runs']})"]
+        cells += [_cell(row, m) for m in metrics] + [markdown_cell(row["machines"])]
         lines.append("| " + " | ".join(cells) + " |")
     lines += [
         "",
@@ -512,7 +552,7 @@ def run_statistics_markdown(stats: RunStatistics) -> str:
     if stats.single:
         lines.append(
             "Left out (one run: no statistics over runs): "
-            + ", ".join(row_name(label) for label in stats.single)
+            + ", ".join(markdown_text(row_name(label)) for label in stats.single)
             + "."
         )
     lines.append("")
@@ -524,11 +564,13 @@ def run_statistics_markdown(stats: RunStatistics) -> str:
             "|---|---|---|---:|---|---|",
         ]
         for entry in stats.improvements:
+            a, b = markdown_cell(row_name(entry["a"])), markdown_cell(row_name(entry["b"]))
+            reading = markdown_cell(entry["reading"])
             lines.append(
-                f"| {row_name(entry['a'])} | {row_name(entry['b'])} | {entry['metric']} | "
+                f"| {a} | {b} | {entry['metric']} | "
                 f"{entry['p_a_lower']:.2f} [{entry['lo']:.2f}, {entry['hi']:.2f}] | "
                 f"{entry['runs_a']} ({entry['held_out_a']}), "
-                f"{entry['runs_b']} ({entry['held_out_b']}) | {entry['reading']} |"
+                f"{entry['runs_b']} ({entry['held_out_b']}) | {reading} |"
             )
         lines += [
             "",

@@ -24,6 +24,7 @@ __all__ = [
     "EVALUATION_CSV",
     "EVALUATION_JSON",
     "ROW_ORDER",
+    "STAGING_SUFFIX",
     "display_text",
     "env_has_layout",
     "env_title",
@@ -40,6 +41,10 @@ __all__ = [
 
 EVALUATION_CSV = "evaluation.csv"
 EVALUATION_JSON = "evaluation.json"
+STAGING_SUFFIX = ".partial"
+"""A report is written into ``.<name>.<pid>.<token>.partial`` first and moved into place
+when whole (:mod:`~wcsac_rl.evaluation.reporting`); one a killed report left behind is
+not searched for runs (its archived copies would be counted twice)."""
 
 ROW_ORDER: tuple[str, ...] = tuple(row for entry in ALGORITHMS.values() for row in entry.paper_rows)
 """Table 1's rows (``algo.label`` values) in the paper's order (the registry's
@@ -161,10 +166,13 @@ def looks_like_run_dir(path: str | os.PathLike) -> bool:
 
 
 def _walk(root: Path) -> Iterable[Path]:
-    """``root`` and every directory below it (sorted, symlinks not followed)."""
+    """``root`` and every directory below it (sorted, symlinks not followed; a report's
+    staging directory left behind, ``.*.partial``, not entered)."""
     yield root
     for dirpath, dirnames, _ in os.walk(root):
-        dirnames.sort()
+        dirnames[:] = sorted(
+            d for d in dirnames if not (d.startswith(".") and d.endswith(STAGING_SUFFIX))
+        )
         for name in dirnames:
             yield Path(dirpath) / name
 

@@ -117,8 +117,6 @@ def load_run(
     cfg = on_cpu(stored_config(checkpoint["config"], checkpoint_path))  # whatever it trained on
     check_current(cfg, checkpoint_path)  # (a config of another commit's kit: refused)
     check_sizes(cfg, checkpoint_path)  # (a network or an episode nothing could build or run)
-    if checkpoint_path.parent.name == CHECKPOINT_DIR:  # in a run: its algorithm is the run's
-        check_run_config(checkpoint["config"], checkpoint_path.parent.parent, checkpoint_path)
     env = trusted_eval_env(
         cfg, checkpoint_path, trust_env_code=trust_env_code, seed=seed, num_envs=num_envs
     )
@@ -126,9 +124,14 @@ def load_run(
         policy = trainer_class(cfg.algo.name).restore_policy(
             cfg, checkpoint.get("learner", {}), env
         )
+        if checkpoint_path.parent.name == CHECKPOINT_DIR:  # in a run: the run's algorithm
+            check_run_config(checkpoint["config"], checkpoint_path.parent.parent, checkpoint_path)
     except StateMismatch as err:
         env.close()
         raise ConfigError(f"checkpoint {checkpoint_path}: {err}") from None
+    except ConfigError:
+        env.close()
+        raise
     if policy is not None:
         policy.eval()
     return RestoredRun(
