@@ -12,9 +12,10 @@ import sys
 import pytest
 from _training_helpers import ROOT, TINY_CLI
 
-from wcsac_rl.train import ConsoleLog, compose_config, run_training
+from wcsac_rl.train import compose_config, run_training
 from wcsac_rl.training import ConfigError
 from wcsac_rl.training.applicability import inapplicable, warn_inapplicable
+from wcsac_rl.training.run_records import ConsoleLog
 
 HELP_PROBE = """
 import runpy, sys

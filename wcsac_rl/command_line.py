@@ -1,0 +1,239 @@
+"""``wcsac-train``'s command line checked before Hydra runs: each refusal one line
+naming the override (Hydra's own are stacks of lines), nothing written. Imports only
+Hydra until a check needs more, so that ``--help`` answers at once."""
+
+from __future__ import annotations
+
+from omegaconf import DictConfig
+
+from wcsac_rl.config_dir import CONF_DIR
+
+__all__ = [
+    "answers_itself",
+    "check_command_line",
+    "check_interpolations",
+    "check_output_dirs",
+    "check_override_syntax",
+    "check_sweep_jobs",
+    "compose_config",
+]
+
+
+def answers_itself(argv: list[str]) -> bool:
+    """Whether Hydra answers ``argv`` without running a job (``--help``, ``--info``,
+    ``--cfg``, shell completion, a malformed flag)."""
+    from hydra._internal.utils import get_args_parser
+
+    try:
+        args, _ = get_args_parser().parse_known_args(argv)
+    except SystemExit:  # a malformed flag: Hydra answers it
+        return True
+    return bool(args.help or args.hydra_help or args.info or args.cfg or args.shell_completion)
+
+
+def check_command_line(argv: list[str]) -> None:
+    """Refuse an override of a key no chosen config has (``algo.batchsize=64``) in one
+    line naming the closest key, before Hydra composes the config (Hydra's own refusal
+    names none); ``--help`` and Hydra's other flags pass untouched (and fast)."""
+    import sys
+
+    from hydra._internal.utils import get_args_parser
+
+    if answers_itself(argv):
+        return
+    args, _ = get_args_parser().parse_known_args(argv)
+    from wcsac_rl.training.config_keys import check_override_keys
+    from wcsac_rl.training.errors import ConfigError
+
+    try:
+        check_override_syntax(list(args.overrides))
+        check_interpolations(list(args.overrides))
+        check_override_keys(list(args.overrides))
+        check_output_dirs(list(args.overrides))
+        check_sweep_jobs(list(args.overrides), multirun=bool(args.multirun))
+    except ConfigError as err:
+        sys.exit(f"error: {err}")
+
+
+def check_sweep_jobs(overrides: list[str], *, multirun: bool = True) -> None:
+    """Without ``-m`` a sweep (``algo.lr=1,2``) is one line saying to add it or to quote
+    the value. With ``-m``, every value of each sweep the command line names is checked
+    before the launcher starts a job (``seed=1,abc`` is refused before seed 1 trains):
+    the config of each value, the other sweeps at their first, composed and validated. A
+    sweep that resumes runs (``resume=...``) is checked by each job against its own run."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from wcsac_rl.training.config import validate_config
+    from wcsac_rl.training.errors import ConfigError
+
+    parser = OverridesParser.create()
+    parsed = parser.parse_overrides(overrides)
+    sweeps = [o for o in parsed if o.is_sweep_override() and not o.is_hydra_override()]
+    given = {o.get_key_element() for o in sweeps}
+    sweeps += [  # an experiment's own sweep (hydra.sweeper.params), where it runs one
+        o
+        for o in parser.parse_overrides(_config_sweeps(overrides, multirun))
+        if o.get_key_element() not in given
+    ]
+    if sweeps and not multirun and sweeps[0].input_line in overrides:
+        key, _, value = sweeps[0].input_line.partition("=")
+        raise ConfigError(
+            f"{sweeps[0].input_line} is a sweep of values: add -m (--multirun) to run one job "
+            f"for each, or quote the value to give it whole: \"{key}='{value}'\""
+        )
+    if not sweeps or any(o.get_key_element().lstrip("+~") == "resume" for o in parsed):
+        return
+    fixed = [o.input_line for o in parsed if not o.is_sweep_override()]
+    first = {id(o): next(iter(o.sweep_string_iterator())) for o in sweeps}
+    for sweep in sweeps:
+        for value in sweep.sweep_string_iterator():
+            job = [f"{o.get_key_element()}={value if o is sweep else first[id(o)]}" for o in sweeps]
+            validate_config(_job_config(fixed, job))
+
+
+def _config_sweeps(overrides: list[str], multirun: bool) -> list[str]:
+    """The sweep an experiment's config runs (``hydra.sweeper.params`` as overrides,
+    ``+row=sac,wcsac_0.1``), where the command runs in MULTIRUN mode: none otherwise."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
+
+    if not any(o.lstrip("+").startswith("experiment=") for o in overrides):
+        return []
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            hydra_cfg = compose("config", overrides, return_hydra_config=True).hydra
+    except Exception:  # (composition errors: the command itself reports them)
+        return []
+    finally:
+        GlobalHydra.instance().clear()
+    if not (multirun or str(hydra_cfg.mode) == "RunMode.MULTIRUN"):
+        return []
+    params = OmegaConf.to_container(hydra_cfg.sweeper.get("params") or {}, resolve=False)
+    return [f"{key}={value}" for key, value in params.items()]
+
+
+def _job_config(fixed: list[str], job: list[str]) -> DictConfig:
+    """The config of one job of a sweep, a job that cannot be composed one line naming it."""
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    from wcsac_rl._messages import first_line
+    from wcsac_rl.training.errors import ConfigError
+
+    try:
+        return compose_config(*fixed, *job)
+    except (HydraException, OmegaConfBaseException) as err:
+        cause = f" ({first_line(err.__cause__)})" if err.__cause__ is not None else ""
+        raise ConfigError(
+            f"the sweep's job {' '.join(job)} cannot be composed: {first_line(err)}{cause}; "
+            "give that option only to the jobs that have it (a sweep of fewer rows)"
+        ) from None
+
+
+def check_override_syntax(overrides: list[str]) -> None:
+    """Refuse, in one line naming it, an override Hydra's grammar cannot read (a path
+    with a newline, a character outside its lexer's such as ``ü``) and one that names no
+    key (``=5``): Hydra's own refusals are stacks of lines (or a traceback)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    from wcsac_rl.training.errors import ConfigError
+
+    parser = OverridesParser.create()
+    for override in overrides:
+        key, sep, _ = override.partition("=")
+        if sep and not key.lstrip("+~").strip():
+            raise ConfigError(f"cannot read the override {override!r}: it names no key (key=value)")
+        try:
+            parser.parse_overrides([override])
+        except (HydraException, ValueError) as err:
+            reason = (str(err).strip().splitlines() or [type(err).__name__])[0]
+            reason = reason.split(":", 1)[0] if reason.startswith("Lexer") else reason
+            key = override.split("=", 1)[0]
+            raise ConfigError(
+                f"cannot read the override {override!r} ({reason}): quote its value inside "
+                f"the argument, e.g. \"{key}='...'\", or choose a value without newlines or "
+                "characters outside ASCII"
+            ) from None
+
+
+def check_interpolations(overrides: list[str]) -> None:
+    """Refuse, in one line naming the key and the variable, an override whose
+    interpolation cannot resolve: ``${oc.env:NAME}`` of an unset variable without a
+    default, or a key that refers to itself (``seed=${seed}``). Hydra would resolve
+    them while making the run's directory, in its own stack of lines."""
+    import os
+    import re
+
+    from wcsac_rl.training.errors import ConfigError
+
+    for override in overrides:
+        key, sep, value = override.lstrip("+~").partition("=")
+        if sep and key == "run_name" and "${" not in value:
+            from wcsac_rl.training.config import check_run_name  # (imports torch)
+
+            check_run_name(value.strip("'\""))  # (before Hydra makes outputs/<date>/<name>)
+        if not sep or "${" not in value:
+            continue
+        for name, default in re.findall(r"\$\{oc\.env:\s*([^,}\s]+)\s*(,[^}]*)?\}", value):
+            if not default and name not in os.environ:
+                raise ConfigError(
+                    f"{key}={value}: the environment variable {name} is not set (set it, "
+                    f"or give a default: ${{oc.env:{name},<default>}})"
+                )
+        if re.search(r"\$\{\s*" + re.escape(key) + r"\s*\}", value):
+            raise ConfigError(f"{key}={value} refers to itself; give {key} a value")
+
+
+def check_output_dirs(overrides: list[str]) -> None:
+    """Refuse, in one line, a run or sweep directory that cannot be written (a read-only
+    file system, another user's directory) before Hydra tries to create it (its own
+    failure is a stack of lines). Directories given with interpolations are checked up
+    to their first one; without ``hydra.run.dir`` / ``hydra.sweep.dir``, Hydra writes
+    below the current directory."""
+    from wcsac_rl.training.errors import ConfigError
+    from wcsac_rl.training.run_dir import unwritable_reason
+
+    given = {}
+    for override in overrides:
+        key, sep, value = override.lstrip("+").partition("=")
+        if sep and key in ("hydra.run.dir", "hydra.sweep.dir"):
+            given[key] = value.strip("'\"")
+    for key, value in (given or {"the current directory": "."}).items():
+        literal = value.split("${", 1)[0] or "."
+        reason = unwritable_reason(literal)
+        if reason is not None:
+            where = f"{key}={value}" if key != "the current directory" else key
+            raise ConfigError(
+                f"cannot write the run's directory ({where}): {reason}; choose a directory "
+                "you can write (hydra.run.dir=..., or hydra.sweep.dir=... for a sweep)"
+            )
+
+
+def compose_config(*overrides: str) -> DictConfig:
+    """The config the command line ``wcsac-train <overrides>`` would train, for
+    :func:`~wcsac_rl.train.run_training` (an unknown key is refused in one line naming
+    the closest).
+
+    >>> cfg = compose_config("algo=sac_lag", "env=tiny", "seed=3")
+    >>> cfg.algo.name, cfg.env.name, cfg.seed, cfg.run_name
+    ('sac_lag', 'tiny', 3, 'sac_lag_tiny_seed3')
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from wcsac_rl.training.config_keys import check_override_keys
+
+    check_override_keys(list(overrides))
+    was_initialized = GlobalHydra.instance().is_initialized()
+    previous = GlobalHydra.instance().config_loader() if was_initialized else None
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            return compose("config", overrides=list(overrides))
+    finally:
+        if previous is not None:  # (a Hydra app calling this keeps its own state)
+            GlobalHydra.instance().clear()
+            GlobalHydra.instance().initialize(previous)
