@@ -55,6 +55,16 @@ def test_a_different_order_is_said_and_ties_are_shown():
     assert "EC, lowest first — here: SAC = WCSAC-0.1" in md  # equal ECs
 
 
+def test_an_order_of_fewer_runs_than_a_claim_needs_says_it_is_not_a_finding():
+    rows = [{**_row("sac", 10.0, 30.0), "runs": 10}, {**_row("wcsac_0.1", 5.0, 9.0), "runs": 3}]
+    md = paper_comparison_markdown(rows, "static", 15.0)
+    caveat = "; not a finding: 3 run(s) in a row, an ordering needs 10)"
+    assert md.count(f"(the same order over the 2 rows both tables have{caveat}") == 2
+    rows[1]["runs"] = 10
+    md = paper_comparison_markdown(rows, "static", 15.0)
+    assert md.count("(the same order over the 2 rows both tables have)") == 2
+
+
 def test_no_comparison_where_the_paper_has_no_table_or_another_budget():
     rows = [_row("sac", 10.0, 30.0)]
     assert paper_comparison_markdown(rows, "dynamic", 15.0) is None

@@ -307,3 +307,15 @@ def test_frames_are_written_in_thousands_with_at_most_one_decimal():
     assert _frames_text(130_000 / 3) == "43.3 k"
     assert _frames_text(60_000) == "60 k" and _frames_text(0.0) == "0 k"
     assert _frames_text(math.nan) == "never"
+
+
+def test_a_run_in_which_no_training_episode_finished_is_a_dash_not_never(tmp_path):
+    """Nothing was measured: no peak and no "never" (which says the last epoch was over d)."""
+    runs = tmp_path / "runs"
+    _fake_run(runs, "short_seed0", "sac", 0, _columns([NAN, NAN], [0, 0], [0.0, 0.0]))
+    _fake_run(runs, "short_seed1", "sac", 1, _columns([NAN, NAN], [0, 0], [0.0, 0.0]))
+    build_report([runs], tmp_path / "out", trajectories=False, log=lambda _: None)
+    lines = (tmp_path / "out" / TRAINING_SAFETY_MD).read_text().splitlines()
+    assert lines[4].split(" | ")[4:6] == ["– (– / –)", "– (– / –)"]
+    assert "never" not in lines[4]
+    assert lines[-1].endswith(" –: no training episode finished in the run (nothing was measured).")

@@ -31,6 +31,8 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
+from wcsac_rl.evaluation.latex import markdown_cell, markdown_text
+
 __all__ = [
     "FIG_OUTCOMES",
     "GOAL_OUTCOMES",
@@ -152,7 +154,7 @@ def outcomes_markdown(rows: Sequence[Mapping[str, Any]], title: str, has_goals: 
     columns = outcome_columns(classes)
     head = ["row", "seed", *(OUTCOME_TITLES.get(c, c) for c in columns), "run"]
     lines = [
-        f"# Episode outcomes — {title}",
+        f"# Episode outcomes — {markdown_text(title)}",
         "",
         "The test episodes of each run's final policy by what happened in them (episodes; "
         + (
@@ -166,11 +168,11 @@ def outcomes_markdown(rows: Sequence[Mapping[str, Any]], title: str, has_goals: 
     ]
     for row in rows:
         counts = row["counts"]
-        cells = [row["algorithm"], str(row["seed"]), *(str(counts[c]) for c in classes)]
-        cells.append(str(sum(counts.values())))
+        cells = [markdown_cell(row["algorithm"]), str(row["seed"])]
+        cells += [str(counts[c]) for c in classes] + [str(sum(counts.values()))]
         if has_goals:
             cells.append(learned(counts))
-        lines.append("| " + " | ".join([*cells, row["run"]]) + " |")
+        lines.append("| " + " | ".join([*cells, markdown_cell(row["run"])]) + " |")
     return "\n".join(lines) + "\n"
 
 

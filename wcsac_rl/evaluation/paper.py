@@ -11,6 +11,7 @@ from collections.abc import Mapping, Sequence
 from itertools import pairwise
 from typing import Any
 
+from wcsac_rl.evaluation.defaults import CLAIM_RUNS
 from wcsac_rl.evaluation.metrics import RISK_LEVELS, cvar_key
 from wcsac_rl.evaluation.runs import env_title, row_name, row_sort_key
 
@@ -101,10 +102,17 @@ def paper_comparison_markdown(
         here = {label: float(ours[label][key]) for label in same}
         there = {label: paper[label][key] for label in same}
         verdict = "the same order" if _ranked(here) == _ranked(there) else "a different order"
+        runs = [ours[label].get("runs") for label in same]  # (table1_rows' count per row)
+        fewest = None if None in runs else min(int(n) for n in runs)
+        caveat = (  # (an ordering's rule: docs/evaluation_protocol.md)
+            f"; not a finding: {fewest} run(s) in a row, an ordering needs {CLAIM_RUNS}"
+            if fewest is not None and fewest < CLAIM_RUNS
+            else ""
+        )
         lines += [
             f"{key}, lowest first — here: {_ordering(here)}",
             f"{key}, lowest first — paper: {_ordering(there)}",
-            f"({verdict} over the {len(same)} rows both tables have)",
+            f"({verdict} over the {len(same)} rows both tables have{caveat})",
             "",
         ]
     lines += [

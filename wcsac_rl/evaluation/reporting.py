@@ -126,15 +126,7 @@ from wcsac_rl.evaluation.runs import (
     split_row_label,
 )
 from wcsac_rl.evaluation.sweeps import SweepJob, incomplete_jobs
-from wcsac_rl.evaluation.training_safety_table import (
-    TRAINING_SAFETY_CSV,
-    TRAINING_SAFETY_FILES,
-    TRAINING_SAFETY_MD,
-    TRAINING_SAFETY_TEX,
-    training_safety_csv,
-    training_safety_markdown,
-    training_safety_rows,
-)
+from wcsac_rl.evaluation.training_safety_table import TRAINING_SAFETY_FILES, training_safety_files
 from wcsac_rl.training.checkpoint import IDENTITY_KEYS, kept_checkpoints
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
@@ -1155,12 +1147,6 @@ def _plan_outputs(
     return rows, comparison, copies
 
 
-def _in_cells(rows: Sequence[dict[str, Any]], *keys: str) -> list[dict[str, Any]]:
-    """``rows`` with the text of ``keys`` as Markdown table cells (:func:`markdown_cell`),
-    for a Markdown table of rows whose CSV keeps the text as it is."""
-    return [{**row, **{key: markdown_cell(row[key]) for key in keys}} for row in rows]
-
-
 def _write_table(path: Path, text: str) -> list[Path]:
     """A Markdown table and the same as a LaTeX booktabs table beside it (``.tex``)."""
     return [_write_text(path, text), _write_text(path.with_suffix(".tex"), markdown_to_latex(text))]
@@ -1217,9 +1203,7 @@ def _write_table1(
         formats=FORMATS,
     )
     outcomes = outcome_rows(evaluations, goals)
-    markdown = outcomes_markdown(
-        _in_cells(outcomes, "algorithm", "run"), markdown_text(title_env), goals
-    )
+    markdown = outcomes_markdown(outcomes, title_env, goals)
     files += _write_table(out_dir / OUTCOMES_MD, markdown)
     files.append(_write_text(out_dir / OUTCOMES_CSV, outcomes_csv(outcomes, goals)))
     plot_outcomes(
@@ -1238,15 +1222,7 @@ def _write_training(
 ) -> list[Path]:
     """runs.md, the training-safety table and Figure 4 of the runs with progress."""
     files = _write_table(out_dir / RUNS_MD, runs_markdown(runs, env))
-    rows = training_safety_rows(runs, cost_limit, env=env, warn=warn)
-    markdown = training_safety_markdown(
-        _in_cells(rows, "algorithm"), None if env is None else markdown_text(env), cost_limit
-    )
-    for name, text in (
-        (TRAINING_SAFETY_MD, markdown),
-        (TRAINING_SAFETY_CSV, training_safety_csv(rows)),
-        (TRAINING_SAFETY_TEX, markdown_to_latex(markdown)),
-    ):
+    for name, text in training_safety_files(runs, env, cost_limit, warn).items():
         files.append(_write_text(out_dir / name, text))
     by_label: dict[str, list[dict[str, list[float]]]] = defaultdict(list)
     for run in sorted(runs, key=lambda r: (row_sort_key(r.label), r.seed)):

@@ -46,6 +46,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
+from wcsac_rl.evaluation.defaults import CLAIM_RUNS
 from wcsac_rl.evaluation.latex import latex_path, markdown_cell, markdown_text, markdown_to_latex
 from wcsac_rl.evaluation.plots import FIGURE_FORMATS, figure_paths
 from wcsac_rl.evaluation.run_statistics import (
@@ -96,8 +97,6 @@ IMPROVEMENT_CSV = "improvement.csv"
 FIG_RUNS = "fig_runs.png"
 FIG_SCORE = "fig_score_distribution.png"
 
-CLAIM_RUNS = 10
-"""Held-out runs per row an ordering claim needs (docs/evaluation_protocol.md)."""
 IMPROVEMENT_METRICS = ("C0.1", "EC", "ER")
 """The measures the probability of improvement is given on: the costs C0.1 and EC, and the
 return ER (there a lower value is the worse one)."""

@@ -19,7 +19,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from wcsac_rl.evaluation.latex import latex_path, markdown_to_latex
+from wcsac_rl.evaluation.latex import latex_path, markdown_cell, markdown_text, markdown_to_latex
 from wcsac_rl.evaluation.runs import env_title, row_name, row_sort_key
 from wcsac_rl.training.training_safety import WARMUP_FRAMES, training_safety
 
@@ -139,6 +139,21 @@ def _cell(row: dict[str, Any], key: str, text: Callable[[float], str]) -> str:
     return f"{text(row[key])} ({' / '.join(text(v) for v in per_seed)})"
 
 
+def _safe_from_cell(row: dict[str, Any]) -> str:
+    """:func:`_cell` of ``safe_from_frames``: "–" for a seed in which no training episode
+    finished (its peak is NaN: nothing was measured), "never" where the last epoch was
+    over d."""
+    peaks = row["peak_epoch_cost_per_seed"]
+    texts = [
+        "–" if math.isnan(peak) else _frames_text(frames)
+        for frames, peak in zip(row["safe_from_frames_per_seed"], peaks, strict=True)
+    ]
+    if len(texts) == 1:
+        return texts[0]
+    mean = "–" if all(math.isnan(p) for p in peaks) else _frames_text(row["safe_from_frames"])
+    return f"{mean} ({' / '.join(texts)})"
+
+
 def _frames_text(frames: float) -> str:
     return "never" if math.isnan(frames) else f"{_count_text(frames / 1000)} k"
 
@@ -156,23 +171,27 @@ def training_safety_markdown(
     header = ["Algorithm", "cumulative cost", "epochs > d", f"after {warmup}", "peak epoch"]
     header += ["≤ d for good from", "frames (seeds)"]
     lines = [
-        f"# Training safety — {env_title(env) if env else '?'}, budget d = {cost_limit:g}",
+        f"# Training safety — {markdown_text(env_title(env)) if env else '?'}, budget "
+        f"d = {cost_limit:g}",
         "",
         "| " + " | ".join(header) + " |",
         "|---|" + "---:|" * (len(header) - 1),
     ]
     for row in rows:
         cells = [
-            row["algorithm"],
+            markdown_cell(row["algorithm"]),
             _cell(row, "cumulative_cost", lambda v: f"{v:.0f}"),
             _cell(row, "epochs_over_limit", _count_text),
             _cell(row, "epochs_over_limit_after_warmup", _count_text),
             _cell(row, "peak_epoch_cost", lambda v: "–" if math.isnan(v) else f"{v:.2f}"),
-            _cell(row, "safe_from_frames", _frames_text),
+            _safe_from_cell(row),
             f"{_frames_text(max(row['frames_per_seed']))} ({row['seeds']})",
         ]
         lines.append("| " + " | ".join(cells) + " |")
-    lines += ["", _LEGEND.format(d=f"{cost_limit:g}", warmup=warmup), ""]
+    legend = _LEGEND.format(d=f"{cost_limit:g}", warmup=warmup)
+    if any(math.isnan(p) for row in rows for p in row["peak_epoch_cost_per_seed"]):
+        legend += " –: no training episode finished in the run (nothing was measured)."
+    lines += ["", legend, ""]
     return "\n".join(lines)
 
 
