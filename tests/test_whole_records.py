@@ -152,6 +152,6 @@ def test_a_failed_write_leaves_no_temporary_file(sweep, tmp_path, monkeypatch):
 
     monkeypatch.setattr(reporting.os, "replace", full_disk)
     out = tmp_path / "out"
-    with pytest.raises(OSError):
-        _report(sweep, out)
-    assert _tmp_files(out) == []
+    with pytest.raises(reporting.ReportError, match="No space left on device"):
+        _report(sweep, out)  # (one line: the report is written whole or not at all)
+    assert _tmp_files(out) == [] and not out.exists()

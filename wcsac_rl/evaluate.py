@@ -15,9 +15,12 @@ directory (``multirun.yaml``, any launcher) every job of the sweep is accounted 
 (:mod:`~wcsac_rl.evaluation.sweeps`): a job that never started or has no checkpoint is
 one ``error:`` line naming it (exit code 1), one still training (its run directory
 locked) or stopped before ``total_frames`` a ``warning:`` (a checkpoint it has is
-evaluated as it is). ``--archive DIR`` also copies each evaluated run's records (no
-checkpoint: :mod:`~wcsac_rl.evaluation.archive`) into ``DIR/<run name>`` as soon as it
-is evaluated, so that a study whose run directories may not last keeps every finished
+evaluated as it is). Any other run evaluated before its config's ``total_frames`` (a
+run directory given itself) is one ``warning:`` line too, on stderr (``warning: RUN:
+evaluated at F of its T frames (training unfinished: ...)``), and is still evaluated.
+``--archive DIR`` also copies each evaluated run's records (no checkpoint:
+:mod:`~wcsac_rl.evaluation.archive`) into ``DIR/<run name>`` as soon as it is
+evaluated, so that a study whose run directories may not last keeps every finished
 run; ``python -m wcsac_rl.report DIR`` then makes its tables.
 
 Examples::
@@ -230,7 +233,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     import torch
 
     from wcsac_rl.evaluation.archive import ArchiveError, archive_run
-    from wcsac_rl.evaluation.evaluator import EvaluationExistsError
+    from wcsac_rl.evaluation.evaluator import EvaluationExistsError, unfinished_training
     from wcsac_rl.evaluation.outcomes import OUTCOME_TITLES
     from wcsac_rl.evaluation.sweeps import all_sweep_jobs
     from wcsac_rl.training.config import ConfigError
@@ -262,6 +265,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 1
     sweep_jobs = all_sweep_jobs(args.paths) if args.paths else []
     jobs = _jobs(args, sweep_jobs, errors)
+    # the sweep jobs named at the end as running or unfinished: not warned of twice
+    named = {job.directory.resolve() for job in sweep_jobs if job.directory and not job.complete}
+
+    def warn_unfinished(directory: Path, evaluation) -> None:
+        """One line for a run evaluated before its ``total_frames``."""
+        warning = unfinished_training(evaluation)
+        if warning is not None and Path(directory).resolve() not in named:
+            print(f"warning: {warning}", file=sys.stderr, flush=True)
 
     def keep(directory: Path) -> None:
         """With --archive: the records of a run evaluated now or before, copied."""
@@ -280,7 +291,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             keep(job.directory)
     for directory, job in jobs:
         try:
-            report(directory, job())
+            evaluation = job()
+            report(directory, evaluation)
+            warn_unfinished(directory, evaluation)
         except EvaluationExistsError as err:
             skipped.append(str(directory))
             print(f"skipped: {err}", file=sys.stderr, flush=True)

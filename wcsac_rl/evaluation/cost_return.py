@@ -88,7 +88,7 @@ def plot_cost_return(
     ax.set_xlabel("EC: mean episodic cost (95 % interval)")
     ax.set_ylabel("ER: mean episodic return (95 % interval)")
     ax.grid(alpha=0.3)
-    ax.set_title(title, fontsize=10)
-    fig.legend(loc="outside right upper", fontsize=8)  # beside the axes: never over a point
+    plots.draw_literally(ax.set_title(title, fontsize=10))  # (run data: "$" as written)
+    plots.draw_literally(fig.legend(loc="outside right upper", fontsize=8))  # beside the axes
     plots.save_figure(fig, out, formats=formats)
     return Path(out)

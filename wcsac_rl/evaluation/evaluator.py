@@ -10,6 +10,8 @@ runs the paper's deterministic (mean-action) test episodes and writes, beside th
   (``metrics``: EC, C0.9, C0.5, C0.1, ER, over_budget, episodes; plus mean length,
   goals per episode and numerical failures).
 
+A run whose checkpoint has fewer frames than its config's ``total_frames`` is
+evaluated as it is; :func:`unfinished_training` says so (``wcsac-evaluate`` warns).
 :func:`evaluate_random_policy` does the same for the uniform random policy without
 a training run. Existing evaluation files are never overwritten unless ``force``
 — or unless they are *stale*: ``evaluation.json`` records the SHA-256 of the
@@ -67,6 +69,7 @@ __all__ = [
     "read_evaluation",
     "stale_evaluation",
     "summarize",
+    "unfinished_training",
     "write_evaluation",
 ]
 
@@ -92,12 +95,16 @@ class Evaluation:
             ``trained_frames``, ``env_seed``, ``max_episode_steps``, ``policy``, ...
         episodes: the per-episode results.
         summary: :func:`summarize` of ``episodes`` (``metrics`` and extras).
+        total_frames: the frames the run's config trains for (``total_frames``), where
+            :func:`evaluate_run` evaluated it (``None``: the random policy, or read back
+            from the files, which do not record it); see :func:`unfinished_training`.
     """
 
     directory: Path
     meta: dict[str, Any]
     episodes: list[EpisodeResult]
     summary: dict[str, Any] = field(default_factory=dict)
+    total_frames: int | None = None
 
     @property
     def label(self) -> str:
@@ -526,9 +533,35 @@ def evaluate_run(
         meta=meta,
         episodes=results,
         summary=summarize(results, float(cfg.cost_limit), str(cfg.env.name)),
+        total_frames=_total_frames(cfg),
     )
     write_evaluation(evaluation, force=force)
     return evaluation
+
+
+def _total_frames(cfg: Any) -> int | None:
+    """The run's ``total_frames`` (``None`` where its config has no whole number there)."""
+    total = cfg.get("total_frames")
+    if isinstance(total, bool) or not isinstance(total, int):
+        return None
+    return total
+
+
+def unfinished_training(evaluation: Evaluation) -> str | None:
+    """``"<run>: evaluated at F of its T frames (training unfinished: ...)"`` where
+    :func:`evaluate_run` evaluated a run whose checkpoint has fewer frames than its
+    config's ``total_frames`` (stopped early, killed, or still training), else ``None``:
+    such an evaluation is of the run so far, not of what its config trains, and
+    ``wcsac-evaluate`` says so (one ``warning:`` line per run)."""
+    trained = evaluation.meta.get("trained_frames")
+    total = evaluation.total_frames
+    if total is None or not isinstance(trained, int) or trained >= total:
+        return None
+    directory = evaluation.directory
+    return (
+        f"{directory}: evaluated at {trained} of its {total} frames (training unfinished: "
+        f"resume it to finish, resume={directory})"
+    )
 
 
 def check_random_policy(env_name: str, cost_limit: float) -> None:

@@ -209,7 +209,7 @@ def plot_outcomes(
     class (the first run on top), the runs grouped by row."""
     from matplotlib.figure import Figure
 
-    from wcsac_rl.evaluation.plots import save_figure
+    from wcsac_rl.evaluation.plots import draw_literally, save_figure
 
     classes = outcome_classes(has_goals)
     n = len(rows)
@@ -222,6 +222,7 @@ def plot_outcomes(
         ax.barh(y, shares, left=left, height=0.75, color=_COLORS[cls], label=OUTCOME_TITLES[cls])
         left = [a + b for a, b in zip(left, shares)]
     ax.set_yticks(y, [f"{row['algorithm']}  seed {row['seed']}" for row in rows], fontsize=8)
+    draw_literally(ax.get_yticklabels())  # (names from run data: a "$" is a character)
     ax.set_xlim(0.0, 1.0)
     ax.set_ylim(-0.6, n - 0.4)
     ax.set_xlabel("share of test episodes")
@@ -229,5 +230,5 @@ def plot_outcomes(
         ax.axvline(LEARNED_GOAL_SHARE, color="k", linestyle="--", linewidth=1)
     ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncol=3, fontsize=8,
               frameon=False)  # fmt: skip
-    fig.suptitle(f"Episode outcomes — {title}")
+    draw_literally(fig.suptitle(f"Episode outcomes — {title}"))
     save_figure(fig, out, formats=formats)

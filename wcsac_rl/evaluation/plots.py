@@ -8,6 +8,11 @@ Every figure of a report draws a row (a Table-1 label) in one style: call
 figure (``styles=``); the colours are colour-blind safe (Okabe-Ito, then Paul Tol's
 muted scheme). :func:`save_figure` writes a figure as PNG and PDF (``formats=``), with
 no timestamp in either: the same figure gives the same bytes.
+
+Every text drawn from run data (a row's or a run's name, a title naming them) is drawn
+as written (:func:`draw_literally`: a ``$`` in it is no formula). The env-step axes
+never show fractions of a step (:func:`set_frames_axis`), a panel with nothing to draw
+says why inside it (:func:`mark_empty_panel`), and the ± std bands of a cost end at 0.
 """
 
 from __future__ import annotations
@@ -32,12 +37,18 @@ __all__ = [
     "FIG4_SIZE",
     "FIG6_SIZE",
     "FIGURE_FORMATS",
+    "NO_EPISODES",
+    "NO_TRAINING_EPISODES",
+    "NO_VALUES",
     "ROW_MARKERS",
     "ROW_PALETTE",
     "RowStyle",
     "box_view",
     "curve_panels",
+    "draw_literally",
     "figure_paths",
+    "frames_formatter",
+    "mark_empty_panel",
     "plot_cost_distribution",
     "plot_run_curves",
     "plot_training_curves",
@@ -129,6 +140,21 @@ def styles_for(labels: Iterable[str], styles: Mapping[str, RowStyle] | None) -> 
     return dict(styles)
 
 
+def draw_literally(texts: Iterable[Any] | Any) -> None:
+    """Draw ``texts`` (matplotlib ``Text`` objects, or a ``Legend`` for its entries) as
+    written: no mathtext, no TeX. For every text drawn from run data (a row label, an
+    algorithm's or a run's name, a title naming them): a ``$`` in it is a character,
+    not the start of a formula matplotlib would fail to parse while drawing."""
+    from matplotlib.legend import Legend
+
+    if isinstance(texts, Legend):
+        texts = [*texts.get_texts(), texts.get_title()]
+    elif not isinstance(texts, Iterable):
+        texts = [texts]
+    for text in texts:
+        text.set(parse_math=False, usetex=False)
+
+
 TICK_ROTATION = 45  # degrees: the x labels' tilt when a figure has many rows
 
 
@@ -140,21 +166,88 @@ def set_row_ticks(ax: Any, names: Sequence[str]) -> None:
         wrapped = [textwrap.fill(name, width=14, break_on_hyphens=False) for name in names]
         ax.set_xticks(range(len(names)), wrapped)
         ax.tick_params(axis="x", labelsize=9)
+        draw_literally(ax.get_xticklabels())  # (names from run data: drawn as written)
         return
     ax.set_xticks(range(len(names)), list(names))
     ax.tick_params(axis="x", labelsize=8)
     for label in ax.get_xticklabels():
         label.set(rotation=TICK_ROTATION, horizontalalignment="right", rotation_mode="anchor")
+    draw_literally(ax.get_xticklabels())
+
+
+def frames_formatter() -> Any:
+    """Tick labels of env steps: whole numbers below 1 000 (``0``, ``200``), engineering
+    units from there (``50 k``, ``1.5 M``), never a fraction of a step (no ``200 m``)."""
+    from matplotlib.ticker import EngFormatter
+
+    class _FramesFormatter(EngFormatter):
+        def __call__(self, x: float, pos: int | None = None) -> str:
+            steps = round(x) if math.isfinite(x) else x
+            if abs(steps) < 1000:
+                return self.fix_minus(f"{steps:d}")
+            return super().__call__(steps, pos)
+
+    return _FramesFormatter(sep=" ")
 
 
 def set_frames_axis(ax: Any) -> None:
-    """An x axis of env steps: at most 6 ticks, in engineering units (``50 k``, ``1.5 M``),
-    so that the labels of a run of millions of frames do not run into each other."""
-    from matplotlib.ticker import EngFormatter, MaxNLocator
+    """An x axis of env steps: at most 6 ticks, at whole steps, in engineering units from
+    1 000 (``50 k``, ``1.5 M``; :func:`frames_formatter`), so that the labels of a run of
+    millions of frames do not run into each other and those of a short run (or of a panel
+    with no values) are never fractions of a step."""
+    from matplotlib.ticker import MaxNLocator
 
-    ax.xaxis.set_major_locator(MaxNLocator(nbins=6, steps=[1, 2, 2.5, 5, 10]))
-    ax.xaxis.set_major_formatter(EngFormatter(sep=" "))
+    ax.xaxis.set_major_locator(MaxNLocator(nbins=6, steps=[1, 2, 2.5, 5, 10], integer=True))
+    ax.xaxis.set_major_formatter(frames_formatter())
     ax.set_xlabel("env steps")
+
+
+NO_TRAINING_EPISODES = "no finished training episodes"
+"""Written inside a panel of training-episode curves without one value: no training
+episode of its runs ended (a run shorter than an episode, or stopped early)."""
+NO_EPISODES = "no finished episodes"
+"""Written inside a run's return or cost panel when neither a training nor a test
+episode ended (where only test episodes did: :data:`NO_TRAINING_EPISODES`, under
+their curve)."""
+NO_VALUES = "no values logged"
+"""Written inside a panel whose column no run logged a value of."""
+
+
+def mark_empty_panel(
+    ax: Any,
+    message: str,
+    frames: Sequence[float] = (),
+    cost_limit: float | None = None,
+) -> None:
+    """Say ``message`` inside a panel that has nothing to draw (it is not left blank),
+    over the env steps of ``frames`` (the x range the figure's other panels show); no y
+    scale (there is none), except up to 1.5 × ``cost_limit`` where the panel draws the
+    budget d."""
+    ax.text(
+        0.5,
+        0.4,
+        message,
+        transform=ax.transAxes,
+        ha="center",
+        va="center",
+        fontsize=10,
+        color="0.3",
+        style="italic",
+        bbox={"boxstyle": "round", "facecolor": "white", "edgecolor": "0.7"},
+        zorder=5,
+    )
+    finite = [float(f) for f in frames if math.isfinite(float(f))]
+    if finite:
+        low, high = min(finite), max(finite)
+        pad = 0.05 * (high - low)  # matplotlib's default margins, as the other panels'
+        if high > low:
+            ax.set_xlim(low - pad, high + pad)
+        else:  # one epoch: from the start
+            ax.set_xlim(0.0, max(high, 1.0))
+    if cost_limit is not None and cost_limit > 0:
+        ax.set_ylim(0.0, 1.5 * cost_limit)
+    else:
+        ax.set_yticks([])
 
 
 _PANELS = (
@@ -253,7 +346,7 @@ def run_curves_figure(
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=8)
     suffix = f" (trailing mean over {int(smooth)} epochs)" if smooth > 1 else ""
-    fig.suptitle(f"{title}{suffix}", fontsize=10)
+    draw_literally(fig.suptitle(f"{title}{suffix}", fontsize=10))  # (a run's name)
     return fig
 
 
@@ -273,10 +366,26 @@ def _draw_run_panel(
     keys_of = dict(_PANELS)
     weights = dict(_WEIGHT_PANELS)
     if panel in keys_of:
+        drawn = [key for key in keys_of[panel] if _has_values(columns, key)]
         for key, color in zip(keys_of[panel], ("C0", "C1")):
-            if _has_values(columns, key):
+            if key in drawn:
                 label = "test (deterministic)" if key.startswith("eval/") else "training"
                 _curve(ax, frames, columns[key], smooth, color=color, label=label)
+        if not drawn:
+            limit = cost_limit if panel == "episode cost" else None
+            mark_empty_panel(ax, NO_EPISODES if panel != "cost rate" else NO_VALUES, frames, limit)
+        elif keys_of[panel][0] not in drawn:  # the test episodes' curve only
+            ax.text(
+                0.5,
+                0.03,
+                NO_TRAINING_EPISODES,
+                transform=ax.transAxes,
+                ha="center",
+                va="bottom",
+                fontsize=8,
+                color="0.3",
+                style="italic",
+            )
         if panel == "episode cost" and cost_limit is not None:
             ax.axhline(
                 cost_limit,
@@ -337,6 +446,8 @@ _CURVE_PANELS = (
     ("(b) Average episodic cost", "train/episode_cost", "episodic cost"),
     ("(c) Cost rate", "train/cost_rate", "cumulative cost / env steps"),
 )
+_COST_COLUMNS = ("train/episode_cost", "train/cost_rate")  # >= 0: their bands end at 0
+_STEP_COLUMNS = ("train/cost_rate",)  # per env step, not per finished episode
 
 
 def row_color(label: str) -> str:
@@ -414,7 +525,10 @@ def plot_training_curves(
     Args:
         rows: Table-1 row label → the ``read_progress`` columns of each seed's run.
             Each row is drawn as the mean over its seeds (line) ± one standard
-            deviation (shaded), on the training-episode columns as in the paper.
+            deviation (shaded, cut at 0 on the cost panels: a cost is never
+            negative), on the training-episode columns as in the paper. A panel
+            without a value (no training episode of any run ended: a run shorter
+            than an episode) says so inside it (:data:`NO_TRAINING_EPISODES`).
         out: PNG path (``FIG4_SIZE`` × ``DPI`` pixels).
         cost_limit: the budget d, a dashed line on the cost panel.
         title: the figure's title.
@@ -429,7 +543,9 @@ def plot_training_curves(
     fig = Figure(figsize=FIG4_SIZE, layout="constrained")
     axes = fig.subplots(1, len(_CURVE_PANELS))
     handles: dict[str, Any] = {}
+    frames = [f for runs in rows.values() for run in runs for f in run.get("frames", ())]
     for ax, (panel_title, key, ylabel) in zip(axes, _CURVE_PANELS):
+        drawn = False
         for label, runs in rows.items():
             curves = [(run["frames"], run[key]) for run in runs if key in run and "frames" in run]
             if not curves:
@@ -438,6 +554,7 @@ def plot_training_curves(
             ok = ~np.isnan(mean)
             if not ok.any():
                 continue
+            drawn = True
             style = styles[label]
             seeds = f"{len(curves)} seed{'s' if len(curves) != 1 else ''}"
             (line,) = ax.plot(
@@ -450,9 +567,15 @@ def plot_training_curves(
                 label=f"{row_name(label)} ({seeds})",
             )
             handles.setdefault(line.get_label(), line)
-            ax.fill_between(
-                x[ok], (mean - std)[ok], (mean + std)[ok], color=style.color, alpha=0.15
-            )
+            low = mean - std
+            if key in _COST_COLUMNS:  # a cost is >= 0: so is the band's lower edge
+                low = np.maximum(low, 0.0)
+            ax.fill_between(x[ok], low[ok], (mean + std)[ok], color=style.color, alpha=0.15)
+        if not drawn:
+            # (the cost rate is per step: it needs no finished episode)
+            message = NO_VALUES if key in _STEP_COLUMNS else NO_TRAINING_EPISODES
+            limit = cost_limit if key == "train/episode_cost" else None
+            mark_empty_panel(ax, message, frames, limit)
         if key == "train/episode_cost" and cost_limit is not None:
             line = ax.axhline(cost_limit, color="k", linestyle="--", linewidth=1.2)
             handles.setdefault(f"budget d = {cost_limit:g}", line)
@@ -461,14 +584,15 @@ def plot_training_curves(
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
     if handles:  # one legend for the three panels, under them (never over a curve)
-        fig.legend(
+        legend = fig.legend(
             list(handles.values()),
             list(handles),
             loc="outside lower center",
             ncol=min(len(handles), 6),
             fontsize=8,
         )
-    fig.suptitle(f"{title} — mean ± std over seeds (training episodes)")
+        draw_literally(legend)  # (the rows' names)
+    draw_literally(fig.suptitle(f"{title} — mean ± std over seeds (training episodes)"))
     return _save(fig, out, formats)
 
 
@@ -583,7 +707,7 @@ def plot_cost_distribution(
     ax_bar.grid(axis="y", alpha=0.3)
     for ax in (ax_box, ax_bar):
         set_row_ticks(ax, names)
-    fig.suptitle(title)
+    draw_literally(fig.suptitle(title))
     return _save(fig, out, formats)
 
 
@@ -702,7 +826,7 @@ def _draw_trajectories(
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
-    ax.set_title(title, fontsize=10)
+    draw_literally(ax.set_title(title, fontsize=10))  # (a row's name)
     ax.grid(alpha=0.2)
     ax.legend(handles=handles, fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2)
 
@@ -753,5 +877,5 @@ def plot_trajectories(
                 spine.set(edgecolor=styles[row].color, linewidth=2.5)
     for ax in axes[len(panels) :]:
         ax.set_axis_off()
-    fig.suptitle(title)
+    draw_literally(fig.suptitle(title))
     return _save(fig, out, formats)

@@ -9,9 +9,10 @@
   better); x is linear up to the budget d and logarithmic above it.
 
 Built on ``matplotlib.figure.Figure`` (no pyplot), each row in its colour and marker of the
-report (``styles``: :func:`~wcsac_rl.evaluation.plots.row_styles`), and written by
-:func:`~wcsac_rl.evaluation.plots.save_figure` (PNG and PDF, no time stamp): the same runs
-give the same bytes.
+report (``styles``: :func:`~wcsac_rl.evaluation.plots.row_styles`), the names and titles
+from run data drawn as written (:func:`~wcsac_rl.evaluation.plots.draw_literally`: a ``$``
+in them is no formula), and written by :func:`~wcsac_rl.evaluation.plots.save_figure` (PNG
+and PDF, no time stamp): the same runs give the same bytes.
 """
 
 from __future__ import annotations
@@ -108,7 +109,7 @@ def plot_run_values(
         ax.set_title(panel_title)
         ax.grid(axis="y", alpha=0.3)
     _legend(fig, stats.cost_limit)
-    fig.suptitle(f"Runs one by one — {title}")
+    plots.draw_literally(fig.suptitle(f"Runs one by one — {title}"))  # (names from run data)
     return _write(fig, out, formats)
 
 
@@ -188,6 +189,6 @@ def plot_score_distribution(
     ax.set_xlabel("x: C0.1 of a run (mean cost of its worst 10 % of test episodes)")
     ax.set_ylabel("fraction of runs with C0.1 <= x")
     ax.grid(alpha=0.3)
-    fig.legend(fontsize=8, loc="outside right upper")
-    ax.set_title(f"Score distribution over runs — {title}", fontsize=10)
+    plots.draw_literally(fig.legend(fontsize=8, loc="outside right upper"))  # (rows' names)
+    plots.draw_literally(ax.set_title(f"Score distribution over runs — {title}", fontsize=10))
     return _write(fig, out, formats)
