@@ -92,3 +92,27 @@ def train_py(cwd: Path, *overrides: str, timeout: float = 300) -> subprocess.Com
         text=True,
         timeout=timeout,
     )
+
+
+EVIDENCE_RUNS = ROOT / "results" / "evidence_static" / "runs"
+"""The archived runs of a committed study (three seeds a row)."""
+
+
+def evaluated_tiny_run(root: Path) -> Path:
+    """``root`` holding ``wcsac``: a finished tiny WCSAC run (α = 0.5, 400 frames)
+    evaluated on 2 episodes."""
+    from wcsac_rl.evaluation.evaluator import evaluate_run
+
+    train_tiny(root / "wcsac", "risk_level=0.5", "total_frames=400")
+    evaluate_run(root / "wcsac", episodes=2, progress=False)
+    return root
+
+
+def copy_study(root: Path) -> Path:
+    """``root`` holding two rows of three archived runs each (WCSAC-0.1, SAC-Lag; seeds
+    0, 10, 20) copied from :data:`EVIDENCE_RUNS`."""
+    for row in ("wcsac_0.1", "sac_lag"):
+        for seed in (0, 10, 20):
+            name = f"{row}_static_seed{seed}"
+            shutil.copytree(EVIDENCE_RUNS / name, root / name)
+    return root

@@ -31,11 +31,11 @@ from _hostile_helpers import (
     TINY,
     copy_run,
     error_lines,
+    evaluated_tiny_run,
     files_unchanged,
     one_line,
     parametrize,
     train_py,
-    train_tiny,
 )
 from _loss_helpers import make_batch, make_loss
 from _training_helpers import ROOT, compose_config, tree_digests
@@ -43,7 +43,6 @@ from _training_helpers import ROOT, compose_config, tree_digests
 from wcsac_rl.calibration import main as calibration_main
 from wcsac_rl.envs import TinyHazardEnv, make_env
 from wcsac_rl.evaluate import main as evaluate_main
-from wcsac_rl.evaluation.evaluator import evaluate_run
 from wcsac_rl.experiments.compare import main as compare_main
 from wcsac_rl.objectives import EpisodeCostWindow, NStepCost
 from wcsac_rl.report import main as report_main
@@ -57,10 +56,7 @@ snapshot = tree_digests
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory) -> Path:
     """A finished tiny WCSAC run (α = 0.5, 400 frames, evaluated), shared by every test and never written to by one."""
-    root = tmp_path_factory.mktemp("hostile") / "runs"
-    train_tiny(root / "wcsac", "risk_level=0.5", "total_frames=400")
-    evaluate_run(root / "wcsac", episodes=2, progress=False)
-    return root
+    return evaluated_tiny_run(tmp_path_factory.mktemp("hostile") / "runs")
 
 
 @pytest.fixture(autouse=True)

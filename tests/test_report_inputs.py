@@ -27,13 +27,19 @@ import time
 from pathlib import Path
 
 import pytest
-from _hostile_helpers import copy_run, error_lines, files_unchanged, one_line, train_tiny
+from _hostile_helpers import (
+    copy_run,
+    copy_study,
+    error_lines,
+    evaluated_tiny_run,
+    files_unchanged,
+    one_line,
+)
 from _training_helpers import ROOT, tree_digests
 
 from wcsac_rl.calibration import main as calibration_main
 from wcsac_rl.evaluate import main as evaluate_main
 from wcsac_rl.evaluation import reporting
-from wcsac_rl.evaluation.evaluator import evaluate_run
 from wcsac_rl.evaluation.latex import markdown_cell, markdown_text, markdown_to_latex
 from wcsac_rl.evaluation.reporting import build_report
 from wcsac_rl.evaluation.runs import ROW_ORDER, find_evaluated_dirs, row_name
@@ -47,21 +53,13 @@ SECONDS = 10.0
 @pytest.fixture
 def study(tmp_path) -> Path:
     """Two rows of three archived runs each (WCSAC-0.1, SAC-Lag; seeds 0, 10, 20)."""
-    root = tmp_path / "study"
-    for row in ("wcsac_0.1", "sac_lag"):
-        for seed in (0, 10, 20):
-            name = f"{row}_static_seed{seed}"
-            shutil.copytree(RUNS / name, root / name)
-    return root
+    return copy_study(tmp_path / "study")
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory) -> Path:
     """A finished, evaluated tiny WCSAC run (never written to by a test)."""
-    root = tmp_path_factory.mktemp("report_inputs") / "runs"
-    train_tiny(root / "wcsac", "risk_level=0.5", "total_frames=400")
-    evaluate_run(root / "wcsac", episodes=2, progress=False)
-    return root
+    return evaluated_tiny_run(tmp_path_factory.mktemp("report_inputs") / "runs")
 
 
 @pytest.fixture(autouse=True)

@@ -13,6 +13,7 @@ import json
 import shutil
 
 import pytest
+from _hostile_helpers import copy_study
 from _training_helpers import ROOT, tree_digests
 
 from wcsac_rl.evaluation.reporting import ReportError, build_report
@@ -138,12 +139,7 @@ def test_three_runs_a_row_iqm_is_their_mean_and_the_pairs_read_as_in_sample(twic
 @pytest.fixture
 def study(tmp_path):
     """Two rows of three archived runs each (WCSAC-0.1, SAC-Lag)."""
-    root = tmp_path / "study"
-    for row in ("wcsac_0.1", "sac_lag"):
-        for seed in (0, 10, 20):
-            name = f"{row}_static_seed{seed}"
-            shutil.copytree(RUNS / name, root / name)
-    return root
+    return copy_study(tmp_path / "study")
 
 
 def _refused(study, tmp_path, capsys, args, *needles):
