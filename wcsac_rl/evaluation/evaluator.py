@@ -206,24 +206,14 @@ def check_writable(directory: str | os.PathLike) -> None:
 
 
 def _write_both(files: dict[Path, str]) -> None:
-    """Write ``files`` together: each is written whole beside its place
-    (:func:`~wcsac_rl.training.run_dir.replace_file`, ``.<name>.<pid>.new``) and only then
-    are they renamed into place, so that a failure (a full disk, a read-only file system)
-    leaves the previous files as they were and no file of its own; one line naming the file."""
-    from wcsac_rl.training.run_dir import replace_file
+    """Write ``files`` together, both or neither
+    (:func:`~wcsac_rl.training.run_dir.replace_files`); one line naming the file."""
+    from wcsac_rl.training.run_dir import replace_files
 
-    staged = {path: path.with_name(f".{path.name}.{os.getpid()}.new") for path in files}
-    path = next(iter(files))
     try:
-        for path, text in files.items():
-            replace_file(staged[path], text)
-        for path, new in staged.items():
-            os.replace(new, path)
+        replace_files(files)
     except OSError as err:
-        raise ConfigError(f"cannot write {path}: {err.strerror or err}") from None
-    finally:
-        for new in staged.values():
-            new.unlink(missing_ok=True)
+        raise ConfigError(f"cannot write {err.filename}: {err.strerror or err}") from None
 
 
 def write_evaluation(evaluation: Evaluation, *, force: bool = False) -> tuple[Path, Path]:

@@ -37,7 +37,6 @@ import argparse
 import csv
 import io
 import math
-import os
 import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -46,7 +45,7 @@ from typing import Any
 
 from wcsac_rl._messages import first_line
 from wcsac_rl.evaluation.run_statistics import RUN_METRICS
-from wcsac_rl.training.run_dir import replace_file
+from wcsac_rl.training.run_dir import replace_files
 
 __all__ = [
     "TARGETS_CSV",
@@ -377,26 +376,16 @@ def targets_tables(report: Path, targets: Mapping[str, Sequence[Target]]) -> dic
 
 
 def write_targets(report: Path, targets_file: Path) -> list[Path]:
-    """Write ``targets.md`` and ``targets.csv`` into ``report`` (all checked first): both
-    staged beside their places, then renamed into them, so a failed write (a full disk, a
-    read-only folder) leaves neither, and no staged file, behind: one :class:`TargetsError`."""
+    """Write ``targets.md`` and ``targets.csv`` into ``report`` (all checked first), both
+    or neither (:func:`~wcsac_rl.training.run_dir.replace_files`): a failed write (a full
+    disk, a read-only folder) leaves the earlier tables and no staged file, one
+    :class:`TargetsError`."""
     report = Path(report)
     tables = targets_tables(report, read_targets(Path(targets_file)))
-    paths = [report / name for name in tables]
-    staged: list[Path] = []
-    path = paths[0]
     try:
-        for path, text in zip(paths, tables.values(), strict=True):
-            staged.append(replace_file(path.with_name(f".{path.name}.{os.getpid()}.new"), text))
-        for path, new in zip(paths, staged, strict=True):
-            os.replace(new, path)
-    except BaseException as err:  # a full disk, a read-only folder, a stop: none left
-        for new in staged:
-            new.unlink(missing_ok=True)
-        if isinstance(err, OSError):
-            raise TargetsError(f"cannot write {path}: {err.strerror or err}") from None
-        raise
-    return paths
+        return replace_files({report / name: text for name, text in tables.items()})
+    except OSError as err:
+        raise TargetsError(f"cannot write {err.filename}: {err.strerror or err}") from None
 
 
 def main(argv: Sequence[str] | None = None) -> int:

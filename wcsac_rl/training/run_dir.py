@@ -44,6 +44,7 @@ __all__ = [
     "lock_holder",
     "own_copies",
     "replace_file",
+    "replace_files",
     "replace_text",
     "unwritable_reason",
 ]
@@ -408,6 +409,29 @@ def replace_file(path: str | os.PathLike, data: str | bytes) -> Path:
         tmp.unlink(missing_ok=True)
         raise
     return path
+
+
+def replace_files(files: dict[Path, str | bytes]) -> list[Path]:
+    """Write ``files`` (path → content) together: each is written whole beside its place
+    (:func:`replace_file`, ``.<name>.<pid>.new``) and only then are they renamed into
+    place, so a failure (a full disk, a read-only file system, a stop) before the renames
+    leaves the previous files as they were and none of its own. An ``OSError`` is
+    re-raised with ``filename`` the file it was writing."""
+    staged = {
+        Path(path): Path(path).with_name(f".{Path(path).name}.{os.getpid()}.new") for path in files
+    }
+    current = next(iter(staged), None)
+    try:
+        for current, data in zip(staged, files.values(), strict=True):
+            replace_file(staged[current], data)
+        for current in staged:
+            os.replace(staged[current], current)
+    except OSError as err:
+        raise OSError(err.errno, err.strerror or str(err), str(current)) from None
+    finally:
+        for new in staged.values():
+            new.unlink(missing_ok=True)
+    return list(staged)
 
 
 def replace_text(path: Path, text: str) -> None:
