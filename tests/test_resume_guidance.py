@@ -27,6 +27,12 @@ def _train(cwd, *args, **kwargs):
     )
 
 
+def _ctrl_c_as_in_a_terminal():
+    """SIGINT at its default in the child (a test worker may ignore it, and an ignored
+    signal stays ignored across exec: Python would then never raise KeyboardInterrupt)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _stopped_run(tmp_path, signum):
     """A tiny run in ``tmp_path/run`` stopped by ``signum`` after its first checkpoint:
     the stop's message (stderr) and the frames it names."""
@@ -35,6 +41,7 @@ def _stopped_run(tmp_path, signum):
         [*TRAIN, *TINY_CLI, "algo=sac", "epoch_frames=400", "total_frames=400000",
          f"hydra.run.dir={run_dir}"],
         cwd=tmp_path, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        preexec_fn=_ctrl_c_as_in_a_terminal,
     )  # fmt: skip
     try:
         deadline = time.monotonic() + 240
