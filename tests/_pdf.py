@@ -14,7 +14,8 @@ import zlib
 from pathlib import Path
 
 _OBJECT = re.compile(rb"(\d+) 0 obj\s*(.*?)\s*endobj", re.S)
-_STREAM = re.compile(rb"^(.*?)\s*stream\r?\n(.*)\nendstream$", re.S)  # (matplotlib writes "\nendstream" after the data, whose last byte may be "\r")
+# matplotlib writes "\nendstream" after a stream's data, whose last byte may be "\r"
+_STREAM = re.compile(rb"^(.*?)\s*stream\r?\n(.*)\nendstream$", re.S)
 # the objects that hold a font's program or its internal glyph-id map
 _FONT_DATA = re.compile(rb"/(?:FontFile[23]?|CIDToGIDMap) (\d+) 0 R")
 _CHAR_PROCS = re.compile(rb"/CharProcs\s*<<(.*?)>>", re.S)  # Type 3 glyph procedures
