@@ -94,20 +94,14 @@ def check_sweep_jobs(overrides: list[str], *, multirun: bool = True) -> None:
 def _config_sweeps(overrides: list[str], multirun: bool) -> list[str]:
     """The sweep an experiment's config runs (``hydra.sweeper.params`` as overrides,
     ``+row=sac,wcsac_0.1``), where the command runs in MULTIRUN mode: none otherwise."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
     from omegaconf import OmegaConf
 
     if not any(o.lstrip("+").startswith("experiment=") for o in overrides):
         return []
-    GlobalHydra.instance().clear()
     try:
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            hydra_cfg = compose("config", overrides, return_hydra_config=True).hydra
+        hydra_cfg = _compose(overrides, return_hydra_config=True).hydra
     except Exception:  # (composition errors: the command itself reports them)
         return []
-    finally:
-        GlobalHydra.instance().clear()
     if not (multirun or str(hydra_cfg.mode) == "RunMode.MULTIRUN"):
         return []
     params = OmegaConf.to_container(hydra_cfg.sweeper.get("params") or {}, resolve=False)
@@ -221,19 +215,26 @@ def compose_config(*overrides: str) -> DictConfig:
     >>> cfg.algo.name, cfg.env.name, cfg.seed, cfg.run_name
     ('sac_lag', 'tiny', 3, 'sac_lag_tiny_seed3')
     """
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
     from wcsac_rl.training.config_keys import check_override_keys
 
     check_override_keys(list(overrides))
+    return _compose(list(overrides))
+
+
+def _compose(overrides: list[str], *, return_hydra_config: bool = False) -> DictConfig:
+    """``conf/config.yaml`` composed with ``overrides`` by Hydra's compose API (with
+    ``return_hydra_config``: its ``hydra`` node too); a Hydra app calling this keeps its
+    own state."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
     was_initialized = GlobalHydra.instance().is_initialized()
     previous = GlobalHydra.instance().config_loader() if was_initialized else None
     GlobalHydra.instance().clear()
     try:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            return compose("config", overrides=list(overrides))
+            return compose("config", overrides, return_hydra_config=return_hydra_config)
     finally:
-        if previous is not None:  # (a Hydra app calling this keeps its own state)
-            GlobalHydra.instance().clear()
+        GlobalHydra.instance().clear()
+        if previous is not None:
             GlobalHydra.instance().initialize(previous)

@@ -213,6 +213,13 @@ NO_VALUES = "no values logged"
 """Written inside a panel whose column no run logged a value of."""
 
 
+def _panel_note(ax: Any, message: str, *, y: float, **style: Any) -> None:
+    """``message`` centred across ``ax`` at height ``y`` (axes fraction), in the grey
+    italics of the figures' notes about what a panel lacks."""
+    ax.text(0.5, y, message, transform=ax.transAxes, ha="center", color="0.3",
+            style="italic", **style)  # fmt: skip
+
+
 def mark_empty_panel(
     ax: Any,
     message: str,
@@ -223,19 +230,8 @@ def mark_empty_panel(
     over the env steps of ``frames`` (the x range the figure's other panels show); no y
     scale (there is none), except up to 1.5 × ``cost_limit`` where the panel draws the
     budget d."""
-    ax.text(
-        0.5,
-        0.4,
-        message,
-        transform=ax.transAxes,
-        ha="center",
-        va="center",
-        fontsize=10,
-        color="0.3",
-        style="italic",
-        bbox={"boxstyle": "round", "facecolor": "white", "edgecolor": "0.7"},
-        zorder=5,
-    )
+    _panel_note(ax, message, y=0.4, va="center", fontsize=10, zorder=5,
+                bbox={"boxstyle": "round", "facecolor": "white", "edgecolor": "0.7"})  # fmt: skip
     finite = [float(f) for f in frames if math.isfinite(float(f))]
     if finite:
         low, high = min(finite), max(finite)
@@ -375,17 +371,7 @@ def _draw_run_panel(
             limit = cost_limit if panel == "episode cost" else None
             mark_empty_panel(ax, NO_EPISODES if panel != "cost rate" else NO_VALUES, frames, limit)
         elif keys_of[panel][0] not in drawn:  # the test episodes' curve only
-            ax.text(
-                0.5,
-                0.03,
-                NO_TRAINING_EPISODES,
-                transform=ax.transAxes,
-                ha="center",
-                va="bottom",
-                fontsize=8,
-                color="0.3",
-                style="italic",
-            )
+            _panel_note(ax, NO_TRAINING_EPISODES, y=0.03, va="bottom", fontsize=8)
         if panel == "episode cost" and cost_limit is not None:
             ax.axhline(
                 cost_limit,

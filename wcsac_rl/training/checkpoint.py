@@ -6,6 +6,7 @@ import errno
 import hashlib
 import os
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -427,7 +428,7 @@ def _check_entries(state: dict[str, Any], path: Path) -> None:
                     f"got {state['config'].get(section)!r}; pass a checkpoint written by train.py"
                 )
     frames = state.get("frames", 0)
-    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 0:
+    if not _count(frames):
         raise ConfigError(
             f"{path}: its 'frames' entry must be a whole number >= 0, got {frames!r}; "
             "pass a checkpoint written by train.py"
@@ -439,28 +440,39 @@ def _check_entries(state: dict[str, Any], path: Path) -> None:
         )
 
 
-COUNTERS = ("frames", "updates", "skipped_updates", "epoch")
-"""A checkpoint's whole-number counters (each >= 0)."""
+def _count(value: Any) -> bool:
+    """A whole number >= 0 (not a bool)."""
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _finite(value: Any) -> bool:
+    """A finite number (not a bool)."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value)
+
+
+def _all(test: Callable[[Any], bool]) -> Callable[[Any], bool]:
+    return lambda value: isinstance(value, list) and all(map(test, value))
+
+
+COUNT = "a whole number >= 0"
+FITS = {
+    COUNT: _count,
+    "a finite number": _finite,
+    "a list of numbers": _all(_finite),
+    "a list of counts": _all(_count),
+}
+"""What a counter of a checkpoint must be, as the refusal says it, and its test."""
+
+COUNTERS = ("updates", "skipped_updates", "epoch")
+"""A checkpoint's whole-number counters besides ``frames`` (which every reader checks:
+:func:`_check_entries`)."""
 
 EPOCH_PROGRESS = {
-    "start_frames": "count", "start_updates": "count", "failures": "count",
-    "skipped_updates": "count", "seconds": "number", "returns": "numbers",
-    "costs": "numbers", "lengths": "counts",
+    "start_frames": COUNT, "start_updates": COUNT, "failures": COUNT,
+    "skipped_updates": COUNT, "seconds": "a finite number", "returns": "a list of numbers",
+    "costs": "a list of numbers", "lengths": "a list of counts",
 }  # fmt: skip
-"""The entries of a checkpoint's ``epoch_progress`` (the epoch in progress) and what each is."""
-
-
-def _fits(value: Any, kind: str) -> bool:
-    def count(v: Any) -> bool:
-        return isinstance(v, int) and not isinstance(v, bool) and v >= 0
-
-    def number(v: Any) -> bool:
-        return isinstance(v, int | float) and not isinstance(v, bool) and np.isfinite(v)
-
-    test = {"count": count, "number": number, "counts": count, "numbers": number}[kind]
-    if kind in ("counts", "numbers"):
-        return isinstance(value, list) and all(test(v) for v in value)
-    return test(value)
+"""The entries of a checkpoint's ``epoch_progress`` (the epoch in progress): what each is."""
 
 
 def check_counters(state: dict[str, Any], path: Path) -> None:
@@ -477,13 +489,12 @@ def check_counters(state: dict[str, Any], path: Path) -> None:
         )
 
     for key in COUNTERS:
-        if key in state and not _fits(state[key], "count"):
-            refuse(f"'{key}' entry", state[key], "a whole number >= 0")
+        if key in state and not _count(state[key]):
+            refuse(f"'{key}' entry", state[key], COUNT)
     progress = state.get("epoch_progress") or {}
-    for key, kind in EPOCH_PROGRESS.items():
-        if key in progress and not _fits(progress[key], kind):
-            what = {"count": "a whole number >= 0", "number": "a finite number"}.get(kind)
-            refuse(f"epoch_progress.{key}", progress[key], what or f"a list of {kind}")
+    for key, what in EPOCH_PROGRESS.items():
+        if key in progress and not FITS[what](progress[key]):
+            refuse(f"epoch_progress.{key}", progress[key], what)
     for key, limit in (("start_frames", "frames"), ("start_updates", "updates")):
         if key in progress and progress[key] > state.get(limit, progress[key]):
             refuse(f"epoch_progress.{key}", progress[key], f"at most its {limit!r} entry")
@@ -493,8 +504,8 @@ def check_counters(state: dict[str, Any], path: Path) -> None:
         if not isinstance(safety, dict) or set(safety) != set(fields):
             refuse("'training_safety' entry", safety, f"a mapping of {', '.join(fields)}")
         for key in ("epochs", "epochs_over_limit", "epochs_over_limit_after_warmup"):
-            if not _fits(safety[key], "count"):
-                refuse(f"training_safety.{key}", safety[key], "a whole number >= 0")
+            if not _count(safety[key]):
+                refuse(f"training_safety.{key}", safety[key], COUNT)
         for key, limit in (("epochs_over_limit", "epochs"),
                            ("epochs_over_limit_after_warmup", "epochs_over_limit")):  # fmt: skip
             if safety[key] > safety[limit]:
