@@ -161,3 +161,41 @@ def test_resume_auto_without_a_checkpoint_starts_over_and_keeps_foreign_files(tm
     with pytest.raises(ConfigError, match=r"holds files that are not a run's \(notes\.txt\)"):
         make_trainer(compose_config("env=tiny", "algo=sac", "resume=auto"), other)
     assert (other / "notes.txt").read_text() == "mine"
+
+
+class CtrlCInsideTheCritics(OffPolicyTrainer):
+    """A real SAC trainer whose user presses Ctrl-C (a real SIGINT) inside the vmapped
+    Q-critics of its fifth update."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.pressed_at = None
+
+        def press(module, args):
+            if self.updates == 4 and self.pressed_at is None:
+                self.pressed_at = self.updates
+                os.kill(os.getpid(), signal.SIGINT)
+
+        self.loss.qvalue_network.register_forward_pre_hook(press)
+
+
+def test_ctrl_c_inside_an_update_checkpoints_after_that_update(tmp_path):
+    """Ctrl-C inside TorchRL's vmapped critics (where a KeyboardInterrupt surfaces as a
+    RuntimeError from tensordict: no checkpoint, no resume command) lands after the
+    update: the checkpoint holds whole updates."""
+    run_dir = tmp_path / "run"
+    cfg = compose_config("env=tiny", "algo=sac", "total_frames=1200")
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # (a test worker ignores it)
+    try:
+        trainer = CtrlCInsideTheCritics(cfg, run_dir)
+        try:
+            with pytest.raises(KeyboardInterrupt):
+                trainer.run()
+        finally:
+            trainer.close()
+    finally:
+        signal.signal(signal.SIGINT, before)
+    assert trainer.pressed_at == 4
+    checkpoint = load_checkpoint(run_dir / "checkpoints" / "last.pt")
+    assert checkpoint["updates"] == 5  # the fifth update whole, then the checkpoint
+    assert checkpoint["updates"] == trainer.updates

@@ -53,8 +53,11 @@ def _stopped_run(tmp_path, signum):
     finally:
         if proc.poll() is None:
             proc.kill()
-    assert proc.returncode == 128 + signum if signum != signal.SIGINT else 130, err
-    line = next(line for line in err.splitlines() if "continue it with: " in line)
+    expected = 130 if signum == signal.SIGINT else 128 + signum  # (Ctrl-C: the shell's 130)
+    assert proc.returncode == expected, (proc.returncode, err[-4000:])
+    lines = [line for line in err.splitlines() if "continue it with: " in line]
+    assert len(lines) == 1, err[-4000:]
+    line = lines[0]
     frames = int(re.search(r"at (\d+) frames", line).group(1))
     return run_dir, line, frames
 

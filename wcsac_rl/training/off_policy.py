@@ -50,6 +50,7 @@ from wcsac_rl.training.checkpoint import (
     save_buffers,
     verify_buffers,
 )
+from wcsac_rl.training.preemption import DeferredSignals
 from wcsac_rl.training.replay import nested_key
 from wcsac_rl.training.trainer import Trainer, env_max_episode_steps
 from wcsac_rl.training.training_calibration import TrainingCalibration
@@ -186,8 +187,15 @@ class OffPolicyTrainer(Trainer):
                 self.shield_replaced += int(batch.get("shielded").sum())
         if self.tracker.frames < self.update_start_frames:
             return []
+        outputs = []
         with timeit("update"):
-            outputs = [self.update(self.sample()) for _ in range(self.updates_per_batch)]
+            for _ in range(self.updates_per_batch):
+                # Ctrl-C lands between updates, never inside one: a KeyboardInterrupt
+                # inside TorchRL's vmapped critics surfaces as another error (no
+                # checkpoint, no resume command), and one inside an optimizer step
+                # would checkpoint a half-stepped network
+                with DeferredSignals(("SIGINT",)):
+                    outputs.append(self.update(self.sample()))
         return [out for out in outputs if out is not None]
 
     def observe_training_episodes(self, metrics: dict[str, float]) -> None:
