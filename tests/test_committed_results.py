@@ -12,6 +12,7 @@ import pytest
 from _pdf import pdf_drawing
 from _training_helpers import ROOT
 
+from paper.compare import compare_runs, format_table
 from wcsac_rl.evaluation.reporting import (
     RUNS_MD,
     TABLE_CSV,
@@ -22,7 +23,6 @@ from wcsac_rl.evaluation.reporting import (
 from wcsac_rl.evaluation.run_report import IMPROVEMENT_CSV, RUN_STATISTICS_MD
 from wcsac_rl.evaluation.targets import TARGETS_CSV, TARGETS_MD, write_targets
 from wcsac_rl.evaluation.training_safety_table import TRAINING_SAFETY_CSV, TRAINING_SAFETY_MD
-from wcsac_rl.experiments.compare import compare_runs, format_table
 
 RESULTS = ROOT / "results"
 FOLDERS = sorted(p.parent.name for p in RESULTS.glob("*/runs") if p.is_dir())

@@ -1,4 +1,4 @@
-"""The side-by-side table of evaluated runs (wcsac_rl.experiments.compare).
+"""The side-by-side table of evaluated runs (paper.compare).
 
 Tolerances: float64 arithmetic on a few hand-written numbers; approx's default
 ``rel=1e-6`` is 10⁹ float64 roundings.
@@ -11,7 +11,7 @@ import math
 
 import pytest
 
-from wcsac_rl.experiments.compare import compare_runs, format_table, main
+from paper.compare import compare_runs, format_table, main
 
 
 def _run(tmp_path, name, label, seed, ec, c01, ratio=None, kappa=0.5, calibrated=True):

@@ -5,7 +5,7 @@ overrides (in process through ``make_trainer`` for the config, ``check_command_l
 for the command line's syntax, a subprocess where only the command line shows the
 behaviour), resume of files that are not checkpoints or hold fields of the wrong
 type, the flags and input files of ``python -m wcsac_rl.evaluate``,
-``wcsac_rl.calibration``, ``wcsac_rl.report`` and ``wcsac_rl.experiments.compare``,
+``wcsac_rl.calibration``, ``wcsac_rl.report`` and ``paper.compare``,
 and the Python API (the losses' arguments and batches, the n-step transform, the
 episode-cost window, the envs' constructors).
 
@@ -40,10 +40,10 @@ from _hostile_helpers import (
 from _loss_helpers import make_batch, make_loss
 from _training_helpers import ROOT, compose_config, tree_digests
 
+from paper.compare import main as compare_main
 from wcsac_rl.calibration import main as calibration_main
 from wcsac_rl.envs import TinyHazardEnv, make_env
 from wcsac_rl.evaluate import main as evaluate_main
-from wcsac_rl.experiments.compare import main as compare_main
 from wcsac_rl.objectives import EpisodeCostWindow, NStepCost
 from wcsac_rl.report import main as report_main
 from wcsac_rl.training import ConfigError, make_trainer

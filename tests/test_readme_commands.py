@@ -389,7 +389,7 @@ def test_the_readme_shows_its_quickstart_commands():
         "python -m wcsac_rl.evaluate multirun/alpha --episdes 100",
         "python -m wcsac_rl.calibration --episodes 30",  # no run directory
         "python -m wcsac_rl.evalute multirun/alpha",
-        "python -m wcsac_rl.experiments.compare --outt x runs/a",
+        "python -m paper.compare --outt x runs/a",
         "python benchmarks/bench_update.py --compiled",
         "wcsac-report multirun/alpha --forse",
         "wcsac-evalute multirun/alpha",

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import pytest
 
+from paper.bandit_ablation import COST_LIMIT, train_on_risky_bandit
 from wcsac_rl.envs.risky_bandit import RiskyBanditEnv
-from wcsac_rl.experiments.bandit_ablation import COST_LIMIT, train_on_risky_bandit
 
 
 def test_bandit_closed_form_facts():

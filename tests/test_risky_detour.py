@@ -11,8 +11,7 @@ import torch
 from _env_helpers import tiny_goal_seeker
 from tensordict.nn import TensorDictModule
 
-from wcsac_rl.envs.tiny import TinyHazardEnv
-from wcsac_rl.experiments.risky_detour import (
+from paper.risky_detour import (
     COST_LIMIT,
     LEARNER,
     RISKY_HAZARD,
@@ -21,6 +20,7 @@ from wcsac_rl.experiments.risky_detour import (
     route_of,
     train_on_risky_detour,
 )
+from wcsac_rl.envs.tiny import TinyHazardEnv
 from wcsac_rl.objectives import empirical_cvar
 
 
@@ -115,7 +115,7 @@ def test_rows_compose_with_the_risky_hazard_and_the_limit():
 def test_wcsac_takes_the_safe_detour_and_sac_lag_the_risky_shortcut():
     """The paper's claim on a sequential task, through the project's Trainer.
 
-    Seed 1 of each row in the measurement of ``wcsac_rl.experiments.risky_detour``
+    Seed 1 of each row in the measurement of ``paper.risky_detour``
     (module docstring, seeds 0-5): every SAC-Lag seed ends on the shortcut (14 steps
     inside the disc, κ → 0); WCSAC-0.1 ends off it on all six seeds and reaches the
     goal on four (seed 3: 70 % of the episodes, seed 5: none). Of those four, seed 1

@@ -10,7 +10,7 @@ episodes, vs the realised CVaR_α of the discounted cost-to-go, with their ratio
 the realised mean, the share of visited states with Q^c < 0, √V^c(s0) vs the spread
 of realised costs). Then one row per label: the mean over its seeds.
 
-``python -m wcsac_rl.experiments.compare RUN_DIR ... [--out table.md]`` prints (and
+``python -m paper.compare RUN_DIR ... [--out table.md]`` prints (and
 writes) the markdown table that docs/defaults.md quotes.
 """
 
@@ -134,7 +134,7 @@ def format_table(rows: list[dict], means: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m wcsac_rl.experiments.compare")
+    parser = argparse.ArgumentParser(prog="python -m paper.compare")
     parser.add_argument("runs", nargs="+", type=Path)
     parser.add_argument("--out", type=Path, default=None, help="also write the table here")
     args = parser.parse_args(argv)

@@ -50,7 +50,7 @@ batches so a start state's target spans the hazard) and the same schedule
   the goal (episodes then end by truncation and are bootstrapped): seed 3 (κ 0.22)
   and seed 5 stop short of the goal on some or all start states.
 
-Measured (``python -m wcsac_rl.experiments.risky_detour --seeds 0 1 2 3 4 5``, CPU
+Measured (``python -m paper.risky_detour --seeds 0 1 2 3 4 5``, CPU
 seconds per run while two other trainings shared the 2 cores; 56–59 s and 37–39 s per
 WCSAC / SAC-Lag run on a less loaded machine):
 
@@ -241,7 +241,7 @@ def train_on_risky_detour(
 
 
 def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(prog="python -m wcsac_rl.experiments.risky_detour")
+    parser = argparse.ArgumentParser(prog="python -m paper.risky_detour")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
     parser.add_argument("overrides", nargs="*", help="Hydra overrides applied to every row")

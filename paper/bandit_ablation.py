@@ -1,6 +1,6 @@
 """WCSAC vs SAC-Lag on the one-step risky bandit, and the ablation of WCSACLoss's options.
 
-Run ``python -m wcsac_rl.experiments.bandit_ablation`` for the table in docs/defaults.md: for
+Run ``python -m paper.bandit_ablation`` for the table in docs/defaults.md: for
 each loss configuration and seed, the final deterministic (mean) action against the
 closed-form CVaR-feasible action of :class:`~wcsac_rl.envs.risky_bandit.RiskyBanditEnv`.
 """

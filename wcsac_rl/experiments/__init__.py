@@ -1,1 +1,0 @@
-"""Small self-contained experiments that check the method's claims on tasks with closed forms."""
