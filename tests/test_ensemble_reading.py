@@ -19,6 +19,7 @@ from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives.ensemble_head import EnsembleHead, make_safety_head
 from wcsac_rl.objectives.ensemble_reading import ucb, upper_tail_mean
+from wcsac_rl.objectives.loss_options import SafetyHeadOptions
 from wcsac_rl.objectives.safety_head import SafetyValues
 from wcsac_rl.training import ConfigError, make_trainer
 from wcsac_rl.training.config_keys import check_override_keys
@@ -55,9 +56,7 @@ def test_ucb_is_the_mean_plus_k_sample_standard_deviations_by_hand():
         make_safety_critic(3, 1, variance=False, width=8),
         WCSACLoss.default_keys(),
         risk_level=1.0,
-        members=3,
-        ensemble_reading="ucb",
-        k_ucb=0.5,
+        options=SafetyHeadOptions(num_safety_nets=3, ensemble_reading="ucb", k_ucb=0.5),
     )
     mean = torch.tensor([[1.0, 5.0], [3.0, 0.0], [2.0, 1.0]])  # [E=3, B=2]
     # column 0: mean 2, squared deviations 1 + 1 + 0 over E − 1 = 2: std 1
@@ -146,9 +145,12 @@ def test_eight_members_are_one_batched_product_per_layer(kind, monkeypatch):
 # ------------------------------------------------------------ the merged-quantile tail
 def test_tqc_reads_the_upper_tail_of_the_members_merged_quantiles_by_hand():
     member = make_safety_head(
-        linear_quantile_critic(), WCSACLoss.default_keys(), risk_level=0.5, nonnegative_cost=False
+        linear_quantile_critic(),
+        WCSACLoss.default_keys(),
+        risk_level=0.5,
+        options=SafetyHeadOptions(nonnegative_cost=False),
     )
-    head = EnsembleHead(member, members=2, reading="tqc")
+    head = EnsembleHead(member, SafetyHeadOptions(num_safety_nets=2, ensemble_reading="tqc"))
     # [E=2, B=2, N=3]; row 0 merged and sorted: 0 1 2 3 4 5, the upper half 5 4 3
     quantiles = torch.tensor(
         [[[0.0, 1.0, 5.0], [9.0, 9.0, 9.0]], [[2.0, 3.0, 4.0], [-1.0, 0.0, 1.0]]]
@@ -414,7 +416,9 @@ def test_the_loss_adapts_k_ucb_from_the_batchs_episode_costs_and_reads_it():
     ensemble, singles = _losses(ensemble_reading="ucb", k_ucb=0.5, k_ucb_lr=0.02, k_ucb_max=3.0)
     assert ensemble.safety_pessimism is ensemble.safety_head.pessimism
     batch = make_batch(16)
-    with pytest.raises(KeyError, match=re.escape("k_ucb_lr > 0 reads the recent episodes' cost")):
+    with pytest.raises(
+        KeyError, match=re.escape("an adaptive k_ucb reads the recent episodes' cost")
+    ):
         ensemble(batch.clone())
     batch["episode_cvar"] = torch.full((16, 1), 40.0)  # d = 15: 25 over, k + 0.02·25
     ensemble.train()
@@ -539,9 +543,15 @@ def test_merged_targets_pool_every_members_target_quantiles_by_hand():
     """``ensemble_target="merged"`` (TQC, COX-Q): each member regresses on all the
     members' target quantiles, pooled and sorted: ``c + γ·sort(Z̄_0 ∪ Z̄_1)``."""
     member = make_safety_head(
-        linear_quantile_critic(), WCSACLoss.default_keys(), risk_level=0.5, nonnegative_cost=False
+        linear_quantile_critic(),
+        WCSACLoss.default_keys(),
+        risk_level=0.5,
+        options=SafetyHeadOptions(nonnegative_cost=False),
     )
-    head = EnsembleHead(member, members=2, target="merged", reading="tqc")
+    head = EnsembleHead(
+        member,
+        SafetyHeadOptions(num_safety_nets=2, ensemble_target="merged", ensemble_reading="tqc"),
+    )
     quantiles = torch.tensor([[[0.0, 2.0], [5.0, 6.0]], [[1.0, 3.0], [4.0, 7.0]]])  # [E, B, N']
     ahead = SafetyValues(quantiles.mean(-1), None, quantiles)
     cost, gamma, alive = torch.tensor([1.0, 0.0]), torch.tensor(0.5), torch.tensor([1.0, 0.0])

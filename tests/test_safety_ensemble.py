@@ -20,11 +20,16 @@ from torchrl.data import Bounded
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives.ensemble_head import EnsembleHead, make_safety_head
+from wcsac_rl.objectives.loss_options import SafetyHeadOptions
 from wcsac_rl.objectives.safety_head import SafetyValues
 from wcsac_rl.training import ConfigError, make_trainer
 
 # one-step targets at the replay states: the batch needs no n-step or start-state entries
 PLAIN = {"cost_n_steps": 1, "kappa_states": "replay", "risk_level": 0.5}
+
+
+MAX_TARGET = SafetyHeadOptions(num_safety_nets=2, ensemble_target="max")
+"""Two critics, each bootstrapping from the larger target of the two."""
 
 
 def _ensemble_and_singles(ensemble_target="own", **kwargs):
@@ -115,8 +120,15 @@ def test_an_iqn_ensemble_reads_the_larger_quantile_function():
     positive quantiles the second member's Γ is 3× the first's and is the one read."""
     keys = WCSACLoss.default_keys()
     module = linear_quantile_critic()
-    member = make_safety_head(module, keys, risk_level=0.2, nonnegative_cost=False)
-    head = make_safety_head(module, keys, risk_level=0.2, nonnegative_cost=False, members=2)
+    member = make_safety_head(
+        module, keys, risk_level=0.2, options=SafetyHeadOptions(nonnegative_cost=False)
+    )
+    head = make_safety_head(
+        module,
+        keys,
+        risk_level=0.2,
+        options=SafetyHeadOptions(nonnegative_cost=False, num_safety_nets=2),
+    )
     assert isinstance(head, EnsembleHead) and head.kind == "iqn"
     assert list(TensorDict.from_module(module).keys(True, True)) == [("module", "scale")]
     params = TensorDict({"module": {"scale": torch.tensor([1.0, 3.0])}}, [2])
@@ -132,7 +144,7 @@ def test_gaussian_ensemble_cvar_and_mixture_are_the_largest_members():
     keys = WCSACLoss.default_keys()
     torch.manual_seed(0)
     member = make_safety_head(make_safety_critic(3, 1, width=8), keys, risk_level=0.5)
-    head = EnsembleHead(member, members=2)
+    head = EnsembleHead(member, SafetyHeadOptions(num_safety_nets=2))
     mean = torch.tensor([[0.0, 9.0, 1.0], [4.0, 2.0, 1.0]])
     variance = torch.tensor([[1.0, 1.0, 4.0], [1.0, 1.0, 1.0]])
     values = SafetyValues(mean, variance)
@@ -204,7 +216,7 @@ def test_max_target_bootstraps_every_member_from_the_largest_target_row_by_row()
         torch.tensor([[1.0, 2.0, 7.0], [3.0, 4.0, 9.0]]),
     )
     cost, gamma, alive = torch.tensor([0.5, 0.0, 1.0]), torch.tensor(0.5), torch.ones(3)
-    shared = EnsembleHead(member, members=2, target="max").targets(cost, gamma, alive, ahead)
+    shared = EnsembleHead(member, MAX_TARGET).targets(cost, gamma, alive, ahead)
     mean, variance = torch.tensor([3.0, 5.0, 2.5]), torch.tensor([3.0, 2.0, 9.0])
     expected = member.targets(cost, gamma, alive, SafetyValues(mean, variance))
     for key in ("cost_target", "cost_second_moment", "cost_next_variance"):
@@ -214,19 +226,24 @@ def test_max_target_bootstraps_every_member_from_the_largest_target_row_by_row()
         )
     # cost + γ·Q̄ of the picked member: 0.5 + 1.5, 0 + 2.5, 1 + 1.25
     assert torch.equal(shared["cost_target"][0], torch.tensor([2.0, 2.5, 2.25]))
-    own = EnsembleHead(member, members=2).targets(cost, gamma, alive, ahead)
+    own = EnsembleHead(member, SafetyHeadOptions(num_safety_nets=2)).targets(
+        cost, gamma, alive, ahead
+    )
     assert torch.equal(own["cost_target"][0], torch.tensor([1.0, 2.5, 2.0]))
 
 
 def test_max_target_of_an_iqn_ensemble_takes_the_larger_members_quantiles():
     keys = WCSACLoss.default_keys()
     member = make_safety_head(
-        linear_quantile_critic(), keys, risk_level=0.2, nonnegative_cost=False
+        linear_quantile_critic(),
+        keys,
+        risk_level=0.2,
+        options=SafetyHeadOptions(nonnegative_cost=False),
     )
     quantiles = torch.tensor([[[0.0, 2.0], [4.0, 6.0]], [[1.0, 3.0], [0.0, 1.0]]])  # [2, B=2, N=2]
     ahead = SafetyValues(quantiles.mean(-1), None, quantiles, torch.rand(2, 2))
     cost, gamma, alive = torch.tensor([1.0, 0.0]), torch.tensor(0.5), torch.tensor([1.0, 0.0])
-    shared = EnsembleHead(member, members=2, target="max").targets(cost, gamma, alive, ahead)
+    shared = EnsembleHead(member, MAX_TARGET).targets(cost, gamma, alive, ahead)
     # row 0: member 1 (mean 2 > 1): 1 + 0.5·[1, 3]; row 1: member 0, but terminated: 0
     expected = torch.tensor([[1.5, 2.5], [0.0, 0.0]])
     assert torch.equal(shared["cost_target_quantiles"], expected.expand(2, 2, 2))

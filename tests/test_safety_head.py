@@ -7,6 +7,7 @@ Float32 tolerances follow ``_tolerance.py``.
 from __future__ import annotations
 
 import math
+import re
 from statistics import NormalDist
 
 import pytest
@@ -18,6 +19,7 @@ from tensordict import TensorDict
 from wcsac_rl.modules import make_safety_critic
 from wcsac_rl.objectives import WCSACLoss
 from wcsac_rl.objectives.ensemble_head import make_safety_head
+from wcsac_rl.objectives.loss_options import SafetyHeadOptions
 from wcsac_rl.objectives.quantile import quantile_huber_loss
 from wcsac_rl.objectives.safety_head import (
     GaussianHead,
@@ -40,9 +42,8 @@ def _gaussian(risk_level=0.1, *, variance=True, nonnegative=False, **kwargs) -> 
 
 def _linear_iqn(risk_level=0.2, *, nonnegative=False, **kwargs) -> tuple[IQNHead, TensorDict]:
     module = linear_quantile_critic()
-    head = make_safety_head(
-        module, _keys(), risk_level=risk_level, nonnegative_cost=nonnegative, **kwargs
-    )
+    options = SafetyHeadOptions(nonnegative_cost=nonnegative, **kwargs)
+    head = make_safety_head(module, _keys(), risk_level=risk_level, options=options)
     return head, TensorDict.from_module(module)
 
 
@@ -203,12 +204,20 @@ def test_the_factory_decides_the_kind_once():
     assert isinstance(head, IQNHead) and head.in_keys == ["observation", "action"]
     with pytest.raises(ValueError, match="variance head"):
         make_safety_head(
-            make_safety_critic(3, 1, kind="iqn", width=8), keys, risk_level=0.1, variance_loss="w2"
+            make_safety_critic(3, 1, kind="iqn", width=8),
+            keys,
+            risk_level=0.1,
+            options=SafetyHeadOptions(variance_loss="w2"),
         )
     for bad, message in (
         ({"variance_target": "second"}, "variance_target must be one of"),
         ({"num_quantiles": 0}, "num_quantiles must be an integer >= 1"),
-        ({"huber_kappa": -1.0}, "huber_kappa must be > 0"),
+        ({"huber_kappa": -1.0}, re.escape("huber_kappa must be in (0, 1e+06]")),
     ):
         with pytest.raises(ValueError, match=message):
-            make_safety_head(make_safety_critic(3, 1, width=8), keys, risk_level=0.1, **bad)
+            make_safety_head(
+                make_safety_critic(3, 1, width=8),
+                keys,
+                risk_level=0.1,
+                options=SafetyHeadOptions(**bad),
+            )

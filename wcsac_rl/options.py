@@ -32,6 +32,7 @@ from typing import Any
 __all__ = [
     "ALPHA_INIT",
     "CONSTRAINT_RULES",
+    "ENSEMBLE_OPTIONS",
     "ENSEMBLE_READINGS",
     "ENSEMBLE_TARGETS",
     "EPISODE_STATISTICS",
@@ -52,8 +53,7 @@ __all__ = [
     "PIDGains",
     "SafetyOptions",
     "ShieldOptions",
-    "check_ensemble_reading",
-    "check_ensemble_target",
+    "check_ensemble",
     "check_fields",
     "check_kappa_bound",
     "check_shield_candidates",
@@ -750,39 +750,40 @@ def check_kappa_bound(
         )
 
 
-def check_ensemble_target(ensemble_target: str, num_safety_nets: int, prefix: str = "") -> None:
-    """``ensemble_target`` is one of :data:`ENSEMBLE_TARGETS`, and other than ``"own"``
-    only with several safety critics: one ``ValueError`` line naming the options with
-    ``prefix`` (``"algo."``: the config validator; ``""``: the loss). The one definition
-    of this relation, for the config and the loss."""
-    spec = option_spec(SafetyOptions, "ensemble_target")
-    check_value(f"{prefix}ensemble_target", ensemble_target, spec)
+ENSEMBLE_OPTIONS: tuple[str, ...] = (
+    "num_safety_nets",
+    "ensemble_target",
+    "ensemble_reading",
+    "k_ucb",
+    "k_ucb_lr",
+    "k_ucb_max",
+    "prior_scale",
+)
+"""The safety-critic ensemble's options: how many critics, how they bootstrap and are read."""
+
+
+def check_ensemble(options: Any, *, kind: str | None = None, prefix: str = "") -> None:
+    """The ensemble options of ``options`` (a :class:`SafetyOptions`, or the loss's
+    ``SafetyHeadOptions``: any object with the fields of :data:`ENSEMBLE_OPTIONS`)
+    against each other and, given, the critics' ``kind`` (``"gaussian"`` / ``"iqn"``;
+    ``None``: unchecked). ``ensemble_target`` other than ``"own"`` picks among several
+    critics; a reading other than ``"max"``, or a prior (``prior_scale``), needs several;
+    ``"ucb"`` reads their disagreement, so each bootstraps from its own target;
+    ``"tqc"`` and the ``"merged"`` target pool quantiles, so the critics are IQN ones;
+    ``k_ucb_lr`` > 0 adapts the UCB reading's ``k_ucb`` within ``[0, k_ucb_max]``.
+    One ``ValueError`` line naming the options with ``prefix`` (``"algo."``: the config
+    validator; ``""``: the loss): the one definition of these relations."""
+    reading, num_safety_nets = options.ensemble_reading, options.num_safety_nets
+    ensemble_target, prior_scale = options.ensemble_target, options.prior_scale
+    k_ucb, k_ucb_lr, k_ucb_max = options.k_ucb, options.k_ucb_lr, options.k_ucb_max
+    check_value(
+        f"{prefix}ensemble_target", ensemble_target, option_spec(SafetyOptions, "ensemble_target")
+    )
     if ensemble_target != "own" and num_safety_nets == 1:
         raise ValueError(
             f"{prefix}ensemble_target={ensemble_target} picks among several safety critics: "
             f"it needs {prefix}num_safety_nets >= 2"
         )
-
-
-def check_ensemble_reading(
-    reading: str,
-    num_safety_nets: int,
-    *,
-    ensemble_target: str = "own",
-    prior_scale: float = 0.0,
-    kind: str | None = None,
-    k_ucb: float = 0.5,
-    k_ucb_lr: float = 0.0,
-    k_ucb_max: float = 2.0,
-    prefix: str = "",
-) -> None:
-    """``ensemble_reading`` and ``prior_scale`` beside the ensemble they read: a reading
-    other than ``"max"``, or a prior, needs several safety critics; ``"ucb"`` reads
-    their disagreement, so each bootstraps from its own target; ``"tqc"`` merges
-    quantiles, so the critics are IQN ones (``kind``: the critic's, unchecked when
-    ``None``); ``k_ucb_lr`` > 0 adapts the UCB reading's ``k_ucb`` within
-    ``[0, k_ucb_max]``. One ``ValueError`` line naming the options with ``prefix``, for the
-    config and the loss."""
     check_value(
         f"{prefix}ensemble_reading", reading, option_spec(SafetyOptions, "ensemble_reading")
     )

@@ -127,6 +127,7 @@ from wcsac_rl.evaluation.runs import (
 )
 from wcsac_rl.evaluation.sweeps import SweepJob, incomplete_jobs
 from wcsac_rl.evaluation.training_safety_table import TRAINING_SAFETY_FILES, training_safety_files
+from wcsac_rl.options import ENSEMBLE_OPTIONS
 from wcsac_rl.training.checkpoint import IDENTITY_KEYS, kept_checkpoints
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
@@ -466,11 +467,7 @@ def _write_text(path: Path, text: str) -> Path:
     return replace_file(path, display_text(text))
 
 
-ENSEMBLE_KEYS = tuple(
-    f"algo.{key}"
-    for key in ("num_safety_nets", "ensemble_target", "ensemble_reading", "k_ucb", "k_ucb_lr",
-                "k_ucb_max", "prior_scale", "damp_clamp")
-)  # fmt: skip
+ENSEMBLE_KEYS = tuple(f"algo.{key}" for key in (*ENSEMBLE_OPTIONS, "damp_clamp"))
 """The safety-critic ensemble's settings: how many critics, how they are read and trained."""
 
 POOLED_KEYS = (

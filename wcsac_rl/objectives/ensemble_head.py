@@ -19,27 +19,24 @@ from wcsac_rl.objectives.ensemble_reading import (
     ucb,
     upper_tail_mean,
 )
+from wcsac_rl.objectives.loss_options import SafetyHeadOptions
 from wcsac_rl.objectives.risk import quantile_mixture_cvar
 from wcsac_rl.objectives.safety_head import (
     GaussianHead,
     IQNHead,
     SafetyHead,
     SafetyValues,
-    _check_count,
     _make_member_head,
 )
-from wcsac_rl.options import (
-    IQNOptions,
-    SafetyOptions,
-    check_ensemble_reading,
-    check_ensemble_target,
-)
+from wcsac_rl.options import check_ensemble
 
 __all__ = ["EnsembleHead", "make_safety_head"]
 
 
 class EnsembleHead(SafetyHead):
-    """``members`` safety critics of one kind, read as ``reading`` says.
+    """``options.num_safety_nets`` safety critics of one kind (``members``), read as
+    ``options.ensemble_reading`` says (``reading``; the options:
+    :class:`~wcsac_rl.objectives.loss_options.SafetyHeadOptions`, checked there).
 
     Each member is an independent critic of the ``member`` head's kind (its own
     initialisation, its own target network, its own TD loss against its own targets);
@@ -47,7 +44,7 @@ class EnsembleHead(SafetyHead):
     ``members`` (TorchRL's convention for the twin reward critics). Every reading
     returns the members' :class:`SafetyValues` stacked the same way, ``[members, *B]``.
 
-    * :meth:`targets`: ``target="own"``: each member's from its own target critic;
+    * :meth:`targets`, by ``options.ensemble_target`` (``target``): ``"own"``: each member's from its own target critic;
       ``"max"``: per row, every member's from the target critic of the member whose
       target value (Q̄^c, the mean) is largest there — TD3's clipped double-Q, which
       bootstraps from the smaller reward value, turned pessimistic for a cost, so
@@ -87,61 +84,42 @@ class EnsembleHead(SafetyHead):
         >>> from wcsac_rl.objectives.safety_head import GaussianHead
         >>> member = GaussianHead(make_safety_critic(3, 1), WCSACLoss.default_keys(),
         ...                       risk_level=0.5, nonnegative_cost=False)
-        >>> head = EnsembleHead(member, members=2)
+        >>> head = EnsembleHead(member, SafetyHeadOptions(num_safety_nets=2))
         >>> mean, variance = torch.tensor([[1.0, 5.0], [3.0, 0.0]]), torch.ones(2, 2)
         >>> head.cvar(SafetyValues(mean, variance))  # max(1.80, 3.80), max(5.80, 0.80)
         tensor([3.7979, 5.7979])
     """
 
-    def __init__(
-        self,
-        member: SafetyHead,
-        *,
-        members: int,
-        target: str = "own",
-        reading: str = "max",
-        k_ucb: float = 0.5,
-        prior_scale: float = 0.0,
-        k_ucb_lr: float = 0.0,
-        k_ucb_max: float = 2.0,
-    ) -> None:
-        _check_count("members", members)
+    def __init__(self, member: SafetyHead, options: SafetyHeadOptions) -> None:
+        members = options.num_safety_nets
         if members < 2:
-            raise ValueError(f"an ensemble needs members >= 2, got {members}")
-        check_ensemble_target(target, members)
-        check_ensemble_reading(
-            reading,
-            members,
-            ensemble_target=target,
-            prior_scale=prior_scale,
-            kind=member.kind,
-            k_ucb=k_ucb,
-            k_ucb_lr=k_ucb_lr,
-            k_ucb_max=k_ucb_max,
-        )
+            raise ValueError(f"an ensemble needs num_safety_nets >= 2, got {members}")
+        check_ensemble(options, kind=member.kind)
         super().__init__(
             member.network,
             member.keys,
             risk_level=member.risk_level,
             nonnegative_cost=member.nonnegative_cost,
         )
-        self.member, self.members, self.target = member, int(members), target
-        self.reading, self.k_ucb = reading, float(k_ucb)
+        self.member, self.members, self.target = member, int(members), options.ensemble_target
+        self.reading, self.k_ucb = options.ensemble_reading, float(options.k_ucb)
         self.pessimism = (
-            AdaptivePessimism(k_ucb, lr=k_ucb_lr, k_max=k_ucb_max) if k_ucb_lr > 0 else None
+            AdaptivePessimism(options.k_ucb, lr=options.k_ucb_lr, k_max=options.k_ucb_max)
+            if options.k_ucb_lr > 0
+            else None
         )
         self.stacked = None
-        if reading != "max" or prior_scale > 0:
+        if self.reading != "max" or options.prior_scale > 0:
             keys = member.keys
             self.stacked = StackedMembers.plan(member.network, keys.action, keys.quantile_fractions)
         self.prior = None
-        if prior_scale > 0:
+        if options.prior_scale > 0:
             if self.stacked is None:
                 raise ValueError(
                     "prior_scale > 0 adds a random network of the members' shape: it needs "
                     "the kit's safety critics (wcsac_rl.modules.make_safety_critic)"
                 )
-            self.prior = self.stacked.add_prior(self.members, prior_scale)
+            self.prior = self.stacked.add_prior(self.members, options.prior_scale)
 
     kind = property(lambda self: self.member.kind)
     has_variance = property(lambda self: self.member.has_variance)
@@ -361,63 +339,30 @@ def make_safety_head(
     keys,
     *,
     risk_level: float,
-    nonnegative_cost: bool = SafetyOptions.nonnegative_cost,
-    variance_loss: str = SafetyOptions.variance_loss,
-    variance_target: str = SafetyOptions.variance_target,
-    num_quantiles: int = IQNOptions.num_quantiles,
-    num_target_quantiles: int = IQNOptions.num_target_quantiles,
-    huber_kappa: float = IQNOptions.huber_kappa,
-    members: int = SafetyOptions.num_safety_nets,
-    ensemble_target: str = SafetyOptions.ensemble_target,
-    ensemble_reading: str = SafetyOptions.ensemble_reading,
-    k_ucb: float = SafetyOptions.k_ucb,
-    prior_scale: float = SafetyOptions.prior_scale,
-    k_ucb_lr: float = SafetyOptions.k_ucb_lr,
-    k_ucb_max: float = SafetyOptions.k_ucb_max,
+    options: SafetyHeadOptions | None = None,
 ) -> GaussianHead | IQNHead | EnsembleHead:
     """The head for ``network``: the one place that decides the safety critic's kind.
 
     An implicit quantile network (an :class:`~wcsac_rl.modules.IQNSafetyCritic`, or a
     module reading ``keys.quantile_fractions``) gets an :class:`IQNHead`, anything
-    else a :class:`GaussianHead`. Every option is checked whichever the kind; the
-    Gaussian head's ``variance_loss`` / ``variance_target`` are refused for an IQN
-    critic unless left at their defaults. ``members`` > 1: that many critics of the
-    kind, read by an :class:`EnsembleHead` (their parameters stacked), bootstrapping
-    as ``ensemble_target`` says (``"max"`` needs ``members`` > 1), read as
-    ``ensemble_reading`` says (with ``k_ucb``, adapted by ``k_ucb_lr`` within
-    ``[0, k_ucb_max]``), each with a random prior of ``prior_scale`` (0: none).
+    else a :class:`GaussianHead`, built as ``options`` say
+    (:class:`~wcsac_rl.objectives.loss_options.SafetyHeadOptions`; ``None``: its
+    defaults); the Gaussian head's ``variance_loss`` / ``variance_target`` are refused
+    for an IQN critic unless left at their defaults. ``num_safety_nets`` > 1: that
+    many critics of the kind, read by an :class:`EnsembleHead`.
     """
-    _check_count("num_safety_nets", members)
-    check_ensemble_target(ensemble_target, members)
-    check_ensemble_reading(
-        ensemble_reading,
-        members,
-        ensemble_target=ensemble_target,
-        prior_scale=prior_scale,
-        k_ucb=k_ucb,
-        k_ucb_lr=k_ucb_lr,
-        k_ucb_max=k_ucb_max,
-    )
+    options = SafetyHeadOptions() if options is None else options
     head = _make_member_head(
         network,
         keys,
         risk_level=risk_level,
-        nonnegative_cost=nonnegative_cost,
-        variance_loss=variance_loss,
-        variance_target=variance_target,
-        num_quantiles=num_quantiles,
-        num_target_quantiles=num_target_quantiles,
-        huber_kappa=huber_kappa,
+        nonnegative_cost=options.nonnegative_cost,
+        variance_loss=options.variance_loss,
+        variance_target=options.variance_target,
+        num_quantiles=options.num_quantiles,
+        num_target_quantiles=options.num_target_quantiles,
+        huber_kappa=options.huber_kappa,
     )
-    if members == 1:
+    if options.num_safety_nets == 1:
         return head
-    return EnsembleHead(
-        head,
-        members=members,
-        target=ensemble_target,
-        reading=ensemble_reading,
-        k_ucb=k_ucb,
-        prior_scale=prior_scale,
-        k_ucb_lr=k_ucb_lr,
-        k_ucb_max=k_ucb_max,
-    )
+    return EnsembleHead(head, options)

@@ -12,7 +12,7 @@ with their parameters stacked ``[E, ...]``. This module gives it
   fractions τ (one draw per reading), so the members' spread is their disagreement,
   not the spread of their draws;
 * :class:`RandomPrior` — Osband, Aslanides & Cassirer (NeurIPS 2018): a fixed random
-  MLP per member whose output, times ``prior_scale``, is added to the member's cost
+  MLP per member whose output, times a fixed scale, is added to the member's cost
   value (to each quantile of an IQN member). Its weights are buffers: no optimizer
   sees them, no gradient reaches them, and the online and target readings add the same
   prior, so the target network is the member's trained part's Polyak average plus that
@@ -98,7 +98,7 @@ class RandomPrior(nn.Module):
         members (int): ``E``.
         shapes: ``(out_features, in_features)`` per layer, the last ``out_features`` 1.
         activation (type): between the layers (a key of ``ACTIVATIONS``).
-        scale (float): ``prior_scale`` > 0.
+        scale (float): > 0, what the prior's output is multiplied by.
     """
 
     def __init__(

@@ -426,7 +426,7 @@ def missing_inputs(loss, tensordict: TensorDictBase) -> str | None:
     if (getattr(loss, "kappa_signal", "critic") != "critic" or adaptive) and signal not in keys:
         wanted.append(
             (
-                "k_ucb_lr > 0" if adaptive else f"kappa_signal={loss.kappa_signal!r}",
+                "an adaptive k_ucb" if adaptive else f"kappa_signal={loss.kappa_signal!r}",
                 "the recent episodes' cost",
                 signal,
                 "window = EpisodeCostWindow.for_loss(loss); window.add_episodes(data); "

@@ -35,8 +35,7 @@ from wcsac_rl.options import (
     PIDGains,
     SafetyOptions,
     ShieldOptions,
-    check_ensemble_reading,
-    check_ensemble_target,
+    check_ensemble,
     check_fields,
     check_signal_every,
     check_value,
@@ -105,16 +104,7 @@ class SafetyHeadOptions:
 
     def __post_init__(self) -> None:
         check_fields(self)
-        check_ensemble_target(self.ensemble_target, self.num_safety_nets)
-        check_ensemble_reading(
-            self.ensemble_reading,
-            self.num_safety_nets,
-            ensemble_target=self.ensemble_target,
-            prior_scale=self.prior_scale,
-            k_ucb=self.k_ucb,
-            k_ucb_lr=self.k_ucb_lr,
-            k_ucb_max=self.k_ucb_max,
-        )
+        check_ensemble(self)
 
 
 @dataclass(frozen=True)

@@ -274,14 +274,8 @@ class WCSACLoss(CheckedLoss, SACLoss):
             bootstrap_truncated=head.cost_bootstrap_truncated,
         )
         self.safety_head = make_safety_head(
-            self.safety_network, self.tensor_keys, risk_level=self.risk_level,
-            nonnegative_cost=head.nonnegative_cost, variance_loss=head.variance_loss,
-            variance_target=head.variance_target, num_quantiles=head.num_quantiles,
-            num_target_quantiles=head.num_target_quantiles, huber_kappa=head.huber_kappa,
-            members=head.num_safety_nets, ensemble_target=head.ensemble_target,
-            ensemble_reading=head.ensemble_reading, k_ucb=head.k_ucb, k_ucb_lr=head.k_ucb_lr,
-            k_ucb_max=head.k_ucb_max, prior_scale=head.prior_scale,
-        )  # fmt: skip
+            self.safety_network, self.tensor_keys, risk_level=self.risk_level, options=head
+        )
         device = self.log_alpha.device
         for name in ("prior", "pessimism"):  # (buffers, moved in place: no optimizer's)
             part = getattr(self.safety_head, name, None)

@@ -15,8 +15,7 @@ from wcsac_rl.objectives.risk import validate_risk_level
 from wcsac_rl.options import (
     ALPHA_INIT,
     SafetyOptions,
-    check_ensemble_reading,
-    check_ensemble_target,
+    check_ensemble,
     check_kappa_bound,
     check_shield_candidates,
     check_signal_every,
@@ -494,18 +493,7 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int,
             f"{options.kappa_states}"
         )
     try:
-        check_ensemble_target(options.ensemble_target, options.num_safety_nets, prefix="algo.")
-        check_ensemble_reading(
-            options.ensemble_reading,
-            options.num_safety_nets,
-            ensemble_target=options.ensemble_target,
-            prior_scale=options.prior_scale,
-            kind=options.safety_critic,
-            k_ucb=options.k_ucb,
-            k_ucb_lr=options.k_ucb_lr,
-            k_ucb_max=options.k_ucb_max,
-            prefix="algo.",
-        )
+        check_ensemble(options, kind=options.safety_critic, prefix="algo.")
         check_signal_every(
             options.kappa_signal_every, options.kappa_states, options.kappa_statistic, "algo."
         )
