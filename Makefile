@@ -10,7 +10,7 @@ export MUJOCO_GL ?= egl
 # one worker, so its module fixtures are built once. TEST_WORKERS=0: one process.
 TEST_WORKERS ?= auto
 
-.PHONY: install test test-fast train lint bench clean
+.PHONY: install test test-fast train lint bench gpu-check clean
 
 install: $(STAMP)
 
@@ -39,6 +39,11 @@ train: $(STAMP)
 # every benchmarks/bench_*.py (tests/test_benchmarks.py runs each at tiny sizes)
 bench: $(STAMP)
 	for script in benchmarks/bench_*.py; do $(PY) $$script || exit 1; done
+
+# the prepared device check (benchmarks/gpu_check.py): on a CUDA machine the device tests
+# and a short training eager and compiled beside the CPU; without CUDA one line, exit 0
+gpu-check: $(STAMP)
+	$(PY) benchmarks/gpu_check.py
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache

@@ -50,6 +50,11 @@ SMOKE_ARGS = {
         "algo.buffer_size=1500",  # --fill fills it from a 1 000-step rollout
     ],
     "bench_help.py": ["--repeats", "1"],
+    "gpu_check.py": [
+        *("--device", "cpu", "--env", "tiny", "--frames", "800", "--epoch-frames", "400"),
+        *("--no-tests", "--modes", "eager", "--override", "algo.network.width=16"),
+        *("algo.batch_size=8", "algo.collector.init_random_frames=200"),
+    ],
     "profile_update.py": [
         *("--batch", "8", "--width", "16", "--updates", "2", "--warmup", "1", "--repeats", "1"),
         *("--ablation", "1"),
@@ -332,3 +337,19 @@ def test_bench_update_times_only_the_variants_asked_for_with_their_baselines(tmp
         bench.main([*argv, "--options", "paper", "--variants", "wcsac_kit"])
     err = capsys.readouterr().err
     assert "--variants: unknown wcsac_kit" in err and "wcsac_paper" in err
+
+
+def test_gpu_check_measures_a_training_where_it_can_and_exits_0_where_it_cannot(tmp_path):
+    result = run_benchmark("gpu_check.py", tmp_path)  # --device cpu: the whole check, tiny
+    (row,) = result["results"]
+    assert (row["device"], row["mode"], row["epochs"]) == ("cpu", "eager", 2)
+    assert_positive(row, "updates_per_s", "frames_per_s", "wall_s")
+    env = {**os.environ, "CUDA_VISIBLE_DEVICES": ""}  # (a CUDA machine hides its cards)
+    proc = subprocess.run(
+        [sys.executable, str(BENCHMARKS / "gpu_check.py")],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("gpu-check: no CUDA device on this machine") and (
+        len(proc.stdout.splitlines()) == 1
+    ), proc.stdout
