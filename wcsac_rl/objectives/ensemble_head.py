@@ -352,17 +352,7 @@ def make_safety_head(
     many critics of the kind, read by an :class:`EnsembleHead`.
     """
     options = SafetyHeadOptions() if options is None else options
-    head = _make_member_head(
-        network,
-        keys,
-        risk_level=risk_level,
-        nonnegative_cost=options.nonnegative_cost,
-        variance_loss=options.variance_loss,
-        variance_target=options.variance_target,
-        num_quantiles=options.num_quantiles,
-        num_target_quantiles=options.num_target_quantiles,
-        huber_kappa=options.huber_kappa,
-    )
+    head = _make_member_head(network, keys, risk_level=risk_level, options=options)
     if options.num_safety_nets == 1:
         return head
     return EnsembleHead(head, options)

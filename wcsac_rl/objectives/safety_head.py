@@ -50,7 +50,6 @@ from wcsac_rl.objectives.risk import (
 )
 from wcsac_rl.objectives.variance import variance_regression_loss
 from wcsac_rl.options import (
-    VARIANCE_LOSSES,
     VARIANCE_TARGETS,
     IQNOptions,
     SafetyOptions,
@@ -582,11 +581,6 @@ class IQNHead(SafetyHead):
         }
 
 
-def _check_count(name: str, count) -> None:
-    if int(count) != count or count < 1:
-        raise ValueError(f"{name} must be an integer >= 1, got {count}")
-
-
 def is_iqn_critic(network: Any, quantile_fractions: Any = "quantile_fractions") -> bool:
     """Whether ``network`` (a safety critic module) is an implicit quantile network: the
     kit's :class:`~wcsac_rl.modules.IQNSafetyCritic`, or any module reading the quantile
@@ -596,37 +590,20 @@ def is_iqn_critic(network: Any, quantile_fractions: Any = "quantile_fractions") 
     )
 
 
-def _make_member_head(
-    network,
-    keys,
-    *,
-    risk_level,
-    nonnegative_cost,
-    variance_loss,
-    variance_target,
-    num_quantiles,
-    num_target_quantiles,
-    huber_kappa,
-) -> GaussianHead | IQNHead:
-    if variance_target not in VARIANCE_TARGETS:
-        raise ValueError(
-            f"variance_target must be one of {VARIANCE_TARGETS}, got {variance_target!r}"
-        )
-    if variance_loss not in VARIANCE_LOSSES:
-        raise ValueError(f"variance_loss must be one of {VARIANCE_LOSSES}, got {variance_loss!r}")
-    _check_count("num_quantiles", num_quantiles)
-    _check_count("num_target_quantiles", num_target_quantiles)
-    if not huber_kappa > 0:
-        raise ValueError(f"huber_kappa must be > 0 (the Huber threshold), got {huber_kappa}")
-    common = {"risk_level": risk_level, "nonnegative_cost": nonnegative_cost}
+def _make_member_head(network, keys, *, risk_level, options) -> GaussianHead | IQNHead:
+    """The head of one critic of ``network``'s kind, as ``options`` (a checked
+    ``SafetyHeadOptions``) say; the Gaussian head's variance options are refused for an
+    IQN critic unless left at their defaults."""
+    common = {"risk_level": risk_level, "nonnegative_cost": options.nonnegative_cost}
+    variance = (options.variance_loss, options.variance_target)
     if not is_iqn_critic(network, keys.quantile_fractions):
         return GaussianHead(
-            network, keys, variance_loss=variance_loss, variance_target=variance_target, **common
+            network, keys, variance_loss=variance[0], variance_target=variance[1], **common
         )
     defaults = (SafetyOptions.variance_loss, SafetyOptions.variance_target)
-    if (variance_loss, variance_target) != defaults:
+    if variance != defaults:
         raise ValueError(
-            f"variance_loss={variance_loss!r} and variance_target={variance_target!r} "
+            f"variance_loss={variance[0]!r} and variance_target={variance[1]!r} "
             "configure the Gaussian critic's variance head; an IQN safety critic has "
             "none (it learns quantiles with the quantile Huber loss): leave them at "
             f"their defaults {defaults}"
@@ -634,8 +611,8 @@ def _make_member_head(
     return IQNHead(
         network,
         keys,
-        num_quantiles=num_quantiles,
-        num_target_quantiles=num_target_quantiles,
-        huber_kappa=huber_kappa,
+        num_quantiles=options.num_quantiles,
+        num_target_quantiles=options.num_target_quantiles,
+        huber_kappa=options.huber_kappa,
         **common,
     )
