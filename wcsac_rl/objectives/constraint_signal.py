@@ -225,13 +225,18 @@ class HeldStatistic(nn.Module):
         self.every = every
         self.register_buffer("value", torch.full((), float("nan")))
         self.register_buffer("age", torch.zeros((), dtype=torch.long))
+        self._age: int | None = 0  # the buffer's value in Python (None: not read yet)
 
     def take(self) -> Tensor | None:
         """The held value for this update (and count it), or ``None`` when the critic is
-        to be read: nothing held yet, or held for ``every`` updates already."""
-        age = int(self.age)  # (a host read of a 0-dim buffer)
-        if age == 0 or age >= self.every:
+        to be read: nothing held yet, or held for ``every`` updates already. The age is
+        kept in Python beside its buffer: read from the buffer once (after a load), not
+        at every update."""
+        if self._age is None:
+            self._age = int(self.age)  # (a host read: once, not per update)
+        if self._age == 0 or self._age >= self.every:
             return None
+        self._age += 1
         self.age += 1
         return self.value.clone()
 
@@ -239,6 +244,11 @@ class HeldStatistic(nn.Module):
         """Hold ``value`` (0-dim, detached) from this update on."""
         self.value.copy_(value.detach().reshape(()))
         self.age.fill_(1)
+        self._age = 1
+
+    def _load_from_state_dict(self, *args, **kwargs) -> None:
+        super()._load_from_state_dict(*args, **kwargs)
+        self._age = None  # (the loaded buffer is read again at the next update)
 
     def extra_repr(self) -> str:
         return f"every={self.every}"

@@ -34,7 +34,9 @@ class PolyakUpdate(SoftUpdate):
         0.5
     """
 
-    def step(self) -> None:
+    def step(self, finite: torch.Tensor | None = None) -> None:
+        """``θ̄ ← θ̄ + τ (θ − θ̄)``; where ``finite`` (a boolean tensor) is ``False``, the
+        weight is 0 and the targets stay as they are (on the device: nothing is read)."""
         if not self.initialized:
             raise RuntimeError(
                 f"{type(self).__name__} must be initialized (`.init_()`) before calling step()"
@@ -56,5 +58,8 @@ class PolyakUpdate(SoftUpdate):
             if any(t.requires_grad for t in targets):
                 raise RuntimeError("a target parameter is part of a graph")
             self._pairs_checked = True
+        weight = 1.0 - self.eps
+        if finite is not None:
+            weight = torch.where(finite, weight, 0.0).to(targets[0].dtype)
         with torch.no_grad():
-            torch._foreach_lerp_(targets, sources, 1.0 - self.eps)
+            torch._foreach_lerp_(targets, sources, weight)

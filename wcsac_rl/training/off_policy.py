@@ -108,6 +108,8 @@ class OffPolicyTrainer(Trainer):
             if supports_calibration(self.loss)
             else None
         )
+        # the updates of the batch in progress, read together after it (learn)
+        self._pending: list[tuple[TensorDictBase, torch.Tensor]] | None = None
         # (compiled lazily, at the first update)
         self._loss_forward = torch.compile(self.loss) if cfg.compile else self.loss
 
@@ -132,30 +134,66 @@ class OffPolicyTrainer(Trainer):
         (critics, actor, β and κ are then stepped together).
 
         A non-finite loss (one NaN or inf in the batch makes the cost losses NaN) or
-        gradient is never stepped on: the update is skipped (nothing changes: networks,
-        targets, optimizer moments) and counted (:meth:`skip_update`); returns ``None``.
+        gradient is never stepped on, and nothing changes (networks, targets, optimizer
+        moments and step counts): the step is masked on the device (fused Adam's
+        ``found_inf``, a Polyak weight of 0), so an update reads nothing back to the host.
+        It is then counted as skipped (:meth:`skip_update`). Called by itself, the update
+        reads whether it was skipped (one host synchronisation) and returns ``None`` if
+        so; in :meth:`learn` the batch's updates are read together after the last one.
         """
+        out, finite = self._step(batch)
+        self.updates += 1  # (a skipped update is taken back when it is read)
+        if self._pending is not None:
+            self._pending.append((out, finite))
+            return out
+        return self._count([(out, finite)])[0]
+
+    def _step(self, batch: TensorDictBase) -> tuple[TensorDictBase, torch.Tensor]:
+        """The update of :meth:`update`, masked on the device where it is not finite: the
+        loss outputs and that flag (a boolean tensor), nothing read back."""
         out = self._loss_forward(batch)
         total = sum(value for key, value in out.items() if key.startswith("loss_"))
-        # one host synchronisation per update (microseconds on CPU)
-        if not bool(torch.isfinite(total)):
-            bad = [k for k, v in out.items() if k.startswith("loss_") and not v.isfinite().all()]
-            self.skip_update(f"loss ({', '.join(bad)})")
-            return None
         total.backward()
-        if not bool(torch.isfinite(torch.nn.utils.get_total_norm(self._grads()))):
-            for optimizer in self.optimizers.values():
-                optimizer.zero_grad(set_to_none=True)
-            self.skip_update("gradient")
-            return None
-        for name, optimizer in self.optimizers.items():
-            if not (name == "kappa" and self.kappa_held):  # (held: not stepped at all)
-                optimizer.step()
+        grad_norm = torch.nn.utils.get_total_norm(self._grads())
+        finite = torch.isfinite(total) & torch.isfinite(grad_norm)
+        stepped = [
+            optimizer
+            for name, optimizer in self.optimizers.items()
+            if not (name == "kappa" and self.kappa_held)  # (held: not stepped at all)
+        ]
+        if all(optimizer.defaults.get("fused") for optimizer in stepped):
+            skip = (~finite).to(torch.float32)
+            for optimizer in stepped:
+                optimizer.found_inf = skip  # (fused Adam: no step where it is 1)
+        elif not bool(finite):  # an optimizer without a masked step: read it here
+            stepped = []
+        for optimizer in stepped:
+            optimizer.step()
+        for optimizer in self.optimizers.values():
             optimizer.zero_grad(set_to_none=True)
-        self.target_updater.step()
-        self.updates += 1
-        self.nonfinite_streak = 0
-        return out.detach()
+        self.target_updater.step(finite)
+        return out.detach(), finite
+
+    def _count(
+        self, steps: list[tuple[TensorDictBase, torch.Tensor]]
+    ) -> list[TensorDictBase | None]:
+        """Read which of ``steps`` were finite (one host read for all), take the others
+        back from :attr:`updates` and count them as skipped: their outputs, ``None``
+        for a skipped one."""
+        if not steps:
+            return []
+        flags = torch.stack([finite for _, finite in steps]).tolist()
+        outputs: list[TensorDictBase | None] = []
+        for (out, _), finite in zip(steps, flags):
+            if finite:
+                self.nonfinite_streak = 0
+                outputs.append(out)
+                continue
+            self.updates -= 1
+            bad = [k for k, v in out.items() if k.startswith("loss_") and not v.isfinite().all()]
+            self.skip_update(f"loss ({', '.join(bad)})" if bad else "gradient")
+            outputs.append(None)
+        return outputs
 
     def _grads(self) -> list[torch.Tensor]:
         return [
@@ -187,15 +225,19 @@ class OffPolicyTrainer(Trainer):
                 self.shield_replaced += int(batch.get("shielded").sum())
         if self.tracker.frames < self.update_start_frames:
             return []
-        outputs = []
-        with timeit("update"):
-            for _ in range(self.updates_per_batch):
-                # Ctrl-C lands between updates, never inside one: a KeyboardInterrupt
-                # inside TorchRL's vmapped critics surfaces as another error (no
-                # checkpoint, no resume command), and one inside an optimizer step
-                # would checkpoint a half-stepped network
-                with DeferredSignals(("SIGINT",)):
-                    outputs.append(self.update(self.sample()))
+        self._pending = []
+        try:
+            with timeit("update"):
+                for _ in range(self.updates_per_batch):
+                    # Ctrl-C lands between updates, never inside one: a KeyboardInterrupt
+                    # inside TorchRL's vmapped critics surfaces as another error (no
+                    # checkpoint, no resume command), and one inside an optimizer step
+                    # would checkpoint a half-stepped network
+                    with DeferredSignals(("SIGINT",)):
+                        self.update(self.sample())
+        finally:  # (also when interrupted: the counters are the steps taken)
+            steps, self._pending = self._pending, None
+            outputs = self._count(steps)
         return [out for out in outputs if out is not None]
 
     def observe_training_episodes(self, metrics: dict[str, float]) -> None:

@@ -1,0 +1,116 @@
+"""An update reads nothing back to the host: the finite checks and the skip of a
+non-finite update happen on the device (fused Adam's ``found_inf``, a Polyak weight of
+0), and the training loop reads a batch's updates once, after the last one. The masked
+step gives the same parameters, bit for bit, as an unmasked one where all is finite."""
+
+from __future__ import annotations
+
+import traceback
+
+import pytest
+import torch
+from _training_helpers import compose_config
+from torch.overrides import TorchFunctionMode
+
+from wcsac_rl.training import make_trainer
+
+HOST_READS = {
+    torch.Tensor.item,
+    torch.Tensor.tolist,
+    torch.Tensor.numpy,
+    torch.Tensor.cpu,
+    torch.Tensor.__bool__,
+    torch.Tensor.__int__,
+    torch.Tensor.__float__,
+    torch.Tensor.__index__,
+}
+"""What copies a tensor's value to Python (a host synchronisation on an accelerator)."""
+
+
+class HostReads(TorchFunctionMode):
+    """Record every host read while active: the function and the library line."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.reads: list[str] = []
+
+    def __torch_function__(self, func, types, args=(), kwargs=None):
+        if func in HOST_READS:
+            frames = [
+                f"{f.filename.rsplit('site-packages/', 1)[-1]}:{f.lineno}"
+                for f in traceback.extract_stack()[:-1]
+                if "wcsac_rl" in f.filename or "torchrl" in f.filename
+            ]
+            self.reads.append(f"{func.__name__} at {frames[-1] if frames else '?'}")
+        return func(*args, **(kwargs or {}))
+
+
+def _trained_until(trainer, updates: int) -> None:
+    batches = iter(trainer.collector)
+    while trainer.updates < updates:
+        trainer.tracker.add(batch := next(batches))
+        trainer.learn(batch)
+
+
+HELD = ("algo.kappa_signal_every=10", "algo.kappa_statistic=tail", "algo.kappa_states=initial")
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [("algo=wcsac",), ("algo=wcsac", *HELD), ("algo=sac_lag",), ("algo=cal",)],
+    ids=["wcsac", "wcsac-held-signal", "sac_lag", "cal"],
+)
+def test_an_update_in_the_training_loop_reads_nothing_back(tmp_path, overrides):
+    trainer = make_trainer(compose_config("env=tiny", *overrides), tmp_path / "run")
+    counter, real_update, calls = HostReads(), trainer.update, []
+
+    def counted(batch):
+        calls.append(1)
+        with counter:
+            return real_update(batch)
+
+    trainer.update = counted
+    try:
+        _trained_until(trainer, 100)
+    finally:
+        trainer.close()
+    assert len(calls) >= 100 and trainer.updates == len(calls)  # (none skipped)
+    assert counter.reads == []
+
+
+def _state(trainer) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in trainer.loss.state_dict().items()}
+
+
+@pytest.mark.parametrize("algo", ["wcsac", "sac_lag"])
+def test_the_masked_step_equals_an_unmasked_one_bit_for_bit(tmp_path, algo):
+    """Two trainers built alike: one steps through ``update`` (masked on the device),
+    the other as a plain loop would (backward, ``step()``, Polyak at its scalar weight)."""
+    config = compose_config("env=tiny", f"algo={algo}")
+    masked = make_trainer(config, tmp_path / "a")
+    plain = make_trainer(config, tmp_path / "b")
+    try:
+        assert all(torch.equal(v, _state(plain)[k]) for k, v in _state(masked).items())
+        batch = masked.env.rollout(120, break_when_any_done=False).reshape(-1)
+        if masked.postproc is not None:
+            batch = masked.postproc(batch.unsqueeze(0)).reshape(-1)
+        for trainer in (masked, plain):
+            trainer.replay_buffer.extend(batch.select(*trainer.stored_keys).clone())
+            if trainer.initial_state_buffer is not None:
+                trainer.initial_state_buffer.add_starts(batch.unsqueeze(0))
+        for _ in range(3):
+            sample, rng = masked.sample(), torch.get_rng_state()
+            assert masked.update(sample.clone()) is not None
+            torch.set_rng_state(rng)  # (the actor's draws: the same for both)
+            out = plain.loss(sample.clone())
+            sum(v for k, v in out.items() if k.startswith("loss_")).backward()
+            for optimizer in plain.optimizers.values():
+                optimizer.step()
+                optimizer.zero_grad(set_to_none=True)
+            plain.target_updater.step()
+        after = _state(plain)
+        for key, value in _state(masked).items():
+            assert torch.equal(value, after[key]), key
+    finally:
+        masked.close()
+        plain.close()
