@@ -169,6 +169,7 @@ class OffPolicyTrainer(Trainer):
             stepped = []
         for optimizer in stepped:
             optimizer.step()
+            optimizer.found_inf = None  # (a later step of its own is not masked)
         for optimizer in self.optimizers.values():
             optimizer.zero_grad(set_to_none=True)
         self.target_updater.step(finite)
