@@ -44,7 +44,8 @@ class EnsembleHead(SafetyHead):
     ``members`` (TorchRL's convention for the twin reward critics). Every reading
     returns the members' :class:`SafetyValues` stacked the same way, ``[members, *B]``.
 
-    * :meth:`targets`, by ``options.ensemble_target`` (``target``): ``"own"``: each member's from its own target critic;
+    * :meth:`targets`, by ``options.ensemble_target`` (``target``): ``"own"``: each
+      member's from its own target critic;
       ``"max"``: per row, every member's from the target critic of the member whose
       target value (Q̄^c, the mean) is largest there — TD3's clipped double-Q, which
       bootstraps from the smaller reward value, turned pessimistic for a cost, so

@@ -595,15 +595,15 @@ def _make_member_head(network, keys, *, risk_level, options) -> GaussianHead | I
     ``SafetyHeadOptions``) say; the Gaussian head's variance options are refused for an
     IQN critic unless left at their defaults."""
     common = {"risk_level": risk_level, "nonnegative_cost": options.nonnegative_cost}
-    variance = (options.variance_loss, options.variance_target)
+    variance_loss, variance_target = options.variance_loss, options.variance_target
     if not is_iqn_critic(network, keys.quantile_fractions):
         return GaussianHead(
-            network, keys, variance_loss=variance[0], variance_target=variance[1], **common
+            network, keys, variance_loss=variance_loss, variance_target=variance_target, **common
         )
     defaults = (SafetyOptions.variance_loss, SafetyOptions.variance_target)
-    if variance != defaults:
+    if (variance_loss, variance_target) != defaults:
         raise ValueError(
-            f"variance_loss={variance[0]!r} and variance_target={variance[1]!r} "
+            f"variance_loss={variance_loss!r} and variance_target={variance_target!r} "
             "configure the Gaussian critic's variance head; an IQN safety critic has "
             "none (it learns quantiles with the quantile Huber loss): leave them at "
             f"their defaults {defaults}"

@@ -110,6 +110,8 @@ class OffPolicyTrainer(Trainer):
         )
         # the updates of the batch in progress, read together after it (learn)
         self._pending: list[tuple[TensorDictBase, torch.Tensor]] | None = None
+        # fused Adam skips a step on the device (found_inf); other optimizers are read
+        self._masked_steps = all(o.defaults.get("fused") for o in self.optimizers.values())
         # (compiled lazily, at the first update)
         self._loss_forward = torch.compile(self.loss) if cfg.compile else self.loss
 
@@ -161,7 +163,7 @@ class OffPolicyTrainer(Trainer):
             for name, optimizer in self.optimizers.items()
             if not (name == "kappa" and self.kappa_held)  # (held: not stepped at all)
         ]
-        if all(optimizer.defaults.get("fused") for optimizer in stepped):
+        if self._masked_steps:
             skip = (~finite).to(torch.float32)
             for optimizer in stepped:
                 optimizer.found_inf = skip  # (fused Adam: no step where it is 1)
@@ -228,14 +230,15 @@ class OffPolicyTrainer(Trainer):
             return []
         self._pending = []
         try:
-            with timeit("update"):
+            # Ctrl-C lands between updates, never inside one: a KeyboardInterrupt inside
+            # TorchRL's vmapped critics surfaces as another error (no checkpoint, no
+            # resume command), and one inside an optimizer step would checkpoint a
+            # half-stepped network. Held back, it ends the loop after its update.
+            with timeit("update"), DeferredSignals(("SIGINT",)) as ctrl_c:
                 for _ in range(self.updates_per_batch):
-                    # Ctrl-C lands between updates, never inside one: a KeyboardInterrupt
-                    # inside TorchRL's vmapped critics surfaces as another error (no
-                    # checkpoint, no resume command), and one inside an optimizer step
-                    # would checkpoint a half-stepped network
-                    with DeferredSignals(("SIGINT",)):
-                        self.update(self.sample())
+                    self.update(self.sample())
+                    if ctrl_c.received is not None:
+                        break
         finally:  # (also when interrupted: the counters are the steps taken)
             steps, self._pending = self._pending, None
             outputs = self._count(steps)
