@@ -26,7 +26,6 @@ The figures go in docs/performance.md with the card's name (``torch.cuda.get_dev
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import os
@@ -37,6 +36,8 @@ import time
 from pathlib import Path
 
 import torch
+
+from wcsac_rl.training.progress import read_progress
 
 ROOT = Path(__file__).resolve().parents[1]
 MODES = {"eager": "compile=false", "compiled": "compile=true"}
@@ -82,18 +83,16 @@ def train(args: argparse.Namespace, device: str, mode: str, workdir: Path) -> di
     if proc.returncode != 0:
         tail = (proc.stderr or proc.stdout).strip().splitlines()[-5:]
         return {"device": device, "mode": mode, "error": " | ".join(tail)}
-    with (run_dir / "progress.csv").open(newline="") as f:
-        rows = list(csv.DictReader(f))
-    last = rows[-1]
-    before = float(rows[-2]["updates"]) if len(rows) > 1 else 0.0
-    epoch_updates = float(last["updates"]) - before
-    update_s = float(last["time/update_s"])
+    columns = read_progress(run_dir / "progress.csv")
+    updates = columns["updates"]
+    epoch_updates = updates[-1] - (updates[-2] if len(updates) > 1 else 0.0)
+    update_s = columns["time/update_s"][-1]
     return {
         "device": device,
         "mode": mode,
-        "epochs": len(rows),
+        "epochs": len(updates),
         "updates_per_s": epoch_updates / update_s if update_s > 0 else math.nan,
-        "frames_per_s": float(last["time/fps"]),
+        "frames_per_s": columns["time/fps"][-1],
         "wall_s": wall,
     }
 
