@@ -3,7 +3,7 @@
 Usage::
 
     python benchmarks/bench_update.py [--threads 1] [--rounds 5] [--updates 20]
-                                      [--options kit defaults paper] [--compile]
+                                      [--options kit gaussian paper] [--compile]
                                       [--no-loop] [--default-malloc] [--json PATH]
                                       [--variants NAME ...]
     python benchmarks/bench_update.py --options kit --variants wcsac_kit \
@@ -20,8 +20,9 @@ Prints, with one torch thread by default:
   timed at each option set of ``--options`` (:data:`OPTION_SETS`): ``kit`` (what
   ``python train.py`` runs, ``conf/algo/wcsac.yaml``: the IQN safety critic, κ on the larger of
   its start-state CVaR and the empirical CVaR_α of the last training episodes),
-  ``defaults`` (``SafetyOptions()``' defaults: the Gaussian critic, 10-step cost
-  targets, κ on the tail statistic at episode start states) and ``paper``
+  ``gaussian`` (the kit's safety critic and κ options with the Gaussian critic: 10-step
+  cost targets, κ on the tail statistic at episode start states, κ on the critic alone)
+  and ``paper``
   (``PAPER_OPTIONS`` = ``algo=wcsac_paper``, ``WCSACLoss``'s own defaults). Its batch comes through the
   kit's pipeline, as the trainer builds it: collected trajectories →
   ``make_postproc(loss)`` (the n-step cost entries) → the replay rows the loss reads
@@ -107,9 +108,11 @@ from wcsac_rl.training.runtime import retain_freed_memory
 OBS, ACT = 44, 2
 CONFIG_OVERRIDES = {
     "kit": ("algo=wcsac",),
-    "defaults": (  # wcsac.yaml's recipe undone: SafetyOptions' and off_policy.yaml's values
+    "gaussian": (  # wcsac.yaml's critic and κ reads, its training-safety choices undone
         "algo=wcsac",
         "algo.safety_critic=gaussian",
+        "algo.variance_loss=glm",
+        "algo.variance_target=td",
         "algo.kappa_signal=critic",
         "algo.kappa_episode_window=30",
         "algo.kappa_lr_scale=1.0",
@@ -119,8 +122,9 @@ CONFIG_OVERRIDES = {
     "paper": ("algo=wcsac_paper",),
 }
 """The option sets each ``WCSACLoss`` variant is timed at (``--options``), as the config
-composes them: ``kit`` is ``python train.py``'s default, ``defaults``
-``SafetyOptions()``' defaults, ``paper`` ``PAPER_OPTIONS`` (the loss's own defaults). The end-to-end loop runs these configs."""
+composes them: ``kit`` is ``python train.py``'s default, ``gaussian`` its safety critic
+and κ reads with the Gaussian critic, ``paper`` ``PAPER_OPTIONS`` (``SafetyOptions``' and
+the loss's own defaults). The end-to-end loop runs these configs."""
 OPTION_SETS = tuple(CONFIG_OVERRIDES)
 
 
@@ -143,8 +147,8 @@ class OptionSet:
 @functools.cache
 def option_set(name: str) -> OptionSet:
     """The options of :data:`CONFIG_OVERRIDES` ``name``, as the trainer reads them from
-    the composed config (``tests/test_benchmarks.py`` pins ``defaults`` to
-    ``SafetyOptions()`` and ``paper`` to ``PAPER_OPTIONS``)."""
+    the composed config (``tests/test_benchmarks.py`` pins ``paper`` to ``SafetyOptions()``,
+    the paper's)."""
     if name not in CONFIG_OVERRIDES:
         raise KeyError(f"unknown option set {name!r}; one of {OPTION_SETS}")
     algo = compose_config(*CONFIG_OVERRIDES[name]).algo

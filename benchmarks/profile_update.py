@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/profile_update.py [--options kit defaults paper] [--updates 30]
+    python benchmarks/profile_update.py [--options kit gaussian paper] [--updates 30]
                                         [--repeats 3] [--ablation ROUNDS]
                                         [--batch 256] [--width 256] [--json PATH]
 
@@ -37,8 +37,8 @@ call`` (the safety critic called as a module, not fused). The profiler adds a fi
 cost per operator, so operator-heavy parts are over-counted against the matrix
 products; the shares are relative, not timings. ``--ablation`` cross-checks them
 without the profiler: the update's time with each extra of the kit's options
-(``python train.py``'s) switched off alone (:data:`ABLATIONS`), at the loss's own
-defaults and at the paper's options, against the kit's time, in interleaved rounds.
+(``python train.py``'s) switched off alone (:data:`ABLATIONS`), with the Gaussian
+critic and at the paper's options, against the kit's time, in interleaved rounds.
 """
 
 from __future__ import annotations
@@ -255,15 +255,15 @@ ABLATIONS = {
     "kappa_signal=critic": ("kit", {"kappa_signal": "critic"}),
     "cost_n_steps=1": ("kit", {"cost_n_steps": 1}),
     "kappa_statistic=mean": ("kit", {"kappa_statistic": "mean"}),
-    "Gaussian critic (defaults)": ("defaults", {}),
-    "defaults, kappa_states=replay": ("defaults", {"kappa_states": "replay"}),
+    "Gaussian critic": ("gaussian", {}),
+    "Gaussian critic, kappa_states=replay": ("gaussian", {"kappa_states": "replay"}),
     "paper options": ("paper", {}),
 }
 """The variants the ablation times against ``kit`` (``python train.py``'s default): an
 option set of ``bench_update.OPTION_SETS`` and the options changed in it. Each of
 the kit's extras switched off alone (the episode window, the n-step targets, the tail
-statistic), the loss's own defaults (the Gaussian critic: ``kappa_signal="critic"``),
-those without the start states, and the paper's options."""
+statistic), the Gaussian critic (``kappa_signal="critic"``), the same without the start
+states, and the paper's options (the loss's own defaults)."""
 
 
 def ablation(sizes: Sizes, rounds: int, updates: int, warmup: int) -> list[dict]:

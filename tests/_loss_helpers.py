@@ -93,6 +93,8 @@ def recipe_kwargs(
     (``risk_level``, ``cost_limit``, a part given as an object) pass as they are."""
     if base is None:
         base = paper_options(kind) if paper else {}
+    if kind != "gaussian":
+        base = {k: v for k, v in base.items() if k not in GAUSSIAN_HEAD}
     recipe = {**base, "safety_critic": kind}
     iqn = {}
     loss_kwargs = {}
@@ -108,10 +110,25 @@ def recipe_kwargs(
     return {**loss_parts(recipe), **loss_kwargs}
 
 
-def flat_parts(**kwargs) -> dict:
-    """``WCSACLoss``'s keywords for flat options over ``SafetyOptions``' defaults (the
-    loss's own keywords pass as they are): :func:`recipe_kwargs` without the paper."""
-    return recipe_kwargs(paper=False, **kwargs)
+STUDY_OPTIONS = {
+    "variance_loss": "glm",
+    "variance_target": "td",
+    "cost_gamma": 1.0,
+    "cost_n_steps": 10,
+    "nonnegative_cost": True,
+    "kappa_states": "initial",
+    "kappa_statistic": "tail",
+}
+"""The StaticEnv study's safety critic and κ reads (docs/defaults.md), which the kit's
+recipes set over SafetyOptions' (the paper's) defaults: n-step entries, start states,
+the GLM variance head. The tests that exercise those paths build on them."""
+
+
+def flat_parts(kind: str = "gaussian", **kwargs) -> dict:
+    """``WCSACLoss``'s keywords for flat options over :data:`STUDY_OPTIONS` (the loss's
+    own keywords pass as they are) for a safety critic of ``kind``: :func:`recipe_kwargs`
+    on the study's reads."""
+    return recipe_kwargs(kind, base=STUDY_OPTIONS, **kwargs)
 
 
 def make_loss(

@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
+from _loss_helpers import GAUSSIAN_HEAD, STUDY_OPTIONS
 from tensordict import TensorDict
 from torchrl.data import Bounded
 
@@ -21,13 +22,21 @@ from wcsac_rl.objectives import PAPER_OPTIONS, NStepCost, StartStateBuffer, loss
 REFERENCE = Path(__file__).parent / "data" / "loss_reference.pt"
 OBS_DIM, ACT_DIM, WIDTH = 5, 2, 32
 
-# The defaults when the reference was recorded (b61cb3e), where they have changed since
-RECORDED_DEFAULTS = {"cost_n_steps": 10, "kappa_signal": "critic", "kappa_rule": "gradient"}
+# The defaults when the reference was recorded (b61cb3e), where they have changed since:
+# the StaticEnv study's reads (SafetyOptions' defaults then; the paper's are now)
+RECORDED_DEFAULTS = {**STUDY_OPTIONS, "kappa_signal": "critic", "kappa_rule": "gradient"}
 # name -> (safety-critic kind, variance head, loss options): the presets of conf/algo
 PRESETS = {
     "wcsac": ("gaussian", True, {"risk_level": 0.1, **RECORDED_DEFAULTS}),
     "wcsac_paper": ("gaussian", True, {"risk_level": 0.1, **PAPER_OPTIONS}),
-    "wcsac_iqn": ("iqn", True, {"risk_level": 0.1, **RECORDED_DEFAULTS}),
+    "wcsac_iqn": (
+        "iqn",
+        True,
+        {
+            "risk_level": 0.1,
+            **{k: v for k, v in RECORDED_DEFAULTS.items() if k not in GAUSSIAN_HEAD},
+        },
+    ),
     "sac_lag": ("gaussian", False, {"risk_level": 1.0, **RECORDED_DEFAULTS}),
     "sac_lag_paper": ("gaussian", False, {"risk_level": 1.0, **PAPER_OPTIONS}),
 }

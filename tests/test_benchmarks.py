@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from wcsac_rl.objectives import PAPER_OPTIONS, loss_parts
+from wcsac_rl.objectives import loss_parts
 from wcsac_rl.options import SafetyOptions
 from wcsac_rl.training.builders import safety_critic_kwargs
 
@@ -113,7 +113,7 @@ def test_bench_help_times_every_console_script_without_torch(tmp_path):
         assert row["heavy_modules"] == "", row
 
 
-def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
+def test_bench_update_runs_at_every_option_set(tmp_path):
     result = run_benchmark("bench_update.py", tmp_path)
     assert result["sizes"] == {"batch": 8, "width": 16, "obs": 44, "act": 2}
     assert result["threads"] == 1
@@ -122,7 +122,7 @@ def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
     rows = {row["name"]: row for row in result["updates"]}
     expected = {"sac", "sac_polyak", "sac_torchrl_nets", "plain_wcsac_paper"}
     expected.update({"wcsac_kit_module_calls", "wcsac_kit_signal_every10"})
-    for options in ("kit", "defaults", "paper"):
+    for options in ("kit", "gaussian", "paper"):
         for suffix in ("", "_general", "_torchrl_nets"):
             expected.add(f"wcsac_{options}{suffix}")
     assert set(rows) == expected
@@ -135,21 +135,21 @@ def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
             assert row["options"] == name.split("_")[1]
     flops = {name: row["gflop_per_update"] for name, row in rows.items()}
     # the same networks and batch: WCSAC's four critics do more matrix work than SAC's
-    # two, and the defaults' extra evaluations (n-step targets, start states) more still
-    assert flops["sac"] == flops["sac_polyak"] < flops["wcsac_paper"] < flops["wcsac_defaults"]
+    # two, and the Gaussian set's extra evaluations (n-step targets, start states) more still
+    assert flops["sac"] == flops["sac_polyak"] < flops["wcsac_paper"] < flops["wcsac_gaussian"]
     # the fused and the general path multiply the same matrices, but for the n-step
     # targets, where the fused ensemble keeps its one product over every member at s'
     assert flops["wcsac_paper_general"] == pytest.approx(flops["wcsac_paper"])
-    assert flops["wcsac_defaults_general"] < flops["wcsac_defaults"]
+    assert flops["wcsac_gaussian_general"] < flops["wcsac_gaussian"]
     # the kit's IQN critic is not in the fused ensemble: both paths multiply the same
-    # matrices; with a user's Gaussian critic the kit's options cost what the defaults'
+    # matrices; with a user's Gaussian critic the kit's options cost what the Gaussian set's
     # do (κ's second signal, the episodes' CVaR, is no matrix work)
     assert flops["wcsac_kit_general"] == pytest.approx(flops["wcsac_kit"])
     # reading the critics from their parameters multiplies the same matrices
     assert flops["wcsac_kit_module_calls"] == flops["wcsac_kit"]
     # κ's start-state tail read once in 10 updates: that evaluation's work in 1 of 10
     assert flops["wcsac_kit_signal_every10"] < flops["wcsac_kit"]
-    assert flops["wcsac_kit_torchrl_nets"] == pytest.approx(flops["wcsac_defaults_torchrl_nets"])
+    assert flops["wcsac_kit_torchrl_nets"] == pytest.approx(flops["wcsac_gaussian_torchrl_nets"])
 
     loop = result["loop"]
     env_rows = [row for row in loop if "options" not in row]
@@ -157,7 +157,7 @@ def test_bench_update_runs_at_the_defaults_and_the_paper_options(tmp_path):
     for row in env_rows:
         assert_positive(row, "value")
     runs = {row["options"]: row for row in loop if "options" in row}
-    assert set(runs) == {"kit", "defaults", "paper"}
+    assert set(runs) == {"kit", "gaussian", "paper"}
     for row in runs.values():
         assert_positive(row, "fps", "ups", "of_ceiling")
         # UTD 0.25 (100 updates per 400-frame batch): over a whole epoch, updates per frame
@@ -208,7 +208,7 @@ def test_bench_memory_runs_at_the_defaults_and_the_paper_options(tmp_path):
 def test_profile_update_gives_each_part_of_the_update_its_share(tmp_path):
     output = run_benchmark("profile_update.py", tmp_path)
     results = {r["options"]: r for r in output["profiles"]}
-    assert set(results) == {"kit", "defaults", "paper"}
+    assert set(results) == {"kit", "gaussian", "paper"}
     extras = {"targets: n-step draw", "kappa: start-state values"}
     common = {"targets", "online critics", "actor loss", "optimizer step"}
     for options, result in results.items():
@@ -221,7 +221,7 @@ def test_profile_update_gives_each_part_of_the_update_its_share(tmp_path):
         assert sum(e["share"] for e in parts.values()) == pytest.approx(1.0)
         assert sum(e["flop_share"] for e in parts.values()) == pytest.approx(1.0)
         assert_positive(result, "gflop_per_update")
-    flops = {part: entry["flop_share"] for part, entry in results["defaults"]["parts"].items()}
+    flops = {part: entry["flop_share"] for part, entry in results["gaussian"]["parts"].items()}
     # matrix products per row, width 16: the actor 44-16-16-4, each critic 46-16-16-1.
     # The targets run the actor, the fused product of the four target critics at s'
     # (kept whole: another grouping rounds differently) and the safety pair at s_{t+m};
@@ -235,15 +235,15 @@ def test_profile_update_gives_each_part_of_the_update_its_share(tmp_path):
         actor / (actor + 6 * critic), rel=0.01
     )
     # the cross-check without the profiler: the kit's options, each extra off, the
-    # loss's own defaults, the paper's
+    # Gaussian critic, the paper's
     ablation = {row["variant"]: row["time_vs_kit"] for row in output["ablation"]}
     assert list(ablation) == [
         "kit",
         "kappa_signal=critic",
         "cost_n_steps=1",
         "kappa_statistic=mean",
-        "Gaussian critic (defaults)",
-        "defaults, kappa_states=replay",
+        "Gaussian critic",
+        "Gaussian critic, kappa_states=replay",
         "paper options",
     ]
     assert ablation["kit"] == 1.0
@@ -265,8 +265,9 @@ def _comparable(kwargs: dict) -> dict:
 
 
 def test_option_sets_are_what_the_trainer_and_the_loss_read():
-    """``kit`` is ``python train.py``'s config; ``defaults`` is ``SafetyOptions``' defaults
-    and ``paper`` ``PAPER_OPTIONS``, in every keyword the loss is given."""
+    """``kit`` is ``python train.py``'s config; ``gaussian`` its safety critic and κ reads
+    with the Gaussian critic and the study's variance head; ``paper`` ``SafetyOptions``'
+    defaults, the paper's, in every keyword the loss is given."""
     bench = _bench_update()
     kit = bench.option_set("kit")
     assert kit.options.safety_critic == "iqn" and kit.options.kappa_signal == "max"
@@ -277,10 +278,16 @@ def test_option_sets_are_what_the_trainer_and_the_loss_read():
     window = (kit.options.kappa_episode_window, kit.options.kappa_episode_statistic)
     assert window == (10, "cvar")
     assert kit.extra == {"alpha_init": 0.1}
-    for name, options in (
-        ("defaults", SafetyOptions()),
-        ("paper", replace(SafetyOptions(), **PAPER_OPTIONS)),
-    ):
+    gaussian = replace(
+        kit.options,
+        safety_critic="gaussian",
+        variance_loss="glm",
+        variance_target="td",
+        kappa_signal="critic",
+        kappa_episode_window=30,
+        kappa_lr_scale=1.0,
+    )
+    for name, options in (("gaussian", gaussian), ("paper", SafetyOptions())):
         chosen = bench.option_set(name)
         expected = {**loss_parts(options), "alpha_init": 1.0}
         assert _comparable(chosen.loss_kwargs()) == _comparable(expected), name
@@ -289,6 +296,8 @@ def test_option_sets_are_what_the_trainer_and_the_loss_read():
             "variance": options.variance,
         }
         assert chosen.options.kappa_signal == "critic"  # (no episode window)
+    assert bench.option_set("gaussian").options.kappa_states == "initial"
+    assert bench.option_set("paper").options.kappa_states == "replay"
     with pytest.raises(KeyError, match="unknown option set 'fast'"):
         bench.option_set("fast")
 

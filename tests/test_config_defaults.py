@@ -138,13 +138,20 @@ def test_the_authors_kappa_advice_is_the_paper_variants_only(env):
 
 
 # What docs/defaults.md states the kit's recipes set over the loss's own defaults
-# (SafetyOptions) and off_policy.yaml's: the training-safety options on every layout
+# (SafetyOptions, the paper's) and off_policy.yaml's: the StaticEnv study's safety critic
+# and κ (10-step, non-negative, undiscounted targets; κ on the start states' tail), the
+# training-safety options on every layout
 # (conf/algo/wcsac.yaml, sac_lag.yaml; results/training_safety/), on DynamicEnv the PID
 # rule from κ = 0.1, never under it, with no integral term, 50-step cost targets and SAC's
 # actor rate (layout/wcsac_dynamic.yaml; results/training_safety_dynamic/), and SAC-Lag's
 # own: the mean critic, the IQN one on StaticEnv and DynamicEnv, 0.02 ≤ κ ≤ 0.3 on
 # DynamicEnv (layout/sac_lag_static.yaml, sac_lag_dynamic.yaml).
 TRAINING_SAFETY = {
+    "cost_n_steps": 10,
+    "nonnegative_cost": True,
+    "cost_gamma": 1.0,
+    "kappa_states": "initial",
+    "kappa_statistic": "tail",
     "safety_critic": "iqn",
     "kappa_signal": "max",
     "kappa_episode_window": 10,

@@ -199,7 +199,7 @@ def test_action_cvar_of_a_linear_quantile_critic_is_its_tail_mean_at_the_midpoin
         make_actor(2, Bounded(-1.0, 1.0, shape=(1,)), width=8),
         [make_qvalue(2, 1, width=8) for _ in range(2)],
         linear_quantile_critic(),
-        **flat_parts(risk_level=alpha, num_quantiles=n, nonnegative_cost=False),
+        **flat_parts("iqn", risk_level=alpha, num_quantiles=n, nonnegative_cost=False),
     )
     obs = torch.tensor([[2.0, 1.0], [-1.0, 4.0], [3.0, -2.0]])
     reading = loss.action_cvar(TensorDict({"observation": obs}, [3]), torch.zeros(3, 1))

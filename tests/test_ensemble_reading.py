@@ -44,9 +44,11 @@ def _losses(members=3, kind="gaussian", **kwargs):
     critics = [make_safety_critic(OBS_DIM, ACT_DIM, kind=kind, width=32) for _ in range(members)]
     options = {**PLAIN, "fuse_critics": False, **kwargs}
     singles = {k: v for k, v in options.items() if k not in ENSEMBLE_ONLY}
-    ensemble = WCSACLoss(actor, qvalues, critics, **flat_parts(num_safety_nets=members, **options))
+    ensemble = WCSACLoss(
+        actor, qvalues, critics, **flat_parts(kind, num_safety_nets=members, **options)
+    )
     return ensemble, [
-        WCSACLoss(actor, qvalues, critic, **flat_parts(**singles)) for critic in critics
+        WCSACLoss(actor, qvalues, critic, **flat_parts(kind, **singles)) for critic in critics
     ]
 
 

@@ -364,7 +364,7 @@ def test_twin_critics_not_read_as_torchrl_mlps_keep_the_vmapped_call():
             make_actor(OBS_DIM, spec, width=8),
             qvalue,
             safety,
-            **flat_parts(num_qvalue_nets=2, **paper_options("iqn")),
+            **flat_parts("iqn", num_qvalue_nets=2, **paper_options("iqn")),
         )
         assert loss.critics.stacked is None, type(module).__name__
         out = loss(make_batch())  # the vmapped call still serves it

@@ -383,7 +383,7 @@ def test_sac_lag_with_an_iqn_critic_holds_the_mean_quantile_under_the_threshold(
         make_actor(2, Bounded(-1.0, 1.0, shape=(1,)), width=8),
         [make_qvalue(2, 1, width=8) for _ in range(2)],
         _linear_critic(),
-        **flat_parts(num_quantiles=4, cost_threshold=1.0, **paper_options("iqn")),
+        **flat_parts("iqn", num_quantiles=4, cost_threshold=1.0, **paper_options("iqn")),
     )
     assert loss.safety_critic_kind == "iqn" and loss.risk_level == 1.0
     out = loss(_linear_batch())
@@ -405,8 +405,8 @@ def test_fusing_falls_back_for_an_iqn_critic_or_is_refused():
 @pytest.mark.parametrize(
     ("kwargs", "message"),
     [
-        ({"variance_target": "moment"}, "variance head"),
-        ({"variance_loss": "w2"}, "variance head"),
+        ({"variance_target": "td"}, "variance head"),
+        ({"variance_loss": "glm"}, "variance head"),
         ({"num_quantiles": 0}, "num_quantiles must be an integer >= 1"),
         ({"num_target_quantiles": 1.5}, "num_target_quantiles must be an integer >= 1"),
         ({"huber_kappa": 0.0}, r"huber_kappa must be in \(0, 1e\+06\]"),
@@ -437,7 +437,7 @@ def _linear_loss(gamma: float = 0.9, **kwargs) -> WCSACLoss:
         make_actor(2, Bounded(-1.0, 1.0, shape=(1,)), width=8),
         [make_qvalue(2, 1, width=8) for _ in range(2)],
         safety,
-        **flat_parts(**{**paper_options("iqn"), **kwargs}),
+        **flat_parts("iqn", **{**paper_options("iqn"), **kwargs}),
     )
     loss.make_value_estimator(gamma=gamma)
     return loss
@@ -759,7 +759,7 @@ def test_learned_quantiles_match_the_chain_return_distribution(n_steps):
         make_actor(N, Bounded(-1.0, 1.0, shape=(1,)), width=16),
         [make_qvalue(N, 1, width=16) for _ in range(2)],
         make_safety_critic(N, 1, kind="iqn", width=64),
-        **flat_parts(risk_level=0.5, **{**paper_options("iqn"), "cost_n_steps": n_steps}),
+        **flat_parts("iqn", risk_level=0.5, **{**paper_options("iqn"), "cost_n_steps": n_steps}),
     )
     loss.make_value_estimator(gamma=GAMMA)
     steps = 3000

@@ -69,6 +69,27 @@ def test_nstep_entries_equal_a_step_by_step_walk_of_each_trajectory(n):
     assert (ended & ~term).any()  # the data have truncations to tell apart
 
 
+def test_a_padded_piece_ends_at_its_last_kept_step():
+    """TorchRL's ``split_trajs`` pads each piece after its last step and marks the padding
+    in ``("collector", "mask")``: the kept steps' entries are those of the piece cut
+    there (the padding's costs and states never enter them)."""
+    td = _trajectories()
+    lengths = [12, 5, 8]  # (cut in the middle of an episode: the lookahead must stop)
+    assert not td["next", "done"][[1, 2], [4, 7]].any()
+    mask = torch.zeros(td.shape, dtype=torch.bool)
+    for env, length in enumerate(lengths):
+        mask[env, :length] = True
+    padded = td.clone()
+    padded["next", "cost"][~mask] = 1e6
+    padded["next", "observation"][~mask] = 1e6
+    padded["collector", "mask"] = mask
+    got = NStepCost(5, gamma=0.9)(padded)["nstep"]
+    for env, length in enumerate(lengths):
+        alone = NStepCost(5, gamma=0.9)(td[env : env + 1, :length].clone())["nstep"]
+        for key in ("cost", "steps", "observation", "terminated", "done"):
+            assert torch.equal(got[key][env : env + 1, :length], alone[key]), (env, key)
+
+
 def _with_step_count(td: TensorDict) -> TensorDict:
     """``td`` with the ``step_count`` its episodes give (0 at each start)."""
     done = td["next", "done"].squeeze(-1)

@@ -207,7 +207,7 @@ def test_the_factory_decides_the_kind_once():
             make_safety_critic(3, 1, kind="iqn", width=8),
             keys,
             risk_level=0.1,
-            options=SafetyHeadOptions(variance_loss="w2"),
+            options=SafetyHeadOptions(variance_loss="glm"),
         )
     for bad, message in (
         ({"variance_target": "second"}, "variance_target must be one of"),

@@ -14,9 +14,10 @@ Every case runs on a grid of *variants*: loss class (``WCSACLoss`` at α = 0.5,
 ``SACLagLoss``) × safety critic (``kit``: the kit's actor and critics, taking the loss's
 fast paths; ``user``: TorchRL-style ``ProbabilisticActor`` / ``ValueOperator`` and a plain
 ``TensorDictModule`` with mean and variance heads) × options (``paper``:
-``PAPER_OPTIONS``; ``default``: ``SafetyOptions``' defaults, fed by the kit's ``NStepCost``
-and ``StartStateBuffer`` as a TorchRL user's pipeline would; the loss's own defaults, the
-kit's recipe, add the episode signal of ``EpisodeCostWindow``). Where a case's assertion is
+``PAPER_OPTIONS``, the loss's own defaults; ``study``: the StaticEnv study's safety critic
+and κ reads that the kit's recipes use, fed by the kit's ``NStepCost`` and
+``StartStateBuffer`` as a TorchRL user's pipeline would; the kit's recipe adds the episode
+signal of ``EpisodeCostWindow``). Where a case's assertion is
 not obvious for a safe loss, TorchRL's ``SACLoss`` runs the same assertion first
 (``reference``), so the ported test is shown to pass on the loss it was written for.
 
@@ -35,7 +36,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from _loss_helpers import recipe_kwargs
+from _loss_helpers import STUDY_OPTIONS, recipe_kwargs
 from _tolerance import assert_close_f32
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import (
@@ -151,14 +152,14 @@ VARIANTS = [
     pytest.param((cls, critic, options), id=f"{cls}-{critic}-{options}")
     for cls in ("WCSAC", "SACLag")
     for critic in ("kit", "user")
-    for options in ("paper", "default")
+    for options in ("paper", "study")
 ]
 
 
 def options_of(name: str) -> dict:
-    """The variant's recipe: the paper's, or nothing over SafetyOptions' defaults (the
-    kit's recipe but for its episode signal, ``KIT_OPTIONS``' ``kappa_signal="max"``)."""
-    return dict(PAPER_OPTIONS) if name == "paper" else {}
+    """The variant's recipe: the paper's, or the study's reads (the kit's recipe but for
+    its episode signal, ``KIT_OPTIONS``' ``kappa_signal="max"``)."""
+    return dict(PAPER_OPTIONS) if name == "paper" else dict(STUDY_OPTIONS)
 
 
 def make_variant(variant, seed: int = 0, **kwargs):
@@ -498,7 +499,7 @@ SEPARATE_LOSSES_CASES = [
         id=f"{cls}-{options}-separate={separate}-composite={composite}",
     )
     for cls in ("WCSAC", "SACLag")
-    for options in ("paper", "default")
+    for options in ("paper", "study")
     for separate in (False, True)
     for composite in (False, True)
 ]
@@ -559,7 +560,7 @@ def nstep_cost_target(loss, traj, n):
 MULTISTEP_CASES = [
     pytest.param(cls, options, n, id=f"{cls}-{options}-n{n}")
     for cls in ("WCSAC", "SACLag")
-    for options in ("paper", "default")
+    for options in ("paper", "study")
     for n in (1, 2, 3)
 ]
 
@@ -782,12 +783,12 @@ def test_collected_keys_are_the_in_keys_a_replay_buffer_stores(variant, signal):
     """``in_keys`` list what the forward reads, the start states and the episodes' cost
     attached to each sample included; ``collected_keys`` is what collected data holds
     (a replay buffer stores ``data.select(*collected_keys(loss))``)."""
-    kwargs = {"kappa_signal": signal} if variant[2] == "default" else {}
+    kwargs = {"kappa_signal": signal} if variant[2] == "study" else {}
     loss = make_variant(variant, **kwargs)
     attached = {k for k in loss.in_keys if isinstance(k, tuple) and k[0] == "initial"}
     starts = {(k,) for k in state_keys(loss)} if loss.kappa_states == "initial" else set()
     assert {k[1:] for k in attached} == starts
-    assert ("episode_cvar" in loss.in_keys) == (signal == "max" and variant[2] == "default")
+    assert ("episode_cvar" in loss.in_keys) == (signal == "max" and variant[2] == "study")
     kept = collected_keys(loss)
     assert set(kept) == set(loss.in_keys) - attached - {"episode_cvar"}
     traj = trajectories()
@@ -854,7 +855,7 @@ def test_skip_done_states_reference():
 
 
 @pytest.mark.parametrize("cls", ["WCSAC", "SACLag"])
-@pytest.mark.parametrize("options", ["paper", "default"])
+@pytest.mark.parametrize("options", ["paper", "study"])
 def test_skip_done_states_is_honoured(cls, options):
     """D2: the actor is never run on a done next state (nor, with n-step cost entries,
     on an n-step state after an episode's end), as SACLoss's ``skip_done_states``."""
@@ -950,9 +951,9 @@ def test_set_keys_reach_the_value_estimator(variant):
 @pytest.mark.parametrize(
     "variant",
     [
-        pytest.param(("WCSAC", "kit", "default"), id="WCSAC-kit-default"),
-        pytest.param(("WCSAC", "user", "default"), id="WCSAC-user-default"),
-        pytest.param(("SACLag", "kit", "default"), id="SACLag-kit-default"),
+        pytest.param(("WCSAC", "kit", "study"), id="WCSAC-kit-study"),
+        pytest.param(("WCSAC", "user", "study"), id="WCSAC-user-study"),
+        pytest.param(("SACLag", "kit", "study"), id="SACLag-kit-study"),
         pytest.param(("WCSAC", "kit", "paper"), id="WCSAC-kit-paper"),
     ],
 )
@@ -982,9 +983,9 @@ def test_forward_compiles_with_fullgraph_and_matches_eager(variant):
 # ------------------------------------------------------ TestLossMaskReduction (masking)
 MASK_OPTIONS = {
     "paper": {**PAPER_OPTIONS},
-    "default": {},
+    "study": dict(STUDY_OPTIONS),
     "tail-replay": {**PAPER_OPTIONS, "kappa_statistic": "tail"},
-    "default-replay": {"kappa_states": "replay", "kappa_statistic": "tail"},
+    "study-replay": {**STUDY_OPTIONS, "kappa_states": "replay"},
 }
 
 

@@ -3,9 +3,9 @@
 ``conf/algo/wcsac.yaml`` (and so ``sac_lag``, ``wcsac_paper``, ``sac_lag_paper``) starts
 its defaults list with ``/schema/safety_options``: the defaults of every field of
 :class:`~wcsac_rl.options.SafetyOptions`, stored here under the ``schema``
-group (package ``algo``), as TorchRL registers its ``SACLossConfig``. The paper presets
-add ``/schema/paper_options``: :data:`~wcsac_rl.options.PAPER_OPTIONS`. The
-YAML files then set only the values that differ, with their comments.
+group (package ``algo``), as TorchRL registers its ``SACLossConfig``: the paper's WCSAC
+(:data:`~wcsac_rl.options.PAPER_OPTIONS`). The YAML files then set only the values that
+differ, with their comments.
 
 The node holds the dataclass's values, not its types: OmegaConf would otherwise refuse
 a mistyped value (``algo.variance=maybe``) while Hydra composes, in its own multi-line
@@ -30,7 +30,7 @@ from hydra.core.config_store import ConfigStore
 from omegaconf import OmegaConf
 
 from wcsac_rl.config_dir import CONF_DIR
-from wcsac_rl.options import PAPER_OPTIONS, SafetyOptions, config_defaults
+from wcsac_rl.options import SafetyOptions, config_defaults
 from wcsac_rl.recipes import config_groups
 
 __all__ = ["SCHEMA_GROUP", "register_configs"]
@@ -40,9 +40,8 @@ SCHEMA_GROUP = "schema"
 
 
 def register_configs() -> None:
-    """Store :class:`SafetyOptions`' defaults as ``schema/safety_options`` and
-    :data:`PAPER_OPTIONS` as ``schema/paper_options``, both at package ``algo``, and
-    register the help template's resolver."""
+    """Store :class:`SafetyOptions`' defaults as ``schema/safety_options`` (package
+    ``algo``) and register the help template's resolver."""
     store = ConfigStore.instance()
     store.store(
         group=SCHEMA_GROUP,
@@ -50,7 +49,6 @@ def register_configs() -> None:
         node=config_defaults(SafetyOptions),
         package="algo",
     )
-    store.store(group=SCHEMA_GROUP, name="paper_options", node=dict(PAPER_OPTIONS), package="algo")
     OmegaConf.register_new_resolver(
         "wcsac_rl.config_groups", lambda: config_groups(CONF_DIR), replace=True
     )

@@ -43,6 +43,7 @@ __all__ = [
     "KAPPA_STATISTICS",
     "LOSS_OPTIONS",
     "NUMBER_CEILING",
+    "PAPER_CHOICES",
     "PAPER_OPTIONS",
     "SAFETY_ALGOS",
     "SAFETY_CRITIC_KINDS",
@@ -442,8 +443,9 @@ class SafetyOptions:
     """The options of WCSAC's and SAC-Lag's safety critic and κ (``algo.*`` in the config).
 
     Each field carries its default, what it may be, a line of doc and the part that reads
-    it (``reader``; ``docs/architecture.md`` maps the parts). The defaults are chosen on
-    StaticEnv evidence (docs/defaults.md); :data:`PAPER_OPTIONS` are the paper's.
+    it (``reader``; ``docs/architecture.md`` maps the parts). The defaults are the paper's
+    WCSAC (:data:`PAPER_OPTIONS`, the loss's defaults, ``algo=wcsac_paper``); the kit's
+    recipes set what they change in ``conf/algo/`` (evidence: docs/defaults.md).
     """
 
     kappa_lr_scale: float = option(
@@ -551,10 +553,13 @@ class SafetyOptions:
         reader="network",
     )
     variance_loss: str = option(
-        "glm", "the variance head's TD loss", "choice", choices=VARIANCE_LOSSES
+        "w2",
+        "the variance head's TD loss: w2 (the paper's 2-Wasserstein), mse or glm",
+        "choice",
+        choices=VARIANCE_LOSSES,
     )
     variance_target: str = option(
-        "td",
+        "moment",
         "the variance head's TD target: td (squared TD error + γ_c² V̄') or moment (Eq. 8)",
         "choice",
         choices=VARIANCE_TARGETS,
@@ -566,13 +571,13 @@ class SafetyOptions:
         choices=KAPPA_ACTIONS,
     )
     kappa_states: str = option(
-        "initial",
+        "replay",
         "the states κ reads Γ at: initial (episode starts, vs d) or replay (batch states)",
         "choice",
         choices=KAPPA_STATES,
     )
     kappa_statistic: str = option(
-        "tail",
+        "mean",
         "tail (CVaR_α of the critic mixed over the states) or mean (of per-state Γ)",
         "choice",
         choices=KAPPA_STATISTICS,
@@ -673,7 +678,7 @@ class SafetyOptions:
         finite_words=True,
     )
     cost_gamma: float | None = option(
-        1.0,
+        None,
         "γ_c of the safety critic (null: the reward's γ, the paper)",
         "number",
         low=0.0,
@@ -687,12 +692,14 @@ class SafetyOptions:
         nullable=True,
     )
     cost_n_steps: int = option(
-        10,
+        1,
         "the safety critic's TD targets bootstrap n steps ahead (1: the paper)",
         "integer",
         low=1,
     )
-    nonnegative_cost: bool = option(True, "max(Q^c, 0) in targets and Γ (false: the paper)", "flag")
+    nonnegative_cost: bool = option(
+        False, "max(Q^c, 0) in targets and Γ (false: the paper)", "flag"
+    )
 
     def __post_init__(self) -> None:
         check_fields(self)
@@ -848,26 +855,26 @@ def check_signal_every(every: int, states: str, statistic: str, prefix: str = ""
         )
 
 
-PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(
-    {
-        "variance_loss": "w2",
-        "variance_target": "moment",
-        "cost_gamma": None,
-        "cost_n_steps": 1,
-        "nonnegative_cost": False,
-        "kappa_states": "replay",
-        "kappa_statistic": "mean",
-        "kappa_signal": "critic",
-        "kappa_rule": "gradient",
-    }
+PAPER_CHOICES = (
+    "variance_loss",
+    "variance_target",
+    "cost_gamma",
+    "cost_n_steps",
+    "nonnegative_cost",
+    "kappa_states",
+    "kappa_statistic",
+    "kappa_signal",
+    "kappa_rule",
 )
-"""The safety critic and κ as the paper writes them (Eq. 7–8 with the variance head trained
-by the 2-Wasserstein TD, one-step targets with the reward's γ, κ on the mean Γ over
-replay states against the per-step threshold):
-``WCSACLoss(..., **loss_parts(PAPER_OPTIONS))``, ``dataclasses.replace(SafetyOptions(),
-**PAPER_OPTIONS)``. The kit's recipes differ, on StaticEnv evidence (docs/defaults.md;
-``wcsac_rl.recipes.KIT_OPTIONS``); ``algo=wcsac_paper`` is the same in the config."""
+"""The options whose paper values the kit's recipes change (``conf/algo/wcsac.yaml``)."""
 
-for _name, _value in PAPER_OPTIONS.items():  # (a preset of the fields above, checked)
-    check_value(_name, _value, option_spec(SafetyOptions, _name))
-del _name, _value
+PAPER_OPTIONS: Mapping[str, Any] = MappingProxyType(
+    {name: option_default(SafetyOptions, name) for name in PAPER_CHOICES}
+)
+"""The safety critic and κ as the paper writes them, which are ``SafetyOptions``' defaults
+(Eq. 7–8 with the variance head trained by the 2-Wasserstein TD, one-step targets with
+the reward's γ, κ on the mean Γ over replay states against the per-step threshold): the
+loss's own defaults and ``algo=wcsac_paper``; printed, the paper's value of each option
+the kit's recipes change. ``WCSACLoss(..., **loss_parts(PAPER_OPTIONS))`` is
+``WCSACLoss(...)``. The kit's recipes differ, on StaticEnv evidence (docs/defaults.md;
+``wcsac_rl.recipes.KIT_OPTIONS``)."""

@@ -38,7 +38,7 @@ from typing import Any
 
 import yaml
 
-from wcsac_rl.options import PAPER_OPTIONS, SAFETY_ALGOS
+from wcsac_rl.options import SAFETY_ALGOS
 
 __all__ = [
     "KIT_OPTIONS",
@@ -61,7 +61,6 @@ _META = ("defaults", "name", "label", "recipe")
 """Keys of an algorithm's file that say what it is, not what it sets."""
 _TRAINER = ("alpha_init", "actor_lr", "lr")
 _SCHEMA = "/schema/safety_options"
-_PAPER = "/schema/paper_options"
 
 
 def _conf() -> Path:
@@ -99,9 +98,7 @@ def _compose(conf_dir: Path, algorithm: str, layout: str) -> dict[str, Any]:
     for entry in _load(path).get("defaults") or ["_self_"]:
         if entry in ("off_policy", _SCHEMA):
             continue  # (the baseline the recipe is read against)
-        if entry == _PAPER:
-            _merge(node, PAPER_OPTIONS)
-        elif entry == "_self_":
+        if entry == "_self_":
             _merge(node, _own_keys(path))
         elif isinstance(entry, dict) and f"optional {LAYOUT_DIR}" in entry:
             layout_path = conf_dir / "algo" / LAYOUT_DIR / f"{algorithm}_{layout}.yaml"
@@ -110,7 +107,7 @@ def _compose(conf_dir: Path, algorithm: str, layout: str) -> dict[str, Any]:
         else:
             raise ValueError(
                 f"{conf_dir.name}/algo/{path.name}: the defaults entry {entry!r} is not one "
-                f"a recipe is read from (off_policy, {_SCHEMA}, {_PAPER}, _self_, optional "
+                f"a recipe is read from (off_policy, {_SCHEMA}, _self_, optional "
                 f"{LAYOUT_DIR}: <algorithm>_${{env}})"
             )
     return node

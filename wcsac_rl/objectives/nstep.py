@@ -10,7 +10,9 @@ the state reached after them, so the safety critic bootstraps ``m`` steps ahead:
 
 ``m`` is ``n`` unless the episode ends first (the steps up to and including the
 last one count) or the batch ends first (the collector hands over trajectories in
-pieces; the lookahead stops at the piece's end, which is still an exact target).
+pieces; the lookahead stops at the piece's end, which is still an exact target; in a
+piece padded by TorchRL's ``split_trajs``, at its last step ``("collector", "mask")``
+keeps).
 The reward critic keeps its one-step target.
 """
 
@@ -135,6 +137,10 @@ class NStepCost(nn.Module):
         horizon = shape[-1]
         time = torch.arange(horizon, device=flat_cost.device)
 
+        # a padded piece (TorchRL's split_trajs) ends at its last kept step
+        kept = tensordict.get(("collector", "mask"), None)
+        kept = None if kept is None else kept.reshape(shape).bool()
+
         total = torch.zeros_like(flat_cost)
         steps = torch.zeros(shape, dtype=torch.int64, device=flat_cost.device)
         alive = torch.ones(shape, dtype=torch.bool, device=flat_cost.device)
@@ -142,6 +148,8 @@ class NStepCost(nn.Module):
             index = time + k
             inside = index < horizon
             index = index.clamp(max=horizon - 1)
+            if kept is not None and k > 0:
+                inside = inside & kept[..., index]
             valid = alive & inside  # broadcast over the leading (env) dimensions
             total += torch.where(valid, self.gamma**k * flat_cost[..., index], 0.0)
             steps += valid.long()
