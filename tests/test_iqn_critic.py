@@ -923,12 +923,12 @@ def test_bad_iqn_config_fails_before_any_work(tmp_path, override, message):
 
 
 @pytest.mark.parametrize("alpha", ["0.9", "0.5", "0.1"])
-def test_table1_rows_of_the_iqn_critic_compose_and_are_named(alpha):
+def test_table1_wcsac_rows_run_the_kits_iqn_critic_and_are_named(alpha):
     from _training_helpers import compose_config
 
     from wcsac_rl.evaluation.runs import row_name
 
-    cfg = compose_config(f"+row=wcsac_iqn_{alpha}", small=False)
+    cfg = compose_config(f"+row=wcsac_{alpha}", small=False)
     assert cfg.algo.name == "wcsac" and cfg.algo.safety_critic == "iqn"
-    assert cfg.algo.risk_level == float(alpha) and cfg.algo.label == f"wcsac_iqn_{alpha}"
-    assert row_name(cfg.algo.label) == f"WCSAC-IQN-{alpha}"
+    assert cfg.algo.risk_level == float(alpha) and cfg.algo.label == f"wcsac_{alpha}"
+    assert row_name(cfg.algo.label) == f"WCSAC-{alpha}"

@@ -272,7 +272,7 @@ def test_laptop_table_sweeps_hold_every_paper_row_on_two_seeds_with_kept_stages(
         cfg = _hydra_config(f"experiment={experiment}")
         params = cfg.hydra.sweeper.params
         rows = set(params["+row"].split(","))
-        assert paper_rows <= rows and rows - paper_rows == {"sac_lag_paper", "wcsac_iqn_0.1"}
+        assert paper_rows <= rows and rows - paper_rows == {"sac_lag_paper"}
         assert all((CONF / "row" / f"{row}.yaml").is_file() for row in rows)
         assert params.seed == "0,10"
         assert cfg.env.name == env and cfg.total_frames == 200_000
