@@ -1,15 +1,18 @@
 """``wcsac-train``'s command line checked before Hydra runs: each refusal one line
-naming the override (Hydra's own are stacks of lines), nothing written. Imports only
-Hydra until a check needs more, so that ``--help`` answers at once."""
+naming the override (Hydra's own are stacks of lines), nothing written. The overrides
+are read once, by Hydra's own override grammar, and that one reading is handed to every
+check. Imports only Hydra until a check needs more, so that ``--help`` answers at once."""
 
 from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
 
 from omegaconf import DictConfig
 
 from wcsac_rl.config_dir import CONF_DIR
 
 __all__ = [
-    "answers_itself",
     "check_command_line",
     "check_interpolations",
     "check_output_dirs",
@@ -19,63 +22,64 @@ __all__ = [
 ]
 
 
-def answers_itself(argv: list[str]) -> bool:
-    """Whether Hydra answers ``argv`` without running a job (``--help``, ``--info``,
-    ``--cfg``, shell completion, a malformed flag)."""
+def check_command_line(argv: list[str]) -> bool:
+    """Refuse a command line Hydra would refuse in a stack of lines (an override it
+    cannot read, a key no chosen config has: ``algo.batchsize=64`` names the closest key,
+    a directory it cannot write, a sweep without ``-m``, a bad value in any job of a
+    ``-m`` sweep) in one ``error:`` line and exit code 1, before Hydra writes anything.
+    Returns whether the command runs a job: ``--help``, ``--info``, ``--cfg``, shell
+    completion and a malformed flag are Hydra's to answer (untouched, and fast)."""
+    import sys
+
     from hydra._internal.utils import get_args_parser
 
     try:
         args, _ = get_args_parser().parse_known_args(argv)
     except SystemExit:  # a malformed flag: Hydra answers it
-        return True
-    return bool(args.help or args.hydra_help or args.info or args.cfg or args.shell_completion)
-
-
-def check_command_line(argv: list[str]) -> None:
-    """Refuse an override of a key no chosen config has (``algo.batchsize=64``) in one
-    line naming the closest key, before Hydra composes the config (Hydra's own refusal
-    names none); ``--help`` and Hydra's other flags pass untouched (and fast)."""
-    import sys
-
-    from hydra._internal.utils import get_args_parser
-
-    if answers_itself(argv):
-        return
-    args, _ = get_args_parser().parse_known_args(argv)
+        return False
+    if args.help or args.hydra_help or args.info or args.cfg or args.shell_completion:
+        return False
     from wcsac_rl.training.config_keys import check_override_keys
     from wcsac_rl.training.errors import ConfigError
 
+    overrides = list(args.overrides)
     try:
-        check_override_syntax(list(args.overrides))
-        check_interpolations(list(args.overrides))
-        check_override_keys(list(args.overrides))
-        check_output_dirs(list(args.overrides))
-        check_sweep_jobs(list(args.overrides), multirun=bool(args.multirun))
+        parsed = check_override_syntax(overrides)  # (the one reading, for every check)
+        check_interpolations(overrides)
+        check_override_keys(parsed)
+        check_output_dirs(overrides)
+        check_sweep_jobs(parsed, multirun=bool(args.multirun))
     except ConfigError as err:
         sys.exit(f"error: {err}")
+    return True
 
 
-def check_sweep_jobs(overrides: list[str], *, multirun: bool = True) -> None:
+def check_sweep_jobs(overrides: Sequence[Any], *, multirun: bool = True) -> None:
     """Without ``-m`` a sweep (``algo.lr=1,2``) is one line saying to add it or to quote
     the value. With ``-m``, every value of each sweep the command line names is checked
     before the launcher starts a job (``seed=1,abc`` is refused before seed 1 trains):
     the config of each value, the other sweeps at their first, composed and validated. A
-    sweep that resumes runs (``resume=...``) is checked by each job against its own run."""
+    sweep that resumes runs (``resume=...``) is checked by each job against its own run.
+    ``overrides``: strings, or Hydra's parsed ``Override`` objects (what Hydra cannot
+    parse is left to its own message)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     from wcsac_rl.training.config import validate_config
+    from wcsac_rl.training.config_keys import parse_overrides
     from wcsac_rl.training.errors import ConfigError
 
-    parser = OverridesParser.create()
-    parsed = parser.parse_overrides(overrides)
+    parsed = parse_overrides(overrides)
+    if parsed is None:
+        return
+    lines = [o.input_line for o in parsed]
     sweeps = [o for o in parsed if o.is_sweep_override() and not o.is_hydra_override()]
     given = {o.get_key_element() for o in sweeps}
     sweeps += [  # an experiment's own sweep (hydra.sweeper.params), where it runs one
         o
-        for o in parser.parse_overrides(_config_sweeps(overrides, multirun))
+        for o in OverridesParser.create().parse_overrides(_config_sweeps(lines, multirun))
         if o.get_key_element() not in given
     ]
-    if sweeps and not multirun and sweeps[0].input_line in overrides:
+    if sweeps and not multirun and sweeps[0].input_line in lines:
         key, _, value = sweeps[0].input_line.partition("=")
         raise ConfigError(
             f"{sweeps[0].input_line} is a sweep of values: add -m (--multirun) to run one job "
@@ -126,31 +130,32 @@ def _job_config(fixed: list[str], job: list[str]) -> DictConfig:
         ) from None
 
 
-def check_override_syntax(overrides: list[str]) -> None:
-    """Refuse, in one line naming it, an override Hydra's grammar cannot read (a path
-    with a newline, a character outside its lexer's such as ``ü``) and one that names no
-    key (``=5``): Hydra's own refusals are stacks of lines (or a traceback)."""
+def check_override_syntax(overrides: list[str]) -> list[Any]:
+    """The overrides read by Hydra's grammar (Hydra's ``Override`` objects, what the other
+    checks are given). Refused in one line naming it: an override that grammar cannot
+    read (a path with a newline, a character outside its lexer's such as ``ü``) and one
+    that names no key (``=5``); Hydra's own refusals are stacks of lines (or a traceback)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
     from wcsac_rl.training.errors import ConfigError
 
-    parser = OverridesParser.create()
     for override in overrides:
         key, sep, _ = override.partition("=")
         if sep and not key.lstrip("+~").strip():
             raise ConfigError(f"cannot read the override {override!r}: it names no key (key=value)")
-        try:
-            parser.parse_overrides([override])
-        except (HydraException, ValueError) as err:
-            reason = (str(err).strip().splitlines() or [type(err).__name__])[0]
-            reason = reason.split(":", 1)[0] if reason.startswith("Lexer") else reason
-            key = override.split("=", 1)[0]
-            raise ConfigError(
-                f"cannot read the override {override!r} ({reason}): quote its value inside "
-                f"the argument, e.g. \"{key}='...'\", or choose a value without newlines or "
-                "characters outside ASCII"
-            ) from None
+    try:
+        return OverridesParser.create().parse_overrides(list(overrides))
+    except (HydraException, ValueError) as err:
+        override = getattr(err, "override", None) or " ".join(overrides)
+        reason = (str(err).strip().splitlines() or [type(err).__name__])[0]
+        reason = reason.split(":", 1)[0] if reason.startswith("Lexer") else reason
+        key = override.split("=", 1)[0]
+        raise ConfigError(
+            f"cannot read the override {override!r} ({reason}): quote its value inside "
+            f"the argument, e.g. \"{key}='...'\", or choose a value without newlines or "
+            "characters outside ASCII"
+        ) from None
 
 
 def check_interpolations(overrides: list[str]) -> None:

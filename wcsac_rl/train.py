@@ -31,7 +31,6 @@ import hydra
 from omegaconf import DictConfig
 
 from wcsac_rl.command_line import (
-    answers_itself,
     check_command_line,
     check_interpolations,
     check_output_dirs,
@@ -71,36 +70,17 @@ def _build(cfg: DictConfig, run_dir: Path, overrides: Sequence[str] | None) -> T
     from wcsac_rl.training import make_trainer
     from wcsac_rl.training.applicability import warn_inapplicable
     from wcsac_rl.training.checkpoint import resume_config
-    from wcsac_rl.training.run_dir import AUTO_RESUME
+    from wcsac_rl.training.run_dir import AUTO_RESUME, check_auto_resume_dir
 
     overrides = list(overrides or ())
     if cfg.get("resume") == AUTO_RESUME:
-        _check_auto_resume_dir()
+        from hydra.core.hydra_config import HydraConfig
+
+        check_auto_resume_dir(HydraConfig.get())
     if cfg.get("resume") and cfg.resume != AUTO_RESUME:
         cfg = resume_config(cfg, overrides)
     warn_inapplicable(cfg, overrides)
     return make_trainer(cfg, run_dir, overrides=overrides)
-
-
-def _check_auto_resume_dir() -> None:
-    """resume=auto continues the run in the directory the command names: refused (one
-    line) where that directory is a new timestamped one each time (Hydra's default)."""
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-    from omegaconf import OmegaConf
-
-    from wcsac_rl.training import ConfigError
-
-    hydra_cfg = HydraConfig.get()
-    key = "sweep" if hydra_cfg.mode == RunMode.MULTIRUN else "run"
-    template = str(OmegaConf.to_container(hydra_cfg[key], resolve=False)["dir"])
-    if "${now:" in template:
-        raise ConfigError(
-            f"resume=auto continues the run in the directory the command names, but "
-            f"hydra.{key}.dir is a new timestamped one each time ({template}): nothing "
-            f"can be continued there; name it (hydra.{key}.dir=outputs/my_run resume=auto) "
-            "or continue a run by its path (resume=outputs/<date>/<time>_<name>)"
-        )
 
 
 def _say_recipe(cfg: DictConfig) -> None:
@@ -130,41 +110,24 @@ def main(cfg: DictConfig) -> None:
 
     from wcsac_rl.training.preemption import Preempted
     from wcsac_rl.training.run_dir import RunInUseError
-    from wcsac_rl.training.run_records import (
-        LOG_FILE,
-        ConsoleLog,
-        discard,
-        discard_staged,
-        discard_stopped,
-        entries_before,
-        keep_records,
-        leave_hydra_dir,
-        reopen_run_logs,
-        staged_records,
-    )
+    from wcsac_rl.training.run_records import LOG_FILE, ConsoleLog, HydraJob, discard_stopped
 
     user_errors = _user_errors()
     hydra_cfg = HydraConfig.get()
-    run_dir = Path(hydra_cfg.runtime.output_dir)
-    staged = staged_records(run_dir, hydra_cfg.output_subdir)
-    entries = entries_before(run_dir, staged)
+    job = HydraJob(hydra_cfg)
     with ConsoleLog() as log:
         try:
-            trainer = _build(cfg, run_dir, hydra_cfg.overrides.task)
+            trainer = _build(cfg, job.dir, hydra_cfg.overrides.task)
         except RunInUseError as err:  # another process owns the directory: only ours goes
-            discard_staged(staged)
+            job.refuse(owned=False)
             _exit_with(f"error: {err}")
         except user_errors as err:
-            discard(run_dir, staged)  # a refused command leaves nothing behind
+            job.refuse()  # a refused command leaves nothing behind
             _exit_with(f"error: {err}")
         except BaseException:
-            discard(run_dir, staged)
+            job.refuse()
             raise
-        if trainer.run_dir.resolve() != run_dir.resolve():  # resume=RUN_DIR: another run's
-            leave_hydra_dir(run_dir, trainer.run_dir, staged)
-        else:
-            reopen_run_logs(trainer.run_dir)
-            keep_records(run_dir, staged)
+        job.accept(trainer.run_dir)
         log.attach(trainer.run_dir / LOG_FILE)
         _say_recipe(trainer.cfg)
         try:
@@ -176,7 +139,7 @@ def main(cfg: DictConfig) -> None:
             sys.exit(stop.exit_code)
         except user_errors as err:
             trainer.close()  # (its lock released before its files go)
-            _exit_with(f"error: {err}{discard_stopped(trainer, entries)}")
+            _exit_with(f"error: {err}{discard_stopped(trainer, job.entries)}")
         finally:
             trainer.close()
         print(f"run directory: {run_dir}")
@@ -196,12 +159,10 @@ def cli(argv: Sequence[str] | None = None) -> None:
     """The ``wcsac-train`` console script (and ``python -m wcsac_rl.train``, ``train.py``)."""
     if argv is not None:
         sys.argv = [sys.argv[0], *argv]
-    check_command_line(sys.argv[1:])
-    if not answers_itself(sys.argv[1:]):  # (Hydra's answers show the config: no torch)
-        from wcsac_rl.training.run_records import note_before, stage_hydra_records
+    if check_command_line(sys.argv[1:]):  # a job runs (Hydra's answers need no torch)
+        from wcsac_rl.training.run_records import stage_command
 
-        note_before(sys.argv[1:])
-        sys.argv = [sys.argv[0], *stage_hydra_records(sys.argv[1:])]
+        sys.argv = [sys.argv[0], *stage_command(sys.argv[1:])]
     main()
 
 
@@ -230,15 +191,16 @@ def run_training(
         ConfigError: a config the run cannot start from; TrainingError: a run that could
         not go on (its last checkpoint is kept).
     """
-    import datetime
+    from wcsac_rl.training.run_dir import RunInUseError
+    from wcsac_rl.training.run_records import (
+        LOG_FILE,
+        ConsoleLog,
+        default_run_dir,
+        discard_refused,
+        discard_stopped,
+    )
 
-    if run_dir is None:
-        now = datetime.datetime.now()
-        run_dir = Path("outputs") / f"{now:%Y-%m-%d}" / f"{now:%H-%M-%S}_{cfg.run_name}"
-    from wcsac_rl.training.run_dir import RunInUseError, discard_unused_run_dir
-    from wcsac_rl.training.run_records import LOG_FILE, ConsoleLog, discard, discard_stopped
-
-    run_dir = Path(run_dir).absolute()
+    run_dir = Path(run_dir if run_dir is not None else default_run_dir(cfg.run_name)).absolute()
     existed = run_dir.exists()
     entries = frozenset(p.name for p in run_dir.iterdir()) if run_dir.is_dir() else None
     with ConsoleLog() as log:
@@ -247,10 +209,7 @@ def run_training(
         except RunInUseError:
             raise  # (another process owns the directory: nothing here is this call's)
         except BaseException:
-            if not existed:
-                discard(run_dir)
-            elif entries is not None:  # (only what the refused call made: its lock file)
-                discard_unused_run_dir(run_dir, existed=entries)
+            discard_refused(run_dir, existed=existed, entries=entries)
             raise
         log.attach(trainer.run_dir / LOG_FILE)
         _say_recipe(trainer.cfg)

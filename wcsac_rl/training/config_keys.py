@@ -17,7 +17,7 @@ from __future__ import annotations
 import difflib
 import functools
 import itertools
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
@@ -36,6 +36,7 @@ __all__ = [
     "key_paths",
     "known_keys",
     "missing_keys",
+    "parse_overrides",
     "unknown_keys",
 ]
 
@@ -232,17 +233,29 @@ def _group_options(group: str) -> list[str]:
     return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
 
 
-def check_group_choices(overrides: list[str]) -> None:
-    """Refuse a config-group choice ``conf/`` has no file for (``algo=wcsca``,
-    ``env=dinamic``, each choice of a sweep) in one line naming the group's options
-    (Hydra's own refusal is a block of lines with its search path); what Hydra cannot
-    parse is left to it."""
+def parse_overrides(overrides: Sequence[Any]) -> list[Any] | None:
+    """``overrides`` as Hydra's grammar reads them (Hydra's ``Override`` objects), or
+    ``None`` where Hydra cannot parse them (its own message says why). Overrides given
+    already parsed (a command line is parsed once: :func:`~wcsac_rl.command_line.
+    check_command_line`) are returned as they are."""
+    if all(not isinstance(o, str) for o in overrides):
+        return list(overrides)
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
     try:
-        parsed = OverridesParser.create().parse_overrides(list(overrides))
+        return OverridesParser.create().parse_overrides([str(o) for o in overrides])
     except HydraException:
+        return None
+
+
+def check_group_choices(overrides: Sequence[Any]) -> None:
+    """Refuse a config-group choice ``conf/`` has no file for (``algo=wcsca``,
+    ``env=dinamic``, each choice of a sweep) in one line naming the group's options
+    (Hydra's own refusal is a block of lines with its search path); what Hydra cannot
+    parse is left to it. ``overrides``: strings, or Hydra's parsed ``Override`` objects."""
+    parsed = parse_overrides(overrides)
+    if parsed is None:
         return
     for choices in _group_overrides(parsed):
         for choice in choices:
@@ -272,21 +285,18 @@ def _passes(override: Any, known: frozenset[str]) -> bool:
     )
 
 
-def check_override_keys(overrides: list[str]) -> None:
+def check_override_keys(overrides: Sequence[Any]) -> None:
     """Refuse a command-line override of a key that the config composed with the line's
     own group choices does not have (``algo.batchsize=64``), in one line naming the
     closest known key, before Hydra composes the config. Group choices (``algo=cpo``,
     ``+row=sac``), Hydra's keys, deletions and added keys (``+key``: checked once
     composed, by :func:`check_known_keys`) pass; what Hydra cannot parse or compose is
-    left to Hydra's own message."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException
-
-    try:
-        parsed = OverridesParser.create().parse_overrides(list(overrides))
-    except HydraException:
+    left to Hydra's own message. ``overrides``: strings, or Hydra's parsed ``Override``
+    objects (parsed once for all the checks)."""
+    parsed = parse_overrides(overrides)
+    if parsed is None:
         return
-    check_group_choices(list(overrides))
+    check_group_choices(parsed)
     groups = _group_overrides(parsed)
     combos = list(itertools.islice(itertools.product(*groups), MAX_SWEEP_REFERENCES + 1))
     if len(combos) > MAX_SWEEP_REFERENCES:

@@ -10,6 +10,8 @@ records that never run ahead of the checkpoint they are resumed from.
   what a sweep's status calls ``running``).
 * :func:`check_new_run_dir` — a new run refuses a directory that holds anything but
   Hydra's own files (``.hydra/``, the job's ``*.log``) and the lock file.
+* :func:`check_auto_resume_dir` — ``resume=auto`` needs a directory the command names
+  (not Hydra's new timestamped one).
 * :func:`check_restartable_run_dir` — ``resume=auto`` in a directory without a
   checkpoint: a session killed before its first checkpoint may have left the run's
   own files (``config.yaml``, ``progress.csv``, ``logs/``); its records are cut and the
@@ -35,6 +37,7 @@ __all__ = [
     "LOCK_FILE",
     "RunInUseError",
     "RunLock",
+    "check_auto_resume_dir",
     "check_new_run_dir",
     "check_own_files",
     "check_progress_rows",
@@ -274,6 +277,24 @@ def check_new_run_dir(run_dir: Path) -> None:
             "continues its own directory only with resume=auto: run the sweep with resume=auto"
         )
         raise ConfigError(f"{run_dir} already holds a run ({shown}); {fix}{sweep}")
+
+
+def check_auto_resume_dir(hydra_cfg: object) -> None:
+    """resume=auto continues the run in the directory the command names: refused (one
+    line) where ``hydra_cfg`` (Hydra's config of the job) makes that directory a new
+    timestamped one each time (Hydra's default)."""
+    from hydra.types import RunMode
+    from omegaconf import OmegaConf
+
+    key = "sweep" if hydra_cfg.mode == RunMode.MULTIRUN else "run"
+    template = str(OmegaConf.to_container(hydra_cfg[key], resolve=False)["dir"])
+    if "${now:" in template:
+        raise ConfigError(
+            f"resume=auto continues the run in the directory the command names, but "
+            f"hydra.{key}.dir is a new timestamped one each time ({template}): nothing "
+            f"can be continued there; name it (hydra.{key}.dir=outputs/my_run resume=auto) "
+            "or continue a run by its path (resume=outputs/<date>/<time>_<name>)"
+        )
 
 
 def check_restartable_run_dir(run_dir: Path) -> None:

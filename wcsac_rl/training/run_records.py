@@ -1,7 +1,8 @@
-"""A run's records beside its directory: the console's lines kept in ``train.log``, and
+"""A run's records beside its directory: the console's lines kept in ``train.log``,
 Hydra's records of a command staged until the command's run is accepted (an existing
-run's ``.hydra/`` is written only then), and what a refused or stopped command made
-removed again (only what it made). ``wcsac_rl.train`` uses these around a run."""
+run's ``.hydra/`` is written only then: :func:`stage_command`, :class:`HydraJob`), and
+what a refused or stopped command made removed again (only what it made).
+``wcsac_rl.train`` uses these around a run."""
 
 from __future__ import annotations
 
@@ -19,7 +20,10 @@ __all__ = [
     "DEFAULT_ROOTS",
     "LOG_FILE",
     "ConsoleLog",
+    "HydraJob",
+    "default_run_dir",
     "discard",
+    "discard_refused",
     "discard_staged",
     "discard_stopped",
     "entries_before",
@@ -27,6 +31,7 @@ __all__ = [
     "leave_hydra_dir",
     "note_before",
     "reopen_run_logs",
+    "stage_command",
     "stage_hydra_records",
     "staged_records",
 ]
@@ -137,6 +142,15 @@ DEFAULT_ROOTS = ("outputs", "multirun")
 """Where Hydra puts runs by default (``conf/config.yaml``), below the current directory."""
 
 
+def default_run_dir(run_name: str) -> Path:
+    """``outputs/<date>/<time>_<run_name>`` below the current directory: where the command
+    line's run goes by default (``hydra.run.dir`` in ``conf/config.yaml``)."""
+    import datetime
+
+    now = datetime.datetime.now()
+    return Path("outputs") / f"{now:%Y-%m-%d}" / f"{now:%H-%M-%S}_{run_name}"
+
+
 BEFORE: dict[str, Any] = {}
 """What :func:`cli` noted before Hydra ran: when (``since``), and the run directory a
 literal ``hydra.run.dir=`` names (``dir``) with its entries then (``existed``; ``None``:
@@ -158,6 +172,14 @@ def note_before(argv: Sequence[str]) -> None:
             BEFORE["existed"] = frozenset(p.name for p in path.iterdir()) if path.is_dir() else None
 
 
+def stage_command(argv: Sequence[str]) -> list[str]:
+    """``argv`` of a command that runs a job, to hand to Hydra: what its run directory held
+    noted (:func:`note_before`) and Hydra's records sent to staging
+    (:func:`stage_hydra_records`), so that a refusal removes only what the command made."""
+    note_before(argv)
+    return stage_hydra_records(list(argv))
+
+
 def stage_hydra_records(argv: list[str]) -> list[str]:
     """``argv`` (a command that runs a job) with Hydra's records of this command sent to a staging directory
     (:data:`~wcsac_rl.training.run_dir.HYDRA_STAGING`; not when the line sets
@@ -170,6 +192,36 @@ def stage_hydra_records(argv: list[str]) -> list[str]:
     from wcsac_rl.training.run_dir import HYDRA_STAGING
 
     return [*argv, f"hydra.output_subdir={HYDRA_STAGING}{os.getpid()}"]
+
+
+class HydraJob:
+    """The directory Hydra made for this command's job (``hydra_cfg``: Hydra's config of
+    the job), with the records it staged there and what the directory held before:
+    removed again when the command is refused (:meth:`refuse`), kept, or left for the
+    resumed run's own directory, when its run is accepted (:meth:`accept`)."""
+
+    def __init__(self, hydra_cfg: Any) -> None:
+        self.dir = Path(hydra_cfg.runtime.output_dir)
+        self.staged = staged_records(self.dir, hydra_cfg.output_subdir)
+        self.entries = entries_before(self.dir, self.staged)
+        """The directory's entries before the run (:func:`entries_before`)."""
+
+    def refuse(self, *, owned: bool = True) -> None:
+        """A refused command leaves nothing behind (:func:`discard`); ``owned=False``:
+        another process owns the directory, so only this command's staged records go."""
+        if owned:
+            discard(self.dir, self.staged)
+        else:
+            discard_staged(self.staged)
+
+    def accept(self, run_dir: Path) -> None:
+        """The run (in ``run_dir``) took its directory: Hydra's records become its
+        ``.hydra/``, or, for a resume of another directory, Hydra's is left."""
+        if Path(run_dir).resolve() != self.dir.resolve():
+            leave_hydra_dir(self.dir, run_dir, self.staged)
+        else:
+            reopen_run_logs(run_dir)
+            keep_records(self.dir, self.staged)
 
 
 def staged_records(run_dir: Path, subdir: str | None) -> Path | None:
@@ -252,6 +304,18 @@ def discard(run_dir: Path, staged: Path | None = None) -> None:
     created = noted and existed is None
     if discard_unused_run_dir(run_dir, existed=existed, since=BEFORE.get("since"), created=created):
         remove_empty_parents(run_dir)
+
+
+def discard_refused(run_dir: Path, *, existed: bool, entries: frozenset[str] | None) -> None:
+    """Remove what a refused :func:`~wcsac_rl.train.run_training` made: ``run_dir``
+    itself where it did not exist, else only what the call made there, its lock file
+    (``entries``: the names the directory held before; ``None``: it is not a directory)."""
+    from wcsac_rl.training.run_dir import discard_unused_run_dir
+
+    if not existed:
+        discard(run_dir)
+    elif entries is not None:
+        discard_unused_run_dir(run_dir, existed=entries)
 
 
 def entries_before(run_dir: Path, staged: Path | None) -> frozenset[str] | None:
