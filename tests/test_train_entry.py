@@ -159,3 +159,58 @@ def test_run_training_refuses_a_bad_config_and_leaves_no_directory(tmp_path):
     with pytest.raises(ConfigError, match="risk_level"):
         run_training(cfg, tmp_path / "run")
     assert not (tmp_path / "run").exists()
+
+
+def test_run_training_refused_in_a_directory_of_the_users_keeps_what_it_held(tmp_path):
+    """Only what the refused call made goes (its lock file): the user's files stay."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("a user's notes\n")
+    with pytest.raises(ConfigError, match="risk_level"):
+        run_training(compose_config(*TINY_CLI, "risk_level=2"), mine)
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
+
+
+def test_the_entry_module_stays_thin():
+    """wcsac_rl/train.py is the entry point only (at most 250 lines): the command line's
+    checks live in command_line.py, the console log and Hydra's records with the run
+    directory code (training/run_records.py)."""
+    lines = (ROOT / "wcsac_rl" / "train.py").read_text().splitlines()
+    assert len(lines) <= 250, len(lines)
+
+
+@pytest.mark.parametrize(
+    ("flags", "overrides", "runs"),
+    [
+        ([], ["seed=3"], True),
+        (["-m"], ["seed=1,2"], True),
+        ([], ["algo.network.widht=8"], "did you mean algo.network.width?"),
+        ([], ["seed"], "cannot read the override 'seed'"),
+        (["--help"], [], False),
+        (["--cfg", "job"], [], False),
+    ],
+    ids=["run", "sweep", "unknown-key", "syntax", "help", "cfg"],
+)
+def test_the_command_line_is_read_once_by_hydras_grammar(monkeypatch, flags, overrides, runs):
+    """check_command_line reads the overrides once with Hydra's grammar and hands that
+    reading to every check; it says whether a job runs (Hydra answers --help, --cfg)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from wcsac_rl.train import check_command_line
+
+    command_line = [*TINY_CLI, *overrides]
+    reads = []
+    parse = OverridesParser.parse_overrides
+
+    def counted(self, overrides):  # (Hydra's own loader names the argument)
+        reads.append(list(overrides) == command_line)
+        return parse(self, overrides)
+
+    monkeypatch.setattr(OverridesParser, "parse_overrides", counted)
+    if isinstance(runs, str):
+        with pytest.raises(SystemExit) as stop:
+            check_command_line([*flags, *command_line])
+        assert str(stop.value).startswith("error: ") and runs in str(stop.value)
+    else:
+        assert check_command_line([*flags, *command_line]) is runs
+    assert reads.count(True) == (0 if runs is False else 1)
