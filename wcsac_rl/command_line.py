@@ -1,7 +1,16 @@
 """``wcsac-train``'s command line checked before Hydra runs: each refusal one line
 naming the override (Hydra's own are stacks of lines), nothing written. The overrides
 are read once, by Hydra's own override grammar, and that one reading is handed to every
-check. Imports only Hydra until a check needs more, so that ``--help`` answers at once."""
+check. Imports only Hydra until a check needs more, so that ``--help`` answers at once.
+
+Why before Hydra, rather than rewording Hydra's own errors: Hydra 1.3's ``hydra.main``
+prints its refusals itself and exits (``run_and_report``; the exception reaches the
+caller only under ``HYDRA_FULL_ERROR=1``, a setting its launchers' processes inherit),
+some of its errors do not name what the message needs (``=5`` fails as a bare
+``ValueError`` naming no override; an unknown key's config is reached only through the
+node inside OmegaConf's exception), and its sweeper composes each job but validates none
+of its values, after it has written the sweep directory and its ``multirun.yaml``. A sweeper of the kit's own
+would have to be a ``hydra_plugins`` package and would not check a sweep run by another."""
 
 from __future__ import annotations
 
