@@ -9,8 +9,9 @@ caller only under ``HYDRA_FULL_ERROR=1``, a setting its launchers' processes inh
 some of its errors do not name what the message needs (``=5`` fails as a bare
 ``ValueError`` naming no override; an unknown key's config is reached only through the
 node inside OmegaConf's exception), and its sweeper composes each job but validates none
-of its values, after it has written the sweep directory and its ``multirun.yaml``. A sweeper of the kit's own
-would have to be a ``hydra_plugins`` package and would not check a sweep run by another."""
+of its values, after it has written the sweep directory and its ``multirun.yaml``. A
+sweeper of the kit's own would have to be a ``hydra_plugins`` package, and a sweep run
+by another sweeper would go unchecked."""
 
 from __future__ import annotations
 

@@ -236,15 +236,16 @@ def _group_options(group: str) -> list[str]:
 def parse_overrides(overrides: Sequence[Any]) -> list[Any] | None:
     """``overrides`` as Hydra's grammar reads them (Hydra's ``Override`` objects), or
     ``None`` where Hydra cannot parse them (its own message says why). Overrides given
-    already parsed (a command line is parsed once: :func:`~wcsac_rl.command_line.
-    check_command_line`) are returned as they are."""
+    already parsed are returned as they are: a command line is parsed once, by
+    :func:`~wcsac_rl.command_line.check_command_line`, for all its checks."""
     if all(not isinstance(o, str) for o in overrides):
         return list(overrides)
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
+    lines = [o if isinstance(o, str) else o.input_line for o in overrides]
     try:
-        return OverridesParser.create().parse_overrides([str(o) for o in overrides])
+        return OverridesParser.create().parse_overrides(lines)
     except HydraException:
         return None
 

@@ -181,8 +181,8 @@ def stage_command(argv: Sequence[str]) -> list[str]:
 
 
 def stage_hydra_records(argv: list[str]) -> list[str]:
-    """``argv`` (a command that runs a job) with Hydra's records of this command sent to a staging directory
-    (:data:`~wcsac_rl.training.run_dir.HYDRA_STAGING`; not when the line sets
+    """``argv`` (a command that runs a job) with Hydra's records of this command sent to a
+    staging directory (:data:`~wcsac_rl.training.run_dir.HYDRA_STAGING`; not when the line sets
     ``hydra.output_subdir`` itself): an existing run's ``.hydra/`` is written only once
     this command's run is accepted."""
     import os
@@ -195,16 +195,15 @@ def stage_hydra_records(argv: list[str]) -> list[str]:
 
 
 class HydraJob:
-    """The directory Hydra made for this command's job (``hydra_cfg``: Hydra's config of
-    the job), with the records it staged there and what the directory held before:
-    removed again when the command is refused (:meth:`refuse`), kept, or left for the
-    resumed run's own directory, when its run is accepted (:meth:`accept`)."""
+    """The directory Hydra made for this command's job (``dir``; ``hydra_cfg``: Hydra's
+    config of the job), the records it staged there (``staged``) and what the directory
+    held before (``entries``: :func:`entries_before`). What the command made is removed
+    when it is refused (:meth:`refuse`) and kept when its run is accepted (:meth:`accept`)."""
 
     def __init__(self, hydra_cfg: Any) -> None:
         self.dir = Path(hydra_cfg.runtime.output_dir)
         self.staged = staged_records(self.dir, hydra_cfg.output_subdir)
         self.entries = entries_before(self.dir, self.staged)
-        """The directory's entries before the run (:func:`entries_before`)."""
 
     def refuse(self, *, owned: bool = True) -> None:
         """A refused command leaves nothing behind (:func:`discard`); ``owned=False``:
@@ -215,8 +214,9 @@ class HydraJob:
             discard_staged(self.staged)
 
     def accept(self, run_dir: Path) -> None:
-        """The run (in ``run_dir``) took its directory: Hydra's records become its
-        ``.hydra/``, or, for a resume of another directory, Hydra's is left."""
+        """The run took ``run_dir``: Hydra's staged records become its ``.hydra/``; a
+        resume of another directory (``resume=RUN_DIR``) leaves Hydra's new one
+        (:func:`leave_hydra_dir`)."""
         if Path(run_dir).resolve() != self.dir.resolve():
             leave_hydra_dir(self.dir, run_dir, self.staged)
         else:
