@@ -55,9 +55,9 @@ def check_command_line(argv: list[str]) -> bool:
     overrides = list(args.overrides)
     try:
         parsed = check_override_syntax(overrides)  # (the one reading, for every check)
-        check_interpolations(overrides)
+        check_interpolations(parsed)
         check_override_keys(parsed)
-        check_output_dirs(overrides)
+        check_output_dirs(parsed)
         check_sweep_jobs(parsed, multirun=bool(args.multirun))
     except ConfigError as err:
         sys.exit(f"error: {err}")
@@ -168,23 +168,36 @@ def check_override_syntax(overrides: list[str]) -> list[Any]:
         ) from None
 
 
-def check_interpolations(overrides: list[str]) -> None:
+def _values(overrides: Sequence[Any]) -> list[tuple[str, str]]:
+    """``(key, value as written)`` of each override that sets a value (not ``~key``), as
+    Hydra's grammar reads them (strings are parsed; nothing where Hydra cannot)."""
+    from wcsac_rl.training.config_keys import parse_overrides
+
+    parsed = parse_overrides(overrides) or []
+    return [
+        (o.key_or_group, o.get_value_string())
+        for o in parsed
+        if not o.is_delete() and "=" in (o.input_line or "")
+    ]
+
+
+def check_interpolations(overrides: Sequence[Any]) -> None:
     """Refuse, in one line naming the key and the variable, an override whose
     interpolation cannot resolve: ``${oc.env:NAME}`` of an unset variable without a
     default, or a key that refers to itself (``seed=${seed}``). Hydra would resolve
-    them while making the run's directory, in its own stack of lines."""
+    them while making the run's directory, in its own stack of lines. ``overrides``:
+    strings, or Hydra's parsed ``Override`` objects."""
     import os
     import re
 
     from wcsac_rl.training.errors import ConfigError
 
-    for override in overrides:
-        key, sep, value = override.lstrip("+~").partition("=")
-        if sep and key == "run_name" and "${" not in value:
+    for key, value in _values(overrides):
+        if key == "run_name" and "${" not in value:
             from wcsac_rl.training.config import check_run_name  # (imports torch)
 
             check_run_name(value.strip("'\""))  # (before Hydra makes outputs/<date>/<name>)
-        if not sep or "${" not in value:
+        if "${" not in value:
             continue
         for name, default in re.findall(r"\$\{oc\.env:\s*([^,}\s]+)\s*(,[^}]*)?\}", value):
             if not default and name not in os.environ:
@@ -196,20 +209,21 @@ def check_interpolations(overrides: list[str]) -> None:
             raise ConfigError(f"{key}={value} refers to itself; give {key} a value")
 
 
-def check_output_dirs(overrides: list[str]) -> None:
+def check_output_dirs(overrides: Sequence[Any]) -> None:
     """Refuse, in one line, a run or sweep directory that cannot be written (a read-only
     file system, another user's directory) before Hydra tries to create it (its own
     failure is a stack of lines). Directories given with interpolations are checked up
     to their first one; without ``hydra.run.dir`` / ``hydra.sweep.dir``, Hydra writes
-    below the current directory."""
+    below the current directory. ``overrides``: strings, or Hydra's parsed ``Override``
+    objects."""
     from wcsac_rl.training.errors import ConfigError
     from wcsac_rl.training.run_dir import unwritable_reason
 
-    given = {}
-    for override in overrides:
-        key, sep, value = override.lstrip("+").partition("=")
-        if sep and key in ("hydra.run.dir", "hydra.sweep.dir"):
-            given[key] = value.strip("'\"")
+    given = {
+        key: value.strip("'\"")
+        for key, value in _values(overrides)
+        if key in ("hydra.run.dir", "hydra.sweep.dir")
+    }
     for key, value in (given or {"the current directory": "."}).items():
         literal = value.split("${", 1)[0] or "."
         reason = unwritable_reason(literal)
