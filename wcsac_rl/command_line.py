@@ -1,7 +1,8 @@
 """``wcsac-train``'s command line checked before Hydra runs: each refusal one line
-naming the override (Hydra's own are stacks of lines), nothing written. The overrides
-are read once, by Hydra's own override grammar, and that one reading is handed to every
-check. Imports only Hydra until a check needs more, so that ``--help`` answers at once.
+naming the override (Hydra's own are stacks of lines), nothing written. The kit reads
+the overrides once, with Hydra's own override grammar, and hands that reading to every
+check (Hydra reads them again itself to compose the run's config). Imports only Hydra
+until a check needs more, so that ``--help`` answers at once.
 
 Why before Hydra, rather than rewording Hydra's own errors: Hydra 1.3's ``hydra.main``
 prints its refusals itself and exits (``run_and_report``; the exception reaches the
