@@ -1,6 +1,7 @@
 """The training entry point (``wcsac-train``, ``python -m wcsac_rl.train``, ``train.py``)
 and its Python API: ``--help`` without torch, train.log, the warning for options the
-algorithm does not read, and ``compose_config`` / ``run_training``."""
+algorithm does not read, ``compose_config`` / ``run_training``, the entry module's size
+and the command line read once for all its checks."""
 
 from __future__ import annotations
 
