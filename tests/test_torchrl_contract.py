@@ -603,6 +603,8 @@ def test_multistep_batches_are_correct_or_refused(cls, options, n):
                 call(flat)
             message = err.value.args[0]
             assert "\n" not in message and "MultiStep" in message and "NStepCost" in message
+            # (the way it names is one the constructor takes)
+            assert "safety_head=SafetyHeadOptions(cost_n_steps=n)" in message
         return
     targets = loss.compute_targets(flat)
     expected = nstep_cost_target(loss, trajectories(), max(n, loss.cost_n_steps))

@@ -97,8 +97,8 @@ def refuse_multistep(owner: str, tensordict: TensorDictBase, key: NestedKey) -> 
         "MultiStep: its reward target is n-step but the cost target with "
         "cost_n_steps=1 is one step's, which would bootstrap from the state n steps "
         f"on{where if compiling else ''}; drop MultiStep, or construct the loss with "
-        "cost_n_steps=n and add NStepCost.for_loss(loss) to the collector's postproc "
-        "before MultiStep"
+        "safety_head=SafetyHeadOptions(cost_n_steps=n) and add NStepCost.for_loss(loss) to "
+        "the collector's postproc before MultiStep"
     )
 
 
