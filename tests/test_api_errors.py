@@ -135,3 +135,10 @@ def test_a_state_dict_of_another_ensemble_size_is_named():  # L22
     _one_line(excinfo, "has shape [4, 8, 6] in the state dict, [2, 8, 6] in this loss")
     assert all(torch.equal(before[k], v) for k, v in two.state_dict().items())
     two.load_state_dict(_loss(_critics(*[("gaussian", 8)] * 2), members=2).state_dict())
+
+
+def test_an_action_spec_whose_high_is_not_above_its_low_is_refused_by_make_actor():
+    spec = Bounded(torch.tensor([-1.0, 2.0]), torch.tensor([1.0, 2.0]), shape=(2,))
+    with pytest.raises(ValueError) as excinfo:
+        make_actor(4, spec, width=8)
+    _one_line(excinfo, "high is above its low", "low=[-1.0, 2.0]")

@@ -5,14 +5,25 @@ from __future__ import annotations
 import torch
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
+from torch import distributions as D
 from torch import nn
 from torchrl.data import Bounded, TensorSpec
 from torchrl.envs.utils import ExplorationType
 from torchrl.modules import ProbabilisticActor, TanhNormal
+from torchrl.modules.distributions.continuous import (
+    SafeTanhTransform,
+    _PatchedAffineTransform,
+    _PatchedComposeTransform,
+)
 
 from wcsac_rl.modules._mlp import make_mlp
 
-__all__ = ["ClampedLogStdNormalParams", "clamped_normal_params", "make_actor"]
+__all__ = [
+    "ClampedLogStdNormalParams",
+    "SyncFreeTanhNormal",
+    "clamped_normal_params",
+    "make_actor",
+]
 
 
 def clamped_normal_params(
@@ -44,6 +55,57 @@ class ClampedLogStdNormalParams(nn.Module):
         return clamped_normal_params(x, self.log_std_min, self.log_std_max)
 
 
+class SyncFreeTanhNormal(TanhNormal):
+    """TorchRL's :class:`~torchrl.modules.TanhNormal` built without reading its bounds back.
+
+    TorchRL's constructor checks ``high > low`` and whether the bounds are ``[-1, 1]``
+    on the bounds' values at every construction, three host reads each (it skips them
+    under ``torch.compile`` and CUDA-graph capture), so an eager SAC update built two
+    of them and synchronised six times. This class is the one TorchRL builds while
+    compiling: the same draws, log-probabilities and gradients, with the affine map to
+    ``[low, high]`` always applied (for ``[-1, 1]`` it is ``0 + 1 · y`` and adds
+    ``log 1 = 0`` to the log-Jacobian: the same numbers bit for bit). The bounds are
+    checked once, where the actor is built (:func:`make_actor`), not here.
+
+    Example:
+        >>> import torch
+        >>> from torchrl.modules import TanhNormal
+        >>> loc, scale = torch.randn(3, 2), torch.rand(3, 2) + 0.1
+        >>> _ = torch.manual_seed(0)
+        >>> a, lp = SyncFreeTanhNormal(loc, scale).rsample_and_log_prob()
+        >>> _ = torch.manual_seed(0)
+        >>> b, lq = TanhNormal(loc, scale).rsample_and_log_prob()
+        >>> bool(torch.equal(a, b) and torch.equal(lp, lq))
+        True
+    """
+
+    def __init__(
+        self,
+        loc: torch.Tensor,
+        scale: torch.Tensor,
+        upscale: torch.Tensor | float = 5.0,
+        low: torch.Tensor | float = -1.0,
+        high: torch.Tensor | float = 1.0,
+        event_dims: int | None = None,
+        tanh_loc: bool = False,
+        safe_tanh: bool = True,
+    ) -> None:
+        device = loc.device
+        low = torch.as_tensor(low, device=device)
+        high = torch.as_tensor(high, device=device)
+        self.non_trivial_max = self.non_trivial_min = True  # (not read: always mapped)
+        self.tanh_loc = tanh_loc
+        self._event_dims = min(1, loc.ndim) if event_dims is None else event_dims
+        self.device = device
+        self.upscale = upscale.to(device) if isinstance(upscale, torch.Tensor) else upscale
+        self.low, self.high = low, high
+        tanh = SafeTanhTransform() if safe_tanh else D.TanhTransform()
+        self._t = _PatchedComposeTransform(
+            [tanh, _PatchedAffineTransform(loc=(high + low) / 2, scale=(high - low) / 2)]
+        )
+        self.update(loc, scale)
+
+
 def make_actor(
     observation_dim: int,
     action_spec: TensorSpec,
@@ -70,7 +132,9 @@ def make_actor(
         log_std_min, log_std_max: clamp of the Gaussian's log-std (paper: [−20, 2]).
 
     Returns:
-        A ``ProbabilisticActor`` writing ``loc``, ``scale`` and ``action_key``.
+        A ``ProbabilisticActor`` writing ``loc``, ``scale`` and ``action_key``, its
+        distribution a :class:`SyncFreeTanhNormal` (TorchRL's ``TanhNormal`` without
+        its per-construction host reads of the bounds).
         Under ``ExplorationType.DETERMINISTIC`` it outputs ``tanh(loc)`` (the
         paper's mean action for test episodes), under ``RANDOM`` a sample.
 
@@ -87,6 +151,12 @@ def make_actor(
         raise TypeError(
             f"make_actor needs a Bounded (continuous, box) action spec, got {type(action_spec).__name__}"
         )
+    low, high = action_spec.space.low, action_spec.space.high
+    if not bool((high > low).all()):  # (once: the distribution does not check them)
+        raise ValueError(
+            f"make_actor needs an action spec whose high is above its low in every "
+            f"dimension, got low={low.tolist()} high={high.tolist()}"
+        )
     action_dim = action_spec.shape[-1]
     net = nn.Sequential(
         make_mlp(observation_dim, 2 * action_dim, width=width, depth=depth, activation=activation),
@@ -98,8 +168,8 @@ def make_actor(
         in_keys=["loc", "scale"],
         out_keys=[action_key],
         spec=action_spec,
-        distribution_class=TanhNormal,
-        distribution_kwargs={"low": action_spec.space.low, "high": action_spec.space.high},
+        distribution_class=SyncFreeTanhNormal,
+        distribution_kwargs={"low": low, "high": high},
         default_interaction_type=ExplorationType.RANDOM,
         return_log_prob=False,
     )

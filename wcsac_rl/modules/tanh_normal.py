@@ -30,7 +30,11 @@ from torchrl.envs.utils import exploration_type
 from torchrl.modules import TanhNormal
 from torchrl.modules.distributions.utils import safetanh_noeps
 
-from wcsac_rl.modules.actor import ClampedLogStdNormalParams, clamped_normal_params
+from wcsac_rl.modules.actor import (
+    ClampedLogStdNormalParams,
+    SyncFreeTanhNormal,
+    clamped_normal_params,
+)
 from wcsac_rl.modules.mlp import MLPLayout, evaluate_mlp, mlp_layout
 
 __all__ = [
@@ -81,7 +85,8 @@ def tanh_normal_actor_plan(actor: nn.Module) -> TanhNormalActorPlan | None:
     Recognised: a ``ProbabilisticTensorDictSequential`` of (1) a ``TensorDictModule``
     reading one key and writing ``loc`` and ``scale`` through
     ``nn.Sequential(<plain MLP>, ClampedLogStdNormalParams)`` and (2) a
-    ``TanhNormal`` with default options apart from ``low``/``high``.
+    ``TanhNormal`` (TorchRL's or :class:`~wcsac_rl.modules.actor.SyncFreeTanhNormal`)
+    with default options apart from ``low``/``high``.
     """
     if not isinstance(actor, ProbabilisticTensorDictSequential) or len(actor.module) != 2:
         return None
@@ -98,7 +103,7 @@ def tanh_normal_actor_plan(actor: nn.Module) -> TanhNormalActorPlan | None:
     layout = mlp_layout(net[0], ("module", "0", "module", "0"))
     if layout is None:
         return None
-    if getattr(dist_module, "distribution_class", None) is not TanhNormal:
+    if getattr(dist_module, "distribution_class", None) not in (TanhNormal, SyncFreeTanhNormal):
         return None
     kwargs = dict(getattr(dist_module, "distribution_kwargs", {}) or {})
     if set(kwargs) - {"low", "high"}:
