@@ -88,9 +88,7 @@ def test_an_update_in_the_training_loop_reads_nothing_back(tmp_path, overrides):
     "low, high", [(-1.0, 1.0), (torch.tensor([-2.0, 0.0]), torch.tensor([0.5, 3.0]))]
 )
 @pytest.mark.parametrize("loc_scale", [1.0, 30.0], ids=["moderate", "saturated"])
-def test_the_sync_free_tanh_normal_is_torchrls_bit_for_bit_and_reads_nothing(
-    low, high, loc_scale
-):
+def test_the_sync_free_tanh_normal_is_torchrls_bit_for_bit_and_reads_nothing(low, high, loc_scale):
     """Draws, log-probabilities (of its own draws and of given actions), the
     deterministic action and the gradients of all of them: equal to TorchRL's
     ``TanhNormal`` bit for bit; building and using it reads nothing back."""
