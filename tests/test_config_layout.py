@@ -45,6 +45,8 @@ NEW_KEYS = {
     # whether this command may import the env code a resumed run's files name (the
     # user's word on this call: never read from a run, docs/guarantees.md): a new key.
     "trust_env_code",
+    # whether the update is replayed as a CUDA graph (device=cuda only): a new key.
+    "cudagraphs",
 }
 ADDED_OPTIONS = (
     "ensemble_reading",

@@ -247,14 +247,18 @@ def make_target_updater(cfg: DictConfig, loss: LossModule) -> PolyakUpdate:
 
 
 def adam(params, lr: float) -> torch.optim.Adam:
-    """Adam with the fused (single-kernel) implementation where the device supports it.
+    """Adam with the fused (single-kernel) implementation where the device supports it,
+    and capturable (step counts and bias corrections on the device: safe to capture in a
+    CUDA graph) on CUDA.
 
     Same update as the default implementation; on one CPU core it is ~4× faster for
     the paper's networks (0.7 vs 2.5 ms per step).
     """
     params = list(params)
     device = params[0].device.type
-    return torch.optim.Adam(params, lr=lr, fused=device in ("cpu", "cuda", "mps"))
+    return torch.optim.Adam(
+        params, lr=lr, fused=device in ("cpu", "cuda", "mps"), capturable=device == "cuda"
+    )
 
 
 def make_optimizers(cfg: DictConfig, loss: LossModule) -> dict[str, torch.optim.Optimizer]:

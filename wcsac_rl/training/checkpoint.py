@@ -657,6 +657,7 @@ RESUME_CHANGEABLE = (
     "device",
     "retain_freed_memory",
     "compile",
+    "cudagraphs",
     "checkpoint_every_epochs",
     "keep_checkpoints_at",
     "save_replay_buffer",

@@ -294,6 +294,7 @@ def _validate_run(cfg: DictConfig) -> None:
         )
     for key in (
         "compile",
+        "cudagraphs",
         "retain_freed_memory",
         "save_replay_buffer",
         "progress_bar",
@@ -401,6 +402,11 @@ def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
         )
     _check_logger_package(str(cfg.logger.backend))
     _check_device(cfg.device)
+    if cfg.get("cudagraphs", False) and not str(cfg.device).startswith("cuda"):
+        raise ConfigError(
+            f"cudagraphs=true captures the update as a CUDA graph: it needs device=cuda[:N], "
+            f"got device={cfg.device}"
+        )
     _check_recipe_files(cfg, fresh=check_keys)
     if check_keys:
         from wcsac_rl.training.config_keys import check_known_keys

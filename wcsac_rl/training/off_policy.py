@@ -32,7 +32,7 @@ import math
 from typing import Any
 
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from torchrl import timeit
 
 from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
@@ -112,8 +112,13 @@ class OffPolicyTrainer(Trainer):
         self._pending: list[tuple[TensorDictBase, torch.Tensor]] | None = None
         # fused Adam skips a step on the device (found_inf); other optimizers are read
         self._masked_steps = all(o.defaults.get("fused") for o in self.optimizers.values())
-        # (compiled lazily, at the first update)
-        self._loss_forward = torch.compile(self.loss) if cfg.compile else self.loss
+        # compile=true: the whole update (loss, backward, optimizer steps, Polyak) is one
+        # compiled function (compiled lazily, at the first update); cudagraphs=true (CUDA):
+        # it is captured as a CUDA graph and replayed (one graph per set of stepped
+        # optimizers: κ held or not)
+        self._update_step = torch.compile(self._device_step) if cfg.compile else self._device_step
+        self._graphs: dict[bool, Any] | None = {} if cfg.get("cudagraphs", False) else None
+        self._graph_warmup = 5 if cfg.compile else 2  # (eager updates before the capture)
 
     @property
     def loss_keys(self) -> list[str]:
@@ -152,8 +157,27 @@ class OffPolicyTrainer(Trainer):
 
     def _step(self, batch: TensorDictBase) -> tuple[TensorDictBase, torch.Tensor]:
         """The update of :meth:`update`, masked on the device where it is not finite: the
-        loss outputs and that flag (a boolean tensor), nothing read back."""
-        out = self._loss_forward(batch)
+        loss outputs and that flag (a boolean tensor), nothing read back; compiled with
+        ``compile=true``, replayed as a CUDA graph with ``cudagraphs=true``."""
+        if self._graphs is None:
+            return self._update_step(batch)
+        graph = self._graphs.get(self.kappa_held)
+        if graph is None:
+            from tensordict.nn import CudaGraphModule
+
+            graph = self._graphs[self.kappa_held] = CudaGraphModule(
+                self._graph_step, in_keys=[], out_keys=[], warmup=self._graph_warmup
+            )
+        result = graph(batch)
+        return result["out"], result["finite"]
+
+    def _graph_step(self, batch: TensorDictBase) -> TensorDictBase:
+        """:meth:`_device_step` with its results in one tensordict (``CudaGraphModule``)."""
+        out, finite = self._update_step(batch)
+        return TensorDict({"out": out, "finite": finite}, batch_size=[])
+
+    def _device_step(self, batch: TensorDictBase) -> tuple[TensorDictBase, torch.Tensor]:
+        out = self.loss(batch)
         total = sum(value for key, value in out.items() if key.startswith("loss_"))
         total.backward()
         grad_norm = torch.nn.utils.get_total_norm(self._grads())
