@@ -1,6 +1,7 @@
 """The prepared device check (``make gpu-check``): on a CUDA machine, the device tests,
-then a short training on the GPU, eager and compiled, side by side with the same
-training on this machine's CPU: gradient updates/s and frames/s of each.
+then a short training on the GPU, eager, compiled and captured (the compiled update
+replayed as a CUDA graph), side by side with the same training on this machine's CPU
+(eager and compiled): gradient updates/s and frames/s of each.
 
 Usage::
 
@@ -12,7 +13,8 @@ Usage::
 
 Where torch sees no CUDA device (``--device cuda``, the default) it says so in one line
 and exits 0: nothing to check. Otherwise each training is ``train.py`` in a fresh
-process (one torch thread, ``device=...``, ``compile=...``, two epochs by default) in
+process (one torch thread, ``device=...``, ``compile=...``, ``cudagraphs=...``, two
+epochs by default) in
 a temporary directory, and its rates are read from the last epoch's row of its
 ``progress.csv`` (the first epoch holds the replay warm-up and the compile):
 ``updates/s`` = the epoch's updates / its ``time/update_s`` (the learner alone),
@@ -40,8 +42,14 @@ import torch
 from wcsac_rl.training.progress import read_progress
 
 ROOT = Path(__file__).resolve().parents[1]
-MODES = {"eager": "compile=false", "compiled": "compile=true"}
-"""How the update runs: TorchRL's eager modules, or the loss under ``torch.compile``."""
+MODES = {
+    "eager": ("compile=false",),
+    "compiled": ("compile=true",),
+    "captured": ("compile=true", "cudagraphs=true"),
+}
+"""How the update runs: eager, the whole update under ``torch.compile``, or that compiled
+update replayed as a CUDA graph (CUDA only: not run on the CPU side)."""
+CUDA_ONLY_MODES = ("captured",)
 
 
 def cuda_missing(device: str) -> str | None:
@@ -61,7 +69,7 @@ def train(args: argparse.Namespace, device: str, mode: str, workdir: Path) -> di
         f"algo={args.algo}",
         f"env={args.env}",
         f"device={device}",
-        MODES[mode],
+        *MODES[mode],
         f"total_frames={args.frames}",
         f"epoch_frames={args.epoch_frames}",
         "eval_episodes=1",
@@ -154,6 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="gpu_check_") as tmp:
         for device in devices:
             for mode in args.modes:
+                if mode in CUDA_ONLY_MODES and torch.device(device).type != "cuda":
+                    continue
                 results.append(train(args, device, mode, Path(tmp)))
                 print(table(results[-1:]).splitlines()[-1], flush=True)
     print(table(results))

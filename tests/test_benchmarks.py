@@ -50,6 +50,10 @@ SMOKE_ARGS = {
         "algo.buffer_size=1500",  # --fill fills it from a 1 000-step rollout
     ],
     "bench_help.py": ["--repeats", "1"],
+    "bench_trainer_update.py": [
+        *("--env", "tiny", "--rounds", "2", "--updates", "2", "--warmup", "1", "--fill", "400"),
+        *("--override", "algo.network.width=16", "algo.batch_size=8"),
+    ],
     "gpu_check.py": [
         *("--device", "cpu", "--env", "tiny", "--frames", "800", "--epoch-frames", "400"),
         *("--no-tests", "--modes", "eager", "--override", "algo.network.width=16"),
@@ -111,6 +115,13 @@ def test_bench_help_times_every_console_script_without_torch(tmp_path):
     for row in rows:
         assert_positive(row, "min_s", "median_s", "help_lines")
         assert row["heavy_modules"] == "", row
+
+
+def test_bench_trainer_update_times_the_trainers_own_update(tmp_path):
+    rows = run_benchmark("bench_trainer_update.py", tmp_path)
+    assert [row["mode"] for row in rows] == ["eager"]
+    assert rows[0]["rounds"] == 2
+    assert_positive(rows[0], "updates_per_s")
 
 
 def test_bench_update_runs_at_every_option_set(tmp_path):
