@@ -5,9 +5,12 @@
 * **learner** — ``cfg.device``: the networks and their targets, β and κ, the optimizers'
   state, the replay buffer's storage (so every sampled batch), the start-state buffer,
   and the policy. The collector moves each collected batch from the env device to the
-  learner (``env_device`` / ``policy_device`` / ``storing_device``); the test episodes'
-  env casts its output to the learner and the policy's actions back
-  (TorchRL's ``DeviceCastTransform``).
+  learner (``env_device`` / ``policy_device`` / ``storing_device``); off the CPU, the
+  off-policy trainer's collector acts with a CPU copy of the actor, which takes the
+  learner's weights after each batch's updates (with a shield, which reads the
+  learner's safety critic, it acts on the learner). The test episodes' env casts its
+  output to the learner and the policy's actions back (TorchRL's
+  ``DeviceCastTransform``).
 
 A checkpoint is always loaded on the CPU and copied into the learner's tensors;
 evaluation and calibration rebuild a run on the CPU (:data:`CPU`, :func:`on_cpu`),

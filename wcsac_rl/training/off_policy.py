@@ -8,7 +8,9 @@ of the batch the loss reads (``loss.in_keys``) go into the replay buffer and
 ``frames_per_batch × utd_ratio`` gradient steps follow (the authors' schedule: 100
 steps per 400 frames), once ``init_random_frames`` uniform-random frames have been
 collected. The actor collects and plays the test episodes as a
-:class:`~wcsac_rl.modules.tanh_normal.TanhNormalPolicy`.
+:class:`~wcsac_rl.modules.tanh_normal.TanhNormalPolicy`; with the learner off the CPU
+the collector acts with a CPU copy of it, refreshed from the learner's weights after
+each batch's updates.
 
 With ``algo.cost_n_steps > 1`` each collected batch gets the n-step cost entries
 (:class:`~wcsac_rl.objectives.NStepCost`) before it enters the buffer, all but the state
@@ -28,6 +30,7 @@ test episodes (each epoch's ``eval_episodes``).
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Any
 
@@ -50,6 +53,7 @@ from wcsac_rl.training.checkpoint import (
     save_buffers,
     verify_buffers,
 )
+from wcsac_rl.training.devices import run_devices
 from wcsac_rl.training.preemption import DeferredSignals
 from wcsac_rl.training.replay import nested_key
 from wcsac_rl.training.trainer import Trainer, env_max_episode_steps
@@ -100,6 +104,18 @@ class OffPolicyTrainer(Trainer):
         # algo.shield: the collector acts through a CriticShield (test episodes do not)
         collection = builders.make_collection_policy(cfg, self.loss, self.policy)
         self.collection_policy = None if collection is self.policy else collection
+        # a learner off the CPU: the collector acts with a CPU copy of the actor, its
+        # weights copied from the learner's after each batch's updates (and a resume),
+        # so that no env step waits on the device (a shield reads the learner's critic:
+        # it acts on the learner)
+        self.acting_copy: TanhNormalPolicy | None = None
+        copy_on_cpu = self.collect_on_cpu_copy
+        if copy_on_cpu is None:
+            copy_on_cpu = run_devices(cfg).learner.type != "cpu"
+        if copy_on_cpu and self.collection_policy is None:
+            self.acting_copy = TanhNormalPolicy(copy.deepcopy(self.agent.actor).to("cpu"))
+            self._acting_weights = TensorDict.from_module(self.acting_copy.actor).data
+            self._learner_weights = TensorDict.from_module(self.agent.actor).data
         self.shield_steps = self.shield_replaced = 0  # of the epoch in progress
         # the safety critic's reading of each collected batch against what its episodes
         # then cost (train_calib/* columns; SAC has no safety critic)
@@ -119,6 +135,19 @@ class OffPolicyTrainer(Trainer):
         self._update_step = torch.compile(self._device_step) if cfg.compile else self._device_step
         self._graphs: dict[bool, Any] | None = {} if cfg.get("cudagraphs", False) else None
         self._graph_warmup = 5 if cfg.compile else 2  # (eager updates before the capture)
+
+    collect_on_cpu_copy: bool | None = None
+    """Whether the collector acts with a CPU copy of the actor; ``None``: where the
+    learner is not the CPU (``True`` on a CPU learner: the copy, for tests)."""
+
+    def collector_policy(self):
+        return self.acting_copy if self.acting_copy is not None else super().collector_policy()
+
+    def refresh_acting_copy(self) -> None:
+        """The collector's CPU copy of the actor takes the learner's weights (one copy
+        from the device; nothing without a copy)."""
+        if self.acting_copy is not None:
+            self._acting_weights.update_(self._learner_weights)
 
     @property
     def loss_keys(self) -> list[str]:
@@ -266,6 +295,7 @@ class OffPolicyTrainer(Trainer):
         finally:  # (also when interrupted: the counters are the steps taken)
             steps, self._pending = self._pending, None
             outputs = self._count(steps)
+            self.refresh_acting_copy()
         return [out for out in outputs if out is not None]
 
     def observe_training_episodes(self, metrics: dict[str, float]) -> None:
@@ -365,6 +395,7 @@ class OffPolicyTrainer(Trainer):
 
     def load_learner_state(self, state: dict[str, Any]) -> None:
         load_module_state(self.loss, state.get("loss"))
+        self.refresh_acting_copy()
         for key, optimizer in self.optimizers.items():
             load_optimizer_state(optimizer, state["optimizers"][key])
         if self.episode_window is not None and "episode_window" in state:

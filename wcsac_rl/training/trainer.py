@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModule
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torchrl import timeit
 from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
@@ -255,7 +255,7 @@ class Trainer:
             builders.make_collector(
                 cfg,
                 self.env,
-                self.policy if self.collection_policy is None else self.collection_policy,
+                self.collector_policy(),
                 total_frames=remaining,
                 init_random_frames=max(0, self.init_random_frames - self.tracker.frames),
                 # a resumed run must not replay the episodes its first session started with
@@ -381,6 +381,11 @@ class Trainer:
     def _build_learner(self) -> None:
         """Build the algorithm's networks, loss and optimizers; set ``self.policy`` (and
         ``self.collection_policy`` when the collector acts through something else)."""
+
+    def collector_policy(self) -> TensorDictModuleBase | None:
+        """What the collector acts with: ``self.collection_policy`` if set, else
+        ``self.policy``."""
+        return self.policy if self.collection_policy is None else self.collection_policy
 
     def learn(self, batch: TensorDictBase) -> list[TensorDictBase]:
         """Learn from one collected batch; return the loss outputs to average per epoch."""
