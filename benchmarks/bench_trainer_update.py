@@ -3,7 +3,8 @@
 Usage::
 
     python benchmarks/bench_trainer_update.py [--algo wcsac] [--env static]
-                                              [--modes eager compiled] [--rounds 11]
+                                              [--modes eager compiled round]
+                                              [--rounds 11]
                                               [--updates 20] [--warmup 5]
                                               [--override KEY=VALUE ...] [--json PATH]
 
@@ -13,8 +14,9 @@ loss, backward, the masked fused Adam steps, the Polyak update) on a trainer bui
 the composed config (``algo=wcsac``: the kit's recipe, 2 × 256, batch 256), its replay
 buffer first filled with random transitions. The updates of a round are taken as
 ``learn`` takes a batch's: their finite flags read once, after the last. ``--modes``:
-``eager`` and ``compiled`` (``compile=true``, the whole update compiled; its first
-updates compile it, untimed). Rounds of the modes interleave; the median round is
+``eager``, ``compiled`` (``compile=true``, the whole update compiled; its first
+updates compile it, untimed) and ``round`` (``replay_draw=round``: the round's replay
+rows drawn in one call). Rounds of the modes interleave; the median round is
 reported. One torch thread.
 
 It uses only what every commit of the trainer has (``make_trainer``, ``sample``,
@@ -36,7 +38,7 @@ import torch
 from wcsac_rl import compose_config
 from wcsac_rl.training import make_trainer
 
-MODES = {"eager": (), "compiled": ("compile=true",)}
+MODES = {"eager": (), "compiled": ("compile=true",), "round": ("replay_draw=round",)}
 
 
 def build(args: argparse.Namespace, mode: str, workdir: Path):
@@ -68,11 +70,17 @@ def build(args: argparse.Namespace, mode: str, workdir: Path):
 def timed_round(trainer, updates: int) -> float:
     """Seconds for ``updates`` updates taken as ``learn`` takes a batch's."""
     batched = hasattr(trainer, "_pending")  # (a trainer that reads the flags per batch)
+    at_once = getattr(trainer, "replay_draw", "update") == "round"
     start = time.perf_counter()
     if batched:
         trainer._pending = []
-    for _ in range(updates):
-        trainer.update(trainer.sample())
+    indices = None
+    if at_once:
+        from wcsac_rl.training.replay import draw_indices
+
+        indices = draw_indices(trainer.replay_buffer, updates)
+    for i in range(updates):
+        trainer.update(trainer.sample() if indices is None else trainer.sample(indices[i]))
     if batched:
         steps, trainer._pending = trainer._pending, None
         trainer._count(steps)

@@ -47,6 +47,8 @@ NEW_KEYS = {
     "trust_env_code",
     # whether the update is replayed as a CUDA graph (device=cuda only): a new key.
     "cudagraphs",
+    # whether a batch's updates draw their replay rows at once: a new key.
+    "replay_draw",
 }
 ADDED_OPTIONS = (
     "ensemble_reading",

@@ -26,6 +26,7 @@ APPLIES_TO: Mapping[str, Callable[[Algorithm], bool]] = MappingProxyType(
         "risk_level": lambda a: a.reads_risk_level,  # a risk-neutral one is α = 1
         "compile": lambda a: a.off_policy,  # the SAC family's update
         "cudagraphs": lambda a: a.off_policy,
+        "replay_draw": lambda a: a.off_policy,
         "save_replay_buffer": lambda a: a.off_policy,  # only they keep a replay buffer
     }
 )

@@ -658,6 +658,7 @@ RESUME_CHANGEABLE = (
     "retain_freed_memory",
     "compile",
     "cudagraphs",
+    "replay_draw",
     "checkpoint_every_epochs",
     "keep_checkpoints_at",
     "save_replay_buffer",

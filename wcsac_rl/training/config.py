@@ -402,6 +402,11 @@ def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
         )
     _check_logger_package(str(cfg.logger.backend))
     _check_device(cfg.device)
+    if cfg.get("replay_draw", "update") not in ("update", "round"):
+        raise ConfigError(
+            f"replay_draw must be update (each update draws its replay batch) or round "
+            f"(a collected batch's updates draw theirs at once), got {cfg.replay_draw!r}"
+        )
     if cfg.get("cudagraphs", False) and not str(cfg.device).startswith("cuda"):
         raise ConfigError(
             f"cudagraphs=true captures the update as a CUDA graph: it needs device=cuda[:N], "

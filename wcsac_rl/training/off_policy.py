@@ -55,7 +55,7 @@ from wcsac_rl.training.checkpoint import (
 )
 from wcsac_rl.training.devices import run_devices
 from wcsac_rl.training.preemption import DeferredSignals
-from wcsac_rl.training.replay import nested_key
+from wcsac_rl.training.replay import draw_indices, nested_key, sample_at
 from wcsac_rl.training.trainer import Trainer, env_max_episode_steps
 from wcsac_rl.training.training_calibration import TrainingCalibration
 
@@ -135,6 +135,9 @@ class OffPolicyTrainer(Trainer):
         self._update_step = torch.compile(self._device_step) if cfg.compile else self._device_step
         self._graphs: dict[bool, Any] | None = {} if cfg.get("cudagraphs", False) else None
         self._graph_warmup = 5 if cfg.compile else 2  # (eager updates before the capture)
+        # replay_draw=round: the rows of all a batch's updates drawn in one call, on the
+        # learner (another random stream than one draw per update)
+        self.replay_draw = str(cfg.get("replay_draw", "update"))
 
     collect_on_cpu_copy: bool | None = None
     """Whether the collector acts with a CPU copy of the actor; ``None``: where the
@@ -153,9 +156,13 @@ class OffPolicyTrainer(Trainer):
     def loss_keys(self) -> list[str]:
         return list(self.loss.out_keys)
 
-    def sample(self) -> TensorDictBase:
-        """A replay batch (with a start state per row when the loss needs them)."""
-        batch = self.replay_buffer.sample()
+    def sample(self, index: torch.Tensor | None = None) -> TensorDictBase:
+        """A replay batch (with a start state per row when the loss needs them): drawn
+        by the replay buffer, or its rows at ``index`` (``replay_draw=round``)."""
+        if index is None:
+            batch = self.replay_buffer.sample()
+        else:
+            batch = sample_at(self.replay_buffer, index)
         if self.initial_state_buffer is not None:
             batch = self.initial_state_buffer.attach(batch)
         if self.episode_window is not None:
@@ -288,8 +295,11 @@ class OffPolicyTrainer(Trainer):
             # resume command), and one inside an optimizer step would checkpoint a
             # half-stepped network. Held back, it ends the loop after its update.
             with timeit("update"), DeferredSignals(("SIGINT",)) as ctrl_c:
-                for _ in range(self.updates_per_batch):
-                    self.update(self.sample())
+                indices = None  # (replay_draw=round: the batch's rows drawn at once)
+                if self.replay_draw == "round":
+                    indices = draw_indices(self.replay_buffer, self.updates_per_batch)
+                for i in range(self.updates_per_batch):
+                    self.update(self.sample(None if indices is None else indices[i]))
                     if ctrl_c.received is not None:
                         break
         finally:  # (also when interrupted: the counters are the steps taken)

@@ -27,7 +27,7 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import TensorDictReplayBuffer
 
-__all__ = ["NStepReplayBuffer", "nested_key"]
+__all__ = ["NStepReplayBuffer", "draw_indices", "nested_key", "sample_at"]
 
 
 def nested_key(*parts: NestedKey) -> tuple[str, ...]:
@@ -66,6 +66,11 @@ class NStepReplayBuffer(TensorDictReplayBuffer):
     ) -> TensorDictBase:
         data, info = super().sample(batch_size, return_info=True, include_info=include_info)
         index = torch.as_tensor(info["index"], device=self.storage.device)
+        self.gather_states(data, index)
+        return (data, info) if return_info else data
+
+    def gather_states(self, data: TensorDictBase, index: torch.Tensor) -> None:
+        """Fill in ``data`` (the rows at ``index``) with each row's n-step state."""
         nstep = data.get(self.nstep_key)
         steps = nstep.get("steps").reshape(index.shape).to(index.device)
         rows = (index + steps - 1) % self.storage.max_size
@@ -73,4 +78,25 @@ class NStepReplayBuffer(TensorDictReplayBuffer):
         for key in self.state_keys:
             value = ahead.get(("next", *key))
             nstep.set(key, value.to(data.device) if data.device is not None else value)
-        return (data, info) if return_info else data
+
+
+def draw_indices(buffer: TensorDictReplayBuffer, count: int) -> torch.Tensor:
+    """``count`` batches' row indices at once, ``[count, batch_size]``, uniform over the
+    filled rows, drawn on the storage's device (where ``buffer.sample()`` draws one
+    batch's: ``count`` draws in one call, not ``count`` calls)."""
+    storage = buffer.storage
+    if not len(storage):
+        raise RuntimeError("the replay buffer is empty: nothing to draw")
+    return torch.randint(
+        0, len(storage), (count, buffer.batch_size), device=getattr(storage, "device", None)
+    )
+
+
+def sample_at(buffer: TensorDictReplayBuffer, index: torch.Tensor) -> TensorDictBase:
+    """The batch ``buffer.sample()`` returns when it draws ``index``: the rows, their
+    ``"index"`` and, from an :class:`NStepReplayBuffer`, their n-step states."""
+    data = buffer.storage.get(index)
+    data.set("index", index.to(data.device) if data.device is not None else index)
+    if isinstance(buffer, NStepReplayBuffer):
+        buffer.gather_states(data, index)
+    return data
