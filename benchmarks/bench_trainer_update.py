@@ -20,14 +20,21 @@ rows drawn in one call). Rounds of the modes interleave; the median round is
 reported. One torch thread.
 
 It uses only what every commit of the trainer has (``make_trainer``, ``sample``,
-``update``), so the same file run from two checkouts, in turn, compares them.
+``update``): ``--against CHECKOUT`` runs this checkout's trainer and the other
+checkout's (its ``wcsac_rl``, this file's timing) in two worker processes, one round of
+each in turn, and prints each side's rate and the median of the rounds' ratios (each
+worker waits while the other runs: a change of the machine's load reaches both)::
+
+    python benchmarks/bench_trainer_update.py --against /tmp/older-checkout --rounds 41
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
+import subprocess
 import sys
 import tempfile
 import time
@@ -38,6 +45,7 @@ import torch
 from wcsac_rl import compose_config
 from wcsac_rl.training import make_trainer
 
+ROOT = Path(__file__).resolve().parents[1]
 MODES = {"eager": (), "compiled": ("compile=true",), "round": ("replay_draw=round",)}
 
 
@@ -87,6 +95,51 @@ def timed_round(trainer, updates: int) -> float:
     return time.perf_counter() - start
 
 
+class Worker:
+    """A trainer in another process, on the ``wcsac_rl`` of ``checkout``, timed a round
+    at a time on request (so rounds of two checkouts interleave as modes do)."""
+
+    def __init__(self, checkout: Path, args: argparse.Namespace, mode: str) -> None:
+        command = [sys.executable, str(Path(__file__).resolve()), "--worker"]
+        command += ["--algo", args.algo, "--env", args.env, "--modes", mode]
+        command += ["--warmup", str(args.warmup), "--fill", str(args.fill)]
+        command += ["--override", *args.override]
+        env = {**os.environ, "PYTHONPATH": str(checkout), "OMP_NUM_THREADS": "1"}
+        self.checkout = checkout
+        self.proc = subprocess.Popen(
+            command, cwd=checkout, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        )
+        self._read("READY")
+
+    def _read(self, tag: str) -> str:
+        for line in self.proc.stdout:
+            if line.startswith(tag):
+                return line[len(tag) :].strip()
+        raise RuntimeError(f"the worker on {self.checkout} ended (exit {self.proc.wait()})")
+
+    def round(self, updates: int) -> float:
+        self.proc.stdin.write(f"{updates}\n")
+        self.proc.stdin.flush()
+        return float(self._read("ROUND"))
+
+    def close(self) -> None:
+        self.proc.stdin.close()
+        self.proc.wait()
+
+
+def worker(args: argparse.Namespace) -> None:
+    """``--worker``: build, warm up, then time a round per line of stdin."""
+    with tempfile.TemporaryDirectory() as tmp:
+        trainer = build(args, args.modes[0], Path(tmp))
+        try:
+            timed_round(trainer, args.warmup)
+            print("READY", flush=True)
+            for line in sys.stdin:
+                print(f"ROUND {timed_round(trainer, int(line))}", flush=True)
+        finally:
+            trainer.close()
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -100,8 +153,18 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--fill", type=int, default=2000, help="transitions in the buffer")
     parser.add_argument("--override", nargs="*", default=[], help="more config overrides")
     parser.add_argument("--json", type=Path, help="also write the figures here as JSON")
+    parser.add_argument(
+        "--against",
+        type=Path,
+        help="another checkout: its trainer's update (first of --modes) beside this one's",
+    )
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
+    if args.worker:
+        return worker(args)
+    if args.against is not None:
+        return compare(args)
     with tempfile.TemporaryDirectory() as tmp:
         trainers = {mode: build(args, mode, Path(tmp)) for mode in args.modes}
         try:
@@ -124,6 +187,35 @@ def main(argv: list[str] | None = None) -> None:
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1) + "\n")
     sys.stdout.flush()
+
+
+def compare(args: argparse.Namespace) -> None:
+    """``--against``: this checkout's and another's update in worker processes, their
+    rounds interleaved; each side's median rate and the median of the rounds' ratios."""
+    mode = args.modes[0]
+    sides = {"this": ROOT, "against": args.against.resolve()}
+    workers = {name: Worker(path, args, mode) for name, path in sides.items()}
+    try:
+        seconds = {name: [] for name in workers}
+        for _ in range(args.rounds):
+            for name, runner in workers.items():
+                seconds[name].append(runner.round(args.updates))
+    finally:
+        for runner in workers.values():
+            runner.close()
+    rows = []
+    for name, times in seconds.items():
+        rate = args.updates / statistics.median(times)
+        rows.append({"side": name, "checkout": str(sides[name]), "mode": mode,
+                     "updates_per_s": rate, "rounds": len(times)})  # fmt: skip
+        print(f"{name} ({sides[name]}), {mode}: {rate:.1f} updates/s (median of {len(times)})")
+    ratios = sorted(a / t for t, a in zip(seconds["this"], seconds["against"]))
+    ratio = statistics.median(ratios)
+    print(f"this / against, updates/s: {ratio:.3f} (median of the rounds' ratios; "
+          f"quartiles {ratios[len(ratios) // 4]:.3f}–{ratios[(3 * len(ratios)) // 4]:.3f})")  # fmt: skip
+    rows.append({"ratio_this_over_against": ratio, "round_ratios": ratios})
+    if args.json is not None:
+        args.json.write_text(json.dumps(rows, indent=1) + "\n")
 
 
 if __name__ == "__main__":

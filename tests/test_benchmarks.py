@@ -124,6 +124,25 @@ def test_bench_trainer_update_times_the_trainers_own_update(tmp_path):
     assert_positive(rows[0], "updates_per_s")
 
 
+def test_bench_trainer_update_compares_two_checkouts_round_by_round(tmp_path):
+    """``--against``: two worker processes (here both on this checkout), their rounds
+    interleaved; each side's rate and the rounds' ratios."""
+    out = tmp_path / "against.json"
+    args = [*SMOKE_ARGS["bench_trainer_update.py"], "--against", str(ROOT), "--json", str(out)]
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    proc = subprocess.run(
+        [sys.executable, str(BENCHMARKS / "bench_trainer_update.py"), *args],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    *sides, ratio = json.loads(out.read_text())
+    assert [row["side"] for row in sides] == ["this", "against"]
+    for row in sides:
+        assert row["checkout"] == str(ROOT) and row["rounds"] == 2
+        assert_positive(row, "updates_per_s")
+    assert len(ratio["round_ratios"]) == 2 and ratio["ratio_this_over_against"] > 0
+
+
 def test_bench_update_runs_at_every_option_set(tmp_path):
     result = run_benchmark("bench_update.py", tmp_path)
     assert result["sizes"] == {"batch": 8, "width": 16, "obs": 44, "act": 2}
