@@ -58,8 +58,8 @@ def test_the_learner_built_on_the_meta_device_has_every_piece_there(monkeypatch,
     ``validate_config`` accepts only real devices). TorchRL's target updater cannot be
     built on meta (``SoftUpdate`` compares storages with ``is_set_to``, which has no meta
     kernel): it is left out; the targets it updates are buffers of the loss, checked
-    here. The WCSAC and SAC losses cannot run on meta (their forward reads a value on
-    the host: the CVaR bracket, TorchRL's ``TanhNormal`` bounds check); SAC-Lag's does."""
+    here. The WCSAC loss cannot run on meta (its forward reads a value on the host: the
+    CVaR bracket); SAC-Lag's and SAC's do."""
     cfg = _config(algo)
     cfg.device = "meta"
     monkeypatch.setattr(builders, "make_target_updater", lambda cfg, loss: None)
@@ -99,7 +99,7 @@ def test_the_learner_built_on_the_meta_device_has_every_piece_there(monkeypatch,
             assert {t.device for t in starts.storage._storage.values(True, True)} == {META}
         sample = trainer.sample()
         assert {t.device for t in sample.values(True, True)} == {META}
-        if algo == "sac_lag":
+        if algo in ("sac_lag", "sac"):
             out = trainer.loss(sample)
             assert {t.device for t in out.values(True, True)} == {META}
     finally:

@@ -110,8 +110,8 @@ class OffPolicyTrainer(Trainer):
         # it acts on the learner)
         self.acting_copy: TanhNormalPolicy | None = None
         copy_on_cpu = self.collect_on_cpu_copy
-        if copy_on_cpu is None:
-            copy_on_cpu = run_devices(cfg).learner.type != "cpu"
+        if copy_on_cpu is None:  # (meta, for device tests, holds nothing to copy)
+            copy_on_cpu = run_devices(cfg).learner.type not in ("cpu", "meta")
         if copy_on_cpu and self.collection_policy is None:
             self.acting_copy = TanhNormalPolicy(copy.deepcopy(self.agent.actor).to("cpu"))
             self._acting_weights = TensorDict.from_module(self.acting_copy.actor).data
