@@ -299,7 +299,7 @@ class OffPolicyTrainer(Trainer):
                 if self.replay_draw == "round":
                     indices = draw_indices(self.replay_buffer, self.updates_per_batch)
                 for i in range(self.updates_per_batch):
-                    self.update(self.sample(None if indices is None else indices[i]))
+                    self.update(self.sample() if indices is None else self.sample(indices[i]))
                     if ctrl_c.received is not None:
                         break
         finally:  # (also when interrupted: the counters are the steps taken)
