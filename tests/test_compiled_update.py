@@ -53,8 +53,8 @@ def _assert_same_state(eager, compiled) -> None:
     moves an entry by at most ``lr``, and by ``lr`` times the gradient's relative error
     more where that gradient is at rounding level: 1 % of ``lr`` bounds it, ``tau`` times
     that for a target; a step not taken is off by a good fraction of ``lr``, a target
-    not averaged by ``tau`` times that), the same Adam
-    moments (linear and quadratic in the gradients) and step counts."""
+    not averaged by ``tau`` times that), the same Adam moments (linear and quadratic in
+    the gradients) and step counts."""
     lr, tau = float(eager.cfg.algo.lr), float(eager.cfg.algo.tau)
     theirs = eager.loss.state_dict()
     for key, value in compiled.loss.state_dict().items():
