@@ -22,7 +22,7 @@ reported. One torch thread.
 It uses only what every commit of the trainer has (``make_trainer``, ``sample``,
 ``update``): ``--against CHECKOUT`` runs this checkout's trainer and the other
 checkout's (its ``wcsac_rl``, this file's timing) in two worker processes, one round of
-each in turn, and prints each side's rate and the median of the rounds' ratios (each
+each in turn (each side first in every other round), and prints each side's rate and the median of the rounds' ratios (each
 worker waits while the other runs: a change of the machine's load reaches both)::
 
     python benchmarks/bench_trainer_update.py --against /tmp/older-checkout --rounds 41
@@ -197,9 +197,9 @@ def compare(args: argparse.Namespace) -> None:
     workers = {name: Worker(path, args, mode) for name, path in sides.items()}
     try:
         seconds = {name: [] for name in workers}
-        for _ in range(args.rounds):
-            for name, runner in workers.items():
-                seconds[name].append(runner.round(args.updates))
+        for r in range(args.rounds):  # (each side first in every other round)
+            for name in list(workers)[:: 1 if r % 2 == 0 else -1]:
+                seconds[name].append(workers[name].round(args.updates))
     finally:
         for runner in workers.values():
             runner.close()
