@@ -22,8 +22,10 @@ reported. One torch thread.
 It uses only what every commit of the trainer has (``make_trainer``, ``sample``,
 ``update``): ``--against CHECKOUT`` runs this checkout's trainer and the other
 checkout's (its ``wcsac_rl``, this file's timing) in two worker processes, one round of
-each in turn (each side first in every other round), and prints each side's rate and the median of the rounds' ratios (each
-worker waits while the other runs: a change of the machine's load reaches both)::
+each in turn (each side first in every other round; both pinned to one processor, so
+that neither keeps a less busy core), and prints each side's rate and the median of the
+rounds' ratios (each worker waits while the other runs: a change of the machine's load
+reaches both)::
 
     python benchmarks/bench_trainer_update.py --against /tmp/older-checkout --rounds 41
 """
@@ -103,7 +105,7 @@ class Worker:
         command = [sys.executable, str(Path(__file__).resolve()), "--worker"]
         command += ["--algo", args.algo, "--env", args.env, "--modes", mode]
         command += ["--warmup", str(args.warmup), "--fill", str(args.fill)]
-        command += ["--override", *args.override]
+        command += ["--cpu", str(args.cpu), "--override", *args.override]
         env = {**os.environ, "PYTHONPATH": str(checkout), "OMP_NUM_THREADS": "1"}
         self.checkout = checkout
         self.proc = subprocess.Popen(
@@ -129,6 +131,8 @@ class Worker:
 
 def worker(args: argparse.Namespace) -> None:
     """``--worker``: build, warm up, then time a round per line of stdin."""
+    if args.cpu is not None and hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {args.cpu})
     with tempfile.TemporaryDirectory() as tmp:
         trainer = build(args, args.modes[0], Path(tmp))
         try:
@@ -157,6 +161,12 @@ def main(argv: list[str] | None = None) -> None:
         "--against",
         type=Path,
         help="another checkout: its trainer's update (first of --modes) beside this one's",
+    )
+    parser.add_argument(
+        "--cpu",
+        type=int,
+        help="--against: the processor both workers are pinned to (default: the first this "
+        "process may use), so that neither side keeps a less busy core",
     )
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -193,6 +203,8 @@ def compare(args: argparse.Namespace) -> None:
     """``--against``: this checkout's and another's update in worker processes, their
     rounds interleaved; each side's median rate and the median of the rounds' ratios."""
     mode = args.modes[0]
+    if args.cpu is None and hasattr(os, "sched_getaffinity"):
+        args.cpu = min(os.sched_getaffinity(0))
     sides = {"this": ROOT, "against": args.against.resolve()}
     workers = {name: Worker(path, args, mode) for name, path in sides.items()}
     try:
