@@ -25,9 +25,11 @@ checkout's (its ``wcsac_rl``, this file's timing) in two worker processes, one r
 each in turn (each side first in every other round; both pinned to one processor, so
 that neither keeps a less busy core), and prints each side's rate and the median of the
 rounds' ratios (each worker waits while the other runs: a change of the machine's load
-reaches both)::
+reaches both); ``--pairs K`` repeats that with K fresh pairs of processes, whose speed
+varies by a percent or two with their memory layout (the same checkout against itself
+measured 0.982–0.989 with one pair), and reports the median of the pairs' ratios::
 
-    python benchmarks/bench_trainer_update.py --against /tmp/older-checkout --rounds 41
+    python benchmarks/bench_trainer_update.py --against /tmp/older-checkout --pairs 6 --rounds 21
 """
 
 from __future__ import annotations
@@ -168,6 +170,9 @@ def main(argv: list[str] | None = None) -> None:
         help="--against: the processor both workers are pinned to (default: the first this "
         "process may use), so that neither side keeps a less busy core",
     )
+    parser.add_argument(
+        "--pairs", type=int, default=1, help="--against: pairs of fresh worker processes"
+    )
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -201,31 +206,44 @@ def main(argv: list[str] | None = None) -> None:
 
 def compare(args: argparse.Namespace) -> None:
     """``--against``: this checkout's and another's update in worker processes, their
-    rounds interleaved; each side's median rate and the median of the rounds' ratios."""
+    rounds interleaved, ``--pairs`` times with fresh processes (a process's speed varies
+    by a percent or two with its memory layout); each side's median rate and the median
+    of the pairs' ratios (each the median of its rounds' ratios)."""
     mode = args.modes[0]
     if args.cpu is None and hasattr(os, "sched_getaffinity"):
         args.cpu = min(os.sched_getaffinity(0))
     sides = {"this": ROOT, "against": args.against.resolve()}
-    workers = {name: Worker(path, args, mode) for name, path in sides.items()}
-    try:
-        seconds = {name: [] for name in workers}
-        for r in range(args.rounds):  # (each side first in every other round)
-            for name in list(workers)[:: 1 if r % 2 == 0 else -1]:
-                seconds[name].append(workers[name].round(args.updates))
-    finally:
-        for runner in workers.values():
-            runner.close()
+    seconds = {name: [] for name in sides}
+    pair_ratios, round_ratios = [], []
+    for pair in range(args.pairs):
+        order = list(sides)[:: 1 if pair % 2 == 0 else -1]  # (who starts first, too)
+        workers = {name: Worker(sides[name], args, mode) for name in order}
+        times = {name: [] for name in sides}
+        try:
+            for r in range(args.rounds):  # (each side first in every other round)
+                for name in order[:: 1 if r % 2 == 0 else -1]:
+                    times[name].append(workers[name].round(args.updates))
+        finally:
+            for runner in workers.values():
+                runner.close()
+        ratios = [a / t for t, a in zip(times["this"], times["against"])]
+        pair_ratios.append(statistics.median(ratios))
+        round_ratios.extend(ratios)
+        for name in sides:
+            seconds[name].extend(times[name])
+        print(f"pair {pair + 1}: this / against {pair_ratios[-1]:.3f}", flush=True)
     rows = []
     for name, times in seconds.items():
         rate = args.updates / statistics.median(times)
         rows.append({"side": name, "checkout": str(sides[name]), "mode": mode,
                      "updates_per_s": rate, "rounds": len(times)})  # fmt: skip
         print(f"{name} ({sides[name]}), {mode}: {rate:.1f} updates/s (median of {len(times)})")
-    ratios = sorted(a / t for t, a in zip(seconds["this"], seconds["against"]))
-    ratio = statistics.median(ratios)
-    print(f"this / against, updates/s: {ratio:.3f} (median of the rounds' ratios; "
-          f"quartiles {ratios[len(ratios) // 4]:.3f}–{ratios[(3 * len(ratios)) // 4]:.3f})")  # fmt: skip
-    rows.append({"ratio_this_over_against": ratio, "round_ratios": ratios})
+    ratio = statistics.median(pair_ratios)
+    print(f"this / against, updates/s: {ratio:.3f} (median of {len(pair_ratios)} pairs' "
+          f"ratios; range {min(pair_ratios):.3f}–{max(pair_ratios):.3f})")  # fmt: skip
+    rows.append(
+        {"ratio_this_over_against": ratio, "pair_ratios": pair_ratios, "round_ratios": round_ratios}
+    )
     if args.json is not None:
         args.json.write_text(json.dumps(rows, indent=1) + "\n")
 
