@@ -140,7 +140,8 @@ def test_bench_trainer_update_compares_two_checkouts_round_by_round(tmp_path):
     for row in sides:
         assert row["checkout"] == str(ROOT) and row["rounds"] == 2
         assert_positive(row, "updates_per_s")
-    assert len(ratio["round_ratios"]) == 2 and ratio["ratio_this_over_against"] > 0
+    assert len(ratio["round_ratios"]) == 2 and len(ratio["pair_ratios"]) == 1
+    assert ratio["ratio_this_over_against"] == ratio["pair_ratios"][0] > 0
 
 
 def test_bench_update_runs_at_every_option_set(tmp_path):
