@@ -41,9 +41,11 @@ bench: $(STAMP)
 	for script in benchmarks/bench_*.py; do $(PY) $$script || exit 1; done
 
 # the prepared device check (benchmarks/gpu_check.py): on a CUDA machine the device tests
-# and a short training eager and compiled beside the CPU; without CUDA one line, exit 0
+# and a short training on the GPU eager and captured beside the CPU eager (three trainings,
+# sized for one call of a lent machine; the script alone runs every mode); without CUDA
+# one line, exit 0
 gpu-check: $(STAMP)
-	$(PY) benchmarks/gpu_check.py
+	$(PY) benchmarks/gpu_check.py --modes eager captured
 
 clean:
 	rm -rf $(VENV) outputs multirun .pytest_cache
