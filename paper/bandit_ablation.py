@@ -37,8 +37,7 @@ KIT_READS = {
 """The kit's reads of the safety critic and κ that the table in docs/defaults.md was
 measured with (the Gaussian head's GLM loss on its TD target; the loss's own defaults,
 the paper's, train the variance with the 2-Wasserstein TD, its W2 rows). An IQN critic
-takes all but the variance head's two."""
-_ALL = ("cost_gamma", "nonnegative_cost", "kappa_statistic")  # (read by every critic)
+has no variance head: ``loss_parts`` leaves those two out for it."""
 
 
 @dataclass
@@ -107,7 +106,7 @@ def train_on_risky_bandit(
         # are the start-state / n-step defaults here, without their extra entries
         **loss_parts(
             {
-                **{k: v for k, v in KIT_READS.items() if safety_critic == "gaussian" or k in _ALL},
+                **KIT_READS,  # (loss_parts leaves the variance head's out for an IQN critic)
                 "safety_critic": safety_critic,
                 "damp_scale": damp_scale,
                 "kappa_states": "replay",

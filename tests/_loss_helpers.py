@@ -93,8 +93,6 @@ def recipe_kwargs(
     (``risk_level``, ``cost_limit``, a part given as an object) pass as they are."""
     if base is None:
         base = paper_options(kind) if paper else {}
-    if kind != "gaussian":
-        base = {k: v for k, v in base.items() if k not in GAUSSIAN_HEAD}
     recipe = {**base, "safety_critic": kind}
     iqn = {}
     loss_kwargs = {}

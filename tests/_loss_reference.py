@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
-from _loss_helpers import GAUSSIAN_HEAD, STUDY_OPTIONS
+from _loss_helpers import STUDY_OPTIONS
 from tensordict import TensorDict
 from torchrl.data import Bounded
 
@@ -29,14 +29,8 @@ RECORDED_DEFAULTS = {**STUDY_OPTIONS, "kappa_signal": "critic", "kappa_rule": "g
 PRESETS = {
     "wcsac": ("gaussian", True, {"risk_level": 0.1, **RECORDED_DEFAULTS}),
     "wcsac_paper": ("gaussian", True, {"risk_level": 0.1, **PAPER_OPTIONS}),
-    "wcsac_iqn": (
-        "iqn",
-        True,
-        {
-            "risk_level": 0.1,
-            **{k: v for k, v in RECORDED_DEFAULTS.items() if k not in GAUSSIAN_HEAD},
-        },
-    ),
+    # (an IQN critic has no variance head: loss_parts leaves those options out for it)
+    "wcsac_iqn": ("iqn", True, {"risk_level": 0.1, **RECORDED_DEFAULTS}),
     "sac_lag": ("gaussian", False, {"risk_level": 1.0, **RECORDED_DEFAULTS}),
     "sac_lag_paper": ("gaussian", False, {"risk_level": 1.0, **PAPER_OPTIONS}),
 }
