@@ -94,3 +94,16 @@ def tree_digests(root: Path, *, skip: tuple[str, ...] = (".lock",)) -> dict[str,
         for p in sorted(root.rglob("*"))
         if p.is_file() and p.name not in skip
     }
+
+
+def fill_replay_alike(*trainers, steps: int = 120) -> None:
+    """One rollout of the first trainer's env, through its postproc, stored in every
+    trainer's replay buffer (and its start states, where it keeps them): trainers built
+    alike then sample the same batches."""
+    batch = trainers[0].env.rollout(steps, break_when_any_done=False).reshape(-1)
+    if trainers[0].postproc is not None:
+        batch = trainers[0].postproc(batch.unsqueeze(0)).reshape(-1)
+    for trainer in trainers:
+        trainer.replay_buffer.extend(batch.select(*trainer.stored_keys).clone())
+        if trainer.initial_state_buffer is not None:
+            trainer.initial_state_buffer.add_starts(batch.unsqueeze(0))

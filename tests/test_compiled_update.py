@@ -14,7 +14,7 @@ import time
 import pytest
 import torch
 from _tolerance import assert_close_f32
-from _training_helpers import compose_config
+from _training_helpers import compose_config, fill_replay_alike
 
 from wcsac_rl.training import make_trainer
 from wcsac_rl.training.config import ConfigError
@@ -84,13 +84,7 @@ def test_the_compiled_update_gives_the_eager_updates_losses_and_gradients(tmp_pa
         compose_config("env=tiny", "algo=wcsac", "compile=true"), tmp_path / "compiled"
     )
     try:
-        batch = eager.env.rollout(120, break_when_any_done=False).reshape(-1)
-        if eager.postproc is not None:
-            batch = eager.postproc(batch.unsqueeze(0)).reshape(-1)
-        for trainer in (eager, compiled):
-            trainer.replay_buffer.extend(batch.select(*trainer.stored_keys).clone())
-            if trainer.initial_state_buffer is not None:
-                trainer.initial_state_buffer.add_starts(batch.unsqueeze(0))
+        fill_replay_alike(eager, compiled)
         eager_grads, compiled_grads = _grad_recorder(eager), _grad_recorder(compiled)
         first_call = None
         for update in range(UPDATES):

@@ -13,7 +13,7 @@ import traceback
 
 import pytest
 import torch
-from _training_helpers import compose_config
+from _training_helpers import compose_config, fill_replay_alike
 from torch.overrides import TorchFunctionMode
 from torchrl.modules import TanhNormal
 
@@ -129,13 +129,7 @@ def test_the_masked_step_equals_an_unmasked_one_bit_for_bit(tmp_path, algo):
     plain = make_trainer(config, tmp_path / "b")
     try:
         assert all(torch.equal(v, _state(plain)[k]) for k, v in _state(masked).items())
-        batch = masked.env.rollout(120, break_when_any_done=False).reshape(-1)
-        if masked.postproc is not None:
-            batch = masked.postproc(batch.unsqueeze(0)).reshape(-1)
-        for trainer in (masked, plain):
-            trainer.replay_buffer.extend(batch.select(*trainer.stored_keys).clone())
-            if trainer.initial_state_buffer is not None:
-                trainer.initial_state_buffer.add_starts(batch.unsqueeze(0))
+        fill_replay_alike(masked, plain)
         for _ in range(3):
             sample, rng = masked.sample(), torch.get_rng_state()
             assert masked.update(sample.clone()) is not None
