@@ -268,7 +268,7 @@ def kit_loss(
 ) -> tuple[WCSACLoss, TensorDictBase]:
     """``WCSACLoss`` at option set ``name`` (``changes``: options replaced in it) with the
     kit's networks as the trainer builds them, and its pipeline batch (``kwargs``: the
-    loss's other keywords, e.g. ``fuse_critics=False``)."""
+    loss's other keywords, e.g. ``fast_paths=False``)."""
     options = option_set(name).replace(**(changes or {}))
     critic = safety_critic_kwargs(options.options)
     loss = WCSACLoss(*kit_networks(sizes, **critic), **options.loss_kwargs(), **kwargs)
@@ -411,7 +411,7 @@ def build_variants(
                 "sac",
                 batch,
             )
-        general, batch = kit_loss(options, sizes, fuse_critics=False, direct_sampling=False)
+        general, batch = kit_loss(options, sizes, fast_paths=False)
         add(
             f"{name}_general",
             f"WCSACLoss [{options}], general paths",

@@ -42,7 +42,7 @@ def _loss(variance: bool, fuse: bool, **options) -> WCSACLoss:
             risk_level=0.1 if variance else 1.0,
             cost_limit=1.5,
             max_episode_steps=12,
-            fuse_critics=fuse,
+            fast_paths=fuse,
             **options,
         ),
     )

@@ -36,14 +36,16 @@ ENSEMBLE_ONLY = (
 
 
 def _losses(members=3, kind="gaussian", **kwargs):
-    """An ensemble loss over ``members`` critics and one single-critic loss per member,
+    """An ensemble loss over ``members`` critics (its members read in one batched product)
+    and one single-critic loss per member (TorchRL's general path: no fused critics),
     sharing the actor and the reward critics."""
     torch.manual_seed(0)
     actor = make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=32)
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=32) for _ in range(2)]
     critics = [make_safety_critic(OBS_DIM, ACT_DIM, kind=kind, width=32) for _ in range(members)]
-    options = {**PLAIN, "fuse_critics": False, **kwargs}
+    options = {**PLAIN, **kwargs}
     singles = {k: v for k, v in options.items() if k not in ENSEMBLE_ONLY}
+    singles.setdefault("fast_paths", False)
     ensemble = WCSACLoss(
         actor, qvalues, critics, **flat_parts(kind, num_safety_nets=members, **options)
     )

@@ -1,9 +1,10 @@
 """The fast paths compute exactly what the general TorchRL paths compute.
 
-Direct tanh-Normal sampling (``direct_sampling``), the inline TD(0) reward target,
+Direct tanh-Normal sampling (``DirectSampling``), the inline TD(0) reward target,
 ``PolyakUpdate``, ``TanhNormalPolicy`` and the twin critic read from its stacked weights
-(``evaluate_stacked_mlp``) are there for speed only; each is checked here against the
-path it replaces: same values, same gradients, same fall-backs.
+(``evaluate_stacked_mlp``) are there for speed only (``fast_paths``:
+``wcsac_rl.objectives.fast_paths``); each is checked here against the path it replaces:
+same values, same gradients, same fall-backs.
 """
 
 from __future__ import annotations
@@ -30,14 +31,13 @@ from torchrl.objectives import SoftUpdate
 
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.modules.mlp import evaluate_stacked_mlp
-from wcsac_rl.modules.tanh_normal import (
-    TanhNormalPolicy,
-    sample_tanh_normal,
-    tanh_normal_actor_plan,
-)
+from wcsac_rl.modules.actor import TanhNormalPolicy, tanh_normal_actor_plan
 from wcsac_rl.objectives import PAPER_OPTIONS, PolyakUpdate
-from wcsac_rl.objectives.critics import stacked_mlp_layout
+from wcsac_rl.objectives.fast_paths import (
+    DirectSampling,
+    evaluate_stacked_mlp,
+    stacked_mlp_layout,
+)
 
 
 def _torchrl_draw(actor, observation):
@@ -52,8 +52,9 @@ def _torchrl_draw(actor, observation):
 def test_direct_draw_equals_torchrl_tanh_normal(low, high, loc_scale):
     torch.manual_seed(0)
     actor = make_actor(OBS_DIM, Bounded(low, high, shape=(ACT_DIM,)), width=16)
-    plan = tanh_normal_actor_plan(actor)
-    assert plan is not None
+    sampling = DirectSampling.of(actor)
+    assert sampling is not None
+    plan = sampling.plan
     assert (plan.low is None) == isinstance(low, float)  # no affine map for [-1, 1]
     params = TensorDict.from_module(actor)
     observation = loc_scale * torch.randn(64, OBS_DIM)
@@ -62,7 +63,7 @@ def test_direct_draw_equals_torchrl_tanh_normal(low, high, loc_scale):
         actor.zero_grad(set_to_none=True)
         torch.manual_seed(3)
         if draw == "direct":
-            action, log_prob = sample_tanh_normal(plan, params, observation)
+            action, log_prob = sampling.sample(params, observation)
         else:
             action, log_prob = _torchrl_draw(actor, observation)
         (action.sum() + log_prob.sum()).backward()
@@ -86,9 +87,10 @@ def test_direct_draw_equals_torchrl_tanh_normal(low, high, loc_scale):
 
 @pytest.mark.parametrize("variance", [True, False])
 def test_direct_sampling_gives_the_same_losses_and_gradients(variance):
-    direct = make_loss(variance=variance, direct_sampling=True, damp_scale=1.0)
-    general = make_loss(variance=variance, direct_sampling=False, damp_scale=1.0)
-    assert direct._actor_plan is not None and general._actor_plan is None
+    direct = make_loss(variance=variance, damp_scale=1.0)
+    general = make_loss(variance=variance, damp_scale=1.0)
+    general._paths.sampling = None  # the actor's distribution, every other path the same
+    assert direct.fast_paths["direct_sampling"] == "taken"
     general.load_state_dict(direct.state_dict())
     assert_same_losses_and_gradients(direct, general, make_batch())
 
@@ -111,11 +113,11 @@ def test_actors_not_built_like_make_actor_fall_back_or_are_refused():
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)]
     safety = make_safety_critic(OBS_DIM, ACT_DIM, width=8)
     loss = WCSACLoss(actor, qvalues, safety, **flat_parts(**PAPER_OPTIONS))
-    assert loss._actor_plan is None
+    assert loss.fast_paths["direct_sampling"].startswith("not taken: it is not built like")
     out = loss(make_batch())  # the general path still works
     assert torch.isfinite(out["loss_actor"])
-    with pytest.raises(ValueError, match="direct_sampling=True needs"):
-        WCSACLoss(actor, qvalues, safety, direct_sampling=True)
+    with pytest.raises(ValueError, match="fast_paths=True needs the actor sampled"):
+        WCSACLoss(actor, qvalues, safety, fast_paths=True)
     # a TanhNormal with options beyond the bounds is not taken over either
     tanh_loc = make_actor(OBS_DIM, spec, width=8)
     tanh_loc.module[-1].distribution_kwargs["tanh_loc"] = True
@@ -266,6 +268,13 @@ def _through_module_calls(loss):
     return loss
 
 
+def _unfused(loss):
+    """The Gaussian critic read apart from the twin, the twin from its stacked weights."""
+    loss._paths.fused = None
+    loss._paths.stacked = stacked_mlp_layout(loss.qvalue_network, "action")
+    return loss
+
+
 def _torchrl_networks_loss(**kwargs):
     """A TorchRL user's own networks: ``torchrl.modules.MLP`` critics, a two-MLP safety critic."""
     torch.manual_seed(0)
@@ -296,7 +305,7 @@ class _MeanVariance(nn.Module):
     "build",
     [
         lambda: make_loss(kind="iqn", width=16),  # the kit's default critic
-        lambda: make_loss(width=16, fuse_critics=False),  # the Gaussian critic, unfused
+        lambda: _unfused(make_loss(width=16)),  # the Gaussian critic, unfused
         lambda: make_loss(kind="iqn", width=16, cost_n_steps=3, kappa_states="initial"),
         lambda: _torchrl_networks_loss(**PAPER_OPTIONS),
     ],
@@ -369,3 +378,20 @@ def test_twin_critics_not_read_as_torchrl_mlps_keep_the_vmapped_call():
         assert loss.critics.stacked is None, type(module).__name__
         out = loss(make_batch())  # the vmapped call still serves it
         assert torch.isfinite(out["loss_qvalue"])
+
+
+def test_one_keyword_switches_every_path_and_the_loss_reports_them():
+    fast, general = make_loss(kind="iqn", width=8), make_loss(kind="iqn", width=8, fast_paths=False)
+    assert fast.fast_paths == {
+        "direct_sampling": "taken",
+        "fused_critics": "not taken: an IQN safety critic is not fused with the reward "
+        "critics (it also reads quantile fractions)",
+        "stacked_qvalue": "taken",
+        "safety_read": "taken",
+        "td0_target": "taken",
+    }
+    assert set(general.fast_paths.values()) == {"not taken: fast_paths=False"}
+    assert general.critics.stacked is None and general.safety_head._reader is None
+    assert make_loss(width=8).fast_paths["fused_critics"] == "taken"
+    with pytest.raises(ValueError, match="fast_paths must be None, True or False"):
+        make_loss(fast_paths="yes")

@@ -36,8 +36,8 @@ from torchrl.objectives import SoftUpdate
 import wcsac_rl.objectives.safety_head as safety_head_module
 from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import IQNSafetyCritic, make_actor, make_qvalue, make_safety_critic
-from wcsac_rl.modules.quantile_critic import IQNReader
 from wcsac_rl.objectives import PolyakUpdate, SafetyHeadOptions, quantile_mixture_cvar
+from wcsac_rl.objectives.fast_paths import IQNReader
 from wcsac_rl.objectives.quantile import (
     midpoint_fractions,
     quantile_huber_loss,
@@ -275,7 +275,7 @@ def test_each_loss_term_reaches_exactly_its_own_parameters(
         kappa_states=kappa_states,
         kappa_statistic=kappa_statistic,
         damp_scale=damp_scale,
-        direct_sampling=direct,
+        fast_paths=None if direct else False,
         cost_n_steps=1,
     )
     loss.zero_grad(set_to_none=True)
@@ -369,9 +369,9 @@ def test_state_dict_round_trip_restores_every_output():
         torch.testing.assert_close(out_a[key], out_b[key], rtol=0, atol=0)
 
 
-def test_direct_sampling_gives_the_same_losses_and_gradients():
-    direct = make_loss(direct_sampling=True, damp_scale=1.0)
-    general = make_loss(direct_sampling=False, damp_scale=1.0)
+def test_fast_paths_give_the_same_losses_and_gradients():
+    direct = make_loss(damp_scale=1.0)  # direct sampling, the stacked twin, the IQN read
+    general = make_loss(fast_paths=False, damp_scale=1.0)
     general.load_state_dict(direct.state_dict())
     assert_same_losses_and_gradients(direct, general, make_batch())
 
@@ -396,10 +396,10 @@ def test_sac_lag_with_an_iqn_critic_holds_the_mean_quantile_under_the_threshold(
 
 
 def test_fusing_falls_back_for_an_iqn_critic_or_is_refused():
-    assert make_loss()._fused is None  # fuse_critics=None: module calls
-    assert make_loss(fuse_critics=False)._fused is None
+    assert make_loss().critics.fused is None  # fast_paths=None: module calls
+    assert make_loss(fast_paths=False).critics.fused is None
     with pytest.raises(ValueError, match="IQN safety critic is not fused"):
-        make_loss(fuse_critics=True)
+        make_loss(fast_paths=True)
 
 
 @pytest.mark.parametrize(

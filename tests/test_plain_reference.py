@@ -123,9 +123,7 @@ def _plain_and_loss(risk_level: float, fast: bool, inputs) -> tuple[PlainWCSAC, 
         # everywhere: shift the second by the median difference, so each is on half
         for first, second, x in _twins_at_min(plain, inputs):
             second[4].bias += torch.quantile(first(x) - second(x), 0.5)
-    loss = make_loss(
-        risk_level=risk_level, variance_loss="mse", fuse_critics=fast, direct_sampling=fast
-    )
+    loss = make_loss(risk_level=risk_level, variance_loss="mse", fast_paths=fast)
     with torch.no_grad():
         for target in (False, True):
             for name, src, dst, index in _pairs(plain, loss, target=target):

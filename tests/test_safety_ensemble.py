@@ -39,7 +39,7 @@ def _ensemble_and_singles(ensemble_target="own", **kwargs):
     actor = make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=32)
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=32) for _ in range(2)]
     members = [make_safety_critic(OBS_DIM, ACT_DIM, width=32) for _ in range(2)]
-    options = {**PLAIN, "fuse_critics": False, **kwargs}
+    options = {**PLAIN, "fast_paths": False, **kwargs}
     ensemble = WCSACLoss(
         actor,
         qvalues,
@@ -166,7 +166,7 @@ def test_a_list_of_safety_critics_must_match_num_safety_nets():
         WCSACLoss(actor, qvalues, members, **flat_parts(**PLAIN))
     with pytest.raises(ValueError, match="num_safety_nets"):
         WCSACLoss(
-            actor, qvalues, members, **flat_parts(num_safety_nets=2, fuse_critics=True, **PLAIN)
+            actor, qvalues, members, **flat_parts(num_safety_nets=2, fast_paths=True, **PLAIN)
         )
     # one module and num_safety_nets=3: TorchRL's expand_dim re-draws each member
     loss = WCSACLoss(actor, qvalues, members[0], **flat_parts(num_safety_nets=3, **PLAIN))

@@ -66,8 +66,7 @@ def test_each_loss_term_reaches_exactly_its_own_parameters(
         kappa_statistic=kappa_statistic,
         variance_target="td" if kappa_states == "initial" else "moment",
         damp_scale=damp_scale,
-        fuse_critics=fast,
-        direct_sampling=fast,
+        fast_paths=fast,
     )
     grads = _grads_after(loss, key, make_batch(initial=kappa_states == "initial"))
     owner = OWNERS[key]
@@ -83,7 +82,7 @@ def test_each_loss_term_reaches_exactly_its_own_parameters(
 @pytest.mark.parametrize("fast", [False, True])
 @pytest.mark.parametrize("variance_loss", ["w2", "glm"])
 def test_every_variance_loss_reaches_only_the_variance_network(variance_loss, fast):
-    loss = make_loss(variance_loss=variance_loss, fuse_critics=fast, direct_sampling=fast)
+    loss = make_loss(variance_loss=variance_loss, fast_paths=fast)
     grads = _grads_after(loss, "loss_cost_variance", make_batch())
     owner = OWNERS["loss_cost_variance"]
     assert any(name.startswith(owner) for name in grads)
@@ -614,11 +613,11 @@ def test_forward_compiles_with_fullgraph_and_matches_eager(options):
 
 @pytest.mark.parametrize("variance", [True, False])
 def test_fused_critic_ensemble_gives_the_same_losses_and_gradients(variance):
-    fused = make_loss(variance=variance, fuse_critics=True, kappa_actions="replay", damp_scale=1.0)
+    fused = make_loss(variance=variance, fast_paths=True, kappa_actions="replay", damp_scale=1.0)
     separate = make_loss(
-        variance=variance, fuse_critics=False, kappa_actions="replay", damp_scale=1.0
+        variance=variance, fast_paths=False, kappa_actions="replay", damp_scale=1.0
     )
-    assert fused._fused is not None and separate._fused is None
+    assert fused.critics.fused is not None and separate.critics.fused is None
     separate.load_state_dict(fused.state_dict())
     assert_same_losses_and_gradients(fused, separate, make_batch())
 
@@ -629,9 +628,9 @@ def test_critics_that_cannot_be_fused_fall_back_or_are_refused():
     actor = make_actor(OBS_DIM, Bounded(-1.0, 1.0, shape=(ACT_DIM,)), width=8)
     qvalues = [make_qvalue(OBS_DIM, ACT_DIM, width=8) for _ in range(2)]
     safety = make_safety_critic(OBS_DIM, ACT_DIM, width=16)
-    assert WCSACLoss(actor, qvalues, safety)._fused is None
-    with pytest.raises(ValueError, match="fuse_critics=True needs"):
-        WCSACLoss(actor, qvalues, safety, fuse_critics=True)
+    assert WCSACLoss(actor, qvalues, safety).critics.fused is None
+    with pytest.raises(ValueError, match="fast_paths=True needs the critics fused"):
+        WCSACLoss(actor, qvalues, safety, fast_paths=True)
     # a critic that is not a plain MLP
     readout = _readout_loss("mse")
-    assert readout._fused is None
+    assert readout.critics.fused is None

@@ -84,7 +84,7 @@ def load_safety_run(
         ConfigError: no or unreadable checkpoint, a run without a safety critic (SAC,
             CPO, random), or a checkpoint whose networks do not fit its config.
     """
-    from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
+    from wcsac_rl.modules.actor import TanhNormalPolicy
     from wcsac_rl.training import builders
     from wcsac_rl.training.checkpoint import (
         StateMismatch,

@@ -1,11 +1,11 @@
 """Network builders: the tanh-Normal actor, the reward critic, the safety critics
 (Gaussian, and implicit-quantile), and CPO's Gaussian actor and state-value networks;
 and acting with them: ``TanhNormalPolicy`` (the actor's fast path for collection and
-test episodes, :mod:`~wcsac_rl.modules.tanh_normal`) and the MLP evaluation it uses
-(:mod:`~wcsac_rl.modules.mlp`), and ``CriticShield``, which filters its collection actions
-through a safety critic (:mod:`~wcsac_rl.modules.critic_shield`)."""
+test episodes, :mod:`~wcsac_rl.modules.actor`), and ``CriticShield``, which filters its
+collection actions through a safety critic (:mod:`~wcsac_rl.modules.critic_shield`). The
+loss reads these networks from their parameters in :mod:`wcsac_rl.objectives.fast_paths`."""
 
-from wcsac_rl.modules.actor import ClampedLogStdNormalParams, make_actor
+from wcsac_rl.modules.actor import ClampedLogStdNormalParams, TanhNormalPolicy, make_actor
 from wcsac_rl.modules.critic_shield import CriticShield
 from wcsac_rl.modules.gaussian_actor import make_gaussian_actor, make_state_value
 from wcsac_rl.modules.quantile_critic import IQNSafetyCritic
@@ -18,7 +18,6 @@ from wcsac_rl.modules.safety_critic import (
     make_safety_critic,
     softplus_variance,
 )
-from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
 
 __all__ = [
     "SAFETY_CRITIC_KINDS",

@@ -29,7 +29,7 @@ from tensordict.utils import NestedKey
 from torch import Tensor
 from torchrl.envs.utils import exploration_type
 
-from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
+from wcsac_rl.modules.actor import TanhNormalPolicy
 
 __all__ = ["CriticShield"]
 

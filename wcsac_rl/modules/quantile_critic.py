@@ -10,16 +10,13 @@ reads a state-action and quantile fractions ``τ ∈ [0, 1]`` and returns the
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import torch
-from tensordict import TensorDictBase
 from torch import nn
 
 from wcsac_rl.modules._mlp import make_mlp
-from wcsac_rl.modules.mlp import MLPLayout, evaluate_mlp, torchrl_mlp_layout
 
-__all__ = ["IQNReader", "IQNSafetyCritic"]
+__all__ = ["IQNSafetyCritic"]
 
 
 def _shared_over_batch(fractions: torch.Tensor) -> bool:
@@ -113,54 +110,3 @@ def _quantiles(features, head_weight, head_bias, fractions, embed) -> torch.Tens
         embedded = embed(fractions)  # [*B, N, W]
         quantiles = (embedded @ weighted.unsqueeze(-1)).squeeze(-1)
     return quantiles + head_bias
-
-
-@dataclass(frozen=True)
-class IQNReader:
-    """An :class:`IQNSafetyCritic` read from a parameter tensordict (how
-    :class:`~wcsac_rl.WCSACLoss` reads it): the module's own operations in its order, so
-    the same quantiles and gradients bit for bit, without the module call (swapping the
-    parameters in and out of the module, the tensordict in and out).
-
-    Build with :meth:`of` (``None`` when the module is not an unmodified
-    ``IQNSafetyCritic``); call :meth:`quantiles`.
-    """
-
-    features: MLPLayout
-    prefix: tuple[str, ...]
-    num_cosines: int
-
-    @classmethod
-    def of(cls, module: nn.Module, prefix: tuple[str, ...] = ()) -> IQNReader | None:
-        """The reader of ``module`` whose parameters sit under ``prefix`` (``("module",)``
-        in a ``TensorDictModule``'s), or ``None``: not exactly an ``IQNSafetyCritic``
-        (a subclass may compute otherwise), or features other than a TorchRL ``MLP`` of
-        plain ``Linear`` / activation layers."""
-        if type(module) is not IQNSafetyCritic:
-            return None
-        layout = torchrl_mlp_layout(module.features, (*prefix, "features"), activate_last=True)
-        if layout is None:
-            return None
-        return cls(layout, tuple(prefix), module.num_cosines)
-
-    def quantiles(
-        self,
-        params: TensorDictBase,
-        observation: torch.Tensor,
-        action: torch.Tensor,
-        fractions: torch.Tensor,
-    ) -> torch.Tensor:
-        """``Z(s, a, τ)`` ``[*B, N]``: what the module returns for ``observation``,
-        ``action`` and ``fractions`` ``[*B, N]`` with the parameters ``params``."""
-        key = self.prefix
-        features = evaluate_mlp(torch.cat([observation, action], dim=-1), params, self.features)
-        weight = params.get((*key, "embedding", "weight"))
-        bias = params.get((*key, "embedding", "bias"))
-
-        def embed(tau: torch.Tensor) -> torch.Tensor:
-            return torch.relu(nn.functional.linear(_cosines(tau, self.num_cosines), weight, bias))
-
-        head_weight = params.get((*key, "head", "weight"))
-        return _quantiles(
-            features, head_weight, params.get((*key, "head", "bias")), fractions, embed
-        )

@@ -10,6 +10,7 @@ from wcsac_rl.objectives.budget import per_step_cost_threshold
 from wcsac_rl.objectives.constraint import GradientLagrangian, PIDGains, PIDLagrangian
 from wcsac_rl.objectives.cpo import CPOLoss
 from wcsac_rl.objectives.episode_costs import EpisodeCostWindow
+from wcsac_rl.objectives.fast_paths import PolyakUpdate
 from wcsac_rl.objectives.loss_options import SafetyHeadOptions, SignalOptions, loss_parts
 from wcsac_rl.objectives.nstep import NStepCost
 from wcsac_rl.objectives.param_groups import SingleGroupWarning, param_groups
@@ -23,7 +24,6 @@ from wcsac_rl.objectives.risk import (
 )
 from wcsac_rl.objectives.sac_lag import SACLagLoss
 from wcsac_rl.objectives.start_states import StartStateBuffer
-from wcsac_rl.objectives.target_update import PolyakUpdate
 from wcsac_rl.objectives.wcsac import WCSACLoss
 from wcsac_rl.options import PAPER_OPTIONS, SafetyOptions
 from wcsac_rl.recipes import KIT_OPTIONS, kit_options, recipe_options

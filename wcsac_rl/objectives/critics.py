@@ -2,16 +2,11 @@
 
 WCSAC reads every critic at the same state-actions three times per update (the target
 networks at ``(s', a')``, the online ones at the replay ``(s, a)``, the detached
-online ones at ``(s, a ~ π)``). :class:`Critics` does each reading in one call: one
-batched ensemble evaluation when the networks allow it
-(:class:`~wcsac_rl.objectives.critic_ensemble.FusedCritics`, which the safety head
-plans), else the reward critics through TorchRL's vmapped call and the safety critic
-through its head (:mod:`wcsac_rl.objectives.safety_head`). When the reward critic is a
-plain TorchRL ``MLP`` (what :mod:`wcsac_rl.modules` builds, and ``torchrl.modules.MLP``
-in a ``ValueOperator``), that vmapped call is replaced by its own kernels read from the
-stacked parameters (:func:`~wcsac_rl.modules.mlp.evaluate_stacked_mlp`: bit for bit the
-vmapped call's values and gradients, without vmap's overhead). Same values and gradients
-either way.
+online ones at ``(s, a ~ π)``). :class:`Critics` does each reading in one call, on the
+paths the loss's :class:`~wcsac_rl.objectives.fast_paths.FastPaths` took: one batched
+ensemble evaluation (``FusedCritics``, which the safety head plans), else the reward
+critics from their stacked parameters or through TorchRL's vmapped call and the safety
+critic through its head (:mod:`wcsac_rl.objectives.safety_head`).
 """
 
 from __future__ import annotations
@@ -22,11 +17,9 @@ from typing import NamedTuple
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
-from tensordict.utils import NestedKey
 from torch import Tensor
 
-from wcsac_rl.modules.mlp import MLPLayout, evaluate_stacked_mlp, torchrl_mlp_layout
-from wcsac_rl.objectives.critic_ensemble import Layers
+from wcsac_rl.objectives.fast_paths import FastPaths, Layers, evaluate_stacked_mlp
 from wcsac_rl.objectives.safety_head import SafetyHead, SafetyValues
 
 __all__ = ["CriticParams", "CriticValues", "Critics"]
@@ -63,41 +56,20 @@ class Critics:
             with stacked parameters through ``vmap_qvalue``).
         head (SafetyHead): the safety critic's head.
         keys: the loss's ``tensor_keys`` (``action``, ``state_action_value``).
-        num_qvalue_nets (int): how many reward critics are stacked.
-        fuse (bool, optional): ``None``: fuse when possible; ``True``: fuse or raise a
-            ``ValueError`` saying why not; ``False``: never.
-        direct (bool, optional): read an unfused plain-``MLP`` reward critic from its
-            stacked parameters instead of through ``vmap_qvalue`` (the same values and
-            gradients bit for bit). ``False`` where the loss does not vmap (TorchRL's
-            ``deactivate_vmap=True`` loops over the critics, which rounds differently).
+        paths (FastPaths): the loss's fast paths (its ``fused`` and ``stacked`` readings).
     """
 
     def __init__(
-        self,
-        qvalue_network: TensorDictModule,
-        head: SafetyHead,
-        keys,
-        *,
-        num_qvalue_nets: int,
-        fuse: bool | None = None,
-        direct: bool = True,
+        self, qvalue_network: TensorDictModule, head: SafetyHead, keys, paths: FastPaths
     ) -> None:
-        self.qvalue_network, self.head, self.keys = qvalue_network, head, keys
-        self.fused = None if fuse is False else head.fusion_plan(qvalue_network, num_qvalue_nets)
-        if fuse and self.fused is None:
-            raise ValueError(head.unfused_reason())
-        self.stacked = (
-            stacked_mlp_layout(qvalue_network, keys.action)
-            if direct and self.fused is None
-            else None
-        )
+        self.qvalue_network, self.head, self.keys, self.paths = qvalue_network, head, keys, paths
+
+    fused = property(lambda self: self.paths.fused)
+    stacked = property(lambda self: self.paths.stacked)
 
     def read_through_modules(self) -> None:
-        """Read every unfused critic through its module call (the twin through
-        TorchRL's vmapped call), as before they were read from their parameters: the
-        same values, slower; the reference those reads are compared with."""
-        self.stacked = None
-        self.head.read_through_module()
+        """:meth:`FastPaths.read_through_modules`."""
+        self.paths.read_through_modules()
 
     def layers(self, params: CriticParams) -> Layers | None:
         """The fused critics' stacked parameters (``None`` when not fused): gather them
@@ -176,18 +148,3 @@ class Critics:
         td_q = tensordict.select(*self.qvalue_network.in_keys, strict=False)
         td_q.set(self.keys.action, action)
         return vmap_qvalue(td_q, params.qvalue).get(self.keys.state_action_value).squeeze(-1)
-
-
-def stacked_mlp_layout(qvalue_network: TensorDictModule, action_key: NestedKey) -> MLPLayout | None:
-    """The layout of a reward critic that :func:`~wcsac_rl.modules.mlp.evaluate_stacked_mlp`
-    reads exactly as its vmapped call computes: a TorchRL ``MLP`` (its own ``forward``,
-    which concatenates its inputs; a flat output of one value) of plain ``Linear`` /
-    activation layers reading ``[observation, action]`` and writing one key; else
-    ``None`` (call the module)."""
-    in_keys = list(qvalue_network.in_keys)
-    if len(in_keys) != 2 or in_keys[1] != action_key or len(qvalue_network.out_keys) != 1:
-        return None
-    layout = torchrl_mlp_layout(getattr(qvalue_network, "module", None), ("module",))
-    if layout is None or layout.shapes[-1][0] != 1:
-        return None
-    return layout

@@ -130,8 +130,8 @@ class EnsembleHead(SafetyHead):
 
     def unfused_reason(self) -> str:
         return (
-            f"fuse_critics=True: {self.members} safety critics (num_safety_nets) are "
-            "read apart from the reward critics, not fused with them; use fuse_critics=None"
+            f"{self.members} safety critics (num_safety_nets) are read apart from the "
+            "reward critics"
         )
 
     @property

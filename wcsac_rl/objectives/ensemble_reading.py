@@ -7,7 +7,7 @@ with their parameters stacked ``[E, ...]``. This module gives it
 * :class:`StackedMembers` — the ``E`` members of the kit's critics
   (:func:`~wcsac_rl.modules.make_safety_critic`: Gaussian, mean-only or IQN) evaluated
   from the stacked parameters in one batched product per layer (``baddbmm``, as
-  :mod:`~wcsac_rl.objectives.critic_ensemble` fuses the reward critics): ``E = 8``
+  :mod:`~wcsac_rl.objectives.fast_paths` fuses the reward critics): ``E = 8``
   costs one call per layer, not eight. An IQN ensemble reads every member at the same
   fractions τ (one draw per reading), so the members' spread is their disagreement,
   not the spread of their draws;
@@ -32,10 +32,17 @@ import torch
 from tensordict import TensorDictBase
 from torch import Tensor, nn
 
-from wcsac_rl.modules.mlp import ACTIVATIONS, MLPLayout, mlp_layout, torchrl_mlp_layout
 from wcsac_rl.modules.quantile_critic import IQNSafetyCritic, _cosines
 from wcsac_rl.modules.safety_critic import GaussianSafetyCritic, softplus_variance
-from wcsac_rl.objectives.critic_ensemble import EnsembleMember, evaluate_ensemble, stack_layers
+from wcsac_rl.objectives.fast_paths import (
+    ACTIVATIONS,
+    EnsembleMember,
+    MLPLayout,
+    evaluate_ensemble,
+    mlp_layout,
+    stack_layers,
+    torchrl_mlp_layout,
+)
 from wcsac_rl.objectives.risk import upper_tail_mean
 
 __all__ = ["AdaptivePessimism", "RandomPrior", "StackedMembers", "ucb", "upper_tail_mean"]

@@ -35,9 +35,9 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import Tensor
 
-from wcsac_rl.modules.quantile_critic import IQNReader, IQNSafetyCritic
+from wcsac_rl.modules.quantile_critic import IQNSafetyCritic
 from wcsac_rl.modules.safety_critic import VARIANCE_MAX, VARIANCE_MIN
-from wcsac_rl.objectives.critic_ensemble import FusedCritics
+from wcsac_rl.objectives.fast_paths import FusedCritics, IQNReader
 from wcsac_rl.objectives.quantile import (
     midpoint_fractions,
     quantile_huber_loss,
@@ -145,7 +145,7 @@ class SafetyHead:
         return td
 
     def fusion_plan(self, qvalue_network: TensorDictModule, num_qvalue_nets: int):
-        """A :class:`~wcsac_rl.objectives.critic_ensemble.FusedCritics` evaluating the
+        """A :class:`~wcsac_rl.objectives.fast_paths.FusedCritics` evaluating the
         reward critics and this one at once, or ``None`` (call the modules)."""
         return None
 
@@ -161,11 +161,10 @@ class SafetyHead:
         it from its parameters instead: the same values; see ``Critics.read_through_modules``)."""
 
     def unfused_reason(self) -> str:
-        """Why ``fuse_critics=True`` cannot be honoured."""
+        """Why the critics are not fused (``fast_paths=True``'s refusal says it)."""
         return (
-            "fuse_critics=True needs the reward and safety critics to be MLPs of one "
-            "shape (Linear/activation stacks) reading [observation, action], e.g. "
-            "from wcsac_rl.modules; use fuse_critics=None to fall back automatically"
+            "the reward and safety critics are not MLPs of one shape (Linear/activation "
+            "stacks) reading [observation, action], as wcsac_rl.modules builds them"
         )
 
     @property
@@ -459,9 +458,8 @@ class IQNHead(SafetyHead):
 
     def unfused_reason(self) -> str:
         return (
-            "fuse_critics=True: an IQN safety critic is not fused with the reward "
-            "critics (it also reads quantile fractions); use fuse_critics=None, which "
-            "evaluates it on its own and still fuses nothing else"
+            "an IQN safety critic is not fused with the reward critics (it also reads "
+            "quantile fractions)"
         )
 
     def fractions(self, count: int, like: Tensor, tail: bool = False, stratified: bool = True):

@@ -16,13 +16,10 @@ from torch import Tensor
 from torchrl.objectives.utils import ValueEstimators, _coerce_value_type
 from torchrl.objectives.value import TD0Estimator, ValueEstimatorBase
 
-from wcsac_rl.modules.tanh_normal import tanh_normal_actor_plan
-
 __all__ = [
     "as_given",
     "check_td0",
     "convert_safety_network",
-    "direct_actor_plan",
     "refuse_multistep",
     "refuse_unknown_keywords",
     "sample_alive",
@@ -217,18 +214,3 @@ def refuse_unknown_keywords(
             if close and close[0] in parts:
                 hint = f" (did you mean {close[0]}? give {parts[close[0]]})"
             raise TypeError(f"unknown keyword argument {name!r}{hint}")
-
-
-def direct_actor_plan(actor_network, direct_sampling: bool | None):
-    """The plan to draw ``actor_network``'s actions straight from its parameters
-    (:func:`~wcsac_rl.modules.tanh_normal.tanh_normal_actor_plan`), or ``None``:
-    ``direct_sampling=False``, or ``None`` with an actor it cannot read (TorchRL's
-    general path then); ``True`` with such an actor is refused in one line."""
-    plan = tanh_normal_actor_plan(actor_network) if direct_sampling is not False else None
-    if direct_sampling and plan is None:
-        raise ValueError(
-            "direct_sampling=True needs an actor built like wcsac_rl.modules.make_actor "
-            "(an MLP with ClampedLogStdNormalParams and a TanhNormal); use "
-            "direct_sampling=None to fall back automatically"
-        )
-    return plan

@@ -25,7 +25,6 @@ from torchrl.objectives import SACLoss
 from torchrl.objectives.sac import compute_rsample_log_prob
 from torchrl.objectives.utils import ValueEstimators, _cache_values, distance_loss
 
-from wcsac_rl.modules.tanh_normal import sample_tanh_normal
 from wcsac_rl.objectives.budget import (
     per_step_cost_threshold,
     validate_cost_limit,
@@ -35,9 +34,9 @@ from wcsac_rl.objectives.checked_loss import CheckedLoss
 from wcsac_rl.objectives.constraint import GradientLagrangian, PIDLagrangian, rename_kappa_raw
 from wcsac_rl.objectives.constraint_signal import ConstraintSignal, HeldStatistic
 from wcsac_rl.objectives.cost_target import CostTarget
-from wcsac_rl.objectives.critic_ensemble import Layers
 from wcsac_rl.objectives.critics import CriticParams, Critics, CriticValues
 from wcsac_rl.objectives.ensemble_head import make_safety_head
+from wcsac_rl.objectives.fast_paths import FastPaths, Layers, td0_target
 from wcsac_rl.objectives.inputs import (
     check_batch_entries,
     check_critic_inputs,
@@ -62,12 +61,10 @@ from wcsac_rl.objectives.loss_options import (
 )
 from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
 from wcsac_rl.objectives.safety_head import SafetyValues
-from wcsac_rl.objectives.td0 import td0_target
 from wcsac_rl.objectives.torchrl_compat import (
     as_given,
     check_td0,
     convert_safety_network,
-    direct_actor_plan,
     refuse_multistep,
     refuse_unknown_keywords,
     sample_alive,
@@ -124,15 +121,16 @@ class WCSACLoss(CheckedLoss, SACLoss):
             (:mod:`wcsac_rl.objectives.constraint`), owned by this loss from now on; the
             PID rule steps in :meth:`forward` while the loss is in training mode.
         alpha_init (float): the initial entropy weight β; SACLoss's 1 (the kit's recipe: 0.1).
-        fuse_critics, direct_sampling (bool, optional): the critics as one batched
-            ensemble (:mod:`~wcsac_rl.objectives.critic_ensemble`), the actor's actions
-            drawn from its parameters; ``None``: when possible. Same values either way.
+        fast_paths (bool, optional): the critics as one batched ensemble, the actor's
+            actions drawn from its parameters, ... (:mod:`~wcsac_rl.objectives.fast_paths`);
+            ``None``: each when possible; ``True``: required; ``False``: TorchRL's general
+            path. Same values either way; :attr:`fast_paths` reports the paths taken.
         check_finite (bool): run :meth:`check_inputs` on every call (not under
             ``torch.compile``). Default ``False``; an empty batch is refused either way.
         num_qvalue_nets, loss_function: SACLoss's (``loss_function`` default ``"l2"``).
         **sac_kwargs: :class:`~torchrl.objectives.SACLoss`'s other keywords
             (``target_entropy``, ``delay_qvalue``, ``separate_losses``, ``reduction``, ...),
-            passed on. The loss's own keywords are the 13 above (``inspect.signature``'s
+            passed on. The loss's own keywords are the 12 above (``inspect.signature``'s
             keyword-only parameters; SACLoss's count as SACLoss's).
 
     Each option is defined once, in :class:`~wcsac_rl.options.SafetyOptions`; a bad value
@@ -228,8 +226,7 @@ class WCSACLoss(CheckedLoss, SACLoss):
         signal: SignalOptions | None = None,
         constraint: GradientLagrangian | PIDLagrangian | None = None,
         alpha_init: float = TRAINER_KEYS["alpha_init"],
-        fuse_critics: bool | None = None,
-        direct_sampling: bool | None = None,
+        fast_paths: bool | None = None,
         num_qvalue_nets: int = 2,
         loss_function: str = "l2",
         check_finite: bool = False,
@@ -299,7 +296,16 @@ class WCSACLoss(CheckedLoss, SACLoss):
         self.register_buffer("cost_discount", torch.zeros((), device=device), persistent=False)
         self.make_value_estimator(ValueEstimators.TD0)
         self._set_in_keys()
-        self._plan_fast_paths(actor_network, fuse_critics, direct_sampling)
+        self._paths = FastPaths(
+            fast_paths,
+            actor_network,
+            self.qvalue_network,
+            self.safety_head,
+            action_key=self.tensor_keys.action,
+            num_qvalue_nets=self.num_qvalue_nets,
+            vmap=not self.deactivate_vmap,
+        )
+        self.critics = Critics(self.qvalue_network, self.safety_head, self.tensor_keys, self._paths)
 
     # the parts' options, by name (what the config calls them)
     num_safety_nets = property(lambda self: self.head_options.num_safety_nets)
@@ -310,18 +316,6 @@ class WCSACLoss(CheckedLoss, SACLoss):
     huber_kappa = property(lambda self: self.head_options.huber_kappa)
     kappa_signal_every = property(lambda self: self.signal_options.kappa_signal_every)
     kappa_parametrization = property(lambda self: getattr(self.constraint, "parametrization", None))
-
-    def _plan_fast_paths(self, actor_network, fuse_critics, direct_sampling) -> None:
-        """The critics' reading (fused where possible) and the direct actor sampling."""
-        self.critics = Critics(
-            self.qvalue_network,
-            self.safety_head,
-            self.tensor_keys,
-            num_qvalue_nets=self.num_qvalue_nets,
-            fuse=fuse_critics,
-            direct=not self.deactivate_vmap,  # (a loop rounds unlike the vmapped call)
-        )
-        self._actor_plan = direct_actor_plan(actor_network, direct_sampling)
 
     # ------------------------------------------------------------------ set-up
     @property
@@ -450,9 +444,9 @@ class WCSACLoss(CheckedLoss, SACLoss):
         )
 
     @property
-    def _fused(self):
-        """The fused evaluation of the critics, or ``None`` (:attr:`critics`)."""
-        return self.critics.fused
+    def fast_paths(self) -> dict[str, str]:
+        """Each fast path and whether it is taken, or why not (:meth:`FastPaths.report`)."""
+        return self._paths.report()
 
     def _critic_values(
         self, tensordict, action, critics: CriticParams, layers=None, qvalue=True
@@ -478,9 +472,10 @@ class WCSACLoss(CheckedLoss, SACLoss):
 
     def _sample_policy(self, tensordict: TensorDictBase) -> tuple[Tensor, Tensor]:
         """A reparametrised action ``a ~ π(·|s)`` and its log-probability."""
-        if self._actor_plan is not None:
-            observation = tensordict.get(self._actor_plan.observation_key)
-            return sample_tanh_normal(self._actor_plan, self.actor_network_params, observation)
+        sampling = self._paths.sampling
+        if sampling is not None:
+            observation = tensordict.get(sampling.observation_key)
+            return sampling.sample(self.actor_network_params, observation)
         tensordict = tensordict.copy()  # the actor writes its distribution parameters
         with (
             set_exploration_type(ExplorationType.RANDOM),
@@ -572,7 +567,7 @@ class WCSACLoss(CheckedLoss, SACLoss):
 
     def _reward_target(self, tensordict: TensorDictBase, next_value: Tensor) -> Tensor:
         """TorchRL's TD(0) estimate ``r + γ (1 − term) V(s')`` (:func:`td0_target`)."""
-        return td0_target(self.value_estimator, tensordict, next_value)
+        return td0_target(self.value_estimator, tensordict, next_value, not self._paths.off)
 
     # ----------------------------------------------------------------- losses
     def qvalue_loss(

@@ -38,7 +38,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl import timeit
 
-from wcsac_rl.modules.tanh_normal import TanhNormalPolicy
+from wcsac_rl.modules.actor import TanhNormalPolicy
 from wcsac_rl.objectives.inputs import collected_keys
 from wcsac_rl.rollouts.critic_calibration import supports_calibration
 from wcsac_rl.training import builders, registry
