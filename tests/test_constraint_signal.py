@@ -11,7 +11,7 @@ from tensordict import TensorDict
 
 from wcsac_rl.modules import make_safety_critic
 from wcsac_rl.objectives import WCSACLoss, gaussian_mixture_cvar, per_step_cost_threshold
-from wcsac_rl.objectives.constraint_signal import ConstraintSignal
+from wcsac_rl.objectives.constraint import ConstraintSignal
 from wcsac_rl.objectives.cost_target import CostTarget
 from wcsac_rl.objectives.critics import CriticValues
 from wcsac_rl.objectives.safety_head import GaussianHead, SafetyValues

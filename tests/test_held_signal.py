@@ -1,5 +1,5 @@
 """``kappa_signal_every``: the critic's start-state tail read once in k training updates
-and held in between (:class:`~wcsac_rl.objectives.constraint_signal.HeldStatistic`)."""
+and held in between (:class:`~wcsac_rl.objectives.constraint.HeldStatistic`)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import torch
 from _loss_helpers import make_batch, make_loss
 from _training_helpers import compose_config
 
-from wcsac_rl.objectives.constraint_signal import HeldStatistic
+from wcsac_rl.objectives.constraint import HeldStatistic
 from wcsac_rl.training import ConfigError, make_trainer, validate_config
 from wcsac_rl.training.checkpoint import load_checkpoint
 from wcsac_rl.training.progress import read_progress

@@ -25,8 +25,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
-from wcsac_rl.objectives.constraint import GradientLagrangian, PIDLagrangian, make_constraint
-from wcsac_rl.objectives.constraint_signal import check_signal_states
+from wcsac_rl.objectives.constraint import (
+    GradientLagrangian,
+    PIDLagrangian,
+    check_signal_states,
+    make_constraint,
+)
 from wcsac_rl.objectives.safety_head import is_iqn_critic
 from wcsac_rl.options import (
     ALPHA_INIT,

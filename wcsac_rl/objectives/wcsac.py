@@ -4,8 +4,7 @@
 network) composed of parts, each in its own module: the safety head
 (:mod:`~wcsac_rl.objectives.safety_head`), the cost target
 (:mod:`~wcsac_rl.objectives.cost_target`), the critics read together
-(:mod:`~wcsac_rl.objectives.critics`), the constraint signal
-(:mod:`~wcsac_rl.objectives.constraint_signal`) and the constraint
+(:mod:`~wcsac_rl.objectives.critics`) and the constraint, what κ reads and how it moves
 (:mod:`~wcsac_rl.objectives.constraint`); ``docs/architecture.md`` maps them. The loss
 itself is one method per term: ``qvalue_loss``, ``safety_loss``, ``actor_loss``
 (``β log π − min Q^r + κ Γ``), ``alpha_loss`` (TorchRL's) and ``kappa_loss``.
@@ -31,8 +30,13 @@ from wcsac_rl.objectives.budget import (
     validate_max_episode_steps,
 )
 from wcsac_rl.objectives.checked_loss import CheckedLoss
-from wcsac_rl.objectives.constraint import GradientLagrangian, PIDLagrangian, rename_kappa_raw
-from wcsac_rl.objectives.constraint_signal import ConstraintSignal, HeldStatistic
+from wcsac_rl.objectives.constraint import (
+    ConstraintSignal,
+    GradientLagrangian,
+    HeldStatistic,
+    PIDLagrangian,
+    rename_kappa_raw,
+)
 from wcsac_rl.objectives.cost_target import CostTarget
 from wcsac_rl.objectives.critics import CriticParams, Critics, CriticValues
 from wcsac_rl.objectives.ensemble_head import make_safety_head
