@@ -38,7 +38,7 @@ from wcsac_rl import WCSACLoss
 from wcsac_rl.modules import IQNSafetyCritic, make_actor, make_qvalue, make_safety_critic
 from wcsac_rl.objectives import PolyakUpdate, SafetyHeadOptions, quantile_mixture_cvar
 from wcsac_rl.objectives.fast_paths import IQNReader
-from wcsac_rl.objectives.quantile import (
+from wcsac_rl.objectives.safety_head import (
     midpoint_fractions,
     quantile_huber_loss,
     stratified_fractions,

@@ -20,11 +20,11 @@ from wcsac_rl.modules import make_safety_critic
 from wcsac_rl.objectives import WCSACLoss
 from wcsac_rl.objectives.ensemble_head import make_safety_head
 from wcsac_rl.objectives.loss_options import SafetyHeadOptions
-from wcsac_rl.objectives.quantile import quantile_huber_loss
 from wcsac_rl.objectives.safety_head import (
     GaussianHead,
     IQNHead,
     SafetyValues,
+    quantile_huber_loss,
 )
 
 

@@ -26,14 +26,9 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torch import Tensor
 
-from wcsac_rl.objectives.inputs import required_entry
+from wcsac_rl.objectives.inputs import nested_key, required_entry
 
 __all__ = ["CostTarget"]
-
-
-def _nested(*keys: NestedKey) -> tuple[str, ...]:
-    """One nested key from several (``_nested("nstep", ("a", "b")) == ("nstep", "a", "b")``)."""
-    return tuple(part for key in keys for part in ((key,) if isinstance(key, str) else key))
 
 
 class CostTarget:
@@ -100,7 +95,7 @@ class CostTarget:
         keys = [("next", self.keys.cost)]
         if self.n_steps > 1:
             for key in ("cost", "steps", "terminated", "done", *state_keys):
-                keys.append(_nested(self.keys.nstep, key))
+                keys.append(nested_key(self.keys.nstep, key))
         return keys
 
     def cost(self, tensordict: TensorDictBase, dtype) -> Tensor:

@@ -42,16 +42,22 @@ from wcsac_rl.objectives.critics import CriticParams, Critics, CriticValues
 from wcsac_rl.objectives.ensemble_head import make_safety_head
 from wcsac_rl.objectives.fast_paths import FastPaths, Layers, td0_target
 from wcsac_rl.objectives.inputs import (
+    as_given,
     check_batch_entries,
     check_critic_inputs,
     check_finite_entries,
     check_finite_losses,
     check_nonempty_batch,
+    check_td0,
+    convert_safety_network,
     data_keys,
     finite_number,
     loss_out_keys,
     missing_inputs,
     parts_in_keys,
+    refuse_multistep,
+    refuse_unknown_keywords,
+    sample_alive,
     state_keys,
     takes_tensordict,
     whole_count,
@@ -65,14 +71,6 @@ from wcsac_rl.objectives.loss_options import (
 )
 from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
 from wcsac_rl.objectives.safety_head import SafetyValues
-from wcsac_rl.objectives.torchrl_compat import (
-    as_given,
-    check_td0,
-    convert_safety_network,
-    refuse_multistep,
-    refuse_unknown_keywords,
-    sample_alive,
-)
 from wcsac_rl.options import SafetyOptions
 from wcsac_rl.recipes import TRAINER_KEYS
 
@@ -564,7 +562,7 @@ class WCSACLoss(CheckedLoss, SACLoss):
         return self._sample_alive(states, "done", batch)[0]
 
     def _sample_alive(self, states: TensorDictBase, done_key: NestedKey, like: TensorDictBase):
-        """:func:`~wcsac_rl.objectives.torchrl_compat.sample_alive` with this loss's
+        """:func:`~wcsac_rl.objectives.inputs.sample_alive` with this loss's
         actor (``skip_done_states``: the rows whose ``done_key`` is set are skipped)."""
         done = states.get(done_key, None) if self.skip_done_states else None
         return sample_alive(self._sample_policy, states, done, like.get(self.tensor_keys.action))
