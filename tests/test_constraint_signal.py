@@ -12,9 +12,8 @@ from tensordict import TensorDict
 from wcsac_rl.modules import make_safety_critic
 from wcsac_rl.objectives import WCSACLoss, gaussian_mixture_cvar, per_step_cost_threshold
 from wcsac_rl.objectives.constraint import ConstraintSignal
-from wcsac_rl.objectives.cost_target import CostTarget
 from wcsac_rl.objectives.critics import CriticValues
-from wcsac_rl.objectives.safety_head import GaussianHead, SafetyValues
+from wcsac_rl.objectives.safety_head import CostTarget, GaussianHead, SafetyValues
 
 
 def _signal(**options) -> ConstraintSignal:

@@ -1,9 +1,8 @@
 """Worst-Case Soft Actor Critic (Yang et al., AAAI 2021) as a TorchRL ``LossModule``.
 
 ``WCSACLoss`` is TorchRL's :class:`~torchrl.objectives.SACLoss` (v2: twin Q, no value
-network) composed of parts, each in its own module: the safety head
-(:mod:`~wcsac_rl.objectives.safety_head`), the cost target
-(:mod:`~wcsac_rl.objectives.cost_target`), the critics read together
+network) composed of parts, each in its own module: the safety head and its cost target
+(:mod:`~wcsac_rl.objectives.safety_head`), the critics read together
 (:mod:`~wcsac_rl.objectives.critics`) and the constraint, what κ reads and how it moves
 (:mod:`~wcsac_rl.objectives.constraint`); ``docs/architecture.md`` maps them. The loss
 itself is one method per term: ``qvalue_loss``, ``safety_loss``, ``actor_loss``
@@ -37,7 +36,6 @@ from wcsac_rl.objectives.constraint import (
     PIDLagrangian,
     rename_kappa_raw,
 )
-from wcsac_rl.objectives.cost_target import CostTarget
 from wcsac_rl.objectives.critics import CriticParams, Critics, CriticValues
 from wcsac_rl.objectives.ensemble_head import make_safety_head
 from wcsac_rl.objectives.fast_paths import FastPaths, Layers, td0_target
@@ -70,7 +68,7 @@ from wcsac_rl.objectives.loss_options import (
     default_parts,
 )
 from wcsac_rl.objectives.risk import gaussian_cvar_multiplier, validate_risk_level
-from wcsac_rl.objectives.safety_head import SafetyValues
+from wcsac_rl.objectives.safety_head import CostTarget, SafetyValues
 from wcsac_rl.options import SafetyOptions
 from wcsac_rl.recipes import TRAINER_KEYS
 
@@ -527,7 +525,7 @@ class WCSACLoss(CheckedLoss, SACLoss):
         ``reward_target`` (``r + γ(1−term)(min_i Q̄^r_i(s',a') − β log π(a'|s'))``) and
         the safety head's (``cost_target``, Eq. 7, and ``cost_second_moment``,
         ``cost_next_variance`` or ``cost_target_quantiles``) on the cost target's
-        bootstrap (:mod:`~wcsac_rl.objectives.cost_target`)."""
+        bootstrap (:class:`~wcsac_rl.objectives.safety_head.CostTarget`)."""
         if self.cost_n_steps == 1:
             refuse_multistep(
                 type(self).__name__, tensordict, self.value_estimator.tensor_keys.steps_to_next_obs
