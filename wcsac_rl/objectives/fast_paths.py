@@ -106,19 +106,19 @@ class FastPaths:
         self.stacked = None
         if not (self.off or self.fused is not None or not vmap):
             self.stacked = stacked_mlp_layout(qvalue_network, action_key)
-        self._not_stacked = "deactivate_vmap=True (a loop rounds unlike the vmapped call)"
-        if vmap:
-            self._not_stacked = "not a plain TorchRL MLP reading [observation, action]"
+        self._not_stacked = (
+            "not a plain TorchRL MLP reading [observation, action]"
+            if vmap
+            else "deactivate_vmap=True (a loop rounds unlike the vmapped call)"
+        )
         if self.off:
             head.read_through_module()
-        missing = [
-            f"the actor sampled from its parameters, but {self._not_sampled}"
-            if self.sampling is None
-            else None,
-            f"the critics fused, but {head.unfused_reason()}" if self.fused is None else None,
-        ]
-        if wanted and any(missing):
-            needs = next(m for m in missing if m)
+        needs = None
+        if self.sampling is None:
+            needs = f"the actor sampled from its parameters, but {self._not_sampled}"
+        elif self.fused is None:
+            needs = f"the critics fused, but {head.unfused_reason()}"
+        if wanted and needs:
             raise ValueError(
                 f"fast_paths=True needs {needs}; use fast_paths=None to take each where possible"
             )
@@ -138,18 +138,23 @@ class FastPaths:
     def report(self) -> dict[str, str]:
         """Each path, ``"taken"`` or ``"not taken: <why>"``: ``direct_sampling``,
         ``fused_critics``, ``stacked_qvalue`` (the unfused twin from its stacked
-        parameters), ``safety_read`` (the safety critic from its parameters: the kit's
-        IQN critic, or fused) and ``td0_target`` (inline, where the batch allows)."""
-        head = getattr(self.head, "member", self.head)  # (an ensemble's member)
+        parameters), ``safety_read`` (the safety critic from its parameters: fused, the
+        kit's IQN critic, an ensemble's members in one product) and ``td0_target``
+        (inline, where the batch allows)."""
+        member = getattr(self.head, "member", self.head)  # (an ensemble's member)
         off = "fast_paths=False" if self.off else None
-        safety = self.fused is not None or getattr(head, "_reader", None) is not None
+        safety = (
+            self.fused is not None
+            or getattr(self.head, "stacked", None) is not None
+            or getattr(member, "_reader", None) is not None
+        )
         why = {
             "direct_sampling": None if self.sampling else off or self._not_sampled,
             "fused_critics": None if self.fused else off or self.head.unfused_reason(),
             "stacked_qvalue": None
             if self.stacked
             else off or ("read in the fused critics" if self.fused else self._not_stacked),
-            "safety_read": None if safety else off or "not the kit's IQN critic, nor fused",
+            "safety_read": None if safety else off or "the module is called (not the kit's)",
             "td0_target": off,
         }
         return {name: f"not taken: {w}" if w else "taken" for name, w in why.items()}
@@ -264,14 +269,19 @@ def evaluate_stacked_mlp(x: Tensor, params: TensorDictBase, layout: MLPLayout) -
     return x.reshape(x.shape[0], *batch_shape, x.shape[-1])
 
 
+def _reads_state_action(critic: TensorDictModule, action_key: NestedKey) -> bool:
+    """Whether ``critic`` reads ``[observation, action]`` and writes one key."""
+    in_keys = list(critic.in_keys)
+    return len(in_keys) == 2 and in_keys[1] == action_key and len(critic.out_keys) == 1
+
+
 def stacked_mlp_layout(qvalue_network: TensorDictModule, action_key: NestedKey) -> MLPLayout | None:
     """The layout of a reward critic that :func:`evaluate_stacked_mlp`
     reads exactly as its vmapped call computes: a TorchRL ``MLP`` (its own ``forward``,
     which concatenates its inputs; a flat output of one value) of plain ``Linear`` /
     activation layers reading ``[observation, action]`` and writing one key; else
     ``None`` (call the module)."""
-    in_keys = list(qvalue_network.in_keys)
-    if len(in_keys) != 2 or in_keys[1] != action_key or len(qvalue_network.out_keys) != 1:
+    if not _reads_state_action(qvalue_network, action_key):
         return None
     layout = torchrl_mlp_layout(getattr(qvalue_network, "module", None), ("module",))
     if layout is None or layout.shapes[-1][0] != 1:
@@ -424,13 +434,8 @@ class FusedCritics:
     ) -> FusedCritics | None:
         """The fused evaluation if every critic is a same-shaped MLP reading
         ``[observation, action]`` with one output, else ``None`` (call the modules)."""
-        in_keys = list(qvalue_network.in_keys)
-        if (
-            len(in_keys) != 2
-            or in_keys[1] != action_key
-            or list(safety_network.in_keys) != in_keys
-            or len(qvalue_network.out_keys) != 1
-        ):
+        same_inputs = list(safety_network.in_keys) == list(qvalue_network.in_keys)
+        if not (same_inputs and _reads_state_action(qvalue_network, action_key)):
             return None
         members = [EnsembleMember("qvalue", mlp_layout(qvalue_network.module, ("module",)), True)]
         net = safety_network.module
