@@ -307,8 +307,7 @@ def test_the_runs_score_and_cost_return_figures_draw_each_row_in_its_style(tmp_p
     fig_runs' row names do not overlap."""
     from matplotlib.colors import to_hex
 
-    from wcsac_rl.evaluation.cost_return import plot_cost_return
-    from wcsac_rl.evaluation.run_plots import plot_run_values, plot_score_distribution
+    from wcsac_rl.evaluation.plots import plot_cost_return, plot_run_values, plot_score_distribution
     from wcsac_rl.evaluation.runs import row_name
 
     styles = plots.row_styles(ROWS)

@@ -199,7 +199,7 @@ def test_a_row_label_with_a_dollar_is_drawn_as_written_in_every_figure(tmp_path)
     are written (PNG and PDF) without a mathtext error, the name shown as written."""
     from test_figures import _statistics
 
-    from wcsac_rl.evaluation.run_plots import plot_run_values, plot_score_distribution
+    from wcsac_rl.evaluation.plots import plot_run_values, plot_score_distribution
 
     name = row_name(DOLLAR)
     assert "$" in name
@@ -277,7 +277,7 @@ def test_a_row_label_with_a_dollar_is_drawn_as_written_in_every_figure(tmp_path)
 def test_a_dollar_in_the_runs_figures_is_drawn_as_written(which, tmp_path, monkeypatch):
     from test_figures import _statistics
 
-    from wcsac_rl.evaluation import run_plots
+    from wcsac_rl.evaluation import plots as run_plots
 
     figures = _captured(monkeypatch, "save_figure")
     stats = _statistics(["sac", DOLLAR])
@@ -424,8 +424,8 @@ def test_unfinished_training_reads_the_frames_against_total_frames(tmp_path):
 
 
 def test_a_dollar_in_the_cost_return_and_outcome_figures_is_drawn_as_written(tmp_path):
-    from wcsac_rl.evaluation.cost_return import plot_cost_return
     from wcsac_rl.evaluation.outcomes import outcome_classes, plot_outcomes
+    from wcsac_rl.evaluation.plots import plot_cost_return
 
     name = row_name(DOLLAR)
     row = {"label": DOLLAR, "algorithm": name, "EC": 2.0, "ER": 0.5}

@@ -1,25 +1,10 @@
-"""Evaluation: test episodes, the paper's metrics and figures.
+"""Evaluation: test episodes, the paper's metrics, a run's evaluation and calibration, the
+report's tables and figures (its modules: docs/layout.md; the console scripts
+``python -m wcsac_rl.evaluate``, ``wcsac_rl.calibration`` and ``wcsac_rl.report``).
 
-* test episodes themselves are :mod:`wcsac_rl.rollouts` (shared with training);
-  ``run_episodes``, ``summarize_episodes`` and ``EpisodeResult`` are re-exported here.
-* :mod:`~wcsac_rl.evaluation.metrics` — Table 1's metrics (EC, C_α, ER, over budget)
-  and their aggregation over seeds; pure functions.
-* :mod:`~wcsac_rl.evaluation.runs` — finding run / sweep / evaluated directories; row names.
-* :mod:`~wcsac_rl.evaluation.evaluator` — a run's final evaluation →
-  ``evaluation.csv`` + ``evaluation.json`` (``python -m wcsac_rl.evaluate``).
-* :mod:`~wcsac_rl.evaluation.run_calibration` — a finished run's safety critic against the
-  realised cost-to-go of its test episodes (``python -m wcsac_rl.calibration``; the
-  measurement is :mod:`wcsac_rl.rollouts.critic_calibration`, logged each epoch as ``calib/*``).
-* :mod:`~wcsac_rl.evaluation.trajectories` — robot paths and MuJoCo videos of test episodes.
-* :mod:`~wcsac_rl.evaluation.plots` — per-run curves and the paper's Figures 4, 5, 6.
-* :mod:`~wcsac_rl.evaluation.reporting` — Table 1 + figures for a set of runs
-  (``python -m wcsac_rl.report``).
-* :mod:`~wcsac_rl.evaluation.run_statistics` — statistics over runs (IQM, probability of
-  improvement, their bootstrap intervals); :mod:`~wcsac_rl.evaluation.run_report` and
-  :mod:`~wcsac_rl.evaluation.run_plots` — the report's runs one by one and their figures.
-
-The names below are imported on first use, so that the console scripts' ``--help`` (which
-reads :mod:`~wcsac_rl.evaluation.defaults`) answers before torch is imported.
+The test episodes themselves are :mod:`wcsac_rl.rollouts` (shared with training); the names
+below are imported on first use, so that the console scripts' ``--help`` (which reads
+:mod:`~wcsac_rl.evaluation.defaults`) answers before torch is imported.
 """
 
 __all__ = [

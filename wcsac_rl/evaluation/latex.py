@@ -1,25 +1,30 @@
 """The report's tables as LaTeX ``booktabs`` tables (``<table>.tex`` beside ``<table>.md``).
 
-:func:`markdown_to_latex` turns every pipe table of a Markdown text the report wrote
-into a ``table`` environment (``\\toprule`` / ``\\midrule`` / ``\\bottomrule``, the
-columns aligned as the Markdown's ``---:`` says), captioned with the text's title (its
-``# `` line) and, for a second table, the ``## `` heading above it. Cells keep their
-text: ``**x**`` becomes ``\\textbf{x}``, LaTeX's special characters are escaped and the
-symbols the tables use (α, ≤, ±, ⌈ ⌉, …) are written in math mode, so the file compiles
-with ``\\usepackage{booktabs}`` alone. Plain string building: the same table gives the
-same bytes.
-
-Text that comes from a run's files (a run directory's name, a row label, a machine's
-name) goes into a Markdown table through :func:`markdown_cell` and into a title or a
-line of text through :func:`markdown_text`: a bar cannot split its cell and a line break
-cannot end its row, in the Markdown and so in the LaTeX made from it.
+:func:`markdown_to_latex` turns every pipe table of a Markdown text into a ``table``
+environment, captioned with the heading above it, its cells' symbols in math mode, so that
+the file compiles with ``\\usepackage{booktabs}`` alone; the same table gives the same
+bytes. Text from a run's files goes into a Markdown table through :func:`markdown_cell`
+and into a title through :func:`markdown_text`: a bar cannot split its cell and a line
+break cannot end its row. :func:`markdown_table` and :func:`csv_text` write the tables.
 """
 
 from __future__ import annotations
 
+import csv
+import io
 import re
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
 
-__all__ = ["latex_path", "latex_text", "markdown_cell", "markdown_text", "markdown_to_latex"]
+__all__ = [
+    "csv_text",
+    "latex_path",
+    "latex_text",
+    "markdown_cell",
+    "markdown_table",
+    "markdown_text",
+    "markdown_to_latex",
+]
 
 _SPECIAL = {
     "\\": r"\textbackslash{}",
@@ -80,6 +85,33 @@ def markdown_cell(text: object) -> str:
     ('wcsac\\\\|x', 'sac_lag[cost_limit=1.5]')
     """
     return markdown_text(text).replace("|", "\\|")
+
+
+def markdown_table(header: Sequence[str], align: str, rows: Iterable[Sequence[Any]]) -> list[str]:
+    """The lines of a Markdown pipe table: ``align`` holds one ``l`` (left) or ``r``
+    (right) per column; the cells are written as given (:func:`markdown_cell` them first).
+
+    >>> markdown_table(["a", "b"], "lr", [["x", 1]])
+    ['| a | b |', '|---|---:|', '| x | 1 |']
+    """
+    return [
+        "| " + " | ".join(header) + " |",
+        "|" + "".join("---:|" if a == "r" else "---|" for a in align),
+        *("| " + " | ".join(map(str, row)) + " |" for row in rows),
+    ]
+
+
+def csv_text(
+    rows: Iterable[Mapping[str, Any]], columns: Sequence[str], lineterminator: str = "\n"
+) -> str:
+    """``rows`` as CSV text with a header of ``columns`` (other keys of a row left out)."""
+    buf = io.StringIO()
+    writer = csv.DictWriter(
+        buf, fieldnames=columns, extrasaction="ignore", lineterminator=lineterminator
+    )
+    writer.writeheader()
+    writer.writerows(rows)
+    return buf.getvalue()
 
 
 def latex_text(text: str) -> str:

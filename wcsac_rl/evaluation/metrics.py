@@ -1,21 +1,10 @@
 """The paper's evaluation metrics (Table 1) and their aggregation over seeds. Pure functions.
 
-Definitions (Yang et al., AAAI 2021, "Results"; ``docs/paper.md``, "Metrics"):
-
-* **EC** — mean episodic cost of the test episodes.
-* **C_α** — empirical CVaR: the mean cost of the worst ``⌈n·α⌉`` of the ``n`` test
-  episodes (:func:`~wcsac_rl.objectives.risk.empirical_cvar`), α ∈ {0.9, 0.5, 0.1}.
-* **ER** — mean episodic return.
-* **over budget** — the proportion of episodes whose cost is *strictly greater* than
-  the budget ``d``: the constraint is ``cost ≤ d``, so an episode that spends exactly
-  ``d`` is within budget (:func:`exceedance_proportion`).
-
-**Aggregation over seeds.** The paper evaluates 100 episodes per seed and reports
-each metric over the 300 episodes of an algorithm pooled together (C_α = mean of the
-worst ``⌈300·α⌉``). :func:`aggregate_seeds` does the same, and adds the spread of the
-per-seed EC and ER (population standard deviation, ``ddof=0``) so seed-to-seed
-variation stays visible. Training curves are averaged over seeds at equal env-step
-counts by :func:`curve_mean_std`.
+EC, C_α (the empirical CVaR, :func:`~wcsac_rl.objectives.risk.empirical_cvar`), ER and
+the share of episodes over budget (cost strictly above d: :func:`exceedance_proportion`)
+as docs/paper.md ("Metrics") defines them; :func:`aggregate_seeds` pools a row's seeds as
+the paper does, with the seeds' spread of EC and ER; :func:`curve_mean_std` averages
+training curves over seeds at equal env-step counts.
 """
 
 from __future__ import annotations

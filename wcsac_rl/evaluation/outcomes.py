@@ -1,22 +1,10 @@
 """Episode outcomes: every test episode classed by what happened in it, so that a reader
 sees whether a run learned its task instead of inferring it from a negative return.
 
-On an env with a goal (the point-goal presets, the tiny env; :func:`~wcsac_rl.evaluation.runs.env_has_layout`):
-
-* ``goal`` — reached the goal (at least once), no cost;
-* ``goal_cost`` — reached the goal, with cost on the way;
-* ``no_goal`` — never reached it, no cost: on the point-goal tasks, which end an episode
-  only at a goal, the time limit or a numerical failure, a policy that stalls for the
-  whole 1 000 steps outside the hazards;
-* ``no_goal_cost`` — never reached it, with cost (a stall in a hazard, a slow crossing);
-* ``failure`` — a numerical failure ended it.
-
-On an env without goals: ``cost_free``, ``cost``, ``failure``.
-
-``evaluation.json`` holds a run's counts (``outcomes``); the report writes them per run
-(``outcomes.md`` / ``.csv`` / ``.tex``) and draws ``fig_outcomes.png``, one stacked bar per
-run. A run **learned** its task when at least :data:`LEARNED_GOAL_SHARE` of its test
-episodes reached the goal.
+With a goal (:func:`~wcsac_rl.evaluation.runs.env_has_layout`) the classes are
+:data:`GOAL_OUTCOMES`, without one :data:`PLAIN_OUTCOMES`; a run **learned** its task when
+at least :data:`LEARNED_GOAL_SHARE` of its test episodes reached the goal. The classes,
+``outcomes.md`` / ``.csv`` and ``fig_outcomes.png``: docs/evaluation_protocol.md.
 
 >>> from wcsac_rl.rollouts.episodes import EpisodeResult
 >>> episodes = [EpisodeResult(1.0, 0.0, 300, 1, False), EpisodeResult(-9.0, 12.0, 1000, 0, False)]
@@ -31,7 +19,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
-from wcsac_rl.evaluation.latex import markdown_cell, markdown_text
+from wcsac_rl.evaluation.latex import csv_text, markdown_cell, markdown_table, markdown_text
 
 __all__ = [
     "FIG_OUTCOMES",
@@ -163,38 +151,31 @@ def outcomes_markdown(rows: Sequence[Mapping[str, Any]], title: str, has_goals: 
             else "the env has no goal)."
         ),
         "",
-        "| " + " | ".join(head) + " |",
-        "|---|---:|" + "---:|" * len(classes) + "---:|" + ("---|" if has_goals else "") + "---|",
     ]
+    body = []
     for row in rows:
         counts = row["counts"]
-        cells = [markdown_cell(row["algorithm"]), str(row["seed"])]
-        cells += [str(counts[c]) for c in classes] + [str(sum(counts.values()))]
-        if has_goals:
-            cells.append(learned(counts))
-        lines.append("| " + " | ".join([*cells, markdown_cell(row["run"])]) + " |")
-    return "\n".join(lines) + "\n"
+        cells = [markdown_cell(row["algorithm"]), row["seed"], *(counts[c] for c in classes)]
+        cells += [sum(counts.values()), *([learned(counts)] if has_goals else [])]
+        body.append([*cells, markdown_cell(row["run"])])
+    align = "lr" + "r" * len(classes) + "r" + ("l" if has_goals else "") + "l"
+    return "\n".join(lines + markdown_table(head, align, body)) + "\n"
 
 
 def outcomes_csv(rows: Sequence[Mapping[str, Any]], has_goals: bool) -> str:
     """``outcomes.csv``: ``label, algorithm, seed, run``, the counts, ``episodes`` and
     (with goals) ``goal_share``."""
-    import csv
-    import io
-
     classes = outcome_classes(has_goals)
     columns = ["label", "algorithm", "seed", "run", *classes, "episodes"]
     columns += ["goal_share"] if has_goals else []
-    buffer = io.StringIO()
-    writer = csv.writer(buffer, lineterminator="\n")
-    writer.writerow(columns)
-    for row in rows:
-        counts = row["counts"]
-        values = [row["label"], row["algorithm"], row["seed"], row["run"]]
-        values += [counts[c] for c in classes] + [sum(counts.values())]
-        values += [repr(goal_share(counts))] if has_goals else []
-        writer.writerow(values)
-    return buffer.getvalue()
+    return csv_text(
+        (
+            {**row, **row["counts"], "episodes": sum(row["counts"].values()),
+             "goal_share": repr(goal_share(row["counts"]))}
+            for row in rows
+        ),
+        columns,
+    )  # fmt: skip
 
 
 def plot_outcomes(

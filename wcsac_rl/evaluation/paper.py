@@ -12,6 +12,7 @@ from itertools import pairwise
 from typing import Any
 
 from wcsac_rl.evaluation.defaults import CLAIM_RUNS
+from wcsac_rl.evaluation.latex import markdown_table
 from wcsac_rl.evaluation.metrics import RISK_LEVELS, cvar_key
 from wcsac_rl.evaluation.runs import env_title, row_name, row_sort_key
 
@@ -82,18 +83,18 @@ def paper_comparison_markdown(
     header = ["Algorithm", "paper row"]
     for key in _COLUMNS:
         header += [f"{key} here", f"{key} paper"]
-    lines = [
-        f"# Table 1 here and in the paper — {env_title(env)}, budget d = {cost_limit:g}",
-        "",
-        "| " + " | ".join(header) + " |",
-        "|---|---|" + "---:|" * (len(header) - 2),
-    ]
+    body = []
     for label in compared:
         reference = PAPER_ROW_OF.get(label, label)
         cells = [row_name(label), row_name(reference)]
         for key in _COLUMNS:
             cells += [f"{float(ours[label][key]):.2f}", f"{paper[reference][key]:.2f}"]
-        lines.append("| " + " | ".join(cells) + " |")
+        body.append(cells)
+    lines = [
+        f"# Table 1 here and in the paper — {env_title(env)}, budget d = {cost_limit:g}",
+        "",
+        *markdown_table(header, "ll" + "r" * (len(header) - 2), body),
+    ]
     same = [label for label in compared if label in paper]  # the paper's own labels only
     lines.append("")
     if not same:  # (rows compared only through another label: nothing to order)

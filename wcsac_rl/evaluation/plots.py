@@ -1,4 +1,4 @@
-"""Matplotlib figures of training runs.
+"""Matplotlib figures of training runs and of a report's rows and runs.
 
 Figures are built with ``matplotlib.figure.Figure`` (no pyplot), so they render
 headless and never change the caller's matplotlib backend.
@@ -28,11 +28,13 @@ from typing import Any
 import matplotlib
 import numpy as np
 from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter, NullLocator
 
 from wcsac_rl.training.progress import read_progress
 from wcsac_rl.training.training_safety import cumulative_cost
 
 __all__ = [
+    "COST_RETURN_SIZE",
     "DPI",
     "FIG4_SIZE",
     "FIG6_SIZE",
@@ -42,6 +44,8 @@ __all__ = [
     "NO_VALUES",
     "ROW_MARKERS",
     "ROW_PALETTE",
+    "RUNS_PANEL_SIZE",
+    "SCORE_SIZE",
     "RowStyle",
     "box_view",
     "curve_panels",
@@ -50,7 +54,10 @@ __all__ = [
     "frames_formatter",
     "mark_empty_panel",
     "plot_cost_distribution",
+    "plot_cost_return",
     "plot_run_curves",
+    "plot_run_values",
+    "plot_score_distribution",
     "plot_training_curves",
     "plot_trajectories",
     "row_color",
@@ -313,17 +320,10 @@ def run_curves_figure(
     title: str = "",
     smooth: int = 1,
 ) -> Figure:
-    """The figure of :func:`plot_run_curves` from ``read_progress`` columns.
-
-    A grid of up to :data:`CURVE_COLUMNS` panels per row (:func:`curve_panels`):
-    return, cost (training and test, the limit d dashed), cost rate, the cumulative
-    training cost (:mod:`~wcsac_rl.training.training_safety`); then, when the run
-    logged them, the safety weight κ (``loss/kappa``), the entropy weight β
-    (``loss/alpha``), the safety critic's reading at the test episodes' start states
-    against the cost they realised (predicted Γ_α and Q^c against the realised CVaR_α
-    and mean of the discounted cost-to-go, ``calib/*``) and the constraint slack the κ
-    loss sees (``loss/constraint_slack``). ``smooth`` > 1: each curve is the trailing
-    mean over that many epochs, the epochs' own values drawn faint beneath it.
+    """The figure of :func:`plot_run_curves` from ``read_progress`` columns: a grid of up
+    to :data:`CURVE_COLUMNS` panels per row (:func:`curve_panels`; docs/training.md).
+    ``smooth`` > 1: each curve is the trailing mean over that many epochs, the epochs'
+    own values drawn faint beneath it.
     """
     if int(smooth) != smooth or smooth < 1:
         raise ValueError(f"smooth must be a whole number of epochs >= 1, got {smooth!r}")
@@ -864,4 +864,239 @@ def plot_trajectories(
     for ax in axes[len(panels) :]:
         ax.set_axis_off()
     draw_literally(fig.suptitle(title))
+    return _save(fig, out, formats)
+
+
+# ------------------------------------------------- the cost-return trade-off
+COST_RETURN_SIZE = (8.0, 5.0)  # inches: 800 × 500 px
+
+
+def _error(row: Mapping[str, Any], metric: str) -> tuple[float, float]:
+    """The distances from the row's value down and up to its interval's ends (0 where
+    there is no interval: one episode of one seed)."""
+    value, lo, hi = row[metric], row[f"{metric}_lo"], row[f"{metric}_hi"]
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return (0.0, 0.0)
+    return (max(0.0, value - lo), max(0.0, hi - value))
+
+
+def plot_cost_return(
+    rows: Sequence[Mapping[str, Any]],
+    out: Path,
+    *,
+    cost_limit: float,
+    title: str = "Cost and return",
+    styles: Mapping[str, RowStyle] | None = None,
+    formats: Sequence[str] = ("png",),
+) -> Path:
+    """``fig_cost_return.png``: one point per Table-1 row at (EC, ER) with the 95 %
+    seed-stratified bootstrap interval of each as error bars, in the row's colour and
+    marker; the budget d a dashed vertical line, the side of it within budget shaded.
+
+    Args:
+        rows: Table-1 rows (``label``, ``algorithm``, ``EC``, ``ER`` and their
+            ``_lo``/``_hi`` interval ends).
+        out: PNG path (:data:`COST_RETURN_SIZE` × ``DPI`` pixels).
+        cost_limit: the budget d, the dashed vertical line.
+        title: the figure's title.
+        styles: each row's colour and marker (default: :func:`row_styles`
+            of ``rows``).
+        formats: the files written (:func:`save_figure`).
+    """
+    if not rows:
+        raise ValueError("plot_cost_return needs at least one row")
+    styles = styles_for([row["label"] for row in rows], styles)
+    fig = Figure(figsize=COST_RETURN_SIZE, layout="constrained")
+    ax = fig.subplots()
+    for row in rows:
+        style = styles[row["label"]]
+        (low_x, high_x), (low_y, high_y) = _error(row, "EC"), _error(row, "ER")
+        ax.errorbar(
+            row["EC"],
+            row["ER"],
+            xerr=[[low_x], [high_x]],
+            yerr=[[low_y], [high_y]],
+            fmt=style.marker,
+            color=style.color,
+            markersize=8,
+            markeredgecolor="k",
+            markeredgewidth=0.6,
+            capsize=4,
+            linewidth=1.4,
+            label=row["algorithm"],
+        )
+    ax.axvline(
+        cost_limit, color="k", linestyle="--", linewidth=1.2, label=f"budget d = {cost_limit:g}"
+    )
+    low = min(0.0, *(row["EC"] - _error(row, "EC")[0] for row in rows))
+    high = max(cost_limit, *(row["EC"] + _error(row, "EC")[1] for row in rows))
+    left = low - 0.04 * (high - low or 1.0)  # (a row at EC = 0 stays whole in view)
+    ax.axvspan(left, cost_limit, color="0.5", alpha=0.08, linewidth=0, label="within budget")
+    ax.set_xlim(left, high + 0.04 * (high - low or 1.0))
+    ax.set_xlabel("EC: mean episodic cost (95 % interval)")
+    ax.set_ylabel("ER: mean episodic return (95 % interval)")
+    ax.grid(alpha=0.3)
+    draw_literally(ax.set_title(title, fontsize=10))  # (run data: "$" as written)
+    draw_literally(fig.legend(loc="outside right upper", fontsize=8))  # beside the axes
+    return _save(fig, out, formats)
+
+
+# ------------------------------------------------------ the runs one by one
+RUNS_PANEL_SIZE = (5.5, 5.0)  # inches per panel of fig_runs.png
+SCORE_SIZE = (9.0, 4.5)  # inches: 900 × 450 px
+_RUN_PANELS = (
+    ("EC", "EC: mean episode cost"),
+    ("C0.1", "C0.1: CVaR$_{0.1}$ of episode cost"),
+    ("ER", "ER: mean episode return"),
+)
+_SPREAD = 0.25  # half the width over which a row's dots are spread
+
+
+def _stat_rows(stats: Any) -> list[str]:
+    return list(dict.fromkeys(run["label"] for run in stats.runs))
+
+
+def plot_run_values(
+    stats: Any,
+    out: Path,
+    *,
+    title: str = "",
+    styles: Mapping[str, RowStyle] | None = None,
+    formats: Sequence[str] = ("png",),
+) -> Path:
+    """``fig_runs.png`` (see the module docstring) from a
+    :class:`~wcsac_rl.evaluation.run_report.RunStatistics`; ``styles``: each row's
+    colour and marker (default: :func:`~wcsac_rl.evaluation.row_styles` of its
+    rows); ``formats``: the files written."""
+    labels = _stat_rows(stats)
+    by_label = {row["label"]: row for row in stats.rows}
+    names = {run["label"]: run["algorithm"] for run in stats.runs}
+    styles = styles_for(labels, styles)
+    fig = Figure(
+        figsize=(RUNS_PANEL_SIZE[0] * len(_RUN_PANELS), RUNS_PANEL_SIZE[1]), layout="constrained"
+    )
+    axes = fig.subplots(1, len(_RUN_PANELS))
+    for ax, (metric, panel_title) in zip(axes, _RUN_PANELS):
+        for x, label in enumerate(labels):
+            runs = [run for run in stats.runs if run["label"] == label]
+            offsets = np.linspace(-_SPREAD, _SPREAD, len(runs)) if len(runs) > 1 else [0.0]
+            color, marker = styles[label].color, styles[label].marker
+            for offset, run in zip(offsets, runs):
+                held = run["split"] == "held-out"
+                ax.plot(
+                    x + offset,
+                    run[metric],
+                    marker=marker,
+                    linestyle="none",
+                    markersize=6,
+                    markeredgecolor=color,
+                    markerfacecolor=color if held else "none",
+                    alpha=0.85,
+                )
+            row = by_label.get(label)
+            if row is not None:
+                point = row[f"{metric}_iqm"]
+                ax.errorbar(
+                    x,
+                    point,
+                    yerr=[[point - row[f"{metric}_lo"]], [row[f"{metric}_hi"] - point]],
+                    fmt="D",
+                    color="k",
+                    markersize=6,
+                    capsize=5,
+                    linewidth=1.5,
+                    zorder=3,
+                )
+        if metric != "ER":
+            ax.axhline(stats.cost_limit, color="k", linestyle="--", linewidth=1)
+        set_row_ticks(ax, [names[label] for label in labels])
+        ax.set_xlim(-0.6, len(labels) - 0.4)
+        ax.set_title(panel_title)
+        ax.grid(axis="y", alpha=0.3)
+    _run_values_legend(fig, stats.cost_limit)
+    draw_literally(fig.suptitle(f"Runs one by one — {title}"))  # (names from run data)
+    return _save(fig, out, formats)
+
+
+def _run_values_legend(fig: Figure, cost_limit: float) -> None:
+    from matplotlib.lines import Line2D
+
+    handles = [
+        Line2D([], [], marker="o", linestyle="none", color="0.4", label="run, held-out seed"),
+        Line2D(
+            [],
+            [],
+            marker="o",
+            linestyle="none",
+            color="0.4",
+            markerfacecolor="none",
+            label="run, in-sample seed",
+        ),
+        Line2D([], [], marker="D", color="k", label="IQM over runs, 95 % interval"),
+        Line2D([], [], color="k", linestyle="--", label=f"budget d = {cost_limit:g}"),
+    ]
+    fig.legend(handles=handles, fontsize=9, loc="outside lower center", ncol=len(handles))
+
+
+def plot_score_distribution(
+    stats: Any,
+    out: Path,
+    *,
+    title: str = "",
+    styles: Mapping[str, RowStyle] | None = None,
+    formats: Sequence[str] = ("png",),
+) -> Path:
+    """``fig_score_distribution.png``: the fraction of a row's runs with C0.1 <= x against
+    x, one step curve per row marked at each of its runs, with a 95 % bootstrap band over
+    runs (rliable's score distribution); x linear up to d, logarithmic above it."""
+    from wcsac_rl.evaluation.run_statistics import cdf_band
+
+    values = np.array([run["C0.1"] for run in stats.runs], dtype=np.float64)
+    right = max(float(values.max()), float(stats.cost_limit)) * 1.05 or 1.0
+    grid = np.unique(np.concatenate([[0.0, right], values, [float(stats.cost_limit)]]))
+    fig = Figure(figsize=SCORE_SIZE, layout="constrained")
+    ax = fig.subplots()
+    styles = styles_for(_stat_rows(stats), styles)
+    for label in _stat_rows(stats):
+        runs = [run["C0.1"] for run in stats.runs if run["label"] == label]
+        name = next(run["algorithm"] for run in stats.runs if run["label"] == label)
+        color = styles[label].color
+        if len(runs) > 1:
+            share, low, high = cdf_band(runs, grid)
+            ax.fill_between(grid, low, high, step="post", color=color, alpha=0.12, linewidth=0)
+        else:
+            share = (np.asarray(runs)[:, None] <= grid).mean(axis=0)
+        ax.step(
+            grid,
+            share,
+            where="post",
+            color=color,
+            linewidth=1.8,
+            marker=styles[label].marker,
+            markevery=[int(i) for i in np.searchsorted(grid, np.unique(runs))],
+            markersize=5,
+            label=f"{name} ({len(runs)} run{'s' if len(runs) != 1 else ''})",
+        )
+    ax.axvline(
+        stats.cost_limit,
+        color="k",
+        linestyle="--",
+        linewidth=1,
+        label=f"budget d = {stats.cost_limit:g}",
+    )
+    # linear up to d, logarithmic above it: the runs near the budget stay apart however
+    # far the worst run lies
+    limit = max(float(stats.cost_limit), 1.0)
+    ax.set_xscale("symlog", linthresh=limit, linscale=1.5)
+    above = [v * 10**e for e in range(6) for v in (1, 2, 5) if 1.5 * limit < v * 10**e <= right]
+    ax.set_xticks([0.0, limit / 3, 2 * limit / 3, limit, *above])
+    ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:.3g}" if v < 1000 else f"{v:.0f}"))
+    ax.xaxis.set_minor_locator(NullLocator())
+    ax.set_xlim(0.0, right)
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_xlabel("x: C0.1 of a run (mean cost of its worst 10 % of test episodes)")
+    ax.set_ylabel("fraction of runs with C0.1 <= x")
+    ax.grid(alpha=0.3)
+    draw_literally(fig.legend(fontsize=8, loc="outside right upper"))  # (rows' names)
+    draw_literally(ax.set_title(f"Score distribution over runs — {title}", fontsize=10))
     return _save(fig, out, formats)

@@ -1,75 +1,20 @@
 """The paper's analysis of a set of runs: Table 1 and Figures 4, 5 and 6 in one directory.
 
-:func:`build_report` reads, below the given directories,
-
-* every evaluated directory (``evaluation.json`` + ``evaluation.csv`` from
-  ``python -m wcsac_rl.evaluate``) → Table 1 and Figure 6;
-* every run directory with ``config.yaml`` + ``progress.csv`` → Figure 4, the
-  training-safety table and ``runs.md``;
-* chosen runs' checkpoints → Figure 5 (trajectories; optionally videos),
-
-groups them by Table-1 row (``algo.label``; seeds pooled) and writes
-
-===============================  ============================================================
-``table1.md``, ``table1.csv``    EC, C0.9, C0.5, C0.1, ER, % over budget, episodes, seeds
-``fig4_training_curves.png``     return, cost, cost rate vs env steps (mean ± std over seeds)
-``fig5_trajectories.png``        one panel per chosen run: layout + several test episodes
-``fig5_<label>_seed<N>.png``     the same, one file per chosen run
-``fig5_stages.png``              chosen runs with kept checkpoints (``keep_checkpoints_at``),
-                                 of the ``stage_rows`` (default: all): one row per run, one
-                                 panel per kept checkpoint and the end (the paper's
-                                 Figure 5(a)-(c) shows SAC-Lag so)
-``fig5_<label>_seed<N>.mp4``     (``video=True``) the first of those episodes, rendered
-``fig6_evaluation.png``          (a) cost box plots, whiskers 1st/99th pct.; (b) % over budget
-``table1_vs_paper.md``           (StaticEnv, d = 15) each row beside the paper's Table 1, and
-                                 the orderings of C0.1 and EC (:mod:`~wcsac_rl.evaluation.paper`)
-``runs.md``                      the training runs: row, seed, frames, training wall time,
-                                 sessions, the code commit each session ran
-                                 (:mod:`~wcsac_rl.training.provenance`)
-``training_safety.md``/``.csv``  per row, each seed's and the mean over seeds of the
-                                 cumulative training cost, epochs over d (all, after 50 k
-                                 frames), peak epoch cost, frames from which every epoch
-                                 stayed <= d (:mod:`~wcsac_rl.evaluation.training_safety_table`)
-``runs/<run>/``                  (``archive=True``) each run's evaluation, config, session
-                                 records and progress
-``run_values.md``/``.csv``,      the runs one by one, the IQM over runs with its bootstrap
-``run_statistics.md``/``.csv``,  interval, the probability of improvement of the
-``improvement.csv``,             ``improvement`` pairs, and their figures
-``fig_runs.png``,                (:mod:`~wcsac_rl.evaluation.run_report`)
-``fig_score_distribution.png``
-``fig_cost_return.png``          each row at (EC, ER) with their 95 % intervals, d drawn
-                                 (:mod:`~wcsac_rl.evaluation.cost_return`)
-``outcomes.md``/``.csv``,        each run's test episodes by outcome (goal reached or not,
-``fig_outcomes.png``             with or without cost, numerical failure), whether it
-                                 learned, a stacked bar per run (:mod:`~wcsac_rl.evaluation.outcomes`)
-===============================  ============================================================
-
-Every figure is written as PNG and PDF (:data:`FORMATS`), every Markdown table also as a
-LaTeX booktabs table (``table1.tex``, ``runs.tex``, ...: :mod:`~wcsac_rl.evaluation.latex`).
-A row is drawn in one colour and marker in all the figures (:func:`~wcsac_rl.evaluation.plots.row_styles`
-of the report's rows). On an env without a layout (a user's ``env=gymnasium`` env:
-:func:`~wcsac_rl.evaluation.runs.env_has_layout`) Figure 5 is skipped, said in one line, and
-the tables have no goals columns.
-
-Below a sweep directory (``multirun.yaml``, from any launcher) every job of the sweep
-is accounted for: jobs that never started, failed, still run or stopped before
-``total_frames`` are warnings and are listed by name under Table 1 (:mod:`~wcsac_rl.evaluation.sweeps`).
-Nothing is overwritten unless ``force``: the existing files are listed and nothing
-is done. A report is written whole or not at all: its files are made in a staging
-directory and moved into place once every one is, so one that fails (a full disk, a
-name that breaks a table) leaves nothing. Text from a run's files (its directory's name,
-its row label, the machine it ran on) is escaped in the Markdown and LaTeX tables
-(:func:`~wcsac_rl.evaluation.latex.markdown_cell`); an ``evaluation.json`` whose seed,
-algorithm, label or env is not its run's config's is refused. A report covers one
-environment and one budget d (pass ``env`` / ``cost_limit`` when the runs mix them).
+:func:`build_report` reads the evaluated directories (``evaluation.json``) and training
+runs (``config.yaml`` + ``progress.csv``) below the given directories, groups them by
+Table-1 row (``algo.label``; seeds pooled; runs of a label that differ in a
+:data:`POOLED_KEYS` setting are separate rows) and writes the files docs/reproduce.md
+lists (Table 1, Figures 4-6, ``runs.md``, the training-safety table, the statistics over
+runs, the outcomes; every figure as PNG and PDF, every Markdown table also as LaTeX).
+Below a sweep directory every job is accounted for (:mod:`~wcsac_rl.evaluation.sweeps`).
+A report is written whole or not at all (:func:`_staging`) and never over existing files
+without ``force``; it covers one env and one budget d.
 """
 
 from __future__ import annotations
 
 import contextlib
-import csv
 import dataclasses
-import io
 import math
 import os
 import re
@@ -94,7 +39,14 @@ from wcsac_rl.evaluation.evaluator import (
     stale_evaluation,
 )
 from wcsac_rl.evaluation.intervals import INTERVAL_METRICS, seed_bootstrap
-from wcsac_rl.evaluation.latex import latex_path, markdown_cell, markdown_text, markdown_to_latex
+from wcsac_rl.evaluation.latex import (
+    csv_text,
+    latex_path,
+    markdown_cell,
+    markdown_table,
+    markdown_text,
+    markdown_to_latex,
+)
 from wcsac_rl.evaluation.metrics import RISK_LEVELS, aggregate_seeds, cvar_key
 from wcsac_rl.evaluation.outcomes import (
     FIG_OUTCOMES,
@@ -279,25 +231,24 @@ def runs_markdown(runs: Sequence[RunRecord], env: str | None) -> str:
     """``runs.md``: one line per training run — row, seed, frames trained, training wall
     time (``progress.csv``'s ``time_s``, all sessions), sessions and code commits —
     and the total training time."""
-    lines = [
-        f"# Training runs — {markdown_text(env_title(env)) if env else '?'}",
-        "",
-        "| run | row | seed | frames | training wall time | sessions | code |",
-        "|---|---|---:|---:|---:|---:|---|",
-    ]
-    total = 0.0
+    total, cells = 0.0, []
     for run in sorted(runs, key=lambda r: (row_sort_key(r.label), r.seed, r.directory.name)):
         progress = run.progress or {}
         frames = progress.get("frames", [math.nan])[-1] if progress else math.nan
         seconds = progress.get("time_s", [math.nan])[-1] if progress else math.nan
         if math.isfinite(seconds):
             total += seconds
-        frames_text = f"{int(frames)}" if math.isfinite(frames) else "?"
-        name, row = markdown_cell(run.directory.name), markdown_cell(row_name(run.label))
-        lines.append(
-            f"| {name} | {row} | {run.seed} | {frames_text} | {_wall_text(seconds)} | "
-            f"{run.sessions} | {markdown_cell(_code_text(run.provenance, run.sessions))} |"
-        )
+        cells.append(
+            [markdown_cell(run.directory.name), markdown_cell(row_name(run.label)), run.seed,
+             f"{int(frames)}" if math.isfinite(frames) else "?", _wall_text(seconds),
+             run.sessions, markdown_cell(_code_text(run.provenance, run.sessions))]
+        )  # fmt: skip
+    header = ["run", "row", "seed", "frames", "training wall time", "sessions", "code"]
+    lines = [
+        f"# Training runs — {markdown_text(env_title(env)) if env else '?'}",
+        "",
+        *markdown_table(header, "llrrrrl", cells),
+    ]
     lines += [
         "",
         f"Total training wall time: {_wall_text(total)} over {len(runs)} runs (each run's "
@@ -389,12 +340,7 @@ def table1_markdown(
     cvars = [cvar_key(a) for a in RISK_LEVELS]
     metrics = ["EC", *cvars, "ER", *(["goals"] if goals else [])]
     header = ["Algorithm", *metrics, "over budget", "episodes (seeds)"]
-    lines = [
-        f"# Table 1 — {markdown_text(env_title(env))}, budget d = {cost_limit:g}",
-        "",
-        "| " + " | ".join(header) + " |",
-        "|---|" + "---:|" * (len(header) - 1),
-    ]
+    body = []
     for row in rows:
         bold = _constrained_column(row["label"])
         cells = [markdown_cell(row["algorithm"])]
@@ -408,8 +354,12 @@ def table1_markdown(
         seeds = f"{row['seeds']} seed{'s' if row['seeds'] != 1 else ''}"
         if row["runs"] != row["seeds"]:
             seeds = f"{row['runs']} runs, {seeds}"
-        cells.append(f"{row['episodes']} ({seeds})")
-        lines.append("| " + " | ".join(cells) + " |")
+        body.append([*cells, f"{row['episodes']} ({seeds})"])
+    lines = [
+        f"# Table 1 — {markdown_text(env_title(env))}, budget d = {cost_limit:g}",
+        "",
+        *markdown_table(header, "l" + "r" * (len(header) - 1), body),
+    ]
     lines += [
         "",
         "EC: mean episodic cost; C_α: empirical CVaR, the mean cost of the worst ⌈n·α⌉ of "
@@ -431,25 +381,23 @@ def table1_markdown(
             "Missing and failed jobs are not in the table; an unfinished or running job is "
             "if it was evaluated, with the policy of the checkpoint it had then.",
             "",
-            "| job | status | sweep | detail |",
-            "|---|---|---|---|",
+            *markdown_table(
+                ["job", "status", "sweep", "detail"],
+                "llll",
+                (
+                    [markdown_cell(c) for c in (j.name, j.status, j.sweep, j.detail)]
+                    for j in incomplete
+                ),
+            ),
+            "",
         ]
-        for job in incomplete:
-            cells = (job.name, job.status, job.sweep, job.detail)
-            lines.append("| " + " | ".join(markdown_cell(cell) for cell in cells) + " |")
-        lines.append("")
     return "\n".join(lines)
 
 
 def _table_csv(rows: Sequence[dict[str, Any]], goals: bool = True) -> str:
     """table1.csv (:data:`TABLE_COLUMNS`; without :data:`GOAL_COLUMNS` unless ``goals``)."""
     columns = [c for c in TABLE_COLUMNS if goals or c not in GOAL_COLUMNS]
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore")
-    writer.writeheader()
-    for row in rows:
-        writer.writerow(row)
-    return buf.getvalue()
+    return csv_text(rows, columns, lineterminator="\r\n")
 
 
 # ------------------------------------------------------------------------- the report
@@ -483,14 +431,13 @@ largest member and at a UCB are two rows)."""
 
 
 def _session_config(directory: Path) -> Any:
-    """The run's config as its last session ran it (``config.resume<k>.yaml`` with the
-    largest k, else ``config.yaml``); ``None`` without a readable one."""
-    found = _session_config_file(directory)
-    return None if found is None else found[1]
+    """The run's config as its last session ran it; ``None`` without a readable one."""
+    return (_session_config_file(directory) or (None, None))[1]
 
 
 def _session_config_file(directory: Path) -> tuple[Path, Any] | None:
-    """``(path, config)`` of :func:`_session_config`; ``None`` without a readable one."""
+    """``(path, config)`` of the run's last session (``config.resume<k>.yaml`` with the
+    largest k, else ``config.yaml``); ``None`` without a readable one."""
     resumed = sorted(
         directory.glob("config.resume*.yaml"),
         key=lambda p: (
@@ -1164,8 +1111,6 @@ def _write_table1(
 ) -> list[Path]:
     """Table 1 (Markdown, CSV, LaTeX; beside the paper's), Figure 6, the cost-return
     figure (each row in its ``styles``) and the runs' episode outcomes."""
-    from wcsac_rl.evaluation.cost_return import plot_cost_return
-
     title_env = env_title(env) if env else "?"
     goals = env_has_layout(env)
     files = _write_table(out_dir / TABLE_MD, table1_markdown(rows, env, cost_limit, incomplete))
@@ -1191,7 +1136,7 @@ def _write_table1(
         styles=styles,
         formats=FORMATS,
     )
-    plot_cost_return(
+    plots.plot_cost_return(
         rows,
         out_dir / FIG_COST_RETURN,
         cost_limit=cost_limit,

@@ -1,42 +1,18 @@
 """The report's runs one by one, and each row summarised over its runs.
 
-:func:`collect_run_statistics` turns a report's evaluations into
-
-==============================  ==============================================================
-``run_values.md`` / ``.csv``    one line per run: row, seed, held-out or in-sample
-                                (:data:`~wcsac_rl.evaluation.run_statistics.HELD_OUT_SEEDS`),
-                                machine (CPU model and kernel capability, its
-                                ``provenance.json``), EC, C0.1, ER, goals, episodes
-``run_statistics.md``           per row: runs, machines, the IQM over runs of EC, C0.1, ER and
-                                goals with its 95 % bootstrap interval; for each pair asked
-                                for, the probability of improvement on C0.1 and EC
-``run_statistics.csv``          the per-row numbers
-``improvement.csv``             the pairs' numbers (when pairs are asked for)
-``fig_runs.png``                one dot per run of EC, C0.1, ER; IQM and interval; d drawn
-``fig_score_distribution.png``  fraction of runs with C0.1 <= x, one curve per row
-==============================  ==============================================================
-
-Each Markdown table is also written as a LaTeX booktabs table (``run_values.tex``,
-``run_statistics.tex``: :mod:`~wcsac_rl.evaluation.latex`), each figure as PNG and PDF.
-
-(definitions: :mod:`~wcsac_rl.evaluation.run_statistics`; figures:
-:mod:`~wcsac_rl.evaluation.run_plots`; the protocol: docs/evaluation_protocol.md).
-
-Statistics over runs are only as good as the runs they pool, so before anything is written
-the runs are checked: every training run below the paths is evaluated (readable
-``evaluation.json`` and ``evaluation.csv``), a row holds one run per seed, and its runs
-were made with one configuration — their configs (the last session's) agree on every key
-but those that say where and how a run was executed (:data:`EXECUTION_KEYS`) and their
-evaluations on every setting (:data:`EVALUATION_KEYS`). A row of one run has no statistics
-over runs. In a plain report a failed check leaves these files out, said in one warning
-line (a row of one run is left out of the per-row statistics, in one line); in a study's
-report (``study=True``, implied by naming pairs) each is an error, and nothing is written.
+:func:`collect_run_statistics` checks the report's runs and computes the tables
+``run_values.md`` / ``.csv`` (one line per run), ``run_statistics.md`` / ``.csv`` (per
+row, the IQM over runs with its interval; the probability of improvement of the pairs
+asked for) and ``improvement.csv``; :func:`write_run_statistics` writes them with
+``fig_runs.png`` and ``fig_score_distribution.png``
+(:func:`~wcsac_rl.evaluation.plots.plot_run_values`). What they hold and which runs may
+be pooled (:data:`EXECUTION_KEYS`, :data:`EVALUATION_KEYS`): docs/evaluation_protocol.md.
+A failed check leaves these files out with one warning line in a plain report, and is an
+error (nothing written) in a study's (``study=True``, implied by naming pairs).
 """
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from collections import defaultdict
 from collections.abc import Callable, Mapping, Sequence
@@ -47,7 +23,14 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from wcsac_rl.evaluation.defaults import CLAIM_RUNS
-from wcsac_rl.evaluation.latex import latex_path, markdown_cell, markdown_text, markdown_to_latex
+from wcsac_rl.evaluation.latex import (
+    csv_text,
+    latex_path,
+    markdown_cell,
+    markdown_table,
+    markdown_text,
+    markdown_to_latex,
+)
 from wcsac_rl.evaluation.plots import FIGURE_FORMATS, figure_paths
 from wcsac_rl.evaluation.run_statistics import (
     HELD_OUT_SEEDS,
@@ -206,14 +189,14 @@ class RunStatistics:
         values, statistics = run_values_markdown(self), run_statistics_markdown(self)
         files = {
             RUN_VALUES_MD: values,
-            RUN_VALUES_CSV: _csv(self.runs, _columns(self, RUN_COLUMNS)),
+            RUN_VALUES_CSV: csv_text(self.runs, _columns(self, RUN_COLUMNS)),
             RUN_VALUES_TEX: markdown_to_latex(values),
             RUN_STATISTICS_MD: statistics,
-            RUN_STATISTICS_CSV: _csv(self.rows, _columns(self, ROW_COLUMNS)),
+            RUN_STATISTICS_CSV: csv_text(self.rows, _columns(self, ROW_COLUMNS)),
             RUN_STATISTICS_TEX: markdown_to_latex(statistics),
         }
         if self.improvements:
-            files[IMPROVEMENT_CSV] = _csv(self.improvements, IMPROVEMENT_COLUMNS)
+            files[IMPROVEMENT_CSV] = csv_text(self.improvements, IMPROVEMENT_COLUMNS)
         return files
 
     def file_names(self, formats: Sequence[str] = FIGURE_FORMATS) -> list[str]:
@@ -470,15 +453,6 @@ def collect_run_statistics(
 
 
 # --------------------------------------------------------------------------- tables
-def _csv(rows: Sequence[dict[str, Any]], columns: Sequence[str]) -> str:
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=columns, extrasaction="ignore", lineterminator="\n")
-    writer.writeheader()
-    for row in rows:
-        writer.writerow(row)
-    return buf.getvalue()
-
-
 def _metrics(stats: RunStatistics) -> list[str]:
     """The metrics the tables show: :data:`RUN_METRICS` without goals for an env without
     goals (:func:`~wcsac_rl.evaluation.runs.env_has_layout`)."""
@@ -502,14 +476,20 @@ def run_values_markdown(stats: RunStatistics) -> str:
     lines = [
         f"# Runs one by one — {_title(stats)}",
         "",
-        f"| row | seed | split | machine | {' | '.join(metrics)} | episodes | run |",
-        "|---|---:|---|---|" + "---:|" * len(metrics) + "---:|---|",
+        *markdown_table(
+            ["row", "seed", "split", "machine", *metrics, "episodes", "run"],
+            "lrll" + "r" * len(metrics) + "rl",
+            (
+                [
+                    *(markdown_cell(run[key]) for key in ("algorithm", "seed", "split", "machine")),
+                    *(f"{run[m]:.2f}" for m in metrics),
+                    run["episodes"],
+                    markdown_cell(run["run"]),
+                ]
+                for run in stats.runs
+            ),
+        ),
     ]
-    for run in stats.runs:
-        cells = [markdown_cell(run[key]) for key in ("algorithm", "seed", "split", "machine")]
-        cells += [f"{run[m]:.2f}" for m in metrics]
-        cells += [str(run["episodes"]), markdown_cell(run["run"])]
-        lines.append("| " + " | ".join(cells) + " |")
     lo, hi = HELD_OUT_SEEDS[0], HELD_OUT_SEEDS[-1]
     lines += [
         "",
@@ -535,14 +515,19 @@ def run_statistics_markdown(stats: RunStatistics) -> str:
     lines = [
         f"# Statistics over runs — {_title(stats)}",
         "",
-        f"| row | runs (held-out) | {' | '.join(metrics)} | machines |",
-        "|---|---:|" + "---:|" * len(metrics) + "---|",
-    ]
-    for row in stats.rows:
-        cells = [markdown_cell(row["algorithm"]), f"{row['runs']} ({row['held_out_runs']})"]
-        cells += [_cell(row, m) for m in metrics] + [markdown_cell(row["machines"])]
-        lines.append("| " + " | ".join(cells) + " |")
-    lines += [
+        *markdown_table(
+            ["row", "runs (held-out)", *metrics, "machines"],
+            "lr" + "r" * len(metrics) + "l",
+            (
+                [
+                    markdown_cell(row["algorithm"]),
+                    f"{row['runs']} ({row['held_out_runs']})",
+                    *(_cell(row, m) for m in metrics),
+                    markdown_cell(row["machines"]),
+                ]
+                for row in stats.rows
+            ),
+        ),
         "",
         "Each cell: the interquartile mean over the row's runs of the run's value "
         "(run_values.md), scipy.stats.trim_mean(·, 0.25) as rliable's IQM, and its 95 % "
@@ -559,19 +544,21 @@ def run_statistics_markdown(stats: RunStatistics) -> str:
         lines += [
             "## Probability of improvement",
             "",
-            "| A | B | measure | P(run of A lower) | runs A, B (held-out) | reading |",
-            "|---|---|---|---:|---|---|",
-        ]
-        for entry in stats.improvements:
-            a, b = markdown_cell(row_name(entry["a"])), markdown_cell(row_name(entry["b"]))
-            reading = markdown_cell(entry["reading"])
-            lines.append(
-                f"| {a} | {b} | {entry['metric']} | "
-                f"{entry['p_a_lower']:.2f} [{entry['lo']:.2f}, {entry['hi']:.2f}] | "
-                f"{entry['runs_a']} ({entry['held_out_a']}), "
-                f"{entry['runs_b']} ({entry['held_out_b']}) | {reading} |"
-            )
-        lines += [
+            *markdown_table(
+                ["A", "B", "measure", "P(run of A lower)", "runs A, B (held-out)", "reading"],
+                "lllrll",
+                (
+                    [
+                        markdown_cell(row_name(e["a"])),
+                        markdown_cell(row_name(e["b"])),
+                        e["metric"],
+                        f"{e['p_a_lower']:.2f} [{e['lo']:.2f}, {e['hi']:.2f}]",
+                        f"{e['runs_a']} ({e['held_out_a']}), {e['runs_b']} ({e['held_out_b']})",
+                        markdown_cell(e["reading"]),
+                    ]
+                    for e in stats.improvements
+                ),
+            ),
             "",
             "P(run of A lower): the probability that a run of A has a lower value than a run "
             "of B, ties counting half (P(X < Y) + ½ P(X = Y) over all pairs of runs), with "
@@ -595,7 +582,7 @@ def write_run_statistics(
     """Write the tables (with ``write_text``; each Markdown table also as LaTeX) and the two
     figures (each row in its ``styles``, as :func:`~wcsac_rl.evaluation.plots.row_styles`
     gives; each in ``formats``); return the paths (none for ``None``: statistics left out)."""
-    from wcsac_rl.evaluation.run_plots import plot_run_values, plot_score_distribution
+    from wcsac_rl.evaluation.plots import plot_run_values, plot_score_distribution
 
     if stats is None:
         return []

@@ -1,35 +1,12 @@
 """Statistics over runs: each run one number, a row summarised over its runs.
 
-A run (one training seed on one machine) is one draw of an algorithm; its test episodes
-measure that one draw. What a claim about an algorithm needs is the distribution over
-runs (Agarwal et al. 2021, "Deep RL at the edge of the statistical precipice"; the
-``rliable`` library), so each run is reduced to its own values:
-
-* **EC** — the mean cost of its test episodes; **C0.1** — the empirical CVaR_0.1 of them,
-  the mean of the worst ``⌈n·0.1⌉`` (:func:`~wcsac_rl.objectives.risk.empirical_cvar`);
-  **ER** — the mean return; **goals** — goals per episode (:func:`run_values`).
-
-and a row (the runs of one configuration) is summarised with rliable's definitions:
-
-* the **interquartile mean** (IQM): the mean of the runs left after cutting 25 % at each
-  end, ``scipy.stats.trim_mean(values, 0.25)`` as ``rliable.metrics.aggregate_iqm``
-  computes it (:func:`iqm`);
-* its 95 % **stratified bootstrap interval** (:func:`iqm_interval`): the runs resampled
-  with replacement, the percentile interval of the IQM of the resamples. rliable
-  stratifies by task; a report covers one env, one task, so the strata are the runs;
-* the **probability of improvement** of row A over row B for a cost, lower being better
-  (:func:`probability_of_improvement`): the chance that a run of A has a lower value than
-  a run of B, ties counting half, ``P(X < Y) + ½ P(X = Y)`` over all pairs of runs: the
-  Mann-Whitney U of ``(Y, X)`` over ``n_A·n_B`` (``rliable.metrics.probability_of_improvement``
-  with the sign turned for a cost);
-* its interval (:func:`improvement_interval`): the runs of A and of B resampled
-  independently (rliable's ``StratifiedIndependentBootstrap``).
-
-The statistics are scipy's (:func:`scipy.stats.trim_mean`, :func:`scipy.stats.mannwhitneyu`,
-:func:`scipy.stats.bootstrap`, percentile method); the resampling is seeded, so a report
-made twice writes the same intervals byte for byte. (rliable's own bootstrap draws its
-indices from NumPy's global random state, whatever ``random_state`` it is given, and it
-needs ``arch``, ``pandas`` and ``seaborn``; the kit does not depend on it.)
+Each run is reduced to its own EC, C0.1, ER and goals (:func:`run_values`); a row is
+summarised with rliable's definitions (Agarwal et al. 2021), computed with scipy: the
+interquartile mean (:func:`iqm`) with its stratified bootstrap interval
+(:func:`iqm_interval`), and the probability of improvement of row A over row B for a
+cost (:func:`probability_of_improvement`) with its interval (:func:`improvement_interval`).
+Definitions and how a study reads them: docs/evaluation_protocol.md. The resampling is
+seeded (a report made twice writes the same bytes); the kit does not depend on rliable.
 """
 
 from __future__ import annotations

@@ -44,7 +44,11 @@ from pathlib import Path
 from typing import Any
 
 from wcsac_rl._messages import first_line
+from wcsac_rl.evaluation.latex import markdown_table
+from wcsac_rl.evaluation.run_report import RUN_VALUES_CSV as RUN_VALUES_FILE
 from wcsac_rl.evaluation.run_statistics import RUN_METRICS
+from wcsac_rl.evaluation.training_safety_table import METRICS
+from wcsac_rl.evaluation.training_safety_table import TRAINING_SAFETY_CSV as TRAINING_SAFETY_FILE
 from wcsac_rl.training.run_dir import replace_files
 
 __all__ = [
@@ -59,19 +63,11 @@ __all__ = [
 
 TARGETS_MD = "targets.md"
 TARGETS_CSV = "targets.csv"
-RUN_VALUES_FILE = "run_values.csv"
-TRAINING_SAFETY_FILE = "training_safety.csv"
 
 RUN_VALUE_METRICS = (*RUN_METRICS, "over_budget")
 """The metrics read from ``run_values.csv``."""
 
-TRAINING_SAFETY_METRICS = (
-    "cumulative_cost",
-    "epochs_over_limit",
-    "epochs_over_limit_after_warmup",
-    "peak_epoch_cost",
-    "safe_from_frames",
-)
+TRAINING_SAFETY_METRICS = tuple(m for m in METRICS if m not in ("frames", "epochs"))
 """The metrics read from ``training_safety.csv`` (its ``<metric>_per_seed`` columns)."""
 
 BOUNDS = {"at_most": "≤", "at_least": "≥"}
@@ -341,10 +337,7 @@ def targets_tables(report: Path, targets: Mapping[str, Sequence[Target]]) -> dic
                     f"(not in {TRAINING_SAFETY_FILE})"
                 )
     metrics = list(dict.fromkeys(t.metric for ts in targets.values() for t in ts))
-    lines = [
-        "| row | runs | " + " | ".join(TITLES.get(m, m) for m in metrics) + " |",
-        "|---|---:|" + "---|" * len(metrics),
-    ]
+    rows = []
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(["label", "seed", "metric", "value", "bound", "target", "met"])
@@ -368,10 +361,9 @@ def targets_tables(report: Path, targets: Mapping[str, Sequence[Target]]) -> dic
                     ]
                 )
             cells[target.metric] = f"{met} of {len(runs)} ({target.text()})"
-        lines.append(
-            f"| {_cell(names[label])} | {len(runs)} | " + " | ".join(cells.values()) + " |"
-        )
-    markdown = "\n".join(lines) + "\n"
+        rows.append([_cell(names[label]), len(runs), *cells.values()])
+    header = ["row", "runs", *(TITLES.get(m, m) for m in metrics)]
+    markdown = "\n".join(markdown_table(header, "lr" + "l" * len(metrics), rows)) + "\n"
     return {TARGETS_MD: markdown, TARGETS_CSV: buf.getvalue()}
 
 

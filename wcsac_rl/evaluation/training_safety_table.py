@@ -11,15 +11,20 @@ epoch stayed ≤ d.
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from wcsac_rl.evaluation.latex import latex_path, markdown_cell, markdown_text, markdown_to_latex
+from wcsac_rl.evaluation.latex import (
+    csv_text,
+    latex_path,
+    markdown_cell,
+    markdown_table,
+    markdown_text,
+    markdown_to_latex,
+)
 from wcsac_rl.evaluation.runs import env_title, row_name, row_sort_key
 from wcsac_rl.training.training_safety import WARMUP_FRAMES, training_safety
 
@@ -120,15 +125,9 @@ def training_safety_rows(
 
 def training_safety_csv(rows: Sequence[dict[str, Any]]) -> str:
     """The rows as CSV: full float reprs, per-seed values space-separated."""
-    buf = io.StringIO()
-    writer = csv.DictWriter(buf, fieldnames=CSV_COLUMNS, extrasaction="ignore")
-    writer.writeheader()
-    for row in rows:
-        cells = dict(row)
-        for key in METRICS:
-            cells[f"{key}_per_seed"] = " ".join(map(repr, row[f"{key}_per_seed"]))
-        writer.writerow(cells)
-    return buf.getvalue()
+    per_seed = [f"{key}_per_seed" for key in METRICS]
+    cells = ({**row, **{k: " ".join(map(repr, row[k])) for k in per_seed}} for row in rows)
+    return csv_text(cells, CSV_COLUMNS, lineterminator="\r\n")
 
 
 def _cell(row: dict[str, Any], key: str, text: Callable[[float], str]) -> str:
@@ -174,11 +173,9 @@ def training_safety_markdown(
         f"# Training safety — {markdown_text(env_title(env)) if env else '?'}, budget "
         f"d = {cost_limit:g}",
         "",
-        "| " + " | ".join(header) + " |",
-        "|---|" + "---:|" * (len(header) - 1),
     ]
-    for row in rows:
-        cells = [
+    body = [
+        [
             markdown_cell(row["algorithm"]),
             _cell(row, "cumulative_cost", lambda v: f"{v:.0f}"),
             _cell(row, "epochs_over_limit", _count_text),
@@ -187,7 +184,9 @@ def training_safety_markdown(
             _safe_from_cell(row),
             f"{_frames_text(max(row['frames_per_seed']))} ({row['seeds']})",
         ]
-        lines.append("| " + " | ".join(cells) + " |")
+        for row in rows
+    ]
+    lines += markdown_table(header, "l" + "r" * (len(header) - 1), body)
     legend = _LEGEND.format(d=f"{cost_limit:g}", warmup=warmup)
     if any(math.isnan(p) for row in rows for p in row["peak_epoch_cost_per_seed"]):
         legend += " –: no training episode finished in the run (nothing was measured)."
