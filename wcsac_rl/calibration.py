@@ -1,17 +1,10 @@
 """Safety-critic calibration of a trained run: ``python -m wcsac_rl.calibration RUN_DIR``.
 
-Loads the run's final checkpoint (the whole loss: actor and safety critic), runs
-deterministic test episodes of the policy, compares the critic's predictions Q^c,
-Γ_α and √V^c with the realised discounted cost-to-go
-(:mod:`wcsac_rl.evaluation.run_calibration`), prints a small table and writes
-``calibration.json`` beside the run. The test env is seeded as by
-``python -m wcsac_rl.evaluate`` (training seed + ``--seed``), so the episodes are the
-first ``--episodes`` of that evaluation.
-
-An existing ``calibration.json`` is not overwritten unless ``--force``. A path that
-is not a run directory, a run without a safety critic (SAC, CPO, random), an
-unreadable checkpoint or an existing file without ``--force`` prints one ``error:``
-line and exits with code 1.
+Compares the final checkpoint's safety critic (Q^c, Γ_α, √V^c) with the realised
+discounted cost-to-go of deterministic test episodes, seeded as ``wcsac_rl.evaluate``'s
+(:mod:`wcsac_rl.evaluation.run_calibration`); prints a table and writes
+``calibration.json`` beside the run (not over an existing one without ``--force``).
+Errors print one ``error:`` line and exit with code 1.
 
 Examples::
 
@@ -28,7 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from wcsac_rl.cli_args import add_trust_env_code, check_seed, check_threads
+from wcsac_rl.evaluate import add_episode_arguments, add_process_arguments, check_episode_arguments
 from wcsac_rl.evaluation.defaults import DEFAULT_SEED_OFFSET
 
 __all__ = ["DEFAULT_CALIBRATION_EPISODES", "format_table", "main", "parse_args"]
@@ -47,38 +40,17 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         ),
     )
     parser.add_argument("run_dir", type=Path, help="a run directory (with checkpoints/last.pt)")
-    parser.add_argument(
-        "--episodes",
-        type=int,
-        default=DEFAULT_CALIBRATION_EPISODES,
-        help=f"test episodes (default {DEFAULT_CALIBRATION_EPISODES})",
-    )
-    parser.add_argument(
-        "--seed",
-        type=int,
-        default=DEFAULT_SEED_OFFSET,
-        help=(
-            "seed offset of the test episodes: the env is seeded training seed + SEED "
-            f"(default {DEFAULT_SEED_OFFSET}, as python -m wcsac_rl.evaluate)"
-        ),
-    )
-    parser.add_argument(
-        "--max-episode-steps",
-        type=int,
-        default=None,
-        help="bound on an episode's length (default: the env's own)",
+    add_episode_arguments(
+        parser,
+        episodes=DEFAULT_CALIBRATION_EPISODES,
+        episodes_help=f"test episodes (default {DEFAULT_CALIBRATION_EPISODES})",
+        seed_help="seed offset of the test episodes: the env is seeded training seed + SEED "
+        f"(default {DEFAULT_SEED_OFFSET}, as python -m wcsac_rl.evaluate)",
     )
     parser.add_argument("--force", action="store_true", help="overwrite calibration.json")
-    add_trust_env_code(parser)
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_process_arguments(parser)
     args = parser.parse_args(argv)
-    check_seed(parser, "--seed", args.seed)
-    check_threads(parser, args.threads)
-    if args.episodes < 1:
-        parser.error(f"--episodes must be >= 1, got {args.episodes}")
-    if args.max_episode_steps is not None and args.max_episode_steps < 1:
-        parser.error(f"--max-episode-steps must be >= 1, got {args.max_episode_steps}")
+    check_episode_arguments(parser, args)
     return args
 
 

@@ -1,27 +1,14 @@
 """Final evaluation of trained runs: ``python -m wcsac_rl.evaluate RUN_OR_SWEEP_DIR ...``.
 
-For every run directory given, or found below a sweep directory (any directory with
-``checkpoints/last.pt``), loads the final checkpoint, runs N deterministic test
-episodes (default 100, the paper's per seed) and writes ``evaluation.csv`` (one row
-per episode) and ``evaluation.json`` (metadata and the Table-1 summary) beside the
-run. ``--random-policy ENV`` evaluates the uniform random policy the same way
-without a training run (one directory per ``--random-seeds`` seed under ``--out``).
-
-Existing evaluations are skipped (nothing is overwritten) unless ``--force``. A path
-that cannot be evaluated (missing, a run directory without a checkpoint, an
-unreadable checkpoint) prints one ``error:`` line; the other runs are still
-evaluated, and the exit code is 1 if any path failed (0 otherwise). Below a sweep
-directory (``multirun.yaml``, any launcher) every job of the sweep is accounted for
-(:mod:`~wcsac_rl.evaluation.sweeps`): a job that never started or has no checkpoint is
-one ``error:`` line naming it (exit code 1), one still training (its run directory
-locked) or stopped before ``total_frames`` a ``warning:`` (a checkpoint it has is
-evaluated as it is). Any other run evaluated before its config's ``total_frames`` (a
-run directory given itself) is one ``warning:`` line too, on stderr (``warning: RUN:
-evaluated at F of its T frames (training unfinished: ...)``), and is still evaluated.
-``--archive DIR`` also copies each evaluated run's records (no checkpoint:
-:mod:`~wcsac_rl.evaluation.archive`) into ``DIR/<run name>`` as soon as it is
-evaluated, so that a study whose run directories may not last keeps every finished
-run; ``python -m wcsac_rl.report DIR`` then makes its tables.
+For every run directory given, or found below a sweep directory (``checkpoints/last.pt``),
+runs N deterministic test episodes of the final policy (default 100) and writes
+``evaluation.csv`` and ``evaluation.json`` beside the run
+(:mod:`~wcsac_rl.evaluation.evaluator`); ``--random-policy ENV`` evaluates the uniform
+random policy without a run; ``--archive DIR`` copies each evaluated run's records
+(:mod:`~wcsac_rl.evaluation.archive`). Existing evaluations are skipped unless
+``--force``. A path that cannot be evaluated, or a sweep job missing or failed
+(:mod:`~wcsac_rl.evaluation.sweeps`), is one ``error:`` line (exit code 1; the other
+runs are still evaluated); an unfinished or running one a ``warning:`` (docs/reproduce.md).
 
 Examples::
 
@@ -36,12 +23,47 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from functools import partial
 from pathlib import Path
 
 from wcsac_rl.cli_args import add_trust_env_code, check_seed, check_threads
 from wcsac_rl.evaluation.defaults import DEFAULT_EPISODES, DEFAULT_SEED_OFFSET
 
-__all__ = ["main", "parse_args"]
+__all__ = ["add_episode_arguments", "add_process_arguments", "check_episode_arguments", "main",
+           "parse_args"]  # fmt: skip
+
+
+def add_episode_arguments(
+    parser: argparse.ArgumentParser, *, episodes: int, episodes_help: str, seed_help: str
+) -> None:
+    """``--episodes`` (default ``episodes``), ``--seed`` (the test env's seed offset) and
+    ``--max-episode-steps`` of a command that runs test episodes."""
+    parser.add_argument("--episodes", type=int, default=episodes, help=episodes_help)
+    parser.add_argument("--seed", type=int, default=DEFAULT_SEED_OFFSET, help=seed_help)
+    parser.add_argument(
+        "--max-episode-steps",
+        type=int,
+        default=None,
+        help="bound on an episode's length (default: the env's own)",
+    )
+
+
+def add_process_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--trust-env-code``, ``--threads`` and ``--no-progress``."""
+    add_trust_env_code(parser)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def check_episode_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse (``parser.error``) the values :func:`add_episode_arguments` and
+    :func:`add_process_arguments` added that no run can take."""
+    check_seed(parser, "--seed", args.seed)
+    check_threads(parser, args.threads)
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    if args.max_episode_steps is not None and args.max_episode_steps < 1:
+        parser.error(f"--max-episode-steps must be >= 1, got {args.max_episode_steps}")
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
@@ -59,27 +81,13 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         type=Path,
         help="run directories and/or sweep directories (searched for checkpoints/last.pt)",
     )
-    parser.add_argument(
-        "--episodes",
-        type=int,
-        default=DEFAULT_EPISODES,
-        help=f"test episodes per run (default {DEFAULT_EPISODES}, the paper's per seed)",
-    )
-    parser.add_argument(
-        "--seed",
-        type=int,
-        default=DEFAULT_SEED_OFFSET,
-        help=(
-            "seed offset of the test episodes: a run trained with seed k is evaluated on an "
-            f"env seeded k + SEED (default {DEFAULT_SEED_OFFSET}, apart from the training "
-            "envs and the per-epoch test episodes)"
-        ),
-    )
-    parser.add_argument(
-        "--max-episode-steps",
-        type=int,
-        default=None,
-        help="bound on an episode's length (default: the env's own)",
+    add_episode_arguments(
+        parser,
+        episodes=DEFAULT_EPISODES,
+        episodes_help=f"test episodes per run (default {DEFAULT_EPISODES}, the paper's per seed)",
+        seed_help="seed offset of the test episodes: a run trained with seed k is evaluated on "
+        f"an env seeded k + SEED (default {DEFAULT_SEED_OFFSET}, apart from the training envs "
+        "and the per-epoch test episodes)",
     )
     parser.add_argument(
         "--force",
@@ -97,9 +105,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
             "what `wcsac-report --archive` keeps, for run directories that may not last"
         ),
     )
-    add_trust_env_code(parser)
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_process_arguments(parser)
     random_group = parser.add_argument_group("random policy (no training run needed)")
     random_group.add_argument(
         "--random-policy",
@@ -127,16 +133,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         help="budget d recorded with its evaluation (default 15)",
     )
     args = parser.parse_args(argv)
-    check_seed(parser, "--seed", args.seed)
-    check_threads(parser, args.threads)
+    check_episode_arguments(parser, args)
     for seed in args.random_seeds:
         check_seed(parser, "--random-seeds", seed)
     if not args.paths and args.random_policy is None:
         parser.error("give run or sweep directories, or --random-policy ENV")
-    if args.episodes < 1:
-        parser.error(f"--episodes must be >= 1, got {args.episodes}")
-    if args.max_episode_steps is not None and args.max_episode_steps < 1:
-        parser.error(f"--max-episode-steps must be >= 1, got {args.max_episode_steps}")
     return args
 
 
@@ -147,6 +148,8 @@ def _jobs(args: argparse.Namespace, sweep_jobs, errors: list[str]) -> list[tuple
     from wcsac_rl.evaluation.runs import find_run_dirs
 
     jobs: list[tuple[Path, object]] = []
+    common = {"episodes": args.episodes, "seed_offset": args.seed, "force": args.force,
+              "progress": not args.no_progress, "max_episode_steps": args.max_episode_steps}  # fmt: skip
     # the jobs of the sweeps below the paths (any launcher): their status is reported
     # by main, once (a job directory without a checkpoint is not also an error here)
     without_checkpoint = [
@@ -157,41 +160,15 @@ def _jobs(args: argparse.Namespace, sweep_jobs, errors: list[str]) -> list[tuple
         errors += find_errors
         for message in find_errors:
             print(f"error: {message}", file=sys.stderr, flush=True)
-        for run_dir in run_dirs:
-            jobs.append(
-                (
-                    run_dir,
-                    lambda d=run_dir: evaluate_run(
-                        d,
-                        episodes=args.episodes,
-                        seed_offset=args.seed,
-                        force=args.force,
-                        progress=not args.no_progress,
-                        max_episode_steps=args.max_episode_steps,
-                        trust_env_code=args.trust_env_code,
-                    ),
-                )
-            )
+        trust = args.trust_env_code
+        jobs += [(d, partial(evaluate_run, d, trust_env_code=trust, **common)) for d in run_dirs]
     if args.random_policy is not None:
         out = args.out or Path("evaluations") / f"random_{args.random_policy}"
         for seed in dict.fromkeys(args.random_seeds):
             directory = out / f"random_{args.random_policy}_seed{seed}"
-            jobs.append(
-                (
-                    directory,
-                    lambda d=directory, s=seed: evaluate_random_policy(
-                        args.random_policy,
-                        d,
-                        seed=s,
-                        episodes=args.episodes,
-                        seed_offset=args.seed,
-                        cost_limit=args.cost_limit,
-                        max_episode_steps=args.max_episode_steps,
-                        force=args.force,
-                        progress=not args.no_progress,
-                    ),
-                )
-            )
+            job = partial(evaluate_random_policy, args.random_policy, directory, seed=seed,
+                          cost_limit=args.cost_limit, **common)  # fmt: skip
+            jobs.append((directory, job))
     return jobs
 
 

@@ -1,47 +1,11 @@
 """The paper's Table 1 and Figures 4-6 for your runs: ``python -m wcsac_rl.report DIR ...``.
 
-Reads the evaluated runs (``evaluation.json`` from ``python -m wcsac_rl.evaluate``)
-and training logs (``progress.csv``) below the given directories, groups them by
-Table-1 row (``algo.label``, seeds pooled) and writes into ``--out`` (default
-``<first DIR>/report``):
-
-* ``table1.md`` / ``table1.csv`` — EC, C0.9, C0.5, C0.1, ER, % of episodes over budget d;
-* ``fig4_training_curves.png`` — return, cost, cost rate vs env steps (mean ± std over seeds);
-* ``fig5_trajectories.png`` (+ ``fig5_<row>_seed<N>.png`` per run) — top-down paths of
-  test episodes of one run per row (the lowest seed; ``--trajectory-runs`` to choose);
-  ``--video`` adds an mp4 (or ``--video-format gif``) rendered with MuJoCo;
-* ``fig6_evaluation.png`` — cost box plots (whiskers 1st/99th percentiles, d dashed)
-  and the budget-exceedance bar chart;
-* ``table1_vs_paper.md`` — on StaticEnv at d = 15, each row beside the paper's Table 1,
-  and the orderings of C0.1 and EC in both;
-* ``runs.md`` — the training runs: row, seed, frames, wall time, sessions, and the
-  commit each session ran (its ``provenance.json``);
-* ``training_safety.md`` / ``training_safety.csv`` — how safely each row trained:
-  cumulative training cost, epochs over d (all, after 50 k frames), peak epoch cost,
-  frames from which every epoch stayed ≤ d (per seed and the mean over seeds);
-* ``run_values.md`` / ``.csv`` — the runs one by one: row, seed, held-out (seeds
-  100-119) or in-sample, machine (CPU, from ``provenance.json``), EC, C0.1, ER, goals;
-* ``run_statistics.md`` / ``.csv`` — per row, the interquartile mean over runs of EC,
-  C0.1, ER and goals with its 95 % bootstrap interval; with ``--improvement A:B`` (any
-  number of times) the probability that a run of A has a lower C0.1 (and EC, and ER)
-  than a run of B, with its interval (also ``improvement.csv``);
-* ``fig_runs.png`` — one dot per run of EC, C0.1, ER, the IQM and its interval, d drawn;
-  ``fig_score_distribution.png`` — the fraction of runs with C0.1 <= x per row;
-  ``fig_cost_return.png`` — each row at its (EC, ER) with their intervals, d drawn
-  (docs/evaluation_protocol.md says how a study uses them; ``--study`` makes a run that
-  cannot be pooled an error instead of leaving these out with a warning);
-* with ``--archive``, ``runs/<run>/`` — each run's ``evaluation.json``/``.csv``,
-  ``config*.yaml``, ``provenance*.json``, ``progress.csv`` (and ``calibration.json``
-  when measured): results to commit
-  without checkpoints, from which ``python -m wcsac_rl.report <out>/runs`` makes the
-  same tables again.
-
-Each figure is written as PNG and PDF, each row in one colour and marker in all of them;
-each Markdown table also as a LaTeX booktabs table (``.tex``). On a user's own env
-(``env=gymnasium``: no layout to draw on) Figure 5 is skipped in one line and the tables
-have no goals columns. Existing files are not overwritten without ``--force``. Errors print one ``error:``
-line and exit with code 1, and leave nothing written: the report is written whole or
-not at all (a full disk, a read-only directory: one line naming the file).
+Reads the evaluated runs (``evaluation.json``) and training logs (``progress.csv``)
+below the given directories and writes into ``--out`` (default ``<first DIR>/report``)
+the tables and figures docs/reproduce.md lists (:mod:`~wcsac_rl.evaluation.reporting`;
+the statistics over runs and ``--improvement``: docs/evaluation_protocol.md). Existing
+files are not overwritten without ``--force``. Errors print one ``error:`` line, exit
+with code 1 and leave nothing written.
 
 Examples::
 
