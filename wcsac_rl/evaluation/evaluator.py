@@ -1,23 +1,10 @@
 """Final evaluation of runs: N deterministic test episodes → ``evaluation.csv`` + ``evaluation.json``.
 
-:func:`evaluate_run` loads a run's last checkpoint (:func:`~wcsac_rl.training.restore.load_run`),
-runs the paper's deterministic (mean-action) test episodes and writes, beside the run:
-
-* ``evaluation.csv`` — one row per episode: ``episode, return, cost, length, goals,
-  numerical_failure``;
-* ``evaluation.json`` — what was evaluated (row label, algo, env, training seed,
-  cost limit, trained frames, test-env seed, episode length) and the summary
-  (``metrics``: EC, C0.9, C0.5, C0.1, ER, over_budget, episodes; plus mean length,
-  goals per episode and numerical failures).
-
-A run whose checkpoint has fewer frames than its config's ``total_frames`` is
-evaluated as it is; :func:`unfinished_training` says so (``wcsac-evaluate`` warns).
-:func:`evaluate_random_policy` does the same for the uniform random policy without
-a training run. Existing evaluation files are never overwritten unless ``force``
-— or unless they are *stale*: ``evaluation.json`` records the SHA-256 of the
-checkpoint it evaluated (and its frames), and a run whose checkpoint has changed
-since (it was resumed and trained further) is evaluated again
-(:func:`stale_evaluation`); ``report`` refuses stale evaluations.
+:func:`evaluate_run` evaluates a run's last checkpoint, :func:`evaluate_random_policy`
+the uniform random policy without a run; the files' columns and fields, and when an
+existing evaluation is skipped or *stale* (:func:`stale_evaluation`: its recorded
+checkpoint SHA-256 no longer matches): docs/reproduce.md. A run evaluated before its
+``total_frames``: :func:`unfinished_training`.
 
 **Seeds.** The test env of a run trained with seed ``k`` is seeded with
 ``k + seed_offset`` (default :data:`DEFAULT_SEED_OFFSET` = 2 000 003, apart from the
@@ -513,18 +500,26 @@ def evaluate_run(
         "policy": "uniform random" if restored.policy is None else "trained (deterministic)",
         "checkpoint": str(Path("checkpoints") / "last.pt"),
         "checkpoint_sha256": restored.checkpoint_sha256,
-        "env_seed": env_seed,
-        "max_episode_steps": steps,
-        "episodes": len(results),
-        "created": _now(),
     }
-    evaluation = Evaluation(
-        directory=restored.run_dir,
-        meta=meta,
-        episodes=results,
-        summary=summarize(results, float(cfg.cost_limit), str(cfg.env.name)),
-        total_frames=_total_frames(cfg),
-    )
+    total = _total_frames(cfg)
+    return _save(restored.run_dir, meta, results, env_seed, steps, force, total_frames=total)
+
+
+def _save(
+    directory: Path,
+    meta: dict[str, Any],
+    results: list[EpisodeResult],
+    env_seed: int,
+    steps: int,
+    force: bool,
+    total_frames: int | None = None,
+) -> Evaluation:
+    """The :class:`Evaluation` of ``results`` (``meta`` with the episodes' seed, length,
+    count and date), written into ``directory`` (:func:`write_evaluation`)."""
+    meta = {**meta, "env_seed": env_seed, "max_episode_steps": steps,
+            "episodes": len(results), "created": _now()}  # fmt: skip
+    summary = summarize(results, float(meta["cost_limit"]), str(meta["env"]))
+    evaluation = Evaluation(directory, meta, results, summary, total_frames)
     write_evaluation(evaluation, force=force)
     return evaluation
 
@@ -611,16 +606,5 @@ def evaluate_random_policy(
         "trained_frames": 0,
         "policy": "uniform random",
         "checkpoint": None,
-        "env_seed": env_seed,
-        "max_episode_steps": steps,
-        "episodes": len(results),
-        "created": _now(),
     }
-    evaluation = Evaluation(
-        directory=out_dir,
-        meta=meta,
-        episodes=results,
-        summary=summarize(results, cost_limit, env_name),
-    )
-    write_evaluation(evaluation, force=force)
-    return evaluation
+    return _save(out_dir, meta, results, env_seed, steps, force)

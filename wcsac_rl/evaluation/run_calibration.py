@@ -1,15 +1,12 @@
 """Calibrate a finished run's safety critic: ``calibration.json`` beside the run.
 
-The measurement itself (Q^c, Γ_α and √V^c at the states the policy visits against the
-realised cost-to-go) is :mod:`wcsac_rl.rollouts.critic_calibration`, which the trainer also
-logs every epoch (``calib/*``); this module loads a run's checkpoint, runs its
-deterministic test episodes and writes the result (``python -m wcsac_rl.calibration``).
-Its names are re-exported here.
+The measurement is :mod:`wcsac_rl.rollouts.critic_calibration` (logged every epoch as
+``calib/*``; its names are re-exported here); this module loads a run's checkpoint, runs
+its deterministic test episodes and writes the result (``python -m wcsac_rl.calibration``).
 """
 
 from __future__ import annotations
 
-import datetime as _dt
 import json
 import math
 import os
@@ -156,13 +153,6 @@ def training_episode_readings(run_dir: str | os.PathLike) -> list[dict[str, floa
     ]
 
 
-def _finite_or_none(value: Any) -> Any:
-    """JSON has no NaN: undefined numbers are written as ``null``."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
-
-
 def _atomic_write_json(path: Path, data: dict[str, Any]) -> None:
     """``data`` as a new file renamed into place (:func:`~wcsac_rl.training.run_dir.replace_file`:
     nothing of it is left when it cannot be written); one line naming the file and why."""
@@ -190,26 +180,18 @@ def calibrate_run(
     trust_env_code: bool = False,
 ) -> tuple[Path, dict[str, Any]]:
     """Calibrate a run's final safety critic on deterministic test episodes; write
-    ``calibration.json`` beside the run.
+    ``calibration.json`` beside the run (docs/training.md, "Safety-critic calibration").
 
-    ``run_dir`` is a run directory (or a checkpoint in its ``checkpoints/``);
-    ``trust_env_code``: import the env code a run of ``env=gymnasium`` names
-    (:func:`load_safety_run`).
-
-    The test env is seeded like :func:`~wcsac_rl.evaluation.evaluator.evaluate_run`'s
-    (training seed + ``seed_offset``, default
-    :data:`~wcsac_rl.evaluation.evaluator.DEFAULT_SEED_OFFSET`; up to ten episodes side
-    by side), so the episodes are the first ``episodes`` of that evaluation.
+    ``run_dir`` is a run directory (or a checkpoint in its ``checkpoints/``); the test env
+    is seeded as :func:`~wcsac_rl.evaluation.evaluator.evaluate_run` seeds it (training
+    seed + ``seed_offset``), so the episodes are the first ``episodes`` of that
+    evaluation; ``trust_env_code``: as :func:`load_safety_run`.
 
     Returns:
-        The path of ``calibration.json`` and what it holds:
-        ``{meta..., "metrics": {name: value}, "per_episode": [dict per episode]}``:
-        the meta data (run, α, γ_c, threshold, env seed, ``episodes``,
-        ``episodes_at_time_limit``...), the :data:`CALIBRATION_KEYS` without their
-        ``calib/`` prefix, each episode's return and
-        :meth:`EpisodeCalibration.as_dict`, and ``training_episodes``: per epoch, the
-        critic's reading of its training episodes against what they cost
-        (:func:`training_episode_readings`). NaN is written as ``null``.
+        The path of ``calibration.json`` and what it holds (NaN written as ``null``): the
+        meta data, ``metrics`` (:data:`CALIBRATION_KEYS` without their ``calib/``
+        prefix), ``per_episode`` (:meth:`EpisodeCalibration.as_dict` and the return) and
+        ``training_episodes`` (:func:`training_episode_readings`).
 
     Raises:
         ConfigError: see :func:`load_safety_run`; :class:`CalibrationExistsError`
@@ -218,6 +200,7 @@ def calibrate_run(
     """
     from wcsac_rl.evaluation.evaluator import (
         DEFAULT_SEED_OFFSET,
+        _now,
         _side_by_side,
         _training_seed,
         check_writable,
@@ -267,7 +250,7 @@ def calibrate_run(
         "max_episode_steps": steps,
         "episodes": len(recorded),
         "episodes_at_time_limit": sum(r.result.length >= steps for r in recorded),
-        "created": _dt.datetime.now().astimezone().isoformat(timespec="seconds"),
+        "created": _now(),
         "metrics": {key.removeprefix(PREFIX): value for key, value in metrics.items()},
         "per_episode": [
             {"return": r.result.ret, **c.as_dict()} for r, c in zip(recorded, compared)
@@ -280,8 +263,9 @@ def calibrate_run(
 
 
 def _nan_to_null(value: Any) -> Any:
+    """JSON has no NaN: undefined numbers are written as ``null``."""
     if isinstance(value, dict):
         return {k: _nan_to_null(v) for k, v in value.items()}
     if isinstance(value, list):
         return [_nan_to_null(v) for v in value]
-    return _finite_or_none(value)
+    return None if isinstance(value, float) and not math.isfinite(value) else value

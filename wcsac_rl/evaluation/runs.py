@@ -245,27 +245,23 @@ def find_run_dirs(
     return unique, errors
 
 
+def _find_holding(paths: Iterable[str | os.PathLike], *names: str) -> list[Path]:
+    """Every directory at or below ``paths`` holding each of ``names`` (sorted, unique)."""
+    found = [
+        d
+        for raw in paths
+        if Path(raw).expanduser().is_dir()
+        for d in _walk(Path(raw).expanduser())
+        if all((d / name).is_file() for name in names)
+    ]
+    return sorted(dict.fromkeys(p.resolve() for p in found))
+
+
 def find_evaluated_dirs(paths: Iterable[str | os.PathLike]) -> list[Path]:
     """Every directory at or below ``paths`` that holds ``evaluation.json`` (sorted, unique)."""
-    found: list[Path] = []
-    for raw in paths:
-        path = Path(raw).expanduser()
-        if not path.is_dir():
-            continue
-        found.extend(d for d in _walk(path) if (d / EVALUATION_JSON).is_file())
-    return sorted(dict.fromkeys(p.resolve() for p in found))
+    return _find_holding(paths, EVALUATION_JSON)
 
 
 def find_progress_dirs(paths: Iterable[str | os.PathLike]) -> list[Path]:
     """Every run directory at or below ``paths`` with ``config.yaml`` and ``progress.csv``."""
-    found: list[Path] = []
-    for raw in paths:
-        path = Path(raw).expanduser()
-        if not path.is_dir():
-            continue
-        found.extend(
-            d
-            for d in _walk(path)
-            if (d / "config.yaml").is_file() and (d / "progress.csv").is_file()
-        )
-    return sorted(dict.fromkeys(p.resolve() for p in found))
+    return _find_holding(paths, "config.yaml", "progress.csv")

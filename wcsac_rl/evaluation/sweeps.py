@@ -1,25 +1,17 @@
 """What became of each job of a sweep, whichever launcher ran it.
 
-Every Hydra multirun (joblib, submitit's SLURM or local executor, Ray) writes the same
-layout: ``<sweep dir>/multirun.yaml`` (the sweep's config, with the sweeper's
-``params`` and the command line's overrides) and one directory per job holding
-``.hydra/overrides.yaml`` (that job's overrides) and, once it trains, the run's files.
-:func:`sweep_jobs` expands the sweep as Hydra's basic sweeper does (the cartesian
-product of the swept values, in its order) and matches each job to its directory by its
-overrides, so a job that never started (its node died, its array task was cancelled)
-is named too, not silently missing:
+Every Hydra multirun writes ``<sweep dir>/multirun.yaml`` and one directory per job
+holding ``.hydra/overrides.yaml``. :func:`sweep_jobs` expands the sweep as Hydra's basic
+sweeper does and matches each job to its directory by its overrides, so a job that never
+started is named too (docs/reproduce.md). A job's status:
 
 ==============  =============================================================
-``running``     a live process holds the run directory's lock (``.lock``, held by
-                the trainer: :func:`~wcsac_rl.training.run_dir.lock_holder`)
+``running``     a live process holds the run directory's lock
+                (:func:`~wcsac_rl.training.run_dir.lock_holder`)
 ``finished``    ``checkpoints/last.pt`` at ``total_frames`` or more, or no
-                checkpoint but an ``evaluation.json`` (it was evaluated: its
-                checkpoint was removed since)
-``unfinished``  a checkpoint before ``total_frames`` (preempted, killed, time
-                limit, an error): running the sweep command again continues it
-                (``resume=auto``)
-``failed``      a directory without a checkpoint (the job died before its first
-                one, or on an error: see its ``train.log`` and the launcher's logs)
+                checkpoint but an ``evaluation.json``
+``unfinished``  a checkpoint before ``total_frames`` (``resume=auto`` continues it)
+``failed``      a directory without a checkpoint
 ``missing``     no directory: the job never started
 ==============  =============================================================
 
@@ -77,10 +69,9 @@ class SweepJob:
 
     @property
     def has_checkpoint(self) -> bool:
-        return (
-            self.directory is not None
-            and (self.directory / CHECKPOINT_DIR / LAST_CHECKPOINT).is_file()
-        )
+        from wcsac_rl.evaluation.runs import has_checkpoint
+
+        return self.directory is not None and has_checkpoint(self.directory)
 
     def describe(self) -> str:
         """One line: ``<sweep>: <name> <status>: <detail>``."""

@@ -1,38 +1,25 @@
 """Calibration of the safety critic on the states the policy visits: predicted vs realised cost.
 
-WCSAC's constraint acts on the safety critic's CVaR estimate Γ_α(s, a) = Q^c +
-α⁻¹φ(Φ⁻¹(α))√V^c (with an IQN critic: the mean of its quantiles over τ ∈ [1 − α, 1]).
-Whether the critic's numbers mean anything is measured here on
-deterministic test episodes of the current policy:
+Whether the critic's Q^c, Γ_α and √V^c mean anything is measured on deterministic test
+episodes of the current policy (docs/training.md, "Safety-critic calibration", defines the
+measures and their ``calib/*`` columns):
 
-* :func:`record_calibration_episodes` runs the test episodes
-  (:func:`~wcsac_rl.rollouts.episodes.record_episodes`, the very episodes
-  :func:`~wcsac_rl.rollouts.episodes.run_episodes` gives) and keeps, per step, the
-  entries the loss's actor and safety critic read, the action taken and the cost
-  ``("next", "cost")``.
-* :func:`compare_episodes` asks the loss for Q^c, Γ_α and V^c at every recorded
-  state-action (``loss.safety_estimates``) and computes the Monte-Carlo discounted
-  cost-to-go (:func:`discounted_cost_to_go`, γ_c = ``loss.cost_gamma``).
-* :func:`summarize_calibration` / :func:`calibration_metrics` reduce that to a flat
-  dict of floats, :data:`CALIBRATION_KEYS` (logged per epoch as ``calib/*`` columns by
-  the trainer, and written to ``calibration.json`` by :mod:`wcsac_rl.evaluation.run_calibration`).
+* :func:`record_calibration_episodes` runs the test episodes (the very episodes
+  :func:`~wcsac_rl.rollouts.episodes.run_episodes` gives) and keeps, per step, the entries
+  the loss's actor and safety critic read, the action taken and the cost;
+* :func:`compare_episodes` asks the loss for its estimates at every recorded state-action
+  (``loss.safety_estimates``) beside the Monte-Carlo discounted cost-to-go
+  (:func:`discounted_cost_to_go`, γ_c = ``loss.cost_gamma``);
+* :func:`summarize_calibration` / :func:`calibration_metrics` reduce that to
+  :data:`CALIBRATION_KEYS` (logged per epoch by the trainer, written to
+  ``calibration.json`` by :mod:`wcsac_rl.evaluation.run_calibration`).
 
-**Truncation.** The realised cost-to-go is the sum of the costs actually seen until
-the episode ends. An undiscounted critic (γ_c = 1, ``cost_bootstrap_truncated``
-unset) stops its sum at the time limit too, so the two agree on what they count.
-A critic that bootstraps across the time limit (γ_c < 1, the paper) counts costs
-beyond it, which the realised sum cannot: near the end of a truncated episode the
-realised value is then low. With γ_c = 0.99 and 1 000-step episodes this matters only
-in the last few hundred steps; the start-state numbers are the least affected. A
-``max_steps`` cut shorter than the env's own limit shortens the realised sums only.
-
-**On-policy caveat.** The test episodes act with the policy's mean action; the
-critic is trained for the stochastic policy. The comparison is the one the
-constraint relies on (Γ at the states and actions the policy picks), not an
-unbiased test of the critic's TD fixed point.
-
-Losses without a safety critic (TorchRL's ``SACLoss``, CPO) have no
-``safety_estimates``: :func:`supports_calibration` is ``False`` and nothing is measured.
+The realised cost-to-go is the sum of the costs seen until the episode ends: a critic
+that bootstraps across the time limit (γ_c < 1) counts costs beyond it, so near the end
+of a truncated episode the realised value is low (the start-state numbers least). The
+test episodes act with the mean action, the critic is trained for the stochastic policy:
+the comparison is the one the constraint relies on, not a test of the TD fixed point.
+Losses without ``safety_estimates`` (SAC, CPO): :func:`supports_calibration` is ``False``.
 """
 
 from __future__ import annotations
@@ -267,32 +254,17 @@ def _correlation(x: np.ndarray, y: np.ndarray) -> float:
 def summarize_calibration(
     episodes: Sequence[EpisodeCalibration], risk_level: float, *, nonnegative: bool = False
 ) -> dict[str, float]:
-    """The :data:`CALIBRATION_KEYS` of a set of episodes (NaN where undefined).
+    """The :data:`CALIBRATION_KEYS` of a set of episodes (NaN where undefined; all NaN
+    for no episodes): docs/training.md's table says what each is.
 
-    * ``start_*``: at each episode's first state-action, averaged over episodes;
-      ``start_realised_cvar`` and ``episode_cvar`` are the empirical CVaR_α over
-      episodes (the mean of the worst ``⌈n·α⌉``,
-      :func:`~wcsac_rl.objectives.risk.empirical_cvar`) of the discounted cost-to-go
-      from s0 and of the undiscounted episodic cost; ``start_cvar_ratio`` is
-      ``start_cvar / start_realised_cvar`` (NaN when the realised CVaR is 0).
-    * ``start_tail_cvar``: the CVaR_α of the equal mixture of the predicted
-      start-state distributions ``N(Q^c(s0), V^c(s0))`` over the episodes
-      (:func:`~wcsac_rl.objectives.risk.gaussian_mixture_cvar`; Q^c at least 0 with
-      ``nonnegative``) — for an IQN critic, of its start-state quantiles of all
-      episodes pooled (:func:`~wcsac_rl.objectives.risk.quantile_mixture_cvar`, each
-      at least 0 with ``nonnegative``) —, the critic's own estimate of
-      ``start_realised_cvar``: the
-      realised tail is made of episodes with different start states, which a mean of
-      per-state CVaRs misses. ``start_tail_ratio`` is its ratio to the realised one.
-    * ``realised_spread``: sample standard deviation (n − 1) over episodes of the
-      realised discounted cost-to-go from s0 (NaN for one episode), to set against
-      ``start_std``.
-    * ``mean_*``, ``correlation``, ``negative_share``: over every visited state of
-      every episode pooled (each step counts once). ``correlation`` is NaN when
-      either side is constant.
-    * ``start_std`` / ``mean_std``: NaN for a mean-only critic.
-
-    Everything is NaN for no episodes.
+    ``start_*`` are at each episode's first state-action, averaged over episodes; the
+    realised CVaRs are empirical over episodes
+    (:func:`~wcsac_rl.objectives.risk.empirical_cvar`). ``start_tail_cvar`` is the CVaR_α
+    of the predicted start-state distributions mixed over the episodes
+    (:func:`~wcsac_rl.objectives.risk.gaussian_mixture_cvar`; an IQN critic's quantiles
+    pooled, :func:`~wcsac_rl.objectives.risk.quantile_mixture_cvar`), the critic's own
+    estimate of ``start_realised_cvar``, whose tail is made of episodes with different
+    start states; with ``nonnegative`` the predictions are clamped at 0 first.
     """
     metrics = dict.fromkeys(CALIBRATION_KEYS, math.nan)
     if not episodes:
