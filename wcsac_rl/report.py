@@ -136,6 +136,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     return args
 
 
+_SAME_NAMED = ("env", "cost_limit", "force", "trajectory_runs", "trajectory_episodes",
+               "trajectory_max_steps", "trajectory_seed", "video", "video_format", "fig6_rows",
+               "fig6_ymax", "stage_rows", "archive", "study")  # fmt: skip
+"""The options passed to :func:`~wcsac_rl.evaluation.reporting.build_report` by their name."""
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Build the report; return the exit code."""
     args = parse_args(argv)
@@ -156,22 +162,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             report = build_report(
                 args.paths,
                 out,
-                env=args.env,
-                cost_limit=args.cost_limit,
-                force=args.force,
-                trajectory_runs=args.trajectory_runs,
                 trajectories=not args.no_trajectories,
-                trajectory_episodes=args.trajectory_episodes,
-                trajectory_max_steps=args.trajectory_max_steps,
-                trajectory_seed=args.trajectory_seed,
-                video=args.video,
-                video_format=args.video_format,
-                fig6_rows=args.fig6_rows,
-                fig6_ymax=args.fig6_ymax,
-                stage_rows=args.stage_rows,
-                archive=args.archive,
                 improvement=pairs,
-                study=args.study,
+                **{option: getattr(args, option) for option in _SAME_NAMED},
             )
     except (ConfigError, TrajectoryError, VideoError) as err:
         print(f"error: {markdown_text(err)}", file=sys.stderr)  # (a name's line break as \n)
