@@ -277,11 +277,9 @@ def test_a_row_label_with_a_dollar_is_drawn_as_written_in_every_figure(tmp_path)
 def test_a_dollar_in_the_runs_figures_is_drawn_as_written(which, tmp_path, monkeypatch):
     from test_figures import _statistics
 
-    from wcsac_rl.evaluation import plots as run_plots
-
     figures = _captured(monkeypatch, "save_figure")
     stats = _statistics(["sac", DOLLAR])
-    plot = run_plots.plot_run_values if which == "runs" else run_plots.plot_score_distribution
+    plot = plots.plot_run_values if which == "runs" else plots.plot_score_distribution
     plot(stats, tmp_path / f"{which}.png", title=f"study {DOLLAR}")
     fig = _drawn(figures[f"{which}.png"])
     texts = _literal(fig, "\\frac{1}{$")  # (the panels' own formulas stay formulas)

@@ -92,23 +92,7 @@ ROW_PALETTE: tuple[str, ...] = (
     "#DDCC77",  # sand
 )
 """16 colour-blind-safe colours, one per row (black and grey stay for d and notes)."""
-ROW_MARKERS: tuple[str, ...] = (
-    "o",
-    "s",
-    "^",
-    "D",
-    "v",
-    "P",
-    "X",
-    "*",
-    "<",
-    ">",
-    "h",
-    "p",
-    "d",
-    "H",
-    "8",
-)
+ROW_MARKERS: tuple[str, ...] = tuple("os^DvPX*<>hpdH8")  # one marker a character
 """15 markers: with 16 colours, 240 rows get distinct (colour, marker) pairs."""
 
 

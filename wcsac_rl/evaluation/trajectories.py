@@ -288,28 +288,8 @@ def write_video(frames: np.ndarray, out: str | os.PathLike, *, fps: float = 50.0
     if height % 2 or width % 2:  # yuv420p needs even sizes
         frames = frames[:, : height - height % 2, : width - width % 2]
         height, width = frames.shape[1:3]
-    cmd = [
-        ffmpeg,
-        "-y",
-        "-loglevel",
-        "error",
-        "-f",
-        "rawvideo",
-        "-pix_fmt",
-        "rgb24",
-        "-s",
-        f"{width}x{height}",
-        "-r",
-        f"{fps:g}",
-        "-i",
-        "-",
-        "-an",
-        "-vcodec",
-        "libx264",
-        "-pix_fmt",
-        "yuv420p",
-        str(out),
-    ]
+    raw = f"-y -loglevel error -f rawvideo -pix_fmt rgb24 -s {width}x{height} -r {fps:g} -i -"
+    cmd = [ffmpeg, *raw.split(), *"-an -vcodec libx264 -pix_fmt yuv420p".split(), str(out)]
     proc = subprocess.run(cmd, input=frames.tobytes(), capture_output=True, check=False)
     if proc.returncode != 0:
         raise VideoError(f"ffmpeg failed: {proc.stderr.decode(errors='replace').strip()}")
