@@ -1,18 +1,11 @@
 """Matplotlib figures of training runs and of a report's rows and runs.
 
-Figures are built with ``matplotlib.figure.Figure`` (no pyplot), so they render
-headless and never change the caller's matplotlib backend.
-
-Every figure of a report draws a row (a Table-1 label) in one style: call
-:func:`row_styles` once with all the report's row labels and pass the result to each
-figure (``styles=``); the colours are colour-blind safe (Okabe-Ito, then Paul Tol's
-muted scheme). :func:`save_figure` writes a figure as PNG and PDF (``formats=``), with
-no timestamp in either: the same figure gives the same bytes.
-
-Every text drawn from run data (a row's or a run's name, a title naming them) is drawn
-as written (:func:`draw_literally`: a ``$`` in it is no formula). The env-step axes
-never show fractions of a step (:func:`set_frames_axis`), a panel with nothing to draw
-says why inside it (:func:`mark_empty_panel`), and the ± std bands of a cost end at 0.
+Built with ``matplotlib.figure.Figure`` (no pyplot: headless, the caller's backend left
+alone). A report draws each row in one style (:func:`row_styles` of all its rows, passed to
+every figure as ``styles=``), every text from run data as written (:func:`draw_literally`),
+env steps in whole steps (:func:`set_frames_axis`), an empty panel saying why
+(:func:`mark_empty_panel`), and saves PNG and PDF with no timestamp (:func:`save_figure`;
+docs/reproduce.md).
 """
 
 from __future__ import annotations
@@ -107,9 +100,8 @@ class RowStyle:
 def row_styles(labels: Iterable[str]) -> dict[str, RowStyle]:
     """One style per row label: the labels in Table 1's order
     (:func:`~wcsac_rl.evaluation.runs.row_sort_key`), the i-th drawn in
-    ``ROW_PALETTE[i % 16]`` with ``ROW_MARKERS[i % 15]``: distinct colours for up to 16
-    rows, distinct (colour, marker) pairs for up to 240. Give it every row of a report
-    and pass the result to each figure, so that a row looks the same in all of them."""
+    ``ROW_PALETTE[i % 16]`` with ``ROW_MARKERS[i % 15]`` (distinct pairs for up to 240
+    rows)."""
     from wcsac_rl.evaluation.runs import row_sort_key
 
     ordered = sorted(set(labels), key=row_sort_key)
@@ -182,10 +174,8 @@ def frames_formatter() -> Any:
 
 
 def set_frames_axis(ax: Any) -> None:
-    """An x axis of env steps: at most 6 ticks, at whole steps, in engineering units from
-    1 000 (``50 k``, ``1.5 M``; :func:`frames_formatter`), so that the labels of a run of
-    millions of frames do not run into each other and those of a short run (or of a panel
-    with no values) are never fractions of a step."""
+    """An x axis of env steps: at most 6 ticks, at whole steps, labelled by
+    :func:`frames_formatter`."""
     from matplotlib.ticker import MaxNLocator
 
     ax.xaxis.set_major_locator(MaxNLocator(nbins=6, steps=[1, 2, 2.5, 5, 10], integer=True))

@@ -662,31 +662,10 @@ def build_report(
     Args:
         paths: run, sweep or evaluation directories (searched recursively).
         out_dir: where the files go (created).
-        env: report on this env's runs only (needed when the runs mix envs).
-        cost_limit: the budget d (default: the runs' own; needed when they differ).
-        force: overwrite existing report files.
-        trajectory_runs: runs for Figure 5 (default: per row, its lowest seed).
-        trajectories: draw Figure 5 at all.
-        trajectory_episodes: episodes per trajectory panel.
-        trajectory_max_steps: bound on those episodes' length (default: the env's).
-        trajectory_seed: env seed of the trajectory episodes (the same for every run,
-            so rows start from comparable states).
-        video: also render the first trajectory episode of each chosen run.
-        video_format: ``"mp4"`` (needs ffmpeg) or ``"gif"`` (Pillow).
-        fig6_rows: the rows Figure 6 compares (default: every evaluated row except
-            the random policy, as the paper compares the SAC-based methods).
-        fig6_ymax: upper view limit of Figure 6(a).
-        stage_rows: the rows (labels, e.g. ``["sac_lag"]``) whose drawn runs get a row
-            of ``fig5_stages.png`` (default: every drawn run with kept checkpoints).
-        archive: also copy each reported run's records (:data:`ARCHIVED_FILES`) into
-            ``out_dir/runs/<run directory name>``: a report of that folder alone makes
-            the same Table 1 and Figures 4 and 6, e.g. in a repository that keeps
-            results without checkpoints. A later report of the original paths does
-            not count these copies again.
-        improvement: ``(A, B)`` row pairs for the probability of improvement (implies
-            ``study``; :mod:`~wcsac_rl.evaluation.run_report`).
-        study: runs the statistics over runs cannot pool are an error, not a warning.
         log: where progress lines go.
+        others: the options of ``python -m wcsac_rl.report`` of the same name (its
+            ``--help``; ``trajectories=False`` is ``--no-trajectories``, ``improvement``
+            the ``--improvement`` pairs, :func:`~wcsac_rl.evaluation.run_report.parse_improvements`).
 
     Raises:
         ReportError: nothing to report, mixed envs or budgets, existing files without
