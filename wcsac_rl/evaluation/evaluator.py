@@ -193,7 +193,7 @@ def check_writable(directory: str | os.PathLike) -> None:
 
 
 def _write_both(files: dict[Path, str]) -> None:
-    """Write ``files`` together, both or neither
+    """Write ``files`` together, all or none
     (:func:`~wcsac_rl.training.run_dir.replace_files`); one line naming the file."""
     from wcsac_rl.training.run_dir import replace_files
 

@@ -33,7 +33,6 @@ from wcsac_rl.rollouts.episodes import EpisodeResult
 from wcsac_rl.training.config import ConfigError
 from wcsac_rl.training.progress import read_progress
 from wcsac_rl.training.registry import ALGORITHMS, find_algorithm, make_loss
-from wcsac_rl.training.run_dir import replace_file
 from wcsac_rl.training.training_calibration import TRAIN_PREFIX, TRAINING_CALIBRATION_KEYS
 
 __all__ = [
@@ -153,15 +152,6 @@ def training_episode_readings(run_dir: str | os.PathLike) -> list[dict[str, floa
     ]
 
 
-def _atomic_write_json(path: Path, data: dict[str, Any]) -> None:
-    """``data`` as a new file renamed into place (:func:`~wcsac_rl.training.run_dir.replace_file`:
-    nothing of it is left when it cannot be written); one line naming the file and why."""
-    try:
-        replace_file(path, json.dumps(data, indent=2, allow_nan=False) + "\n")
-    except OSError as err:
-        raise ConfigError(f"cannot write {path}: {err.strerror or err}") from None
-
-
 def check_can_write(run_dir: Path, force: bool) -> None:
     """Raise :class:`CalibrationExistsError` if ``calibration.json`` exists and not ``force``."""
     path = Path(run_dir) / CALIBRATION_JSON
@@ -203,6 +193,7 @@ def calibrate_run(
         _now,
         _side_by_side,
         _training_seed,
+        _write_both,
         check_writable,
     )
     from wcsac_rl.training.trainer import env_max_episode_steps
@@ -258,7 +249,7 @@ def calibrate_run(
         "training_episodes": training_episode_readings(run_dir),
     }
     path = run_dir / CALIBRATION_JSON
-    _atomic_write_json(path, _nan_to_null(result))
+    _write_both({path: json.dumps(_nan_to_null(result), indent=2, allow_nan=False) + "\n"})
     return path, result
 
 
