@@ -1,12 +1,8 @@
 """The report's training-safety table (``training_safety.md``, ``.csv``, ``.tex``).
 
-Beside Table 1, which judges each row's *final* policy, this table says how safely each
-row *trained*: per Table-1 row (the same grouping by ``algo.label`` and the same row
-order), each seed's and the mean over seeds of the numbers
-:mod:`~wcsac_rl.training.training_safety` defines from the run's ``progress.csv``:
-cumulative training cost, epochs whose training episodes cost more than d on average
-(all, and after the warm-up), the peak epoch cost and the frames from which every
-epoch stayed ≤ d.
+How safely each Table-1 row *trained* (Table 1 judges its final policy): per row, each
+seed's and the mean over seeds of the numbers :mod:`~wcsac_rl.training.training_safety`
+defines from the run's ``progress.csv`` (docs/reproduce.md lists them).
 """
 
 from __future__ import annotations
