@@ -249,7 +249,7 @@ def test_damping_uses_the_signal_kappa_sees():
 def test_loss_refuses_bad_signals_and_a_missing_entry_with_a_clear_error():
     with pytest.raises(ValueError, match="kappa_signal must be one of"):
         make_loss(kappa_states="initial", kappa_signal="observed")
-    with pytest.raises(ValueError, match="kappa_states='initial'"):
+    with pytest.raises(ValueError, match="kappa_signal=max needs kappa_states=initial"):
         make_loss(kappa_states="replay", kappa_signal="max")
     loss = make_loss(kappa_states="initial", kappa_signal="max")
     with pytest.raises(KeyError, match="EpisodeCostWindow"):

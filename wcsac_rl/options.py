@@ -7,7 +7,8 @@ dataclasses:
 
 * the loss's parts take them: the fields of ``SafetyHeadOptions`` and ``SignalOptions``
   (:mod:`wcsac_rl.objectives.loss_options`) are these fields, checked with
-  :func:`check_value`; a recipe (``PAPER_OPTIONS``, ``wcsac_rl.recipes.KIT_OPTIONS``)
+  :func:`check_options` (each option's :class:`Option`, then the :data:`RELATIONS`
+  between them); a recipe (``PAPER_OPTIONS``, ``wcsac_rl.recipes.KIT_OPTIONS``)
   is what it sets over these defaults;
 * the training config (``conf/algo/wcsac.yaml``) starts from :func:`config_defaults`,
   registered with Hydra's ConfigStore (:mod:`wcsac_rl.config_schema`); the YAML files
@@ -24,9 +25,9 @@ from __future__ import annotations
 
 import difflib
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
-from types import MappingProxyType
+from types import MappingProxyType, SimpleNamespace
 from typing import Any
 
 __all__ = [
@@ -45,6 +46,7 @@ __all__ = [
     "NUMBER_CEILING",
     "PAPER_CHOICES",
     "PAPER_OPTIONS",
+    "RELATIONS",
     "SAFETY_ALGOS",
     "SAFETY_CRITIC_KINDS",
     "VARIANCE_LOSSES",
@@ -52,13 +54,10 @@ __all__ = [
     "IQNOptions",
     "Option",
     "PIDGains",
+    "Relation",
     "SafetyOptions",
     "ShieldOptions",
-    "check_ensemble",
-    "check_fields",
-    "check_kappa_bound",
-    "check_shield_candidates",
-    "check_signal_every",
+    "check_options",
     "check_value",
     "config_defaults",
     "option_spec",
@@ -226,8 +225,7 @@ def option_default(cls: type, name: str) -> Any:
 
 def check_value(key: str, value: Any, spec: Option) -> None:
     """Raise ``ValueError("<key> must be <what it may be>, got <value>")`` (one line) if
-    ``value`` is not what ``spec`` allows. The loss, the parts' options dataclasses and
-    the config validator all check with this."""
+    ``value`` is not what ``spec`` allows (a group: its own fields are checked)."""
     if spec.kind == "risk_level":
         from wcsac_rl.objectives.risk import validate_risk_level  # (torch: only when checking)
 
@@ -236,18 +234,10 @@ def check_value(key: str, value: Any, spec: Option) -> None:
         raise ValueError(f"{key} must be {spec.requirement()}, got {value!r}")
 
 
-def check_fields(instance: Any, prefix: str = "") -> None:
-    """Check every (non-group) field of a dataclass ``instance`` (``prefix``: how the
-    messages name them, ``"pid."``)."""
-    for f in fields(instance):
-        spec = f.metadata["option"]
-        if spec.kind != "group":
-            check_value(f"{prefix}{f.name}", getattr(instance, f.name), spec)
-
-
 def read_options(cls: type, values: Mapping[str, Any], prefix: str = "") -> Any:
     """``cls`` (an options dataclass) from the entries of ``values`` (a config node), each
-    checked (``ValueError`` naming ``<prefix><key>``) and cast to its type.
+    checked (``ValueError`` naming ``<prefix><key>``) and cast to its type, then the
+    :data:`RELATIONS` between them.
 
     An option (or a group) ``values`` lacks is refused naming it: a composed config has
     every one. Entries that are not fields of ``cls`` are left alone (``algo`` also holds the SAC family's options),
@@ -270,6 +260,7 @@ def read_options(cls: type, values: Mapping[str, Any], prefix: str = "") -> Any:
         value = values[f.name]
         check_value(key, value, spec)
         read[f.name] = spec.coerce(value)
+    _check_relations(read, prefix)
     return cls(**read)
 
 
@@ -373,7 +364,7 @@ class PIDGains:
     )
 
     def __post_init__(self) -> None:
-        check_fields(self, "pid.")
+        check_options(self, "pid.")
 
 
 @dataclass(frozen=True)
@@ -395,7 +386,7 @@ class IQNOptions:
     )
 
     def __post_init__(self) -> None:
-        check_fields(self, "iqn.")
+        check_options(self, "iqn.")
 
 
 @dataclass(frozen=True)
@@ -425,17 +416,7 @@ class ShieldOptions:
     )
 
     def __post_init__(self) -> None:
-        check_fields(self, "shield.")  # (candidates=1: check_shield_candidates)
-
-
-def check_shield_candidates(candidates: int, prefix: str = "") -> None:
-    """``candidates`` is 0 (no shield) or at least 2: one ``ValueError`` line naming
-    the option with ``prefix`` (``"algo.shield."``: the config validator)."""
-    if candidates == 1:
-        raise ValueError(
-            f"{prefix}candidates must be 0 (no shield) or >= 2 (the policy's action and "
-            "at least one other), got 1"
-        )
+        check_options(self, "shield.")
 
 
 @dataclass(frozen=True)
@@ -702,7 +683,7 @@ class SafetyOptions:
     )
 
     def __post_init__(self) -> None:
-        check_fields(self)
+        check_options(self, relations=False)  # (relations: read_options and the parts)
 
 
 LOSS_OPTIONS = tuple(
@@ -713,48 +694,6 @@ LOSS_OPTIONS = tuple(
 )
 """The options the loss's parts take (:mod:`wcsac_rl.objectives.loss_options`: the fields of
 ``SafetyHeadOptions``, ``SignalOptions`` and the constraint's)."""
-
-
-def check_kappa_bound(
-    kappa_init: float,
-    kappa_max: float | None,
-    rule: str,
-    prefix: str = "",
-    kappa_min: float = 0.0,
-) -> None:
-    """What ``kappa_init``, ``kappa_max`` and ``kappa_min`` must be beside the rule and
-    each other (each alone is checked by :func:`check_value`; ``kappa_min`` here too, as
-    a constraint built directly has no other check of it): ``kappa_init`` > 0 under the
-    gradient rule (κ is a function of a parameter; the PID rule may start at 0);
-    ``kappa_max`` only the gradient rule's bound (the PID rule's is ``pid.max_kappa``),
-    finite and at least ``kappa_init``; ``kappa_min`` (either rule) at most
-    ``kappa_init``, where κ starts. One
-    ``ValueError`` line naming the options with ``prefix`` (``"algo."``: the config
-    validator; ``""``: the constraint). The one definition of these relations, for the
-    config and the loss."""
-    if rule != "pid" and not kappa_init > 0:
-        raise ValueError(
-            f"{prefix}kappa_init must be > 0 with the gradient rule (κ is softplus or exp "
-            f"of a parameter; {prefix}kappa_rule=pid may start at 0), got {kappa_init:g}"
-        )
-    check_value(f"{prefix}kappa_min", kappa_min, option_spec(SafetyOptions, "kappa_min"))
-    if kappa_min > kappa_init:
-        raise ValueError(
-            f"{prefix}kappa_min must be <= {prefix}kappa_init ({kappa_init:g}, where κ "
-            f"starts), got {kappa_min:g}"
-        )
-    if kappa_max is None:
-        return
-    if rule == "pid":
-        raise ValueError(
-            f"{prefix}kappa_max={kappa_max:g} bounds the gradient rule's κ; with "
-            f"{prefix}kappa_rule=pid the bound is {prefix}pid.max_kappa"
-        )
-    if not (math.isfinite(kappa_max) and kappa_max >= kappa_init):
-        raise ValueError(
-            f"{prefix}kappa_max must be a finite number >= {prefix}kappa_init "
-            f"({kappa_init:g}, where κ starts), got {kappa_max}"
-        )
 
 
 ENSEMBLE_OPTIONS: tuple[str, ...] = (
@@ -769,90 +708,166 @@ ENSEMBLE_OPTIONS: tuple[str, ...] = (
 """The safety-critic ensemble's options: how many critics, how they bootstrap and are read."""
 
 
-def check_ensemble(options: Any, *, kind: str | None = None, prefix: str = "") -> None:
-    """The ensemble options of ``options`` (a :class:`SafetyOptions`, or the loss's
-    ``SafetyHeadOptions``: any object with the fields of :data:`ENSEMBLE_OPTIONS`)
-    against each other and, given, the critics' ``kind`` (``"gaussian"`` / ``"iqn"``;
-    ``None``: unchecked). ``ensemble_target`` other than ``"own"`` picks among several
-    critics; a reading other than ``"max"``, or a prior (``prior_scale``), needs several;
-    ``"ucb"`` reads their disagreement, so each bootstraps from its own target;
-    ``"tqc"`` and the ``"merged"`` target pool quantiles, so the critics are IQN ones;
-    ``k_ucb_lr`` > 0 adapts the UCB reading's ``k_ucb`` within ``[0, k_ucb_max]``.
-    One ``ValueError`` line naming the options with ``prefix`` (``"algo."``: the config
-    validator; ``""``: the loss): the one definition of these relations."""
-    reading, num_safety_nets = options.ensemble_reading, options.num_safety_nets
-    ensemble_target, prior_scale = options.ensemble_target, options.prior_scale
-    k_ucb, k_ucb_lr, k_ucb_max = options.k_ucb, options.k_ucb_lr, options.k_ucb_max
-    check_value(
-        f"{prefix}ensemble_target", ensemble_target, option_spec(SafetyOptions, "ensemble_target")
-    )
-    if ensemble_target != "own" and num_safety_nets == 1:
-        raise ValueError(
-            f"{prefix}ensemble_target={ensemble_target} picks among several safety critics: "
-            f"it needs {prefix}num_safety_nets >= 2"
-        )
-    check_value(
-        f"{prefix}ensemble_reading", reading, option_spec(SafetyOptions, "ensemble_reading")
-    )
-    for name, value in (
-        ("prior_scale", prior_scale),
-        ("k_ucb", k_ucb),
-        ("k_ucb_lr", k_ucb_lr),
-        ("k_ucb_max", k_ucb_max),
-    ):
-        check_value(f"{prefix}{name}", value, option_spec(SafetyOptions, name))
-    if num_safety_nets < 2 and (reading != "max" or prior_scale > 0):
-        what = f"ensemble_reading={reading}" if reading != "max" else "prior_scale > 0"
-        raise ValueError(
-            f"{prefix}{what} reads an ensemble of safety critics: it needs "
-            f"{prefix}num_safety_nets >= 2, got {num_safety_nets}"
-        )
-    if reading != "ucb" and k_ucb != option_default(SafetyOptions, "k_ucb"):
-        raise ValueError(
-            f"{prefix}k_ucb={k_ucb:g} weighs the members' spread in the UCB reading, which "
-            f"this one does not read: it needs {prefix}ensemble_reading=ucb, got {reading}"
-        )
-    if k_ucb_lr > 0 and reading != "ucb":
-        raise ValueError(
-            f"{prefix}k_ucb_lr={k_ucb_lr:g} adapts the UCB reading's k_ucb: it needs "
-            f"{prefix}ensemble_reading=ucb, got {reading}"
-        )
-    if k_ucb_lr > 0 and not k_ucb <= k_ucb_max:
-        raise ValueError(
-            f"{prefix}k_ucb must be <= {prefix}k_ucb_max ({k_ucb_max:g}) with "
-            f"{prefix}k_ucb_lr > 0, got {k_ucb:g}"
-        )
-    if reading == "ucb" and ensemble_target != "own":
-        raise ValueError(
-            f"{prefix}ensemble_reading=ucb reads the members' disagreement: each bootstraps "
-            f"from its own target ({prefix}ensemble_target=own), got {ensemble_target}"
-        )
-    if ensemble_target == "merged" and kind is not None and kind != "iqn":
-        raise ValueError(
-            f"{prefix}ensemble_target=merged pools the members' target quantiles: it needs "
-            f"{prefix}safety_critic=iqn, got a {kind} critic"
-        )
-    if reading == "tqc" and kind is not None and kind != "iqn":
-        raise ValueError(
-            f"{prefix}ensemble_reading=tqc merges the members' quantiles: it needs "
-            f"{prefix}safety_critic=iqn, got a {kind} critic"
-        )
+# ------------------------------------------------------------------ relations
+@dataclass(frozen=True)
+class Relation:
+    """A rule between options (or an option and a value read elsewhere: the critics'
+    ``safety_critic`` kind): ``refuses(o)`` is true for the values it refuses (``o``: the
+    options by attribute), ``message`` says why in one line (``str.format`` of the
+    values, ``{p}``: the prefix naming them). Checked where all of ``names`` are given."""
+
+    names: tuple[str, ...]
+    refuses: Callable[[Any], bool]
+    message: str
 
 
-def check_signal_every(every: int, states: str, statistic: str, prefix: str = "") -> None:
-    """``kappa_signal_every`` is an integer >= 1, and above 1 only where the critic's
-    statistic is one number per batch read where nothing else reads the critic: at the
-    start states (``kappa_states="initial"``) with ``kappa_statistic="tail"``. One
-    ``ValueError`` line naming the options with ``prefix``, for the config and the loss."""
-    check_value(
-        f"{prefix}kappa_signal_every", every, option_spec(SafetyOptions, "kappa_signal_every")
-    )
-    if every > 1 and (states != "initial" or statistic != "tail"):
-        raise ValueError(
-            f"{prefix}kappa_signal_every={every} holds the critic's start-state tail "
-            f"between reads: it needs {prefix}kappa_states=initial and "
-            f"{prefix}kappa_statistic=tail, got {states} and {statistic}"
-        )
+RELATIONS: tuple[Relation, ...] = (
+    Relation(
+        ("ensemble_target", "num_safety_nets"),
+        lambda o: o.ensemble_target != "own" and o.num_safety_nets < 2,
+        "{p}ensemble_target={ensemble_target} picks among several safety critics: it needs "
+        "{p}num_safety_nets >= 2",
+    ),
+    Relation(
+        ("ensemble_reading", "num_safety_nets"),
+        lambda o: o.ensemble_reading != "max" and o.num_safety_nets < 2,
+        "{p}ensemble_reading={ensemble_reading} reads an ensemble of safety critics: it "
+        "needs {p}num_safety_nets >= 2, got {num_safety_nets}",
+    ),
+    Relation(
+        ("prior_scale", "num_safety_nets"),
+        lambda o: o.prior_scale > 0 and o.num_safety_nets < 2,
+        "{p}prior_scale > 0 reads an ensemble of safety critics: it needs "
+        "{p}num_safety_nets >= 2, got {num_safety_nets}",
+    ),
+    Relation(
+        ("k_ucb", "ensemble_reading"),
+        lambda o: o.ensemble_reading != "ucb" and o.k_ucb != option_default(SafetyOptions, "k_ucb"),
+        "{p}k_ucb={k_ucb:g} weighs the members' spread in the UCB reading, which this one "
+        "does not read: it needs {p}ensemble_reading=ucb, got {ensemble_reading}",
+    ),
+    Relation(
+        ("k_ucb_lr", "ensemble_reading"),
+        lambda o: o.k_ucb_lr > 0 and o.ensemble_reading != "ucb",
+        "{p}k_ucb_lr={k_ucb_lr:g} adapts the UCB reading's k_ucb: it needs "
+        "{p}ensemble_reading=ucb, got {ensemble_reading}",
+    ),
+    Relation(
+        ("k_ucb", "k_ucb_lr", "k_ucb_max"),
+        lambda o: o.k_ucb_lr > 0 and not o.k_ucb <= o.k_ucb_max,
+        "{p}k_ucb must be <= {p}k_ucb_max ({k_ucb_max:g}) with {p}k_ucb_lr > 0, got {k_ucb:g}",
+    ),
+    Relation(
+        ("ensemble_reading", "ensemble_target"),
+        lambda o: o.ensemble_reading == "ucb" and o.ensemble_target != "own",
+        "{p}ensemble_reading=ucb reads the members' disagreement: each bootstraps from its "
+        "own target ({p}ensemble_target=own), got {ensemble_target}",
+    ),
+    Relation(
+        ("ensemble_target", "safety_critic"),
+        lambda o: o.ensemble_target == "merged" and o.safety_critic != "iqn",
+        "{p}ensemble_target=merged pools the members' target quantiles: it needs "
+        "{p}safety_critic=iqn, got a {safety_critic} critic",
+    ),
+    Relation(
+        ("ensemble_reading", "safety_critic"),
+        lambda o: o.ensemble_reading == "tqc" and o.safety_critic != "iqn",
+        "{p}ensemble_reading=tqc merges the members' quantiles: it needs "
+        "{p}safety_critic=iqn, got a {safety_critic} critic",
+    ),
+    Relation(
+        ("kappa_signal", "kappa_states"),
+        lambda o: o.kappa_signal != "critic" and o.kappa_states != "initial",
+        "{p}kappa_signal={kappa_signal} needs {p}kappa_states=initial (episode costs are "
+        "compared with the episodic limit d), got {kappa_states}",
+    ),
+    Relation(
+        ("kappa_signal_every", "kappa_states", "kappa_statistic"),
+        lambda o: (
+            o.kappa_signal_every > 1
+            and (o.kappa_states != "initial" or o.kappa_statistic != "tail")
+        ),
+        "{p}kappa_signal_every={kappa_signal_every} holds the critic's start-state tail "
+        "between reads: it needs {p}kappa_states=initial and {p}kappa_statistic=tail, got "
+        "{kappa_states} and {kappa_statistic}",
+    ),
+    Relation(
+        ("kappa_test_window", "kappa_signal"),
+        lambda o: o.kappa_test_window > 0 and o.kappa_signal == "critic",
+        "{p}kappa_test_window={kappa_test_window} floors κ's signal by the test episodes' "
+        "cost: it needs {p}kappa_signal=max (or episodes), got critic",
+    ),
+    Relation(
+        ("kappa_hold_goal_rate", "kappa_rule"),
+        lambda o: o.kappa_hold_goal_rate > 0 and o.kappa_rule != "gradient",
+        "{p}kappa_hold_goal_rate={kappa_hold_goal_rate:g} holds κ's optimizer until the "
+        "task is learned: it needs {p}kappa_rule=gradient, got {kappa_rule}",
+    ),
+    Relation(
+        ("kappa_init", "kappa_rule"),
+        lambda o: o.kappa_rule != "pid" and not o.kappa_init > 0,
+        "{p}kappa_init must be > 0 with the gradient rule (κ is softplus or exp of a "
+        "parameter; {p}kappa_rule=pid may start at 0), got {kappa_init:g}",
+    ),
+    Relation(
+        ("kappa_init", "kappa_min"),
+        lambda o: o.kappa_min > o.kappa_init,
+        "{p}kappa_min must be <= {p}kappa_init ({kappa_init:g}, where κ starts), got {kappa_min:g}",
+    ),
+    Relation(
+        ("kappa_max", "kappa_rule"),
+        lambda o: o.kappa_max is not None and o.kappa_rule == "pid",
+        "{p}kappa_max={kappa_max:g} bounds the gradient rule's κ; with {p}kappa_rule=pid "
+        "the bound is {p}pid.max_kappa",
+    ),
+    Relation(
+        ("kappa_init", "kappa_max"),
+        lambda o: o.kappa_max is not None and not o.kappa_max >= o.kappa_init,
+        "{p}kappa_max must be a finite number >= {p}kappa_init ({kappa_init:g}, where κ "
+        "starts), got {kappa_max}",
+    ),
+    Relation(
+        ("kappa_init", "kappa_rule", "pid"),
+        lambda o: o.kappa_rule == "pid" and o.kappa_init > o.pid.max_kappa,
+        "{p}kappa_init must be <= {p}pid.max_kappa ({pid.max_kappa:g}) with "
+        "{p}kappa_rule=pid, got {kappa_init:g}",
+    ),
+    Relation(
+        ("candidates",),
+        lambda o: o.candidates == 1,
+        "{p}candidates must be 0 (no shield) or >= 2 (the policy's action and at least one "
+        "other), got 1",
+    ),
+)
+"""Every rule between options, each written once: the parts' options
+(``SafetyHeadOptions``, ``SignalOptions``, :class:`ShieldOptions`), the constraint, the
+ensemble head (with its critics' kind) and the config (:func:`read_options`) check the
+ones among the options they hold (:func:`check_options`)."""
+
+
+def check_options(options: Any, prefix: str = "", *, relations: bool = True, **more: Any) -> None:
+    """Check each option of ``options`` (an options dataclass, or a mapping of
+    ``SafetyOptions``' option names to values) as its :class:`Option` allows, then
+    (``relations``) every :data:`RELATIONS` rule among them and ``more`` (a value read
+    elsewhere: the critics' ``safety_critic`` kind). One ``ValueError`` line naming the
+    options with ``prefix`` (``"algo."``: the config; ``"pid."``: a group)."""
+    if isinstance(options, Mapping):
+        values = dict(options)
+        specs = {name: option_spec(SafetyOptions, name) for name in values}
+    else:
+        values = {f.name: getattr(options, f.name) for f in fields(options)}
+        specs = {f.name: f.metadata["option"] for f in fields(options)}
+    for name, value in values.items():
+        check_value(f"{prefix}{name}", value, specs[name])
+    if relations:
+        _check_relations({**values, **more}, prefix)
+
+
+def _check_relations(values: dict[str, Any], prefix: str) -> None:
+    given = SimpleNamespace(**values)
+    for relation in RELATIONS:
+        if set(relation.names) <= values.keys() and relation.refuses(given):
+            raise ValueError(relation.message.format(p=prefix, **values))
 
 
 PAPER_CHOICES = (

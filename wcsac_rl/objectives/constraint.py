@@ -85,9 +85,7 @@ from wcsac_rl.options import (
     KAPPA_STATISTICS,
     PIDGains,
     SafetyOptions,
-    check_kappa_bound,
-    check_value,
-    option_spec,
+    check_options,
 )
 
 __all__ = [
@@ -102,20 +100,8 @@ __all__ = [
     "HeldStatistic",
     "PIDGains",
     "PIDLagrangian",
-    "check_signal_states",
     "make_constraint",
 ]
-
-
-def check_signal_states(states: str, signal: str) -> None:
-    """An episode signal (``kappa_signal`` other than ``"critic"``) needs
-    ``kappa_states="initial"``: one ``ValueError`` line naming both."""
-    if signal != "critic" and states != "initial":
-        raise ValueError(
-            f"kappa_signal={signal!r} compares episode costs with the episodic limit "
-            "d, which is the threshold only with kappa_states='initial' (with 'replay' "
-            "it is a per-step threshold)"
-        )
 
 
 class ConstraintSignal:
@@ -153,15 +139,14 @@ class ConstraintSignal:
         statistic: str = "tail",
         signal: str = "critic",
     ) -> None:
-        for name, value, allowed in (
-            ("kappa_actions", actions, KAPPA_ACTIONS),
-            ("kappa_states", states, KAPPA_STATES),
-            ("kappa_signal", signal, KAPPA_SIGNALS),
-            ("kappa_statistic", statistic, KAPPA_STATISTICS),
-        ):
-            if value not in allowed:
-                raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
-        check_signal_states(states, signal)
+        check_options(
+            {
+                "kappa_actions": actions,
+                "kappa_states": states,
+                "kappa_signal": signal,
+                "kappa_statistic": statistic,
+            }
+        )
         self.head = head
         self.keys = keys
         self.states, self.actions = states, actions
@@ -297,13 +282,6 @@ class HeldStatistic(nn.Module):
 
 
 # ------------------------------------------------------------ how κ moves
-def _check_options(**values: float) -> None:
-    """Each value as the recipe's option of that name allows it (one ``ValueError`` line
-    naming it): a constraint built directly gets the config's checks."""
-    for key, value in values.items():
-        check_value(key, value, option_spec(SafetyOptions, key))
-
-
 def _inverse_softplus(x: float) -> float:
     return x + math.log(-math.expm1(-x))
 
@@ -355,15 +333,16 @@ class GradientLagrangian(nn.Module):
         damp_clamp: bool = False,
     ) -> None:
         super().__init__()
-        _check_options(kappa_init=kappa_init, damp_scale=damp_scale, kappa_min=kappa_min)
-        if parametrization not in KAPPA_PARAMETRIZATIONS:
-            raise ValueError(
-                f"kappa_parametrization must be one of {KAPPA_PARAMETRIZATIONS}, "
-                f"got {parametrization!r}"
-            )
-        if not damp_scale >= 0:
-            raise ValueError(f"damp_scale must be >= 0, got {damp_scale}")
-        check_kappa_bound(kappa_init, kappa_max, self.rule, kappa_min=kappa_min)
+        check_options(  # (as the config's options: a constraint built directly too)
+            {
+                "kappa_rule": self.rule,
+                "kappa_init": kappa_init,
+                "kappa_parametrization": parametrization,
+                "damp_scale": damp_scale,
+                "kappa_max": kappa_max,
+                "kappa_min": kappa_min,
+            }
+        )
         self.parametrization = parametrization
         self.damp_scale, self.damp_clamp = float(damp_scale), bool(damp_clamp)
         self.kappa_max = None if kappa_max is None else float(kappa_max)
@@ -487,12 +466,14 @@ class PIDLagrangian(nn.Module):
             raise TypeError(
                 f"gains must be a PIDGains (e.g. PIDGains(kp=1.0)), got {type(gains).__name__}"
             )
-        _check_options(kappa_init=kappa_init, kappa_min=kappa_min)
-        if not kappa_init >= 0:
-            raise ValueError(f"kappa_init must be >= 0 with the PID rule, got {kappa_init}")
-        if kappa_init > gains.max_kappa:
-            raise ValueError(f"kappa_init={kappa_init} is above pid.max_kappa={gains.max_kappa}")
-        check_kappa_bound(kappa_init, None, self.rule, kappa_min=kappa_min)
+        check_options(
+            {
+                "kappa_rule": self.rule,
+                "kappa_init": kappa_init,
+                "kappa_min": kappa_min,
+                "pid": gains,
+            }
+        )
         self.gains = gains
         self.kappa_min = float(kappa_min)
         self.register_buffer("kappa_value", torch.tensor(float(kappa_init)))
@@ -573,15 +554,13 @@ def make_constraint(
     ``pid`` the PID rule's gains (its bound is ``pid.max_kappa``); an option of the
     other rule is refused by name. ``kappa_min`` floors κ under either rule.
     """
-    if rule not in CONSTRAINT_RULES:
-        raise ValueError(f"kappa_rule must be one of {CONSTRAINT_RULES}, got {rule!r}")
+    check_options({"kappa_rule": rule, "kappa_init": kappa_init, "kappa_max": kappa_max})
     if rule == "gradient":
         if pid is not None:
             raise ValueError("pid gains apply to kappa_rule='pid' only (kappa_rule='gradient')")
         return GradientLagrangian(
             kappa_init, parametrization, damp_scale, kappa_max, kappa_min, damp_clamp
         )
-    check_kappa_bound(kappa_init, kappa_max, rule)  # (the floor: PIDLagrangian checks it)
     if damp_scale:
         raise ValueError(
             f"damp_scale={damp_scale} is the gradient rule's MDMM damping; with "

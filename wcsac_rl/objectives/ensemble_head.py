@@ -28,7 +28,7 @@ from wcsac_rl.objectives.safety_head import (
     SafetyValues,
     _make_member_head,
 )
-from wcsac_rl.options import check_ensemble
+from wcsac_rl.options import check_options
 
 __all__ = ["EnsembleHead", "make_safety_head"]
 
@@ -95,7 +95,7 @@ class EnsembleHead(SafetyHead):
         members = options.num_safety_nets
         if members < 2:
             raise ValueError(f"an ensemble needs num_safety_nets >= 2, got {members}")
-        check_ensemble(options, kind=member.kind)
+        check_options(options, safety_critic=member.kind)  # (the kind: its networks')
         super().__init__(
             member.network,
             member.keys,

@@ -25,12 +25,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
-from wcsac_rl.objectives.constraint import (
-    GradientLagrangian,
-    PIDLagrangian,
-    check_signal_states,
-    make_constraint,
-)
+from wcsac_rl.objectives.constraint import GradientLagrangian, PIDLagrangian, make_constraint
 from wcsac_rl.objectives.safety_head import is_iqn_critic
 from wcsac_rl.options import (
     ALPHA_INIT,
@@ -39,9 +34,7 @@ from wcsac_rl.options import (
     PIDGains,
     SafetyOptions,
     ShieldOptions,
-    check_ensemble,
-    check_fields,
-    check_signal_every,
+    check_options,
     check_value,
 )
 from wcsac_rl.recipes import TRAINER_KEYS
@@ -107,8 +100,7 @@ class SafetyHeadOptions:
     prior_scale: float = _same(SafetyOptions, "prior_scale")
 
     def __post_init__(self) -> None:
-        check_fields(self)
-        check_ensemble(self)
+        check_options(self)
 
 
 @dataclass(frozen=True)
@@ -135,9 +127,7 @@ class SignalOptions:
     kappa_signal_every: int = _same(SafetyOptions, "kappa_signal_every")
 
     def __post_init__(self) -> None:
-        check_fields(self)
-        check_signal_states(self.kappa_states, self.kappa_signal)
-        check_signal_every(self.kappa_signal_every, self.kappa_states, self.kappa_statistic)
+        check_options(self)
 
 
 _GROUPS = {"pid": PIDGains, "iqn": IQNOptions, "shield": ShieldOptions}

@@ -15,10 +15,6 @@ from wcsac_rl.objectives.risk import validate_risk_level
 from wcsac_rl.options import (
     ALPHA_INIT,
     SafetyOptions,
-    check_ensemble,
-    check_kappa_bound,
-    check_shield_candidates,
-    check_signal_every,
     check_value,
     range_text,
     read_options,
@@ -227,19 +223,10 @@ def _validate_user_env(cfg: DictConfig) -> None:
         raise ConfigError(f"env.cost_key must name the info entry of the cost, got {cost_key!r}")
 
 
-def _validate_risk(cfg: DictConfig, algo: Algorithm) -> None:
+def _validate_risk(cfg: DictConfig) -> None:
+    """The run's α and d (``algo.risk_level``: a safety option, :func:`safety_options`)."""
     try:
         validate_risk_level(cfg.risk_level)
-        if algo.safety_critic:
-            validate_risk_level(cfg.algo.risk_level, name="algo.risk_level")
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
-    if algo.risk_neutral and float(cfg.algo.risk_level) != 1.0:
-        averse = " or ".join(f"algo={a.name}" for a in ALGORITHMS.values() if a.reads_risk_level)
-        raise ConfigError(
-            f"algo={algo.name} is risk-neutral (algo.risk_level=1); use {averse} for α < 1"
-        )
-    try:
         validate_cost_limit(cfg.cost_limit)
     except ValueError as err:
         raise ConfigError(str(err)) from None
@@ -380,7 +367,7 @@ def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
     """
     _validate_interpolations(cfg)
     algo = _validate_choices(cfg)
-    _validate_risk(cfg, algo)
+    _validate_risk(cfg)
     _validate_run(cfg)
     _validate_collector(cfg)
     if algo.off_policy:
@@ -390,6 +377,7 @@ def validate_config(cfg: DictConfig, *, check_keys: bool = True) -> None:
         learning_frames = max(0, cfg.total_frames - collector.init_random_frames)
         _validate_safety_keys(
             cfg.algo,
+            algo,
             updates=int(learning_frames * float(collector.utd_ratio)),
             eval_episodes=int(cfg.eval_episodes),
             env=str(cfg.env.name),
@@ -490,42 +478,25 @@ def safety_options(algo: DictConfig) -> SafetyOptions:
         raise ConfigError(str(err)) from None
 
 
-def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int, env: str) -> None:
+def _validate_safety_keys(
+    algo: DictConfig, entry: Algorithm, *, updates: int, eval_episodes: int, env: str
+) -> None:
     """The WCSAC / SAC-Lag options of ``conf/algo``: every field of
-    :class:`~wcsac_rl.options.SafetyOptions` (its type and range, from its
-    metadata: the loss checks with the same function), then what relates two options
-    or an option and the run. The variance options are checked with an IQN critic too
-    and the PID gains under the gradient rule: a wrong value is wrong whichever runs."""
+    :class:`~wcsac_rl.options.SafetyOptions` and the relations between them
+    (:func:`~wcsac_rl.options.read_options`: the loss checks with the same definitions),
+    then what relates an option and the run. The variance options are checked with an
+    IQN critic too and the PID gains under the gradient rule: a wrong value is wrong
+    whichever runs."""
     options = safety_options(algo)
-    if options.kappa_signal != "critic" and options.kappa_states != "initial":
+    if entry.risk_neutral and options.risk_level != 1.0:
+        averse = " or ".join(f"algo={a.name}" for a in ALGORITHMS.values() if a.reads_risk_level)
         raise ConfigError(
-            f"algo.kappa_signal={options.kappa_signal} needs algo.kappa_states=initial "
-            "(episode costs are compared with the episodic limit d), got "
-            f"{options.kappa_states}"
-        )
-    try:
-        check_ensemble(options, kind=options.safety_critic, prefix="algo.")
-        check_signal_every(
-            options.kappa_signal_every, options.kappa_states, options.kappa_statistic, "algo."
-        )
-        check_shield_candidates(options.shield.candidates, "algo.shield.")
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
-    if options.kappa_test_window and options.kappa_signal == "critic":
-        raise ConfigError(
-            f"algo.kappa_test_window={options.kappa_test_window} floors κ's signal by the "
-            "test episodes' cost: it needs algo.kappa_signal=max (or episodes), got critic"
+            f"algo={entry.name} is risk-neutral (algo.risk_level=1); use {averse} for α < 1"
         )
     if options.kappa_test_window and not eval_episodes:
         raise ConfigError(
             "algo.kappa_test_window reads the test episodes, but eval_episodes=0 runs "
             "none: set eval_episodes > 0 or algo.kappa_test_window=0"
-        )
-    if options.kappa_hold_goal_rate > 0 and options.kappa_rule != "gradient":
-        raise ConfigError(
-            f"algo.kappa_hold_goal_rate={options.kappa_hold_goal_rate:g} holds κ's optimizer "
-            f"until the task is learned: it needs algo.kappa_rule=gradient, got "
-            f"{options.kappa_rule}"
         )
     if options.kappa_hold_goal_rate > 0 and not has_goals(env):
         raise ConfigError(
@@ -533,16 +504,6 @@ def _validate_safety_keys(algo: DictConfig, *, updates: int, eval_episodes: int,
             f"the training episodes reach the goal, but env={env} reports no goals: κ "
             "would never move; set algo.kappa_hold_goal_rate=0"
         )
-    try:
-        check_kappa_bound(
-            options.kappa_init,
-            options.kappa_max,
-            options.kappa_rule,
-            prefix="algo.",
-            kappa_min=options.kappa_min,
-        )
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
     # the derivative term acts only under the PID rule with kd > 0 (a gradient-rule run,
     # or kd = 0, never reads d_delay: a short run is no reason to refuse them)
     pid = options.pid
