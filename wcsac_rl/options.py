@@ -108,8 +108,9 @@ class Option:
     """What one field may be (its ``metadata["option"]``), and who reads it.
 
     ``kind``: ``"number"`` (finite, within ``low``/``high``; ``*_open``: the bound
-    excluded; with no ``high``, at most :data:`NUMBER_CEILING`), ``"integer"``
-    (``>= low``), ``"flag"`` (true or false), ``"choice"`` (one of ``choices``), ``"risk_level"`` (α in (0, 1]) or ``"group"`` (a nested dataclass).
+    excluded; with no ``high``, at most ``ceiling``), ``"integer"`` (within
+    ``low``/``high`` too), ``"flag"`` (true or false), ``"choice"`` (one of ``choices``),
+    ``"risk_level"`` (α in (0, 1]) or ``"group"`` (a nested dataclass).
     ``nullable``: null is allowed too. ``unit``: the note in parentheses of the message
     (``"episodes"``); ``finite_words``: say "a finite number in [0, 1e+06]" rather than
     "in [0, 1e+06] (a number)" (the PID gains' wording). ``reader``: the part that reads it
@@ -130,12 +131,13 @@ class Option:
     holds: str = ""  # a group: what it holds ("the PID gains")
     unknown_label: str | None = None  # a group: refuse unknown keys as "unknown <label> option"
     members: str = "options"  # a group: what its fields are called ("the gains are ...")
+    ceiling: float | None = NUMBER_CEILING  # a number with no high: at most this
 
     @property
     def upper(self) -> float | None:
-        """The largest value allowed: ``high``, or a number's :data:`NUMBER_CEILING`."""
+        """The largest value allowed: ``high``, or a number's ``ceiling``."""
         if self.high is None and self.kind == "number":
-            return NUMBER_CEILING
+            return self.ceiling
         return self.high
 
     def requirement(self) -> str:
@@ -145,10 +147,9 @@ class Option:
             return f"{null}one of {', '.join(self.choices)}"
         if self.kind == "flag":
             return f"{'null, ' if self.nullable else ''}true or false"
-        unit = f" ({self.unit})" if self.unit else ""
-        if self.kind == "integer":
-            return f"{null}an integer >= {self.low:g}{unit}"
         bounds = range_text(self.low, self.upper, self.low_open, self.high_open)
+        if self.kind == "integer":
+            return f"{null}an integer {bounds}{f' ({self.unit})' if self.unit else ''}"
         if self.finite_words:
             return f"{null}a finite number {bounds}".rstrip()
         if not bounds:
@@ -162,12 +163,12 @@ class Option:
             return isinstance(value, str) and value in self.choices
         if self.kind == "flag":
             return isinstance(value, bool)
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
+        if isinstance(value, bool) or not isinstance(
+            value, int if self.kind == "integer" else (int, float)
+        ):
             return False
-        if self.kind == "integer":
-            return isinstance(value, int) and value >= self.low
         return (
-            math.isfinite(value)
+            (self.kind == "integer" or math.isfinite(value))
             and (self.low is None or (value > self.low if self.low_open else value >= self.low))
             and (
                 self.upper is None
@@ -193,13 +194,15 @@ ALPHA_INIT = Option(
 
 
 def range_text(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:
-    """A range as the messages say it: ``"in [0, 1]"``, ``"> 0"``, ``"<= 1"`` (``""``: none)."""
+    """A range as the messages say it: ``"in [0, 1]"``, ``"> 0"``, ``"<= 1"`` (``""``: none;
+    an ``int`` bound whole: ``"in [1, 1000000]"``)."""
+    low, high = (b if b is None or isinstance(b, int) else f"{b:g}" for b in (low, high))
     if low is not None and high is not None:
-        return f"in {'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
+        return f"in {'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
     if low is not None:
-        return f"{'>' if low_open else '>='} {low:g}"
+        return f"{'>' if low_open else '>='} {low}"
     if high is not None:
-        return f"{'<' if high_open else '<='} {high:g}"
+        return f"{'<' if high_open else '<='} {high}"
     return ""
 
 

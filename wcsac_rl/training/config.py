@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -12,13 +11,7 @@ from wcsac_rl.cli_args import SEED_MAX
 from wcsac_rl.envs.presets import has_goals
 from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
-from wcsac_rl.options import (
-    ALPHA_INIT,
-    SafetyOptions,
-    check_value,
-    range_text,
-    read_options,
-)
+from wcsac_rl.options import ALPHA_INIT, Option, SafetyOptions, check_value, read_options
 from wcsac_rl.training.errors import ConfigError, TrainingError
 from wcsac_rl.training.registry import ALGORITHMS, Algorithm, algorithm, resolve
 
@@ -47,139 +40,120 @@ def _is_int(value: Any) -> bool:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
+def _spec(kind: str, **spec: Any) -> Option:
+    """What a run's setting may be: an :class:`~wcsac_rl.options.Option` with no ceiling
+    (a learning rate or a count is not one of the losses' weights)."""
+    return Option("", kind, reader="config", ceiling=None, **spec)
+
+
+_COUNT = _spec("integer", low=0)
+_POSITIVE = _spec("integer", low=0, low_open=True)
+_RATE = _spec("number", low=0.0, low_open=True)
+_FRACTION = _spec("number", low=0.0, high=1.0)
+_WEIGHT = _spec("number", low=0.0)
+_REAL = _spec("number")
+_FLAG = _spec("flag")
+
 SIZE_LIMITS = {
-    "algo.network.width": 16_384,
-    "algo.network.depth": 64,
-    "env.max_episode_steps": 1_000_000,
+    "algo.network.width": _spec("integer", low=1, high=16_384),
+    "algo.network.depth": _spec("integer", low=0, high=64),
+    "env.max_episode_steps": _spec("integer", low=1, high=1_000_000),
 }
 """The largest network and episode a config may ask for (a 16 384-wide layer is a GiB of
 weights; the paper's are 256 wide, its episodes 1 000 steps): checked for a new run and
 for a stored one before anything is built from it (:func:`check_sizes`)."""
 
+CPO_OPTIONS = {
+    **{f"algo.{key}": _FRACTION for key in ("gamma", "lmbda", "cost_gamma", "cost_lmbda")},
+    "algo.max_kl": _RATE,
+    "algo.value_lr": _RATE,
+    "algo.damping": _WEIGHT,
+    "algo.entropy_coeff": _WEIGHT,
+    "algo.backtrack_coeff": _spec("number", low=0.0, high=1.0, low_open=True, high_open=True),
+    **{f"algo.{key}": _POSITIVE for key in ("cg_iters", "backtrack_iters", "value_iters")},
+    "algo.normalize_advantage": _FLAG,
+    "algo.center_cost_advantage": _FLAG,
+    "algo.network.log_std_init": _REAL,
+}
+"""CPO's own settings (its registry entry's ``check``: :func:`check_cpo`)."""
 
-def _positive_int(cfg: Mapping[str, Any], key: str, *, allow_zero: bool = False) -> int:
+OFF_POLICY_OPTIONS = {
+    "algo.batch_size": _POSITIVE,
+    "algo.buffer_size": _POSITIVE,
+    "algo.collector.init_random_frames": _COUNT,
+    "algo.collector.utd_ratio": _RATE,
+    "algo.tau": _spec("number", low=0.0, high=1.0, low_open=True),
+    "algo.gamma": _FRACTION,
+    "algo.lr": _RATE,
+    "algo.actor_lr": _spec("number", low=0.0, low_open=True, nullable=True),  # null: algo.lr
+    "algo.alpha_init": ALPHA_INIT,
+    "algo.network.log_std_min": _REAL,
+    "algo.network.log_std_max": _REAL,
+}
+"""The SAC family's schedule, optimiser, entropy weight and policy's spread."""
+
+
+def _check(cfg: Mapping[str, Any], key: str, spec: Option) -> Any:
+    """``cfg``'s entry at ``key``, or one :class:`ConfigError` line naming the key and
+    what ``spec`` allows (:func:`~wcsac_rl.options.check_value`)."""
     value = _get(cfg, key)
-    high = SIZE_LIMITS.get(key)
-    low_ok = _is_int(value) and (value >= 0 if allow_zero else value > 0)
-    if not (low_ok and (high is None or value <= high)):
-        bound = ">= 0" if allow_zero else "> 0"
-        if high is not None:
-            bound = f"in [{0 if allow_zero else 1}, {high}]"
-        raise ConfigError(f"{key} must be an integer {bound}, got {value!r}")
+    try:
+        check_value(key, value, spec)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     return value
+
+
+def _check_all(cfg: Mapping[str, Any], specs: Mapping[str, Option]) -> None:
+    for key, spec in specs.items():
+        _check(cfg, key, spec)
 
 
 def check_sizes(cfg: Mapping[str, Any], source: Any) -> None:
     """A stored config's sizes (:data:`SIZE_LIMITS`) within their limits before a network
     or an env is built from it: one :class:`ConfigError` line naming ``source``."""
-    for key in SIZE_LIMITS:
+    for key, spec in SIZE_LIMITS.items():
         if _get(cfg, key) is None:
             continue
         try:
-            _positive_int(cfg, key, allow_zero=key == "algo.network.depth")
+            _check(cfg, key, spec)
         except ConfigError as err:
             raise ConfigError(f"{source}: its config's {err}: not built") from None
 
 
-def _number(
-    cfg: Mapping[str, Any],
-    key: str,
-    *,
-    low: float | None = None,
-    high: float | None = None,
-    low_open: bool = False,
-    high_open: bool = False,
-    allow_none: bool = False,
-) -> float | None:
-    """``cfg[key]`` as a float, or one :class:`ConfigError` naming the key and its range:
-    a finite number (not a bool, not a string) within ``[low, high]`` (``low_open`` /
-    ``high_open``: the bound itself excluded)."""
-    value = _get(cfg, key)
-    if value is None and allow_none:
-        return None
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-    ok = ok and math.isfinite(value)
-    ok = ok and (low is None or (value > low if low_open else value >= low))
-    ok = ok and (high is None or (value < high if high_open else value <= high))
-    if not ok:
-        bounds = range_text(low, high, low_open, high_open)
-        what = f"{bounds} (a number)" if bounds else "a finite number"
-        raise ConfigError(f"{key} must be {'null or ' if allow_none else ''}{what}, got {value!r}")
-    return float(value)
-
-
-def _boolean(cfg: Mapping[str, Any], key: str, *, allow_none: bool = False) -> None:
-    value = _get(cfg, key)
-    if not (isinstance(value, bool) or (allow_none and value is None)):
-        raise ConfigError(
-            f"{key} must be {'null, ' if allow_none else ''}true or false, got {value!r}"
-        )
-
-
-def _choice(cfg: Mapping[str, Any], key: str, allowed: tuple[str, ...]) -> None:
-    value = _get(cfg, key)
-    if value not in allowed:
-        raise ConfigError(f"{key} must be one of {', '.join(allowed)}, got {value!r}")
-
-
 def check_cpo(cfg: DictConfig) -> None:
     """CPO's own options (its registry entry's ``check``)."""
-    for key in ("gamma", "lmbda", "cost_gamma", "cost_lmbda"):
-        _number(cfg, f"algo.{key}", low=0.0, high=1.0)
-    for key in ("max_kl", "value_lr"):
-        _number(cfg, f"algo.{key}", low=0.0, low_open=True)
-    _number(cfg, "algo.damping", low=0.0)
-    _number(cfg, "algo.entropy_coeff", low=0.0)
-    _number(cfg, "algo.backtrack_coeff", low=0.0, high=1.0, low_open=True, high_open=True)
-    for key in ("cg_iters", "backtrack_iters", "value_iters"):
-        _positive_int(cfg, f"algo.{key}")
+    _check_all(cfg, CPO_OPTIONS)
     if cfg.algo.value_batch_size is not None:
-        _positive_int(cfg, "algo.value_batch_size")
-    for key in ("normalize_advantage", "center_cost_advantage"):
-        _boolean(cfg, f"algo.{key}")
+        _check(cfg, "algo.value_batch_size", _POSITIVE)
     _validate_network(cfg)
-    _number(cfg, "algo.network.log_std_init")
 
 
 def _validate_network(cfg: DictConfig) -> None:
     """``algo.network``: every MLP's width, depth and activation."""
     from wcsac_rl.modules._mlp import ACTIVATION_NAMES
 
-    _positive_int(cfg, "algo.network.width")
-    _positive_int(cfg, "algo.network.depth", allow_zero=True)
-    _choice(cfg, "algo.network.activation", ACTIVATION_NAMES)
+    _check(cfg, "algo.network.width", SIZE_LIMITS["algo.network.width"])
+    _check(cfg, "algo.network.depth", SIZE_LIMITS["algo.network.depth"])
+    _check(cfg, "algo.network.activation", _spec("choice", choices=ACTIVATION_NAMES))
 
 
 def _validate_off_policy(cfg: DictConfig) -> None:
-    """The SAC family's schedule, optimiser, entropy weight and networks."""
-    batch = _positive_int(cfg, "algo.batch_size")
-    buffer = _positive_int(cfg, "algo.buffer_size")
+    """The SAC family's options (:data:`OFF_POLICY_OPTIONS`), then their relations."""
+    _check_all(cfg, OFF_POLICY_OPTIONS)
+    batch, buffer = cfg.algo.batch_size, cfg.algo.buffer_size
     if batch > buffer:
         raise ConfigError(
             f"algo.batch_size ({batch}) must be <= algo.buffer_size ({buffer}): a batch is "
             "sampled from the replay buffer"
         )
-    _positive_int(cfg, "algo.collector.init_random_frames", allow_zero=True)
-    _number(cfg, "algo.collector.utd_ratio", low=0.0, low_open=True)
-    _number(cfg, "algo.tau", low=0.0, high=1.0, low_open=True)
-    _number(cfg, "algo.gamma", low=0.0, high=1.0)
-    _number(cfg, "algo.lr", low=0.0, low_open=True)
-    _number(cfg, "algo.actor_lr", low=0.0, low_open=True, allow_none=True)  # null: algo.lr
-    try:
-        check_value("algo.alpha_init", _get(cfg, "algo.alpha_init"), ALPHA_INIT)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
-    if cfg.algo.target_entropy != "auto":
-        try:
-            _number(cfg, "algo.target_entropy")
-        except ConfigError:
-            raise ConfigError(
-                f"algo.target_entropy must be auto (-|A|) or a finite number, got "
-                f"{cfg.algo.target_entropy!r}"
-            ) from None
+    if cfg.algo.target_entropy != "auto" and not _REAL.accepts(cfg.algo.target_entropy):
+        raise ConfigError(
+            f"algo.target_entropy must be auto (-|A|) or a finite number, got "
+            f"{cfg.algo.target_entropy!r}"
+        )
     _validate_network(cfg)
-    low = _number(cfg, "algo.network.log_std_min")
-    high = _number(cfg, "algo.network.log_std_max")
+    low, high = cfg.algo.network.log_std_min, cfg.algo.network.log_std_max
     if not low < high:
         raise ConfigError(
             f"algo.network.log_std_min ({low:g}) must be < algo.network.log_std_max ({high:g})"
@@ -256,13 +230,13 @@ def check_run_name(value: Any) -> None:
 def _validate_run(cfg: DictConfig) -> None:
     """The run's schedule, checkpoints and switches (the top-level keys)."""
     seed = _get(cfg, "seed")
-    _positive_int(cfg, "seed", allow_zero=True)  # gymnasium and NumPy need seeds >= 0
+    _check(cfg, "seed", _COUNT)  # gymnasium and NumPy need seeds >= 0
     if seed > SEED_MAX:
         raise ConfigError(f"seed must be at most 2**63 - 1 = {SEED_MAX}, got {seed!r}")
     if cfg.get("run_name") is not None:  # (after the seed its default is made from)
         check_run_name(cfg.run_name)
     for key in ("total_frames", "epoch_frames", "threads", "checkpoint_every_epochs"):
-        _positive_int(cfg, key)
+        _check(cfg, key, _POSITIVE)
     cores = machine_cores()
     if cfg.threads > cores:
         raise ConfigError(
@@ -270,8 +244,8 @@ def _validate_run(cfg: DictConfig) -> None:
             f"beyond them only wait for each other); choose threads <= {cores}"
         )
     if cfg.get("max_nonfinite_updates") is not None:
-        _positive_int(cfg, "max_nonfinite_updates")
-    _positive_int(cfg, "eval_episodes", allow_zero=True)
+        _check(cfg, "max_nonfinite_updates", _POSITIVE)
+    _check(cfg, "eval_episodes", _COUNT)
     keep = cfg.get("keep_checkpoints_at") or []
     if not isinstance(keep, (list, tuple, ListConfig)) or not all(
         _is_int(e) and e >= 1 for e in keep
@@ -288,12 +262,12 @@ def _validate_run(cfg: DictConfig) -> None:
         "trust_env_code",
     ):
         if key in cfg:
-            _boolean(cfg, key)
+            _check(cfg, key, _FLAG)
     resume = cfg.get("resume")
     if resume is not None and not isinstance(resume, str):
         raise ConfigError(f"resume must be null, auto or a run directory, got {resume!r}")
     if cfg.env.get("max_episode_steps") is not None:
-        _positive_int(cfg, "env.max_episode_steps")
+        _check(cfg, "env.max_episode_steps", SIZE_LIMITS["env.max_episode_steps"])
     kwargs = cfg.env.get("kwargs")
     if kwargs is not None and not isinstance(kwargs, Mapping):
         raise ConfigError(f"env.kwargs must be a mapping of env arguments, got {kwargs!r}")
@@ -317,8 +291,8 @@ def _validate_preset_kwargs(env: str, kwargs: Mapping) -> None:
 
 def _validate_collector(cfg: DictConfig) -> None:
     collector = cfg.algo.collector
-    envs = _positive_int(cfg, "algo.collector.num_envs")
-    frames = _positive_int(cfg, "algo.collector.frames_per_batch")
+    envs = _check(cfg, "algo.collector.num_envs", _POSITIVE)
+    frames = _check(cfg, "algo.collector.frames_per_batch", _POSITIVE)
     if frames % envs:
         raise ConfigError(
             f"algo.collector.frames_per_batch ({frames}) must be a multiple "
