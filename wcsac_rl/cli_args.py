@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import argparse
 
-__all__ = ["SEED_MAX", "add_trust_env_code", "check_seed", "check_threads"]
+__all__ = ["SEED_MAX", "add_trust_env_code", "check_seed", "check_threads", "machine_cores"]
 
 SEED_MAX = 2**63 - 1
 """The largest seed: torch seeds are 64-bit, and a run seeds its envs and collector with
@@ -32,15 +32,20 @@ def check_seed(parser: argparse.ArgumentParser, option: str, value: int) -> None
         parser.error(f"{option} must be a whole number in [0, 2**63 - 1], got {value}")
 
 
-def check_threads(parser: argparse.ArgumentParser, value: int) -> None:
-    """Refuse ``--threads`` below 1 or above the cores this process may run on, in one
-    line (torch threads beyond the cores only wait for each other)."""
+def machine_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the OS tells it)."""
     import os
 
     try:
-        cores = max(1, len(os.sched_getaffinity(0)))
+        return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):  # (not Linux)
-        cores = max(1, os.cpu_count() or 1)
+        return max(1, os.cpu_count() or 1)
+
+
+def check_threads(parser: argparse.ArgumentParser, value: int) -> None:
+    """Refuse ``--threads`` below 1 or above the cores this process may run on, in one
+    line (torch threads beyond the cores only wait for each other)."""
+    cores = machine_cores()
     if not 1 <= value <= cores:
         parser.error(
             f"--threads must be a whole number in [1, {cores}] (this machine's cores), got {value}"

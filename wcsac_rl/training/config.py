@@ -7,7 +7,7 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from wcsac_rl.cli_args import SEED_MAX
+from wcsac_rl.cli_args import SEED_MAX, machine_cores
 from wcsac_rl.envs.presets import has_goals
 from wcsac_rl.objectives.budget import validate_cost_limit
 from wcsac_rl.objectives.risk import validate_risk_level
@@ -204,16 +204,6 @@ def _validate_risk(cfg: DictConfig) -> None:
         validate_cost_limit(cfg.cost_limit)
     except ValueError as err:
         raise ConfigError(str(err)) from None
-
-
-def machine_cores() -> int:
-    """The cores this process may run on (its CPU affinity where the OS tells it)."""
-    import os
-
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):  # (not Linux)
-        return max(1, os.cpu_count() or 1)
 
 
 def check_run_name(value: Any) -> None:
