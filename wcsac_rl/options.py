@@ -228,7 +228,7 @@ def option_default(cls: type, name: str) -> Any:
 
 def check_value(key: str, value: Any, spec: Option) -> None:
     """Raise ``ValueError("<key> must be <what it may be>, got <value>")`` (one line) if
-    ``value`` is not what ``spec`` allows (a group: its own fields are checked)."""
+    ``value`` is not what ``spec`` allows (a group: left to its own dataclass's checks)."""
     if spec.kind == "risk_level":
         from wcsac_rl.objectives.risk import validate_risk_level  # (torch: only when checking)
 
