@@ -17,7 +17,7 @@ from __future__ import annotations
 import difflib
 import functools
 import itertools
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import Collection, Iterable, Iterator, Sequence
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
@@ -130,16 +130,7 @@ def unknown_keys(cfg: DictConfig | dict, extra: Iterable[str] = ()) -> list[str]
     does not have (nor ``extra``: e.g. a resumed run's saved keys); ``None`` without
     ``conf/``. A key under an unknown one is not listed again."""
     known = known_keys(*_choice_overrides(_choices(cfg)))
-    if known is None:
-        return None
-    allowed = known | set(extra)
-    unknown: list[str] = []
-    for path in _paths(_container(cfg)):
-        if path.split(".")[0] in IGNORED_ROOTS or path in allowed:
-            continue
-        if not any(path.startswith(f"{u}.") for u in unknown):
-            unknown.append(path)
-    return unknown
+    return None if known is None else _outermost(_paths(_container(cfg)), known | set(extra))
 
 
 def missing_keys(cfg: DictConfig | dict) -> list[str] | None:
@@ -151,14 +142,19 @@ def missing_keys(cfg: DictConfig | dict) -> list[str] | None:
     reference = _reference(_choice_overrides(_choices(cfg)))
     if reference is None:
         return None
-    have = key_paths(cfg)
-    missing: list[str] = []
-    for path in _paths(_container(reference)):
-        if path.split(".")[0] in IGNORED_ROOTS or path == TRUST_KEY or path in have:
+    return _outermost(_paths(_container(reference)), key_paths(cfg) | {TRUST_KEY})
+
+
+def _outermost(paths: Iterable[str], skip: Collection[str]) -> list[str]:
+    """The ``paths`` not in ``skip`` nor under Hydra's node, a path under one listed
+    not listed again."""
+    found: list[str] = []
+    for path in paths:
+        if path.split(".")[0] in IGNORED_ROOTS or path in skip:
             continue
-        if not any(path.startswith(f"{m}.") for m in missing):
-            missing.append(path)
-    return missing
+        if not any(path.startswith(f"{f}.") for f in found):
+            found.append(path)
+    return found
 
 
 def _suggestion(key: str, known: Iterable[str]) -> str:
