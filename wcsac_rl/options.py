@@ -83,7 +83,7 @@ KAPPA_ACTIONS = ("replay", "policy")
 KAPPA_STATES = ("replay", "initial")
 KAPPA_STATISTICS = ("mean", "tail")
 KAPPA_SIGNALS = ("critic", "max", "episodes")
-"""What κ reads (:mod:`~wcsac_rl.objectives.constraint_signal`)."""
+"""What κ reads (:class:`~wcsac_rl.objectives.constraint.ConstraintSignal`)."""
 EPISODE_STATISTICS = ("cvar", "mean", "rate")
 """What :meth:`~wcsac_rl.objectives.EpisodeCostWindow.for_loss` summarises the window
 by: the empirical CVaR at the loss's α, the mean episode cost (α = 1: a lower bound

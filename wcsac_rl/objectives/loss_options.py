@@ -59,7 +59,7 @@ def _same(cls: type, name: str) -> Any:
 @dataclass(frozen=True)
 class SafetyHeadOptions:
     """The safety critic's head (:func:`~wcsac_rl.objectives.ensemble_head.make_safety_head`)
-    and its TD target (:class:`~wcsac_rl.objectives.cost_target.CostTarget`).
+    and its TD target (:class:`~wcsac_rl.objectives.safety_head.CostTarget`).
 
     ``cost_gamma`` (γ_c; ``None``: the value estimator's γ, the paper),
     ``cost_bootstrap_truncated`` (``None``: only when γ_c < 1) and ``cost_n_steps`` (``1``:
@@ -105,7 +105,7 @@ class SafetyHeadOptions:
 
 @dataclass(frozen=True)
 class SignalOptions:
-    """What κ holds under the threshold (:mod:`~wcsac_rl.objectives.constraint_signal`).
+    """What κ holds under the threshold (:class:`~wcsac_rl.objectives.constraint.ConstraintSignal`).
 
     ``kappa_states`` (``"initial"``: episode start states, from
     :class:`~wcsac_rl.objectives.StartStateBuffer`, against ``d``; ``"replay"``: the
