@@ -17,6 +17,7 @@ from omegaconf import DictConfig, OmegaConf
 from wcsac_rl._messages import first_line
 from wcsac_rl.training.config import ConfigError, TrainingError
 from wcsac_rl.training.preemption import DeferredSignals
+from wcsac_rl.training.run_dir import replace_file
 from wcsac_rl.training.safe_load import (
     MAX_CHECKPOINT_BYTES,
     UnreadableRecord,
@@ -117,29 +118,21 @@ def write_error_reason(err: BaseException, directory: Path) -> str:
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    """Write ``state`` with ``torch.save`` atomically: to ``<path>.tmp``, flushed to disk,
-    then renamed over ``path``. A crash never leaves half a file, and a failed write
-    (a full disk) removes the temporary file, keeps the previous ``path`` and raises
-    :class:`~wcsac_rl.training.TrainingError` with one line that says why.
+    """Write ``state`` with ``torch.save`` atomically (:func:`~wcsac_rl.training.run_dir.replace_file`,
+    a stop signal waiting until the file is in place). A failed write (a full disk) keeps
+    the previous ``path`` and raises :class:`~wcsac_rl.training.TrainingError` with one
+    line that says why.
     """
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
     kept = (
         "the previous checkpoint is kept"
         if path.is_file()
         else "no checkpoint had been written yet"
     )
     try:
-        with DeferredSignals():  # a stop signal waits until the file is in place
-            with tmp.open("wb") as f:
-                torch.save(state, f)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-    except BaseException as err:  # Ctrl-C mid-write too: never leave the temporary file
-        tmp.unlink(missing_ok=True)
-        if not isinstance(err, Exception):
-            raise
+        with DeferredSignals():
+            replace_file(path, lambda f: torch.save(state, f))
+    except Exception as err:
         hint = f" (free some space, then resume={path.parent.parent})" if is_disk_full(err) else ""
         raise TrainingError(
             f"cannot write checkpoint {path}: {write_error_reason(err, path.parent)}; {kept}{hint}"
@@ -263,20 +256,16 @@ def verify_buffers(checkpoint_dir: Path, manifest: dict[str, Any], checkpoint: P
     fix = f"delete {directory} to resume without it (the buffer is then refilled)"
     for rel, (size, digest) in manifest["files"].items():
         path = directory / rel
+        damage = None
         if not path.is_file():
+            damage = f"{rel} is missing"
+        elif (actual := path.stat().st_size) != size:
+            damage = f"{rel}: {actual} bytes, expected {size}"
+        elif _file_digest(path) != digest:
+            damage = f"{rel}: its contents changed since it was saved"
+        if damage is not None:
             raise ConfigError(
-                f"the replay buffer saved with {checkpoint} is damaged ({rel} is missing); {fix}"
-            )
-        actual = path.stat().st_size
-        if actual != size:
-            raise ConfigError(
-                f"the replay buffer saved with {checkpoint} is damaged ({rel}: {actual} bytes, "
-                f"expected {size}); {fix}"
-            )
-        if _file_digest(path) != digest:
-            raise ConfigError(
-                f"the replay buffer saved with {checkpoint} is damaged ({rel}: its contents "
-                f"changed since it was saved); {fix}"
+                f"the replay buffer saved with {checkpoint} is damaged ({damage}); {fix}"
             )
     return directory
 
@@ -323,17 +312,10 @@ def keep_checkpoint(checkpoint: Path, frames: int) -> Path:
     the same saved buffers, which later checkpoints replace: it restores a policy, and
     resumed from, refills the replay buffer."""
     kept = checkpoint.with_name(f"{KEPT_PREFIX}{int(frames)}.pt")
-    tmp = kept.with_name(f".tmp-{kept.name}")
     try:
-        with DeferredSignals():
-            shutil.copyfile(checkpoint, tmp)
-            with open(tmp, "rb+") as handle:
-                os.fsync(handle.fileno())
-            os.replace(tmp, kept)
-    except BaseException as err:  # never leave the temporary file
-        tmp.unlink(missing_ok=True)
-        if not isinstance(err, Exception):
-            raise
+        with DeferredSignals(), checkpoint.open("rb") as source:
+            replace_file(kept, lambda f: shutil.copyfileobj(source, f))
+    except Exception as err:
         raise TrainingError(
             f"cannot keep checkpoint {kept}: {write_error_reason(err, kept.parent)} "
             "(keep_checkpoints_at); checkpoints/last.pt is unaffected"

@@ -1,26 +1,13 @@
 """Stop a run cleanly when the scheduler says so: a checkpoint first, then exit.
 
-A cluster ends a job with a signal: SLURM sends the job's ``--signal`` (submitit asks
-for ``USR2`` by default, ``SUBMITIT_PREEMPT_SIGNAL=USR1`` for ``USR1``) some time
-before the time limit or on preemption, and ``SIGTERM`` before it kills the job;
-``scancel``, ``kill`` and Ray's worker shutdown send ``SIGTERM``. While a run trains,
-:class:`StopSignals` catches these signals and only *records* them: the trainer looks
-at :attr:`StopSignals.received` between two collected batches, where the networks,
-optimizers, buffers and counters are consistent, writes its checkpoint (with the epoch
-in progress, as on Ctrl-C) and then calls :meth:`StopSignals.forward`, which hands the
-signal to the handler that was installed before (submitit's, which requeues the job
-and exits); without one the trainer raises :class:`Preempted`.
-
-The run is then continued by ``python train.py resume=RUN_DIR``, and, when it has
-``resume=auto`` (a sweep of an ``experiment=...`` does: each job continues from its own
-run directory's checkpoint), by running the same command again: the message of
-:class:`Preempted` (and of Ctrl-C) names them (:func:`how_to_continue`).
-
-While a checkpoint (or any of a run's records) is being written, :class:`DeferredSignals`
-holds back these signals and ``SIGINT``/``SIGHUP`` too: the write finishes (the file is
-renamed into place and no temporary file is left), then the signal is delivered as it
-would have been. ``kill -9`` cannot be held back: it leaves the previous file in place
-and possibly the temporary one, which the next write replaces.
+:class:`StopSignals` records a scheduler's stop signal (``SIGTERM``, ``USR1``/``USR2``)
+while a run trains; the trainer checks :attr:`StopSignals.received` between two
+collected batches, writes its checkpoint and calls :meth:`StopSignals.forward` (the
+handler installed before, such as submitit's requeue) or raises :class:`Preempted`,
+whose message says how to continue (:func:`how_to_continue`). :class:`DeferredSignals`
+holds these signals and ``SIGINT``/``SIGHUP`` back while a record is written. Which
+scheduler sends what: docs/reproduce.md; what survives which signal:
+docs/guarantees.md ("What is atomic, and what survives SIGTERM and kill -9").
 """
 
 from __future__ import annotations
@@ -98,35 +85,38 @@ class Preempted(Exception):
         return 128 + self.signum
 
 
-class StopSignals:
-    """Record :data:`STOP_SIGNALS` while the ``with`` block runs; restore the previous
-    handlers on exit.
+class _CaughtSignals:
+    """Catch ``names`` with a Python handler while the ``with`` block runs, recording the
+    first that came (:attr:`received`); the previous handlers come back on exit.
 
     Handlers can only be installed from the main thread: elsewhere (a thread-based
     launcher) this does nothing and the signals keep their previous handlers. A signal
     whose handler is ``SIG_IGN`` stays ignored.
     """
 
-    def __init__(self, names: tuple[str, ...] = STOP_SIGNALS) -> None:
+    def __init__(self, names: tuple[str, ...]) -> None:
         self.signums = [getattr(signal, n) for n in names if hasattr(signal, n)]
         self.received: int | None = None
         self._previous: dict[int, Any] = {}
 
-    def __enter__(self) -> StopSignals:
+    def __enter__(self):
         if threading.current_thread() is not threading.main_thread():
             return self
         for signum in self.signums:
             previous = signal.getsignal(signum)
-            if previous is signal.SIG_IGN:
-                continue
-            signal.signal(signum, self._record)
+            if previous is signal.SIG_IGN or isinstance(previous, _Deferring):
+                continue  # ignored, or a DeferredSignals block already holds it back
+            signal.signal(signum, self._handler())
             self._previous[signum] = previous
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.restore()
 
-    def _record(self, signum: int, frame: FrameType | None) -> None:
+    def _handler(self) -> Any:
+        return self._record
+
+    def _record(self, signum: int, frame: FrameType | None = None) -> None:
         if self.received is None:  # the first one decides; later ones add nothing
             self.received = signum
 
@@ -135,6 +125,13 @@ class StopSignals:
         for signum, previous in self._previous.items():
             signal.signal(signum, previous if previous is not None else signal.SIG_DFL)
         self._previous.clear()
+
+
+class StopSignals(_CaughtSignals):
+    """Record :data:`STOP_SIGNALS` while the ``with`` block runs (:class:`_CaughtSignals`)."""
+
+    def __init__(self, names: tuple[str, ...] = STOP_SIGNALS) -> None:
+        super().__init__(names)
 
     def forward(self) -> None:
         """Restore the previous handlers and call the previous handler of the received
@@ -147,42 +144,25 @@ class StopSignals:
             previous(signum, None)
 
 
-class DeferredSignals:
+class DeferredSignals(_CaughtSignals):
     """Hold back :data:`DEFERRED_SIGNALS` while the ``with`` block runs (a file being
     written), then deliver the first one that came, to the handler that was there
     before (the default one ends the process, 128 + the signal's number; a
     :class:`StopSignals` records it; ``SIGINT`` raises ``KeyboardInterrupt``).
 
-    The signals are caught by a Python handler, which holds for every thread of the
-    process (a blocked signal mask would not: a signal may be delivered to another
-    thread). Outside the main thread, where handlers cannot be installed, this does
-    nothing. Nested blocks defer to the outermost one.
+    A Python handler holds for every thread of the process (a blocked signal mask would
+    not: a signal may be delivered to another thread). Nested blocks defer to the
+    outermost one.
     """
 
     def __init__(self, names: tuple[str, ...] = DEFERRED_SIGNALS) -> None:
-        self.signums = [getattr(signal, n) for n in names if hasattr(signal, n)]
-        self.received: int | None = None
-        self._previous: dict[int, Any] = {}
+        super().__init__(names)
 
-    def __enter__(self) -> DeferredSignals:
-        if threading.current_thread() is not threading.main_thread():
-            return self
-        for signum in self.signums:
-            previous = signal.getsignal(signum)
-            if previous is signal.SIG_IGN or isinstance(previous, _Deferring):
-                continue  # ignored, or an outer block already defers it
-            signal.signal(signum, _Deferring(self))
-            self._previous[signum] = previous
-        return self
-
-    def _record(self, signum: int) -> None:
-        if self.received is None:
-            self.received = signum
+    def _handler(self) -> Any:
+        return _Deferring(self)  # (a class: nested blocks see it)
 
     def __exit__(self, *exc: object) -> None:
-        for signum, previous in self._previous.items():
-            signal.signal(signum, previous if previous is not None else signal.SIG_DFL)
-        self._previous.clear()
+        self.restore()
         if self.received is not None:
             received, self.received = self.received, None
             signal.raise_signal(received)

@@ -12,6 +12,8 @@ from pathlib import Path
 import torch
 from tensordict import TensorDictBase
 
+from wcsac_rl.training.run_dir import replace_text
+
 __all__ = ["EpisodeTracker", "LossMeans", "ProgressWriter", "read_progress"]
 
 
@@ -47,12 +49,11 @@ class ProgressWriter:
         with self.path.open(newline="") as f:
             rows = list(csv.DictReader(f))
         self.fieldnames = [*self.fieldnames, *new_columns]
-        tmp = self.path.with_suffix(".csv.tmp")
-        with tmp.open("w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=self.fieldnames, restval="")
-            writer.writeheader()
-            writer.writerows(rows)
-        tmp.replace(self.path)
+        buf = io.StringIO()
+        writer = csv.DictWriter(buf, fieldnames=self.fieldnames, restval="")
+        writer.writeheader()
+        writer.writerows(rows)
+        replace_text(self.path, buf.getvalue())
 
 
 def _float(text: str | None) -> float:
@@ -95,13 +96,9 @@ def read_progress(path: Path, *, warn: bool = True) -> dict[str, list[float]]:
 
 
 class LossMeans:
-    """Epoch means of the loss outputs, summed batch by batch (float64, on their device).
-
-    Each collected batch's outputs (one small TensorDict per gradient step) are stacked,
-    summed into the running total and dropped at once. Keeping them for the whole epoch
-    instead (7 500 per epoch at the paper's settings) cost gigabytes: their thousands
-    of tiny tensors, allocated between the update's ~1 MB activations, pinned the
-    heap so the freed activations could not be reused (measured, docs/performance.md, "Memory per run").
+    """Epoch means of the loss outputs, summed batch by batch (float64, on their device):
+    each batch's outputs are summed at once and dropped, never kept for the epoch (their
+    tiny tensors would pin the heap: docs/performance.md, "Memory per run").
     """
 
     def __init__(self, keys: list[str]) -> None:

@@ -1,36 +1,31 @@
-"""A run directory: one run at a time (a lock), new runs only in empty directories, and
-records that never run ahead of the checkpoint they are resumed from.
+"""A run directory: one run at a time (:class:`RunLock`), new runs only in empty directories,
+records that never run ahead of the checkpoint they are resumed from
+(:func:`cut_records_to`), and every record written whole (:func:`replace_file`).
 
-* :class:`RunLock` — an OS-level lock (``fcntl.flock``) on ``<run dir>/.lock`` held for
-  the trainer's life. The OS drops it when the process ends, however it ends
-  (``kill -9`` included), so a lock file left by a dead process is recognised as stale
-  by simply being lockable again; the file holds the owner's host and pid for the
-  message the second run prints.
-* :func:`lock_holder` — who holds a run directory's lock, without waiting (a live run:
-  what a sweep's status calls ``running``).
-* :func:`check_new_run_dir` — a new run refuses a directory that holds anything but
-  Hydra's own files (``.hydra/``, the job's ``*.log``) and the lock file.
-* :func:`check_auto_resume_dir` — ``resume=auto`` needs a directory the command names
-  (not Hydra's new timestamped one).
-* :func:`check_restartable_run_dir` — ``resume=auto`` in a directory without a
-  checkpoint: a session killed before its first checkpoint may have left the run's
-  own files (``config.yaml``, ``progress.csv``, ``logs/``); its records are cut and the
-  run starts over. Anything else is refused.
-* :func:`cut_records_to` — on resume, ``progress.csv`` and the CSV logger's scalar
-  files are cut back to the checkpoint's epoch (rows logged after the checkpoint, by
-  a session that was killed before its next checkpoint, are dropped), each file
-  rewritten atomically (temporary file, then rename).
+The rules: docs/guarantees.md ("A run directory has one owner", "A refused command
+changes nothing that existed before it").
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import os
+import shutil
 import socket
+import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import BinaryIO
 
 from wcsac_rl.training.config import ConfigError
+from wcsac_rl.training.preemption import DeferredSignals
+
+try:
+    import fcntl
+except ImportError:  # pragma: no cover - not POSIX: no locks
+    fcntl = None
 
 __all__ = [
     "AUTO_RESUME",
@@ -46,6 +41,7 @@ __all__ = [
     "discard_unused_run_dir",
     "lock_holder",
     "own_copies",
+    "remove_entry",
     "replace_file",
     "replace_files",
     "replace_text",
@@ -72,12 +68,17 @@ HYDRA_STAGING = ".hydra-pending-"
 removed when it is refused (another run's records are never written over)."""
 
 
-def _is_hydra_entry(path: Path) -> bool:
+def _is_pre_run_entry(path: Path) -> bool:
+    """Hydra's files, or the lock file: what a run directory holds before a run writes."""
     return (
-        path.name in HYDRA_ENTRIES
+        path.name in (*HYDRA_ENTRIES, LOCK_FILE)
         or path.name.startswith(HYDRA_STAGING)
         or (path.is_file() and path.suffix == ".log")
     )
+
+
+def _shown(names: list[str]) -> str:
+    return ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
 
 
 def _is_resumed_session_record(path: Path) -> bool:
@@ -99,9 +100,7 @@ def lock_holder(run_dir: Path) -> str | None:
     retries (:class:`RunLock`). Across nodes this sees a run on another node where the
     shared filesystem forwards ``flock`` locks (NFS does; Lustre with ``-o flock``).
     """
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - not POSIX
+    if fcntl is None:  # pragma: no cover - not POSIX
         return None
     try:
         fd = os.open(Path(run_dir) / LOCK_FILE, os.O_RDONLY)
@@ -124,20 +123,19 @@ class RunInUseError(ConfigError):
 
 
 class RunLock:
-    """Hold ``<run dir>/.lock`` exclusively until :meth:`release` (or the process ends).
+    """Hold ``<run dir>/.lock`` exclusively until :meth:`release` (or the process ends: the
+    OS drops the lock however it ends, so a lock file left by a dead process is free again;
+    the file holds the owner's host and pid for the message the second run prints).
 
-    Raises :class:`~wcsac_rl.training.ConfigError` (one line, naming the holder) when
-    another live process holds it (tried :data:`LOCK_ATTEMPTS` times,
-    :data:`LOCK_RETRY_S` apart). Where ``fcntl`` does not exist (Windows) the lock
-    is a no-op.
+    Raises :class:`RunInUseError` (one line, naming the holder) when another live process
+    holds it (tried :data:`LOCK_ATTEMPTS` times, :data:`LOCK_RETRY_S` apart). Where
+    ``fcntl`` does not exist (Windows) the lock is a no-op.
     """
 
     def __init__(self, run_dir: Path) -> None:
         self.path = Path(run_dir) / LOCK_FILE
         self._fd: int | None = None
-        try:
-            import fcntl
-        except ImportError:  # pragma: no cover - not POSIX
+        if fcntl is None:  # pragma: no cover - not POSIX
             return
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -182,8 +180,6 @@ def unwritable_reason(directory: str | os.PathLike) -> str | None:
     its nearest existing ancestor must be a directory in which a file can be created
     (tried with a temporary file, removed at once: this holds for root on a read-only
     file system too, where permission bits do not)."""
-    import tempfile
-
     path = Path(directory).expanduser().absolute()
     existing = path
     while not existing.exists() and existing != existing.parent:
@@ -216,8 +212,6 @@ def discard_unused_run_dir(
     is removed if it holds nothing else (a log in it empty and newer than ``since``). A
     directory with anything else in it (a run, a user's files) keeps it all. Returns
     whether the directory was removed."""
-    import shutil
-
     run_dir = Path(run_dir)
     if not run_dir.is_dir() or run_dir.is_symlink():
         return False
@@ -248,11 +242,16 @@ def discard_unused_run_dir(
         shutil.rmtree(run_dir, ignore_errors=True)
         return True
     for path in ours:
-        if path.is_dir():
-            shutil.rmtree(path, ignore_errors=True)
-        else:
-            path.unlink(missing_ok=True)
+        remove_entry(path)
     return False
+
+
+def remove_entry(path: Path) -> None:
+    """Remove ``path``: a directory with what it holds, anything else (a link) itself."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
 
 
 def check_new_run_dir(run_dir: Path) -> None:
@@ -260,11 +259,9 @@ def check_new_run_dir(run_dir: Path) -> None:
     run_dir = Path(run_dir)
     if not run_dir.exists():
         return
-    entries = sorted(
-        p.name for p in run_dir.iterdir() if p.name != LOCK_FILE and not _is_hydra_entry(p)
-    )
+    entries = sorted(p.name for p in run_dir.iterdir() if not _is_pre_run_entry(p))
     if entries:
-        shown = ", ".join(entries[:4]) + (", ..." if len(entries) > 4 else "")
+        shown = _shown(entries)
         has_checkpoint = (run_dir / "checkpoints" / "last.pt").is_file()
         fix = (
             f"continue it with resume={run_dir} or choose another directory"
@@ -311,16 +308,12 @@ def check_restartable_run_dir(run_dir: Path) -> None:
     others = sorted(
         p.name
         for p in run_dir.iterdir()
-        if p.name != LOCK_FILE
-        and not _is_hydra_entry(p)
-        and p.name not in RUN_ENTRIES
-        and not _is_resumed_session_record(p)
+        if not (_is_pre_run_entry(p) or p.name in RUN_ENTRIES or _is_resumed_session_record(p))
     )
     if others:
-        shown = ", ".join(others[:4]) + (", ..." if len(others) > 4 else "")
         raise ConfigError(
             f"{run_dir} has no checkpoint to continue and holds files that are not a run's "
-            f"({shown}); resume=auto starts a run only in an empty directory or one a killed "
+            f"({_shown(others)}); resume=auto starts a run only in an empty directory or one a killed "
             "run left before its first checkpoint: choose another directory"
         )
     dropped = cut_records_to(run_dir, epoch=0, frames=0)
@@ -346,8 +339,6 @@ def own_copies(run_dir: Path) -> list[Path]:
     -al RUN COPY``) a copy of its own, written beside it and renamed over it, so that
     what a resume appends or writes never reaches the other run. Call it holding the
     run's lock (:class:`RunLock`). Returns the files copied."""
-    import shutil
-
     copied = []
     for path in _run_entries(Path(run_dir)):
         if path.is_symlink() or not path.is_file() or path.stat().st_nlink < 2:
@@ -381,10 +372,7 @@ def check_progress_rows(run_dir: Path, epoch: int | None = None) -> None:
     path = Path(run_dir) / "progress.csv"
     if not path.is_file():
         return
-    with path.open(newline="") as f:
-        reader = csv.reader(f)
-        header = next(reader, None)
-        rows = list(reader)
+    header, rows = _read_csv(path)
     if not header:
         return
     if "epoch" not in header:  # (a resume would append its rows under another header)
@@ -410,19 +398,22 @@ def check_progress_rows(run_dir: Path, epoch: int | None = None) -> None:
         expected += 1
 
 
-def replace_file(path: str | os.PathLike, data: str | bytes) -> Path:
-    """Write ``data`` (text as UTF-8) to ``path`` as a new file renamed into place, the one
-    way the kit writes a record: a link at ``path`` (symbolic, or a hard link shared with
-    another run) is replaced, never written through; the temporary file beside it is
-    created exclusively and never follows a link; it is removed again if anything fails
-    (a full disk, a stop)."""
+def replace_file(path: str | os.PathLike, data: str | bytes | Callable[[BinaryIO], object]) -> Path:
+    """Write ``data`` (text as UTF-8, or a function that writes into the open file) to
+    ``path`` as a new file renamed into place, the one way the kit writes a record or a
+    checkpoint: a link at ``path`` (symbolic, or a hard link shared with another run) is
+    replaced, never written through; the temporary file beside it is created exclusively,
+    never follows a link, is flushed to disk before the rename and is removed again if
+    anything fails (a full disk, a stop)."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    payload = data.encode("utf-8") if isinstance(data, str) else bytes(data)
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
     try:
         with os.fdopen(os.open(tmp, flags, 0o644), "wb") as f:
-            f.write(payload)
+            if callable(data):
+                data(f)
+            else:
+                f.write(data.encode("utf-8") if isinstance(data, str) else bytes(data))
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -457,8 +448,6 @@ def replace_files(files: dict[Path, str | bytes]) -> list[Path]:
 
 def replace_text(path: Path, text: str) -> None:
     """:func:`replace_file`, a stop signal waiting until the file is in place."""
-    from wcsac_rl.training.preemption import DeferredSignals
-
     with DeferredSignals():
         replace_file(path, text)
 
@@ -470,12 +459,16 @@ def _number(text: str | None) -> float | None:
         return None
 
 
-def _cut_progress(path: Path, epoch: int) -> int:
-    """Keep the rows of ``progress.csv`` up to ``epoch``; returns how many were dropped."""
+def _read_csv(path: Path) -> tuple[list[str] | None, list[list[str]]]:
+    """A CSV file's header (``None``: an empty file) and its rows."""
     with path.open(newline="") as f:
         reader = csv.reader(f)
-        header = next(reader, None)
-        rows = list(reader)
+        return next(reader, None), list(reader)
+
+
+def _cut_progress(path: Path, epoch: int) -> int:
+    """Keep the rows of ``progress.csv`` up to ``epoch``; returns how many were dropped."""
+    header, rows = _read_csv(path)
     if header is None:
         return 0
     col = header.index("epoch") if "epoch" in header else None
@@ -489,8 +482,6 @@ def _cut_progress(path: Path, epoch: int) -> int:
     ]
     if len(kept) == len(rows):
         return 0
-    import io
-
     buf = io.StringIO()
     writer = csv.writer(buf)
     writer.writerow(header)

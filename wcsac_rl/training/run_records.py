@@ -6,11 +6,22 @@ what a refused or stopped command made removed again (only what it made).
 
 from __future__ import annotations
 
+import datetime
 import logging
+import os
+import shutil
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
+
+from wcsac_rl.training.run_dir import (
+    HYDRA_STAGING,
+    LOCK_FILE,
+    discard_unused_run_dir,
+    remove_entry,
+)
 
 if TYPE_CHECKING:
     from wcsac_rl.training.trainer import Trainer
@@ -27,13 +38,7 @@ __all__ = [
     "discard_staged",
     "discard_stopped",
     "entries_before",
-    "keep_records",
-    "leave_hydra_dir",
-    "note_before",
-    "reopen_run_logs",
     "stage_command",
-    "stage_hydra_records",
-    "staged_records",
 ]
 
 
@@ -145,22 +150,23 @@ DEFAULT_ROOTS = ("outputs", "multirun")
 def default_run_dir(run_name: str) -> Path:
     """``outputs/<date>/<time>_<run_name>`` below the current directory: where the command
     line's run goes by default (``hydra.run.dir`` in ``conf/config.yaml``)."""
-    import datetime
-
     now = datetime.datetime.now()
     return Path("outputs") / f"{now:%Y-%m-%d}" / f"{now:%H-%M-%S}_{run_name}"
 
 
 BEFORE: dict[str, Any] = {}
-"""What :func:`cli` noted before Hydra ran: when (``since``), and the run directory a
-literal ``hydra.run.dir=`` names (``dir``) with its entries then (``existed``; ``None``:
-it did not exist)."""
+"""What :func:`stage_command` noted before Hydra ran: when (``since``), and the run
+directory a literal ``hydra.run.dir=`` names (``dir``) with its entries then
+(``existed``; ``None``: it did not exist)."""
 
 
-def note_before(argv: Sequence[str]) -> None:
-    import os
-    import time
-
+def stage_command(argv: Sequence[str]) -> list[str]:
+    """``argv`` of a command that runs a job, to hand to Hydra, so that a refusal removes
+    only what the command made: what its run directory held is noted (:data:`BEFORE`),
+    and Hydra's records of this command go to a staging directory
+    (:data:`~wcsac_rl.training.run_dir.HYDRA_STAGING`; not when the line sets
+    ``hydra.output_subdir`` itself), an existing run's ``.hydra/`` being written only once
+    this command's run is accepted."""
     BEFORE.clear()
     BEFORE["since"] = time.time()
     for arg in argv:
@@ -170,27 +176,8 @@ def note_before(argv: Sequence[str]) -> None:
             path = Path(os.path.abspath(Path(value or ".").expanduser()))  # (as Hydra makes it)
             BEFORE["dir"] = path
             BEFORE["existed"] = frozenset(p.name for p in path.iterdir()) if path.is_dir() else None
-
-
-def stage_command(argv: Sequence[str]) -> list[str]:
-    """``argv`` of a command that runs a job, to hand to Hydra: what its run directory held
-    noted (:func:`note_before`) and Hydra's records sent to staging
-    (:func:`stage_hydra_records`), so that a refusal removes only what the command made."""
-    note_before(argv)
-    return stage_hydra_records(list(argv))
-
-
-def stage_hydra_records(argv: list[str]) -> list[str]:
-    """``argv`` (a command that runs a job) with Hydra's records of this command sent to a
-    staging directory (:data:`~wcsac_rl.training.run_dir.HYDRA_STAGING`; not when the line sets
-    ``hydra.output_subdir`` itself): an existing run's ``.hydra/`` is written only once
-    this command's run is accepted."""
-    import os
-
     if any(arg.lstrip("+").startswith("hydra.output_subdir=") for arg in argv):
-        return argv
-    from wcsac_rl.training.run_dir import HYDRA_STAGING
-
+        return list(argv)
     return [*argv, f"hydra.output_subdir={HYDRA_STAGING}{os.getpid()}"]
 
 
@@ -202,7 +189,9 @@ class HydraJob:
 
     def __init__(self, hydra_cfg: Any) -> None:
         self.dir = Path(hydra_cfg.runtime.output_dir)
-        self.staged = staged_records(self.dir, hydra_cfg.output_subdir)
+        subdir = hydra_cfg.output_subdir
+        staging = subdir is not None and Path(str(subdir)).name.startswith(HYDRA_STAGING)
+        self.staged = self.dir / str(subdir) if staging else None
         self.entries = entries_before(self.dir, self.staged)
 
     def refuse(self, *, owned: bool = True) -> None:
@@ -214,41 +203,27 @@ class HydraJob:
             discard_staged(self.staged)
 
     def accept(self, run_dir: Path) -> None:
-        """The run took ``run_dir``: Hydra's staged records become its ``.hydra/``; a
-        resume of another directory (``resume=RUN_DIR``) leaves Hydra's new one
-        (:func:`leave_hydra_dir`)."""
+        """The run took ``run_dir``: Hydra's staged records become its ``.hydra/``, and
+        Hydra's log handlers open their file again (the run may since have given its files
+        their own copies: :func:`~wcsac_rl.training.run_dir.own_copies`). A resume of
+        another directory (``resume=RUN_DIR``) leaves Hydra's new one, which would stay
+        behind empty: its log handlers write into the run's log, and it is removed with
+        what this command put there."""
         if Path(run_dir).resolve() != self.dir.resolve():
-            leave_hydra_dir(self.dir, run_dir, self.staged)
-        else:
-            reopen_run_logs(run_dir)
-            keep_records(self.dir, self.staged)
-
-
-def staged_records(run_dir: Path, subdir: str | None) -> Path | None:
-    from wcsac_rl.training.run_dir import HYDRA_STAGING
-
-    if subdir is None or not Path(str(subdir)).name.startswith(HYDRA_STAGING):
-        return None
-    return run_dir / str(subdir)
-
-
-def keep_records(run_dir: Path, staged: Path | None) -> None:
-    """The accepted run's Hydra records: from the staging directory into ``.hydra/``."""
-    import os
-
-    if staged is None or not staged.is_dir():
-        return
-    target = run_dir / ".hydra"
-    target.mkdir(exist_ok=True)
-    for path in staged.iterdir():
-        os.replace(path, target / path.name)
-    staged.rmdir()
+            _reopen_logs(self.dir, into=run_dir)
+            discard(self.dir, self.staged)
+            return
+        _reopen_logs(run_dir)
+        if self.staged is not None and self.staged.is_dir():
+            target = self.dir / ".hydra"
+            target.mkdir(exist_ok=True)
+            for path in self.staged.iterdir():
+                os.replace(path, target / path.name)
+            self.staged.rmdir()
 
 
 def discard_staged(staged: Path | None) -> None:
     """Remove this command's own staged Hydra records (named by its pid), nothing else."""
-    import shutil
-
     if staged is not None and staged.is_dir() and not staged.is_symlink():
         shutil.rmtree(staged, ignore_errors=True)
 
@@ -272,32 +247,11 @@ def _reopen_logs(directory: Path, into: Path | None = None) -> None:
             handler.release()
 
 
-def reopen_run_logs(run_dir: Path) -> None:
-    """Hydra's job log handler opened ``<run dir>/train.log`` before the run took its
-    directory; the run may since have given its files their own copies (a run copied
-    with hard links: :func:`~wcsac_rl.training.run_dir.own_copies`), so the handlers
-    writing into the run directory open their file again (the run's own)."""
-    _reopen_logs(run_dir)
-
-
-def leave_hydra_dir(hydra_dir: Path, run_dir: Path, staged: Path | None) -> None:
-    """A resume of another directory (``resume=RUN_DIR``): Hydra's own new directory
-    would stay behind empty (the run records this session's config itself), so its
-    log handlers write into the run's log instead and it is removed with what this
-    command put there."""
-    _reopen_logs(hydra_dir, into=run_dir)
-    discard(hydra_dir, staged)
-
-
 def discard(run_dir: Path, staged: Path | None = None) -> None:
     """Remove what a refused command made: Hydra's staged records, and its run
     directory if the command created it (with the date directory above it that Hydra
     made for it, ``outputs/<date>/``, if that is now empty); a directory that existed
     keeps everything it held (:func:`~wcsac_rl.training.run_dir.discard_unused_run_dir`)."""
-    import os
-
-    from wcsac_rl.training.run_dir import discard_unused_run_dir
-
     discard_staged(staged)
     noted = BEFORE.get("dir") == Path(os.path.abspath(run_dir))
     existed = BEFORE.get("existed") if noted else None
@@ -310,8 +264,6 @@ def discard_refused(run_dir: Path, *, existed: bool, entries: frozenset[str] | N
     """Remove what a refused :func:`~wcsac_rl.train.run_training` made: ``run_dir``
     itself where it did not exist, else only what the call made there, its lock file
     (``entries``: the names the directory held before; ``None``: it is not a directory)."""
-    from wcsac_rl.training.run_dir import discard_unused_run_dir
-
     if not existed:
         discard(run_dir)
     elif entries is not None:
@@ -323,10 +275,6 @@ def entries_before(run_dir: Path, staged: Path | None) -> frozenset[str] | None:
     command itself made there first (Hydra's staged records and its empty job log, the
     directory itself when ``hydra.run.dir`` did not exist): ``None`` when there were
     none (the run's files are all of it)."""
-    import os
-
-    from wcsac_rl.training.run_dir import HYDRA_STAGING
-
     if BEFORE.get("dir") == Path(os.path.abspath(run_dir)):
         return BEFORE.get("existed")
     if not run_dir.is_dir():
@@ -347,10 +295,6 @@ def discard_stopped(trainer: Trainer, entries: frozenset[str] | None) -> str:
     """A fresh run that stopped before its first checkpoint has nothing to continue from:
     what it wrote is removed (its directory too, when only the run was in it). Returns
     what the error line adds (nothing when a checkpoint is kept: a resumed run's too)."""
-    import shutil
-
-    from wcsac_rl.training.run_dir import LOCK_FILE
-
     run_dir = Path(trainer.run_dir)
     if trainer.checkpoint_path.is_file() or not run_dir.is_dir():
         return ""
@@ -359,12 +303,8 @@ def discard_stopped(trainer: Trainer, entries: frozenset[str] | None) -> str:
         remove_empty_parents(run_dir)
         return f"; {run_dir} is removed (it held nothing to continue from)"
     for path in run_dir.iterdir():
-        if path.name in entries and path.name != LOCK_FILE:
-            continue
-        if path.is_dir() and not path.is_symlink():
-            shutil.rmtree(path, ignore_errors=True)
-        else:
-            path.unlink(missing_ok=True)
+        if path.name not in entries or path.name == LOCK_FILE:
+            remove_entry(path)
     return f"; what the run wrote into {run_dir} is removed (it held nothing to continue from)"
 
 

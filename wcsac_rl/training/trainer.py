@@ -11,6 +11,7 @@ algorithm does with a collected batch is its subclass's :meth:`Trainer.learn`
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import math
 import random
@@ -30,6 +31,7 @@ from torchrl import timeit
 from torchrl.envs import EnvBase
 from tqdm.auto import tqdm
 
+from wcsac_rl._messages import first_line
 from wcsac_rl.envs import CostKeyError, EnvSourceError, NonFiniteStepError
 from wcsac_rl.envs.presets import has_goals
 from wcsac_rl.objectives.inputs import nonfinite_entry
@@ -60,14 +62,13 @@ from wcsac_rl.training.progress import EpisodeTracker, LossMeans, ProgressWriter
 from wcsac_rl.training.provenance import session_provenance, write_provenance
 from wcsac_rl.training.run_dir import (
     AUTO_RESUME,
-    LOCK_FILE,
     RunLock,
     check_new_run_dir,
     check_own_files,
     check_progress_rows,
     check_restartable_run_dir,
     cut_records_to,
-    lock_holder,
+    discard_unused_run_dir,
     own_copies,
     replace_text,
 )
@@ -116,32 +117,7 @@ def env_max_episode_steps(cfg: DictConfig) -> int:
     except (EnvSourceError, CostKeyError) as err:
         raise ConfigError(str(err)) from None
     except (TypeError, ValueError) as err:  # a preset's constructor: an option it lacks
-        first = (str(err).strip().splitlines() or [type(err).__name__])[0]
-        raise ConfigError(f"env.kwargs of env={cfg.env.name}: {first}") from None
-
-
-def _remove_if_only_lock(run_dir: Path) -> None:
-    """Remove ``run_dir`` if it holds nothing but its lock file (a new run refused
-    after it took the lock, e.g. by its env's constructor, leaves no directory)."""
-    try:
-        if lock_holder(run_dir) is not None:  # (another live process owns it)
-            return
-        if {p.name for p in run_dir.iterdir()} <= {LOCK_FILE}:
-            (run_dir / LOCK_FILE).unlink(missing_ok=True)
-            run_dir.rmdir()
-    except OSError:  # (another process wrote into it meanwhile: left as it is)
-        pass
-
-
-def _whole(checkpoint: dict[str, Any], key: str, path: Path) -> int:
-    """A checkpoint's counter ``key`` (a whole number >= 0), or one line naming it."""
-    value = checkpoint[key]
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-        raise ConfigError(
-            f"{path}: its {key!r} entry must be a whole number >= 0, got {value!r}; pass a "
-            "checkpoint written by train.py"
-        )
-    return value
+        raise ConfigError(f"env.kwargs of env={cfg.env.name}: {first_line(err)}") from None
 
 
 def _postfix(row: dict[str, float]) -> str:
@@ -188,8 +164,9 @@ class Trainer:
             self._set_up(self._resume_checkpoint())
         except BaseException:
             self.close()  # releases the run directory's lock too
-            if fresh and self.run_dir == Path(run_dir):
-                _remove_if_only_lock(self.run_dir)
+            if fresh and self.run_dir == Path(run_dir):  # (it holds no more than its lock)
+                with contextlib.suppress(OSError):  # (another process wrote into it meanwhile)
+                    discard_unused_run_dir(self.run_dir)
             raise
 
     def _set_up(self, checkpoint: dict[str, Any] | None) -> None:
@@ -230,7 +207,6 @@ class Trainer:
         self._epoch_clock: float | None = None  # when this session's part of it began
         self._checkpoint_frames: int | None = None  # frames of this session's last save
         if checkpoint is not None:
-            check_counters(checkpoint, self._resumed_from)
             self._load_state(checkpoint)
             try:
                 self.load_learner_state(checkpoint.get("learner", {}))
@@ -367,7 +343,8 @@ class Trainer:
         """What every resume verifies before it writes anything: the checkpoint's
         algorithm, α, env and networks are the config's (:func:`check_compatible`) and
         the run directory's own record's (:func:`check_run_config`: a checkpoint copied
-        under another run), and the config changes only what may change on resume."""
+        under another run), the config changes only what may change on resume, and its
+        counters are what the trainer writes (:func:`check_counters`)."""
         self._resumed_from = path
         check_own_files(self.run_dir)
         check_compatible(checkpoint["config"], self.cfg, path)
@@ -375,7 +352,8 @@ class Trainer:
         # keys the run was saved with are its own (an option since removed included)
         check_known_keys(self.cfg, extra=key_paths(checkpoint["config"]))
         check_resume_changes(checkpoint["config"], self.cfg, path)
-        check_progress_rows(self.run_dir, _whole(checkpoint, "epoch", path))
+        check_counters(checkpoint, path)
+        check_progress_rows(self.run_dir, checkpoint["epoch"])
 
     # ---------------------------------------------------------- algorithm
     def _build_learner(self) -> None:
@@ -789,10 +767,9 @@ class Trainer:
             set_numpy_rng_state(rng["numpy"])
             random.setstate(rng["python"])
         except (KeyError, TypeError, ValueError, RuntimeError) as err:
-            first = (str(err).strip().splitlines() or [type(err).__name__])[0]
             raise ConfigError(
                 f"checkpoint {path}: its 'rng' entry is not the RNG states train.py saves "
-                f"({first[:200]}); pass a checkpoint written by train.py"
+                f"({first_line(err)[:200]}); pass a checkpoint written by train.py"
             ) from None
 
     def close(self) -> None:

@@ -1,30 +1,12 @@
 """The safety critic's reading on the training episodes, against what they then cost.
 
-The test-episode calibration (``calib/*``, :mod:`wcsac_rl.rollouts.critic_calibration`)
-asks whether the critic at the end of an epoch knows the deterministic policy's cost.
-This asks whether it *anticipated* what training paid: every collected batch is read by
-the safety critic as it is collected, before the updates that learn from it (Γ_α at the
-state and the action taken, the reading the actor and κ use: with several safety
-critics, the ensemble's), and once an episode ends its realised discounted cost-to-go
-``G_t = Σ_{k≥t} γ_c^{k−t} c_k`` (the critic's own γ_c) is set beside it. Per epoch, over
-the training episodes that ended in it (seen from their first step):
-
-* ``start_cvar`` / ``start_cost_to_go``: the mean reading Γ(s_0, a_0) at the episodes'
-  start states, and the mean realised G_0 there; ``start_realised_cvar``: the empirical
-  CVaR_α over the episodes of G_0 (what a calibrated Γ_α at s_0 reads), and
-  ``start_ratio`` = ``start_cvar / start_realised_cvar``;
-* ``over_episodes``: how many of them cost more than ``d`` (their undiscounted cost);
-  ``over_cvar`` / ``over_cost_to_go``: the mean reading and the mean realised G_t over
-  every step of those episodes, and ``over_ratio`` their ratio.
-
-A ratio well under 1 in the epochs whose episodes cost more than ``d`` is a critic that
-under-read the route as it was taken (it lagged: what it learns afterwards does not
-undo the cost paid); near 1, it anticipated; well over 1, it over-read. NaN where
-nothing is defined (no episode ended, none over ``d``, a realised value of 0).
-
-The realised sums stop where the episode ends (a time limit too), as in
-:mod:`~wcsac_rl.rollouts.critic_calibration`; the readings during the random warm-up
-are of the critic before any update.
+Every collected batch is read by the safety critic as it is collected (Γ_α at the state
+and action taken), and once an episode ends its realised discounted cost-to-go
+``G_t = Σ_{k≥t} γ_c^{k−t} c_k`` is set beside it; per epoch, the ``train_calib/*``
+columns compare the two (docs/training.md, "The critic on the training episodes", has
+the columns and how to read them). The realised sums stop where the episode ends (a
+time limit too), as in :mod:`~wcsac_rl.rollouts.critic_calibration`; the readings
+during the random warm-up are of the critic before any update.
 """
 
 from __future__ import annotations
@@ -37,6 +19,7 @@ import torch
 from tensordict import TensorDictBase
 
 from wcsac_rl.objectives.risk import empirical_cvar
+from wcsac_rl.objectives.start_states import StartStateBuffer
 from wcsac_rl.rollouts.critic_calibration import (
     _cost_key,
     calibration_keys,
@@ -49,18 +32,12 @@ TRAIN_PREFIX = "train_calib/"
 TRAINING_CALIBRATION_KEYS: tuple[str, ...] = tuple(
     TRAIN_PREFIX + name
     for name in (
-        "episodes",  # training episodes that ended in the epoch, seen from their start
-        "start_cvar",  # mean Γ_α(s0, a0) read when s0 was collected
-        "start_cost_to_go",  # mean realised Σ_t γ_c^t c_t from s0
-        "start_realised_cvar",  # empirical CVaR_α over the episodes of that sum
-        "start_ratio",  # start_cvar / start_realised_cvar
-        "over_episodes",  # of them, those whose cost exceeded d
-        "over_cvar",  # mean Γ_α(s_t, a_t) over their steps, read when collected
-        "over_cost_to_go",  # mean realised cost-to-go over their steps
-        "over_ratio",  # over_cvar / over_cost_to_go
+        *("episodes", "start_cvar", "start_cost_to_go", "start_realised_cvar", "start_ratio"),
+        *("over_episodes", "over_cvar", "over_cost_to_go", "over_ratio"),
     )
 )
-"""The ``progress.csv`` columns of :meth:`TrainingCalibration.epoch_metrics`, in order."""
+"""The ``progress.csv`` columns of :meth:`TrainingCalibration.epoch_metrics`, in order
+(docs/training.md, "The critic on the training episodes", says what each is)."""
 
 
 def _ratio(numerator: float, denominator: float) -> float:
@@ -118,7 +95,7 @@ class TrainingCalibration:
         cost = rows.get(self.cost_key).detach().to("cpu", torch.float64)
         cost = cost.reshape(rows.shape).numpy()
         done = rows.get(("next", "done")).reshape(rows.shape).cpu().numpy()
-        starts = self._starts(rows).reshape(rows.shape).cpu().numpy()
+        starts = StartStateBuffer.start_mask(rows).reshape(rows.shape).cpu().numpy()
         for env in range(rows.shape[0]):
             for t in range(rows.shape[1]):
                 if starts[env, t]:
@@ -131,19 +108,6 @@ class TrainingCalibration:
                     if episode is not None:
                         self._close(*episode)
                     self._running[env] = None
-
-    @staticmethod
-    def _starts(rows: TensorDictBase) -> torch.Tensor:
-        is_init = rows.get("is_init", None)
-        if is_init is not None:
-            return is_init.bool()
-        step_count = rows.get("step_count", None)
-        if step_count is None:
-            raise KeyError(
-                "cannot tell where episodes start: the batch has neither 'step_count' nor "
-                "'is_init'; add torchrl.envs.StepCounter() or InitTracker() to the env"
-            )
-        return step_count == 0
 
     def _close(self, readings: list[float], costs: list[float]) -> None:
         cost_to_go = discounted_cost_to_go(costs, self.gamma)

@@ -1,23 +1,10 @@
 """What a run's files may make the kit do: read values, never run code the user did not name.
 
-A run directory is untrusted input (a colleague's run, a downloaded sweep). Its config
-is data, but one value of it names code: ``env=gymnasium env.id=module:callable``
-imports ``module`` and calls the callable with ``env.kwargs`` (a registered gymnasium
-id calls its registration's entry point with them). Read from a run's files — its
-checkpoint, ``config.yaml``, Hydra's ``.hydra/config.yaml`` — such an id is imported
-only on the user's word (:func:`check_env_code`): the same ``env.id`` given on this
-command's own line, or an explicit trust flag (``--trust-env-code`` of
-``wcsac-evaluate`` / ``wcsac-calibration`` / ``wcsac-report``, ``trust_env_code=true``
-on ``train.py resume=...``, ``load_run(..., trust_env_code=True)``); Hugging Face's
-``trust_remote_code`` is the model. Otherwise one line names the module and how to
-allow it, and nothing has been imported. The built-in envs (``static``, ``dynamic``,
-``tiny``, ``point_goal1``, ``point_goal2``) name no code.
-
-A stored config holds resolved values: the trainer writes it with
-``resolve=True``. OmegaConf would resolve a ``${...}`` in it when the value is read
-(``${oc.env:HOME}`` reads an environment variable), so :func:`stored_config` refuses a
-run's config with one, naming the key, and :func:`plain_select` reads a record
-(``config.yaml``, Hydra's files) without resolving anything.
+A run's ``env=gymnasium env.id=module:callable`` is imported only on the user's word
+(:func:`check_env_code`); a stored config with a ``${...}`` is refused
+(:func:`stored_config`) and records are read unresolved (:func:`plain_select`).
+The rules, per command: docs/guarantees.md ("Env code runs only on your word",
+"Other files").
 """
 
 from __future__ import annotations
@@ -30,6 +17,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from wcsac_rl._messages import first_line
 from wcsac_rl.training.errors import ConfigError
 
 __all__ = [
@@ -117,8 +105,7 @@ def stored_config(data: Any, source: str | Path) -> DictConfig:
     try:
         return OmegaConf.create(data)
     except Exception as err:  # (omegaconf's errors: a key or value it cannot hold)
-        first = (str(err).strip().splitlines() or [type(err).__name__])[0]
-        raise ConfigError(f"{source}: its config cannot be read ({first})") from None
+        raise ConfigError(f"{source}: its config cannot be read ({first_line(err)})") from None
 
 
 def plain_select(data: Any, key: str) -> Any:
