@@ -1,20 +1,13 @@
 """Where a run's pieces live: the one place that reads ``cfg.device``.
 
-* **env** — the training and test envs step on the CPU (MuJoCo and NumPy) and make
-  their tensordicts there;
-* **learner** — ``cfg.device``: the networks and their targets, β and κ, the optimizers'
-  state, the replay buffer's storage (so every sampled batch), the start-state buffer,
-  and the policy. The collector moves each collected batch from the env device to the
-  learner (``env_device`` / ``policy_device`` / ``storing_device``); off the CPU, the
-  off-policy trainer's collector acts with a CPU copy of the actor, which takes the
-  learner's weights after each batch's updates (with a shield, which reads the
-  learner's safety critic, it acts on the learner). The test episodes' env casts its
-  output to the learner and the policy's actions back (TorchRL's
-  ``DeviceCastTransform``).
-
-A checkpoint is always loaded on the CPU and copied into the learner's tensors;
-evaluation and calibration rebuild a run on the CPU (:data:`CPU`, :func:`on_cpu`),
-whatever device it trained on.
+The envs step on the CPU; the learner (networks, targets, β and κ, optimizers, the
+replay and start-state buffers, the policy) lives on ``cfg.device``, and the collector
+moves each batch there. Off the CPU, the off-policy trainer's collector acts with a CPU
+copy of the actor, given the learner's weights after each batch's updates (with a
+shield, which reads the learner's safety critic, it acts on the learner); the test
+env casts its output to the learner (``DeviceCastTransform``). A checkpoint is always
+loaded on the CPU; evaluation and calibration rebuild a run there (:data:`CPU`,
+:func:`on_cpu`).
 """
 
 from __future__ import annotations

@@ -1,31 +1,14 @@
 """Off-policy learning for WCSAC, SAC-Lag and SAC: replay buffer, UTD updates, polyak targets.
 
-The trainer of every off-policy entry of :data:`~wcsac_rl.training.registry.ALGORITHMS`:
-it builds the loss with the entry's ``loss`` function (:func:`~wcsac_rl.training.registry.make_loss`).
-
-After each collector batch (``algo.collector.frames_per_batch`` frames) the entries
-of the batch the loss reads (``loss.in_keys``) go into the replay buffer and
-``frames_per_batch × utd_ratio`` gradient steps follow (the authors' schedule: 100
-steps per 400 frames), once ``init_random_frames`` uniform-random frames have been
-collected. The actor collects and plays the test episodes as a
-:class:`~wcsac_rl.modules.tanh_normal.TanhNormalPolicy`; with the learner off the CPU
-the collector acts with a CPU copy of it, refreshed from the learner's weights after
-each batch's updates.
-
-With ``algo.cost_n_steps > 1`` each collected batch gets the n-step cost entries
-(:class:`~wcsac_rl.objectives.NStepCost`) before it enters the buffer, all but the state
-``s_{t+m}``, which the buffer reads at sampling from the row that holds it
-(:class:`~wcsac_rl.training.replay.NStepReplayBuffer`). With
-``algo.kappa_states=initial`` the trainer also keeps the episode start states
-it collects (``step_count == 0``) in a :class:`~wcsac_rl.objectives.StartStateBuffer`
-and attaches one, drawn uniformly, to every row of each sampled batch
-(``batch["initial"]``), where the loss evaluates the CVaR its κ term holds under the
-limit. With ``algo.kappa_signal`` ``max`` or ``episodes`` it keeps the costs of the last
-``algo.kappa_episode_window`` finished training episodes in an
-:class:`~wcsac_rl.objectives.EpisodeCostWindow` (saved with the checkpoint) and attaches
-their empirical CVaR_α to every sampled batch (``batch["episode_cvar"]``); with
-``algo.kappa_test_window > 0`` the larger of that and the empirical CVaR_α of the last
-test episodes (each epoch's ``eval_episodes``).
+The trainer of every off-policy entry of :data:`~wcsac_rl.training.registry.ALGORITHMS`
+(the loss from :func:`~wcsac_rl.training.registry.make_loss`). After each collector
+batch, the entries the loss reads go into the replay buffer and ``frames_per_batch ×
+utd_ratio`` gradient steps follow, once ``init_random_frames`` random frames have been
+collected. The collected batches get the n-step cost entries (``algo.cost_n_steps``,
+:class:`~wcsac_rl.training.replay.NStepReplayBuffer`), and the sampled ones the start
+states (``algo.kappa_states=initial``) and the recent episodes' CVaR
+(``algo.kappa_signal``) the loss reads: docs/loss.md, "The loss, term by term". Off the
+CPU the collector acts with a CPU copy of the actor (:mod:`~wcsac_rl.training.devices`).
 """
 
 from __future__ import annotations

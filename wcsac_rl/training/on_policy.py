@@ -1,20 +1,10 @@
 """On-policy learning for CPO: one CPO policy step and a value regression per collector batch.
 
-Each collector batch (``algo.collector.frames_per_batch`` frames, time-ordered per env)
-is used once and dropped — no replay buffer, no random warm-up:
-
-1. reward and cost GAE with the current ``V^r`` and ``V^c``
-   (:meth:`~wcsac_rl.objectives.cpo.CPOLoss.compute_advantages`);
-2. one CPO step of the actor (:meth:`~wcsac_rl.objectives.cpo.CPOLoss.policy_step`);
-3. ``algo.value_iters`` Adam steps on ``V^r`` and ``V^c`` towards the λ-returns
-   (minibatches of ``algo.value_batch_size``, or the whole batch).
-
-:class:`CPOLearner` does these three with any collector; :class:`OnPolicyTrainer` is
-the run (envs, logs, checkpoints) around it.
-
-``updates`` counts CPO steps (one per batch). The logged ``loss/...`` columns are the
-step's diagnostics (:attr:`OnPolicyTrainer.loss_keys`) and the value losses measured
-on the batch before the value regression; ``time/update_s`` (all of it) splits into
+Each collector batch is used once and dropped (no replay buffer, no random warm-up):
+reward and cost GAE, one CPO step of the actor, then ``algo.value_iters`` Adam steps on
+``V^r`` and ``V^c`` (docs/reproduce.md, "CPO, the on-policy baseline").
+:class:`CPOLearner` does these with any collector; :class:`OnPolicyTrainer` is the run
+around it. ``updates`` counts CPO steps; ``time/update_s`` splits into
 ``time/advantage_s``, ``time/policy_step_s`` and ``time/value_update_s``.
 """
 

@@ -1,26 +1,11 @@
 """Where a run's numbers came from: one ``provenance.json`` per training session.
 
-A new run writes ``provenance.json`` beside its ``config.yaml``; each resumed session
-writes its own (``provenance.resume1.json``, ...), as it writes its own config. Each
-record holds
-
-* ``code``: the commit of the ``wcsac_rl`` checkout that trained (``git rev-parse
-  HEAD``), whether tracked files differed from it (``dirty``), or, for an installed
-  package that is not a git checkout, ``commit: null`` and the package's version;
-* ``overrides``: the command line's overrides (``train.py`` passes Hydra's), so
-  ``python train.py <overrides>`` composes the same config;
-* ``started`` (UTC, ISO 8601), ``host``, ``threads``, and the versions of Python and
-  the libraries whose numerics the results depend on;
-* ``machine``: the CPU (``processor``, its model name where the OS gives one;
-  ``architecture``) and the vector instructions torch's CPU kernels use on it
-  (``cpu_capability``: ``torch.backends.cpu.get_cpu_capability()``, e.g. ``AVX2`` or
-  ``AVX512``). The same commit, config and seed give the same logged values on one
-  machine, but kernels for other instructions round differently, so two machines'
-  runs of one seed part after the first updates and agree only in distribution.
-
-:func:`read_provenance` returns a run directory's records, first session first;
-``report`` lists them in ``runs.md`` (the commit each run's numbers were made on and
-its training wall time).
+A new run writes ``provenance.json`` beside its ``config.yaml``, each resumed session
+its own ``provenance.resume<k>.json``: the code's commit (``dirty`` when tracked files
+differed; an installed package's version otherwise), the command line's overrides, the
+start time, host, threads, library versions and the machine (its CPU and the vector
+instructions torch uses on it: docs/evaluation_protocol.md, "The machine is a source of
+variation"). :func:`read_provenance` returns a run's records, first session first.
 """
 
 from __future__ import annotations

@@ -1,18 +1,10 @@
 """The algorithms the kit trains: one entry each, the one place that names them.
 
-``conf/algo/<file>.yaml`` chooses an algorithm by its ``name:``; :data:`ALGORITHMS` holds
-what the kit reads of that algorithm besides its config: the trainer that runs it, the
-function that builds its loss, whether it learns off-policy from a replay buffer, whether
-it has a safety critic and κ (then ``algo`` holds :class:`~wcsac_rl.options.SafetyOptions`
-and its risk level), and how its rows are named and ordered in reports. The validation,
-the builders, the warnings and the reports read these properties; none of them compares
-an algorithm's name (docs/own_algorithm.md: a new algorithm is one entry here, one config
-file and one loss).
-
-The trainer and the loss are named by import path (``"package.module.attribute"``, as
-Hydra's ``_target_``), resolved when a run is built: this module imports no trainer, so
-the validation and the builders below the trainers can read it, and ``wcsac-train
---help`` stays light.
+:data:`ALGORITHMS` holds what the kit reads of an algorithm besides its
+``conf/algo/<file>.yaml`` (:class:`Algorithm`); the validation, the builders and the
+reports read these properties and never compare an algorithm's name (a new algorithm:
+docs/own_algorithm.md). Trainers and losses are named by import path and resolved when
+a run is built, so this module imports no trainer and ``wcsac-train --help`` stays light.
 """
 
 from __future__ import annotations

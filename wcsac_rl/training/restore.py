@@ -96,20 +96,12 @@ def load_run(
 ) -> RestoredRun:
     """Rebuild a run's policy from ``path`` (a run dir or a checkpoint file).
 
-    ``seed`` seeds the returned env (default: the eval seed of the run's trainer);
-    with ``num_envs > 1`` it is a batch of that many sub-envs (seeded ``seed``,
-    ``seed + 1``, ...) for :func:`~wcsac_rl.rollouts.episodes.run_episodes` to
-    run episodes side by side.
-
-    A run of your own env (``env=gymnasium``) names code in its checkpoint
-    (``env.id=module:callable``): it is imported and called only with
-    ``trust_env_code=True`` (a run directory is untrusted input:
-    :mod:`~wcsac_rl.training.trust`); the built-in envs need nothing.
-
-    Raises :class:`~wcsac_rl.training.ConfigError` with one clear line when the
-    directory holds no checkpoint, the checkpoint cannot be read, or it names env code
-    that was not allowed (:class:`~wcsac_rl.training.trust.UntrustedEnvCode`, nothing
-    imported).
+    ``seed`` seeds the returned env (default: the eval seed of the run's trainer); with
+    ``num_envs > 1`` it is a batch of that many sub-envs (seeded ``seed``, ``seed + 1``,
+    ...) for :func:`~wcsac_rl.rollouts.episodes.run_episodes`. A run of your own env is
+    built only with ``trust_env_code=True`` (docs/guarantees.md, "Env code runs only on
+    your word"). Raises :class:`~wcsac_rl.training.ConfigError` with one clear line when
+    the directory holds no checkpoint, it cannot be read, or it names env code not allowed.
     """
     _check_arguments(seed, num_envs)
     checkpoint_path = find_checkpoint(path)

@@ -1,32 +1,11 @@
 """Reading a run's files back as data only: nothing in a checkpoint or a saved buffer runs.
 
-Runs are shared between people, and a pickle can carry code that runs when it is
-loaded (``__reduce__``). So every checkpoint is loaded with
-``torch.load(weights_only=True)``: tensors, and ``dict``, ``list``, ``tuple``, ``str``,
-numbers, ``bool`` and ``None`` (``OrderedDict`` and ``torch.Size`` too). Anything else is
-refused before any of it is built (:func:`load_data`).
-
-One exception keeps older checkpoints readable: those saved NumPy's RNG state as
-NumPy's own tuple, holding a ``numpy.ndarray``. Such an array, of a plain numeric
-dtype, is read here from its bytes (:class:`_NumpyArray`), by stand-ins for the three
-NumPy names its pickle refers to; none of NumPy's own unpickling code runs. Today's
-checkpoints hold plain data only (:func:`~wcsac_rl.training.checkpoint.numpy_rng_state`).
-
-A saved replay buffer (``save_replay_buffer=true``) is read by TorchRL
-(``ReplayBuffer.loads``), which unpickles some of its files with ``pickle`` itself
-(``prefetch.pkl``; ``transform.t`` and pickled non-tensor fields when present). The
-SHA-256 manifest in the checkpoint detects damage, not a hostile run directory
-(whoever writes the buffer can write the checkpoint too), so before TorchRL reads a
-buffer directory :func:`check_buffer_files` admits only its data files (``*.json``,
-``*.memmap``) and a ``prefetch.pkl`` that holds plain data only (checked by an
-unpickler that can build nothing but plain data).
-
-A run's text records are bounded before they are parsed: a YAML file whose aliases would
-expand past :data:`MAX_YAML_NODES` nodes (a "billion laughs" file), a JSON file nested
-deeper than Python's parser recurses, or any record larger than
-:data:`MAX_RECORD_BYTES` is refused in one line naming the file (:func:`load_yaml`,
-:func:`load_json`, :class:`UnreadableRecord`); a checkpoint larger than
-:data:`MAX_CHECKPOINT_BYTES` is not read (:func:`check_size`).
+Checkpoints: ``torch.load(weights_only=True)`` (:func:`load_data`), old checkpoints'
+NumPy arrays rebuilt from their bytes by stand-ins (:class:`_NumpyArray`); saved
+buffers: only data files admitted (:func:`check_buffer_files`); text records bounded
+before they are parsed (:func:`load_yaml`, :func:`load_json`, :func:`check_size`).
+The rules and what they leave open: docs/guarantees.md ("Checkpoints are loaded as data
+only", "Saved replay buffers", "Other files").
 """
 
 from __future__ import annotations

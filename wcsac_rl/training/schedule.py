@@ -1,18 +1,10 @@
 """A run's frame schedule in whole collector batches, and the lines that say so.
 
-The collector hands over ``algo.collector.frames_per_batch`` frames at a time, and an
-epoch or a run can only end at a batch boundary. Every entry point (``train.py``,
-:func:`~wcsac_rl.train.run_training`, the experiments, the calibration runs) trains
-through :class:`~wcsac_rl.training.trainer.Trainer`, which reads the schedule from here:
-
-* ``total_frames`` that is not a whole number of batches is rounded up (TorchRL's
-  collector does), said in one line;
-* ``epoch_frames`` likewise: every epoch is the same whole number of batches (without
-  the rounding, ``epoch_frames=1000`` over batches of 400 gave epochs ending at 1 200,
-  2 000, 3 200, 4 000 frames), said in one line;
-* a budget at or under the random warm-up (``algo.collector.init_random_frames``, whole
-  batches too) collects no frame with the policy and trains it, if at all, after the
-  last batch: one ``warning:`` line naming both numbers.
+An epoch or a run ends only at a batch boundary: ``total_frames`` and ``epoch_frames``
+are rounded up to whole batches (one line each), and a budget at or under the random
+warm-up is one ``warning:`` line (docs/training.md, "Configuration"). Every entry point
+trains through :class:`~wcsac_rl.training.trainer.Trainer`, which reads the schedule
+from here.
 """
 
 from __future__ import annotations
