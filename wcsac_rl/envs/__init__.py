@@ -1,30 +1,12 @@
 """Environments: the point-goal MuJoCo task, its presets, a tiny env and TorchRL wrapping.
 
-Importing this package registers the gymnasium ids (idempotently):
-
-=====================  =========================  ========================================
-short name             gymnasium id               env
-=====================  =========================  ========================================
-``"static"``           ``wcsac_rl/StaticEnv-v0``  WCSAC StaticEnv (44-dim obs)
-``"dynamic"``          ``wcsac_rl/DynamicEnv-v0`` WCSAC DynamicEnv (44-dim obs)
-``"point_goal1"``      ``wcsac_rl/PointGoal1-v0`` Safety Gym PointGoal1 (60-dim obs)
-``"point_goal2"``      ``wcsac_rl/PointGoal2-v0`` Safety Gym PointGoal2 (60-dim obs)
-``"tiny"``             ``wcsac_rl/TinyHazard-v0`` :class:`TinyHazardEnv` (6-dim obs)
-=====================  =========================  ========================================
-
-Main entry points:
-
-* :func:`make_env` — a TorchRL env with ``("next", "cost")`` ``[*B, 1]`` float32,
-  ``episode_reward`` / ``episode_cost`` / ``step_count``; ``num_workers > 1`` gives a
-  ``ParallelEnv``.
-* :func:`make_env_creator` — a picklable creator for multi-process collectors.
-* :func:`env_info` — obs/action sizes and episode length of a preset.
-* :func:`check_cost_key` — a clear error for envs/tensordicts without a cost.
-* :class:`PointGoalEnv`, :class:`TinyHazardEnv` — the gymnasium envs.
-* :func:`make_safety_gymnasium_env` — the same conventions on top of safety-gymnasium.
-* ``make_env("gymnasium", env_id="<registered id | module:callable>", cost_key="cost")``
-  — your own gymnasium env with a cost in ``info`` (or safety-gymnasium's 6-tuple step):
-  :mod:`wcsac_rl.envs.gymnasium_env` (``env=gymnasium env.id=...`` on the command line).
+Importing this package registers the presets' gymnasium ids (idempotently; the table:
+docs/environments.md). Main entry points: :func:`make_env` (a TorchRL env with
+``("next", "cost")``), :func:`make_env_creator` (picklable, for multi-process
+collectors), :func:`env_info`, :func:`check_cost_key`, the gymnasium envs
+:class:`PointGoalEnv` and :class:`TinyHazardEnv`, :func:`make_safety_gymnasium_env`,
+and ``make_env("gymnasium", env_id=...)`` for your own env
+(:mod:`wcsac_rl.envs.gymnasium_env`, docs/own_environment.md).
 
 On headless Linux (no ``DISPLAY``) importing this package sets ``MUJOCO_GL=egl``
 unless ``MUJOCO_GL`` is already set, so rendering works on servers.

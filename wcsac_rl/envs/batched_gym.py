@@ -1,12 +1,7 @@
-"""Several gymnasium envs stepped in turn in this process, as one batched TorchRL env.
-
-TorchRL's ``SerialEnv`` of ``GymWrapper`` envs builds, checks and stacks one
-tensordict per sub-env and step; for the point-goal tasks (~0.15 ms of MuJoCo per
-step) that bookkeeping costs several times the physics. :class:`BatchedGymEnv`
-steps the gymnasium envs directly and builds one tensordict per batched step,
-with the same entries, specs and reset semantics as
-``SerialEnv(n, make_base_env)`` (``GymWrapper`` + :class:`~wcsac_rl.envs.InfoReader`;
-both read ``info`` by :func:`~wcsac_rl.envs.info.info_array`).
+"""Several gymnasium envs stepped in turn in this process, as one batched TorchRL env:
+one tensordict per batched step, with the same entries, specs and reset semantics as
+``SerialEnv(n, make_base_env)`` without its per-env tensordict bookkeeping (both read
+``info`` by :func:`~wcsac_rl.envs.info.info_array`; docs/environments.md).
 """
 
 from __future__ import annotations

@@ -1,23 +1,11 @@
 """Your own gymnasium env with a per-step cost: ``env=gymnasium env.id=<id>``.
 
-``env.id`` is either
-
-* a registered gymnasium id (``"MyTask-v0"``, or ``"my_package:MyTask-v0"``, which
-  imports ``my_package`` first so that it can register the id), or
-* ``"module:callable"``: a function (or class) on your Python path that returns a
-  ``gymnasium.Env``, called with ``env.kwargs``.
-
-The env's step reports its cost either in ``info[cost_key]`` (default ``"cost"``) or as
-safety-gymnasium's 6-tuple ``(obs, reward, cost, terminated, truncated, info)``;
-:class:`CostFromStep` puts it where the kit's TorchRL wrapping reads it
-(``info["cost"]`` → ``("next", "cost")``, :mod:`wcsac_rl.envs.info`). The observation
-space must be a ``Box`` (flattened and cast to float32 by :class:`FlatFloat32Observation`),
-the action space a bounded ``Box`` (the kit's actors squash into its bounds). The
-episode length is the env's own (its registration's ``max_episode_steps``, a
-``TimeLimit`` inside it, or a ``max_episode_steps`` attribute) or ``max_episode_steps``.
-
-Everything a user can get wrong here is a :class:`EnvSourceError` (or, for the cost,
-a :class:`~wcsac_rl.envs.info.CostKeyError`) with a one-line message.
+``env.id`` is a registered gymnasium id (``"my_package:MyTask-v0"`` imports
+``my_package`` first) or ``"module:callable"`` called with ``env.kwargs``. The cost
+comes from ``info[cost_key]`` or safety-gymnasium's 6-tuple step (:class:`CostFromStep`);
+observations are flattened to float32 (:class:`FlatFloat32Observation`). What the env
+must provide, and the one-line :class:`EnvSourceError` for each mistake:
+docs/own_environment.md.
 """
 
 from __future__ import annotations
@@ -38,6 +26,7 @@ __all__ = [
     "CostFromStep",
     "EnvSourceError",
     "FlatFloat32Observation",
+    "env_facts",
     "make_user_gym_env",
     "user_env_info",
 ]
@@ -55,16 +44,13 @@ class EnvSourceError(ValueError):
 def _import(module: str, env_id: str) -> Any:
     try:
         return importlib.import_module(module)
-    except ModuleNotFoundError as err:
-        if err.name and module.split(".")[0] == err.name.split(".")[0]:
+    except Exception as err:
+        missing = isinstance(err, ModuleNotFoundError) and err.name
+        if missing and module.split(".")[0] == err.name.split(".")[0]:
             raise EnvSourceError(
                 f"env.id={env_id}: no module named {module!r} on the Python path (put its "
                 f"directory on PYTHONPATH); {HOW_TO_NAME}"
             ) from None
-        raise EnvSourceError(
-            f"env.id={env_id}: importing {module!r} failed ({first_line(err, with_type=True)})"
-        ) from None
-    except Exception as err:
         raise EnvSourceError(
             f"env.id={env_id}: importing {module!r} failed ({first_line(err, with_type=True)})"
         ) from None
@@ -192,15 +178,10 @@ class FlatFloat32Observation(gym.ObservationWrapper):
 
 class CostFromStep(gym.Wrapper):
     """Put a step's cost into ``info["cost"]``: from ``info[cost_key]`` or from
-    safety-gymnasium's 6-tuple step ``(obs, reward, cost, terminated, truncated, info)``
-    (then returned as gymnasium's 5-tuple). A step without a cost raises
-    :class:`~wcsac_rl.envs.info.CostKeyError` naming the key and the keys ``info`` had: a
-    cost silently read as zero would train an unconstrained policy.
-
-    Args:
-        env: the gymnasium env.
-        cost_key: the ``info`` entry holding the per-step cost.
-        name: how messages name the env (its ``env.id``).
+    safety-gymnasium's 6-tuple step (then returned as gymnasium's 5-tuple). A step without
+    a cost raises :class:`~wcsac_rl.envs.info.CostKeyError` naming the key and the keys
+    ``info`` had (a cost silently read as zero would train an unconstrained policy);
+    ``name`` (the ``env.id``) names the env in messages.
     """
 
     def __init__(self, env: gym.Env, cost_key: str = COST_KEY, name: str | None = None) -> None:
@@ -270,17 +251,10 @@ def make_user_gym_env(
 ) -> gym.Env:
     """Your gymnasium env, ready for the kit's TorchRL wrapping: the cost in
     ``info["cost"]`` (:class:`CostFromStep`), float32 flat observations, and a
-    ``TimeLimit`` of ``max_episode_steps`` (default: the env's own limit).
-
-    Args:
-        env_id: a registered gymnasium id or ``"module:callable"`` (see the module doc).
-        cost_key: the ``info`` entry holding the per-step cost.
-        max_episode_steps: episode length (required when the env has no limit of its own).
-        **kwargs: passed to the callable, or to the registered env's constructor.
-
-    Raises:
-        EnvSourceError: the id does not resolve, building the env raises, a space the
-            kit cannot train on, or no episode length.
+    ``TimeLimit`` of ``max_episode_steps`` (default: the env's own limit; required when it
+    has none). ``kwargs`` go to the callable or the registered env's constructor.
+    :class:`EnvSourceError` (one line): the id does not resolve, building the env raises,
+    a space the kit cannot train on, or no episode length.
     """
     env, registered = _resolve(env_id, dict(kwargs))
     try:
@@ -328,20 +302,33 @@ def user_env_info(
             raise EnvSourceError(
                 f"env.id={env_id}: a probing reset and step raised {first_line(err, with_type=True)}"
             ) from None
-        return {
-            "name": GYMNASIUM,
-            "gym_id": env_id,
-            "max_episode_steps": min(limits),
-            "obs_dim": int(np.prod(env.observation_space.shape)),
-            "action_dim": int(np.prod(env.action_space.shape)),
-            "action_low": float(np.min(env.action_space.low)),
-            "action_high": float(np.max(env.action_space.high)),
-            "cost_key": ("next", COST_KEY),
-            "observation_slices": {},
-            "description": f"your gymnasium env {env_id} (cost from info[{cost_key!r}])",
-        }
+        description = f"your gymnasium env {env_id} (cost from info[{cost_key!r}])"
+        return env_facts(env, GYMNASIUM, env_id, min(limits), {}, description)
     finally:
         env.close()
+
+
+def env_facts(
+    env: gym.Env,
+    name: str,
+    gym_id: str,
+    max_episode_steps: int,
+    observation_slices: dict[str, slice],
+    description: str,
+) -> dict[str, Any]:
+    """:func:`~wcsac_rl.envs.env_info`'s dict: the given facts and ``env``'s spaces."""
+    return {
+        "name": name,
+        "gym_id": gym_id,
+        "max_episode_steps": int(max_episode_steps),
+        "obs_dim": int(np.prod(env.observation_space.shape)),
+        "action_dim": int(np.prod(env.action_space.shape)),
+        "action_low": float(np.min(env.action_space.low)),
+        "action_high": float(np.max(env.action_space.high)),
+        "cost_key": ("next", COST_KEY),
+        "observation_slices": observation_slices,
+        "description": description,
+    }
 
 
 def _inner_limit(env: gym.Env) -> int | None:

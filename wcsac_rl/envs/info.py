@@ -1,12 +1,8 @@
-"""The contract between a gymnasium env's ``info`` and the TorchRL tensordicts.
-
-A step of the project's envs reports its cost and a few facts for evaluation in
-``info``; :func:`step_info_spec` says which entries are copied into the tensordict
-(under their own names) and with which dtype and shape. :func:`info_array` is the
-one reading rule: the entry cast to the spec's dtype and reshaped to its shape, or
-``None`` (read as zero) when the step's ``info`` lacks it. Both ways of stepping
-gymnasium envs apply it: :class:`InfoReader` (for TorchRL's ``GymWrapper``) and
-:class:`~wcsac_rl.envs.BatchedGymEnv`.
+"""The contract between a gymnasium env's ``info`` and the TorchRL tensordicts:
+:func:`step_info_spec` (which entries are copied, with which dtype and shape) and
+:func:`info_array`, the one reading rule (``None``, read as zero, when a step's ``info``
+lacks the entry) that :class:`InfoReader` (for ``GymWrapper``) and
+:class:`~wcsac_rl.envs.BatchedGymEnv` both apply.
 """
 
 from __future__ import annotations

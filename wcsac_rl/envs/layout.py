@@ -1,17 +1,9 @@
 """Layout sampling for the point-goal task, with Safety Gym's keepout rules.
 
-Objects are placed in a fixed order (robot, goal, hazards, vases). Each object is
-drawn uniformly from the placement extents shrunk by its own keepout (a fixed
-location makes that rectangle a point); a draw is rejected when it is closer to an
-already placed object than the sum of the two keepouts. Each object gets
-``tries_per_object`` draws; if one object runs out, the whole layout restarts, up to
-``max_restarts`` times, after which :class:`LayoutError` is raised.
-
-The draws of one object are made as one vectorised batch and the first valid one is
-kept, which has the same distribution as drawing them one by one.
-
-Also here: :func:`parse_explicit_layout`, the validator of the
-``reset(options={"layout": ...})`` dictionary.
+The placement rules: docs/point_goal.md, "Placement rules". The draws of one object
+are made as one vectorised batch and the first valid one is kept, which has the same
+distribution as drawing them one by one. Also here: :func:`parse_explicit_layout`, the
+validator of the ``reset(options={"layout": ...})`` dictionary.
 """
 
 from __future__ import annotations
@@ -28,6 +20,7 @@ __all__ = [
     "ObjectPlacement",
     "draw_position",
     "parse_explicit_layout",
+    "reset_layout",
     "sample_layout",
 ]
 
@@ -172,36 +165,20 @@ def sample_layout(
     )
 
 
-def _as_xy(value: object, what: str) -> np.ndarray:
+def _as_xy(value: object, what: str, count: int | None = None) -> np.ndarray:
+    """``value`` as an (x, y) pair (``count=None``) or ``count`` of them, or one
+    ``ValueError`` naming ``layout[what]``."""
+    expected = "an (x, y) pair of numbers" if count is None else f"a list of {count} (x, y) pairs"
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as err:
-        raise ValueError(
-            f"layout[{what!r}] must be an (x, y) pair of numbers, got {value!r}"
-        ) from err
-    if arr.shape != (2,):
-        raise ValueError(
-            f"layout[{what!r}] must be an (x, y) pair of numbers, got shape {arr.shape}: {value!r}"
-        )
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"layout[{what!r}] must be finite, got {value!r}")
-    return arr
-
-
-def _as_xy_list(value: object, what: str, count: int) -> np.ndarray:
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as err:
-        raise ValueError(
-            f"layout[{what!r}] must be a list of {count} (x, y) pairs, got {value!r}"
-        ) from err
+        raise ValueError(f"layout[{what!r}] must be {expected}, got {value!r}") from err
     if count == 0 and arr.size == 0:
         return np.zeros((0, 2))
-    if arr.shape != (count, 2):
-        raise ValueError(
-            f"layout[{what!r}] must be a list of {count} (x, y) pairs (this env has "
-            f"{count}), got shape {arr.shape}"
-        )
+    if arr.shape != ((2,) if count is None else (count, 2)):
+        got = f": {value!r}" if count is None else ""
+        mine = "" if count is None else f" (this env has {count})"
+        raise ValueError(f"layout[{what!r}] must be {expected}{mine}, got shape {arr.shape}{got}")
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"layout[{what!r}] must be finite, got {value!r}")
     return arr
@@ -248,9 +225,30 @@ def parse_explicit_layout(
     if "goal_xy" in layout:
         positions["goal"] = _as_xy(layout["goal_xy"], "goal_xy")
     if "hazards_xy" in layout:
-        for i, xy in enumerate(_as_xy_list(layout["hazards_xy"], "hazards_xy", hazards_num)):
+        for i, xy in enumerate(_as_xy(layout["hazards_xy"], "hazards_xy", hazards_num)):
             positions[f"hazard{i}"] = xy
     if "vases_xy" in layout:
-        for i, xy in enumerate(_as_xy_list(layout["vases_xy"], "vases_xy", vases_num)):
+        for i, xy in enumerate(_as_xy(layout["vases_xy"], "vases_xy", vases_num)):
             positions[f"vase{i}"] = xy
     return positions, heading
+
+
+def reset_layout(
+    options: object, *, hazards_num: int, vases_num: int, missing: str = ""
+) -> tuple[dict[str, np.ndarray], float | None]:
+    """The explicit layout ``reset(options={"layout": ...})`` gives
+    (:func:`parse_explicit_layout`; none without one); ``options`` holds nothing else.
+    ``missing``: the refusal of a layout naming a heading or vases (an env without them)."""
+    if options is None:
+        return {}, None
+    if not isinstance(options, Mapping):
+        raise ValueError(f"options must be a dict, got {type(options).__name__}")
+    unknown = sorted(set(options) - {"layout"})
+    if unknown:
+        raise ValueError(f"unknown reset option(s) {unknown}; the only option is 'layout'")
+    layout = options.get("layout")
+    if layout is None:
+        return {}, None
+    if missing and isinstance(layout, Mapping) and {"robot_heading", "vases_xy"} & set(layout):
+        raise ValueError(missing)
+    return parse_explicit_layout(layout, hazards_num=hazards_num, vases_num=vases_num)

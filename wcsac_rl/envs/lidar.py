@@ -1,11 +1,7 @@
 """Safety Gym's pseudo-lidar: a 16-bin, robot-centred proximity sensor per object class.
 
-Each object centre falls into the angular bin it lies in, seen from the robot
-(angle 0 = robot heading, counter-clockwise), with strength
-``max(0, max_dist - dist) / max_dist``. With aliasing, the two neighbouring bins
-also receive ``a * s`` and ``(1 - a) * s``, where ``a`` is the fractional position
-of the object inside its bin. Each bin keeps the maximum over objects. Object
-sizes are ignored: distances are centre to centre.
+Object centres only, with aliasing into the neighbouring bins; each bin keeps the
+maximum over objects (the rule, step by step: docs/point_goal.md, "Lidar").
 """
 
 from __future__ import annotations

@@ -1,29 +1,10 @@
 """MJCF (MuJoCo XML) of the point-goal world, generated in code.
 
-Physics facts (``docs/point_goal.md``, "World and robot"), several of which look like
-bugs but are the original behaviour and are kept on purpose:
-
-* ``timestep 0.002``, Euler integrator, gravity ``(0, 0, -9.81)``, magnetic field
-  ``(0, -0.5, 0)``; everything else MuJoCo's defaults.
-* Floor: a plane (infinite for collisions, half-size 3.5: drawn 7 x 7), friction
-  ``(1, 0.005, 0.0001)``, condim 6. No walls.
-* Robot body at ``z = 0.1`` *exactly*, joints slide-x, slide-y (damping 0.01) and
-  hinge-z (damping 0.005), no z translation. A sphere (radius 0.1, friction
-  ``(1, 0.01, 0.01)``) and a heading box (half-size 0.05 at ``(0.1, 0, 0)``), density
-  1, condim 6: mass 0.0051888 kg. The sphere touches the floor at distance exactly 0,
-  which produces no contact force, so the robot *glides*, slowed only by joint damping.
-* Actuators: a motor on the robot site with gear ``(0.3, 0, 0, 0, 0, 0)`` (force along
-  body +x) and a velocity servo on the hinge (kv 1, gear 0.3); both with ctrlrange
-  ``[-1, 1]`` and forcerange ``[-0.05, 0.05]``. Forward force therefore saturates at
-  ``|ctrl| >= 0.05`` and the turn servo chatters at this timestep.
-* Sensors on the robot site: accelerometer, velocimeter, gyro, magnetometer (in this
-  order in ``sensordata``).
-
-Hazards and the goal are mocap bodies with purely visual geoms
-(``contype = conaffinity = 0``): they never touch anything. Vases are free boxes
-(half-size 0.1, density 0.001, so mass 8e-6 kg).
-
-Rendering assets are deliberately light: no skybox, no textures, no shadows.
+Every physics fact it sets (timestep, floor, the robot body that glides on purpose, the
+saturated actuators, the sensors' order) is described in docs/point_goal.md, "World and
+robot". Hazards and the goal are mocap bodies with purely visual geoms
+(``contype = conaffinity = 0``); vases are free boxes. Rendering assets are
+deliberately light: no skybox, no textures, no shadows.
 """
 
 from __future__ import annotations

@@ -1,25 +1,9 @@
 """Env presets: short names, gymnasium ids and registration.
 
-====================  ===============================  ====================================
-short name            gymnasium id                     what
-====================  ===============================  ====================================
-``"static"``          ``wcsac_rl/StaticEnv-v0``        WCSAC StaticEnv: fixed goal (1.1, 1.1)
-                                                       and one hazard (size 0.7) at the
-                                                       origin, random robot start, -0.02
-                                                       per step, 44-dim obs
-``"dynamic"``         ``wcsac_rl/DynamicEnv-v0``       WCSAC DynamicEnv: random goal and 3
-                                                       hazards (size 0.3), 44-dim obs
-``"point_goal1"``     ``wcsac_rl/PointGoal1-v0``       Safety Gym PointGoal1: 8 hazards
-                                                       (0.2), 1 unconstrained vase, 60 dims
-``"point_goal2"``     ``wcsac_rl/PointGoal2-v0``       Safety Gym PointGoal2: extents ±2,
-                                                       10 hazards, 10 constrained vases
-``"tiny"``            ``wcsac_rl/TinyHazard-v0``       :class:`~wcsac_rl.envs.tiny.TinyHazardEnv`
-====================  ===============================  ====================================
-
-Importing :mod:`wcsac_rl.envs` registers the ids (idempotently), so
-``gymnasium.make("wcsac_rl/DynamicEnv-v0")`` works after ``import wcsac_rl.envs``.
-Episodes are truncated inside the envs (1000 steps, 100 for ``tiny``), not by a
-``TimeLimit`` wrapper.
+The presets (``static``, ``dynamic``, ``point_goal1``, ``point_goal2``, ``tiny``) and
+their gymnasium ids: docs/environments.md; their layouts: docs/point_goal.md, "Presets".
+Importing :mod:`wcsac_rl.envs` registers the ids (idempotently). Episodes are truncated
+inside the envs (1000 steps, 100 for ``tiny``), not by a ``TimeLimit`` wrapper.
 """
 
 from __future__ import annotations
@@ -75,9 +59,6 @@ class Preset:
 
 
 STATIC_CONFIG = PointGoalConfig(
-    placement_extents=(-1.5, -1.5, 1.5, 1.5),
-    goal_size=0.3,
-    goal_keepout=0.305,
     goal_location=(1.1, 1.1),
     hazards_num=1,
     hazards_size=0.7,
@@ -85,64 +66,48 @@ STATIC_CONFIG = PointGoalConfig(
     hazards_locations=((0.0, 0.0),),
     reward_per_step=-0.02,
 )
-DYNAMIC_CONFIG = PointGoalConfig(
-    placement_extents=(-1.5, -1.5, 1.5, 1.5),
-    goal_size=0.3,
-    goal_keepout=0.305,
-    hazards_num=3,
-    hazards_size=0.3,
-    hazards_keepout=0.305,
-)
+DYNAMIC_CONFIG = PointGoalConfig()  # (PointGoalConfig's defaults are DynamicEnv's)
 POINT_GOAL1_CONFIG = PointGoalConfig(
-    placement_extents=(-1.5, -1.5, 1.5, 1.5),
-    goal_size=0.3,
-    goal_keepout=0.305,
-    hazards_num=8,
-    hazards_size=0.2,
-    hazards_keepout=0.18,
-    vases_num=1,
-    constrain_vases=False,
+    hazards_num=8, hazards_size=0.2, hazards_keepout=0.18, vases_num=1, constrain_vases=False
 )
-POINT_GOAL2_CONFIG = PointGoalConfig(
+POINT_GOAL2_CONFIG = dataclasses.replace(
+    POINT_GOAL1_CONFIG,
     placement_extents=(-2.0, -2.0, 2.0, 2.0),
-    goal_size=0.3,
-    goal_keepout=0.305,
     hazards_num=10,
-    hazards_size=0.2,
-    hazards_keepout=0.18,
     vases_num=10,
     constrain_vases=True,
 )
 
+
+def _point_goal(name: str, title: str, config: PointGoalConfig, description: str) -> Preset:
+    return Preset(name, f"wcsac_rl/{title}-v0", _POINT_GOAL_ENTRY, {"config": config}, description)
+
+
 PRESETS: dict[str, Preset] = {
     p.name: p
     for p in (
-        Preset(
+        _point_goal(
             "static",
-            "wcsac_rl/StaticEnv-v0",
-            _POINT_GOAL_ENTRY,
-            {"config": STATIC_CONFIG},
+            "StaticEnv",
+            STATIC_CONFIG,
             "WCSAC StaticEnv: fixed goal and hazard, random start, -0.02 per step",
         ),
-        Preset(
+        _point_goal(
             "dynamic",
-            "wcsac_rl/DynamicEnv-v0",
-            _POINT_GOAL_ENTRY,
-            {"config": DYNAMIC_CONFIG},
+            "DynamicEnv",
+            DYNAMIC_CONFIG,
             "WCSAC DynamicEnv: random goal and 3 hazards each episode",
         ),
-        Preset(
+        _point_goal(
             "point_goal1",
-            "wcsac_rl/PointGoal1-v0",
-            _POINT_GOAL_ENTRY,
-            {"config": POINT_GOAL1_CONFIG},
+            "PointGoal1",
+            POINT_GOAL1_CONFIG,
             "Safety Gym PointGoal1: 8 hazards, 1 unconstrained vase",
         ),
-        Preset(
+        _point_goal(
             "point_goal2",
-            "wcsac_rl/PointGoal2-v0",
-            _POINT_GOAL_ENTRY,
-            {"config": POINT_GOAL2_CONFIG},
+            "PointGoal2",
+            POINT_GOAL2_CONFIG,
             "Safety Gym PointGoal2: 10 hazards, 10 constrained vases, extents ±2",
         ),
         Preset(

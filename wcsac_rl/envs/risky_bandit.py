@@ -1,23 +1,13 @@
 """A one-step continuous bandit where expected cost and CVaR disagree (pure torch, batched).
 
-The action ``a ∈ [−1, 1]`` earns reward ``a``. With probability ``p(a)``, which grows
-linearly from ``p_low`` (at ``a = −1``) to ``p_high`` (at ``a = 1``), the step also
-costs ``hit`` (a rare large cost), else 0. Every episode is one step long and
-terminates, so the long-term cost *is* this Bernoulli cost and everything about it
-is known in closed form:
-
-* the expected cost ``hit · p(a)`` stays under a modest limit for every action, so a
-  risk-neutral constrained agent (SAC-Lag) should go to ``a = 1``;
-* the Gaussian CVaR_α that WCSAC's safety critic estimates,
-  ``hit·p + α⁻¹φ(Φ⁻¹(α))·hit·√(p(1−p))``, exceeds it for large ``a``, so WCSAC at
-  small α should settle at the largest action whose CVaR meets the limit
-  (:meth:`RiskyBanditEnv.cvar_feasible_action`);
-* the cost's exact CVaR_α, ``hit · min(p/α, 1)`` (what an implicit-quantile safety
-  critic estimates, :meth:`RiskyBanditEnv.exact_cvar`), gives another feasible
-  optimum (``exact=True``).
-
-It is the smallest task on which the paper's central claim can be checked, and it
-runs at millions of steps per second.
+The action ``a ∈ [−1, 1]`` earns reward ``a`` and costs ``hit`` with probability
+``p(a)``, linear from ``p_low`` (``a = −1``) to ``p_high`` (``a = 1``); every episode is
+one terminal step, so everything about the cost is known in closed form: its expected
+value stays under a modest limit for every action (SAC-Lag should go to ``a = 1``),
+while its Gaussian CVaR_α (:meth:`RiskyBanditEnv.cvar_feasible_action`) and exact
+CVaR_α ``hit · min(p/α, 1)`` (:meth:`RiskyBanditEnv.exact_cvar`) give CVaR-feasible
+optima below it (docs/defaults.md, "The risky bandit"). The smallest task on which the
+paper's central claim can be checked, at millions of steps per second.
 """
 
 from __future__ import annotations

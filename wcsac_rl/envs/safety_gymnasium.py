@@ -1,14 +1,10 @@
 """Adapter for users who have ``safety_gymnasium`` installed.
 
-TorchRL ships :class:`torchrl.envs.libs.safety_gymnasium.SafetyGymnasiumEnv`, which
-folds safety-gymnasium's 6-tuple ``step`` into a tensordict with a root ``"cost"``
-entry shaped ``[*B]`` and ``float64``. This module puts the project's conventions on
-top: ``("next", "cost")`` shaped ``[*B, 1]`` ``float32``, ``float32`` observations,
-and the same ``StepCounter`` / ``RewardSum`` / :class:`~wcsac_rl.envs.torchrl_env.CostSum`
-transforms as :func:`~wcsac_rl.envs.make_env`.
-
-safety-gymnasium does not install on every Python / gymnasium combination (it does
-not import with gymnasium 1.x); :func:`make_safety_gymnasium_env` then raises an
+TorchRL's :class:`torchrl.envs.libs.safety_gymnasium.SafetyGymnasiumEnv` folds
+safety-gymnasium's 6-tuple ``step`` into a root ``"cost"`` shaped ``[*B]``, ``float64``;
+:func:`wrap_safety_gymnasium` puts the project's conventions on top (those of
+:func:`~wcsac_rl.envs.make_env`). Where safety-gymnasium does not install or import (it
+does not with gymnasium 1.x), :func:`make_safety_gymnasium_env` raises an
 ``ImportError`` that says so and points at the built-in presets.
 """
 
@@ -58,19 +54,11 @@ def safety_gymnasium_available() -> bool:
 
 
 def wrap_safety_gymnasium(env: EnvBase) -> TransformedEnv:
-    """Put the project's conventions on a TorchRL safety-gymnasium env.
-
-    Args:
-        env: a TorchRL env with a root ``"cost"`` observation entry shaped ``[*B]`` or
-            ``[*B, 1]`` (e.g. ``SafetyGymnasiumEnv`` / ``SafetyGymnasiumWrapper``).
-
-    Returns:
-        A :class:`~torchrl.envs.TransformedEnv` with ``("next", "cost")`` shaped
-        ``[*B, 1]`` ``float32``, ``float64`` observations cast to ``float32``, and
-        ``step_count`` / ``episode_reward`` / ``episode_cost``.
-
-    Raises:
-        CostKeyError: ``env`` has no ``"cost"`` entry.
+    """Put the project's conventions on a TorchRL safety-gymnasium env (a root ``"cost"``
+        entry shaped ``[*B]`` or ``[*B, 1]``): ``("next", "cost")`` shaped ``[*B, 1]``
+        ``float32``, ``float64`` observations cast to ``float32``, and ``step_count`` /
+        ``episode_reward`` / ``episode_cost``; :class:`~wcsac_rl.envs.info.CostKeyError` without
+    a ``"cost"`` entry.
     """
     check_cost_key(env)
     transforms = []
@@ -92,17 +80,9 @@ def make_safety_gymnasium_env(
     device: torch.device | str = "cpu",
     **kwargs: Any,
 ) -> TransformedEnv:
-    """A safety-gymnasium task (e.g. ``"SafetyPointGoal1-v0"``) with the project's keys.
-
-    Args:
-        env_name: safety-gymnasium id.
-        seed: seeds the env.
-        device: output device.
-        **kwargs: forwarded to TorchRL's ``SafetyGymnasiumEnv``.
-
-    Raises:
-        ImportError: safety-gymnasium is not available (see
-            :data:`SAFETY_GYMNASIUM_MISSING`).
+    """A safety-gymnasium task (e.g. ``"SafetyPointGoal1-v0"``) with the project's keys,
+    seeded ``seed``; ``kwargs`` go to TorchRL's ``SafetyGymnasiumEnv``. ``ImportError``
+    (:data:`SAFETY_GYMNASIUM_MISSING`) where safety-gymnasium is not available.
     """
     if not safety_gymnasium_available():
         raise ImportError(SAFETY_GYMNASIUM_MISSING.format(name=env_name))

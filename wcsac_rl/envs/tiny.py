@@ -29,7 +29,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from wcsac_rl.envs.layout import parse_explicit_layout
+from wcsac_rl.envs.layout import reset_layout
 from wcsac_rl.envs.point_goal import validate_action
 
 __all__ = ["TinyHazardEnv"]
@@ -150,21 +150,13 @@ class TinyHazardEnv(gym.Env):
         """Start an episode; ``options={"layout": {...}}`` accepts ``robot_xy``,
         ``goal_xy`` and ``hazards_xy`` (one pair) like the point-goal env."""
         super().reset(seed=seed)
-        explicit: dict[str, np.ndarray] = {}
-        if options is not None:
-            if not isinstance(options, Mapping):
-                raise ValueError(f"options must be a dict, got {type(options).__name__}")
-            unknown = sorted(set(options) - {"layout"})
-            if unknown:
-                raise ValueError(f"unknown reset option(s) {unknown}; the only option is 'layout'")
-            layout = options.get("layout")
-            if layout is not None:
-                if isinstance(layout, Mapping) and {"robot_heading", "vases_xy"} & set(layout):
-                    raise ValueError(
-                        "TinyHazardEnv has no robot heading and no vases; valid layout keys "
-                        "are ['robot_xy', 'goal_xy', 'hazards_xy']"
-                    )
-                explicit, _ = parse_explicit_layout(layout, hazards_num=1, vases_num=0)
+        explicit, _ = reset_layout(
+            options,
+            hazards_num=1,
+            vases_num=0,
+            missing="TinyHazardEnv has no robot heading and no vases; valid layout keys are "
+            "['robot_xy', 'goal_xy', 'hazards_xy']",
+        )
         self._gx, self._gy = (
             tuple(explicit["goal"].tolist()) if "goal" in explicit else self._default_goal
         )

@@ -1,38 +1,12 @@
 """TorchRL wrapping of the presets: ``make_env`` and its helpers.
 
-``make_env(name)`` returns a :class:`~torchrl.envs.TransformedEnv` whose tensordicts
-carry, besides TorchRL's usual ``observation`` / ``reward`` / ``done`` /
-``terminated`` / ``truncated`` entries:
-
-=========================  =============  ==============================================
-key                        shape / dtype  meaning
-=========================  =============  ==============================================
-``("next", "cost")``       [*B, 1] f32    per-step cost (from ``info["cost"]``)
-``"goal_reached"``         [*B, 1] bool   the step reached the goal
-``"numerical_failure"``    [*B, 1] bool   MuJoCo went unstable; the episode ended
-``"robot_xy"``             [*B, 2] f32    robot position after the step (for plots)
-``"goal_xy"``              [*B, 2] f32    goal position after the step
-``"episode_reward"``       [*B, 1] f32    running sum of reward (``RewardSum``)
-``"episode_cost"``         [*B, 1] f32    running sum of cost (:class:`CostSum`)
-``"step_count"``           [*B, 1] i64    steps since reset (``StepCounter``)
-=========================  =============  ==============================================
-
-(the non-cost info entries live at the root of reset tensordicts and under
-``"next"`` after a step, like any observation.)
-
-Every gymnasium env under ``make_env`` is wrapped in :class:`RejectNonFinite`: a
-NaN or infinite reward, cost or observation stops the step with a
-:class:`NonFiniteStepError` that names the env, before it can reach a replay buffer.
-
-With ``num_workers > 1`` the base envs run in a :class:`~torchrl.envs.ParallelEnv`
-(one process each) and the transforms are applied on top. For TorchRL's
-multi-process collectors, pass :func:`make_env_creator` (picklable) instead.
-
-``make_env(name, num_workers=n, parallel=False)`` steps ``n`` envs in this process as
-one :class:`~wcsac_rl.envs.BatchedGymEnv` (what training and evaluation use: the same
-entries, specs and reset semantics as a ``SerialEnv`` of ``GymWrapper`` envs, without
-its per-env tensordict bookkeeping). The ``info`` entries come from
-:mod:`wcsac_rl.envs.info`, the one reading rule both paths share.
+The entries of ``make_env``'s tensordicts (the cost, the info entries, the episode
+sums): docs/environments.md. With ``num_workers > 1`` the base envs run in a
+``ParallelEnv`` (one process each), or with ``parallel=False`` in this process as one
+:class:`~wcsac_rl.envs.BatchedGymEnv` (what training and evaluation use); for
+TorchRL's multi-process collectors pass :func:`make_env_creator` (picklable). The
+``info`` entries come from :mod:`wcsac_rl.envs.info`, the one reading rule both paths
+share.
 """
 
 from __future__ import annotations
@@ -60,7 +34,7 @@ from torchrl.envs import (
 from torchrl.envs.libs.gym import GymWrapper
 
 from wcsac_rl.envs.batched_gym import BatchedGymEnv
-from wcsac_rl.envs.gymnasium_env import GYMNASIUM, make_user_gym_env, user_env_info
+from wcsac_rl.envs.gymnasium_env import GYMNASIUM, env_facts, make_user_gym_env, user_env_info
 from wcsac_rl.envs.info import COST_KEY, CostKeyError, InfoReader, step_info_spec
 from wcsac_rl.envs.presets import get_preset, make_gym_env
 
@@ -99,16 +73,9 @@ def _env_name(env: gym.Env) -> str:
 
 class RejectNonFinite(gym.Wrapper):
     """Raise :class:`NonFiniteStepError` when a step's reward, ``info["cost"]`` or
-    observation is not finite (NaN or ±inf), naming the env and the step.
-
-    One non-finite cost in a replay buffer makes every loss that samples it NaN, and
-    one optimizer step on a NaN loss poisons the networks for good; stopping at the
-    env says where the number came from. The check is a few scalar comparisons per
-    step (and one ``np.isfinite`` over the observation).
-
-    Args:
-        env: the gymnasium env.
-        name: how messages name it (default: its gymnasium id, else its class name).
+    observation is not finite (NaN or ±inf), naming the env (``name``, default its
+    gymnasium id, else its class name) and the step: one non-finite cost in a replay buffer
+    makes every loss that samples it NaN, and stopping at the env says where it came from.
     """
 
     def __init__(self, env: gym.Env, name: str | None = None) -> None:
@@ -147,13 +114,9 @@ class RejectNonFinite(gym.Wrapper):
 
 
 class CostSum(RewardSum):
-    """``RewardSum`` for a cost stored as an observation entry (not in the reward spec).
-
-    Tracks the running per-episode sum of ``in_keys`` (default ``["cost"]``) into
-    ``out_keys`` (default ``["episode_cost"]``), reset to 0 at every episode start.
-    TorchRL's ``RewardSum`` only accepts keys of the reward spec, while the cost read
-    from ``info`` lives in the observation spec (so that ``env.reward_key`` stays
-    unique); this subclass takes the spec from there.
+    """``RewardSum`` for a cost stored as an observation entry (default ``"cost"`` into
+    ``"episode_cost"``): TorchRL's ``RewardSum`` only accepts keys of the reward spec, while
+    the cost read from ``info`` lives in the observation spec (``env.reward_key`` stays unique).
     """
 
     def __init__(
@@ -243,19 +206,9 @@ def make_base_env(
     **kwargs: Any,
 ) -> EnvBase:
     """One untransformed TorchRL env of a preset: ``GymWrapper`` + :class:`InfoReader`
-    over the gymnasium env in :class:`RejectNonFinite`.
-
-    Args:
-        name: preset short name (``"static"``, ``"dynamic"``, ``"point_goal1"``,
-            ``"point_goal2"``, ``"tiny"``) or its gymnasium id.
-        device: device of the output tensordicts.
-        max_episode_steps: episode length override.
-        from_pixels: add a ``"pixels"`` entry (uint8 ``H x W x 3``) rendered with
-            MuJoCo (set ``MUJOCO_GL=egl`` when headless); ``"observation"`` stays.
-        **kwargs: forwarded to the gymnasium env constructor (e.g. config overrides).
-
-    Raises:
-        ValueError: unknown preset name or constructor keyword.
+    over the gymnasium env in :class:`RejectNonFinite`. Arguments as :func:`make_env`'s
+    (``from_pixels``: a uint8 ``H x W x 3`` ``"pixels"`` entry rendered with MuJoCo; set
+    ``MUJOCO_GL=egl`` when headless).
     """
     if from_pixels:
         kwargs.setdefault("render_mode", "rgb_array")
@@ -281,26 +234,18 @@ def make_env(
     """Build a preset as a TorchRL env with cost, episode sums and step counts.
 
     Args:
-        name: preset short name (``"static"``, ``"dynamic"``, ``"point_goal1"``,
-            ``"point_goal2"``, ``"tiny"``) or its gymnasium id; or ``"gymnasium"`` for
-            your own env, named by ``env_id="<registered id | module:callable>"``
-            (with ``cost_key=``: the ``info`` entry of its cost; see
+        name: preset short name or gymnasium id; or ``"gymnasium"`` for your own env,
+            named by ``env_id="<registered id | module:callable>"`` (with ``cost_key=``:
             :mod:`wcsac_rl.envs.gymnasium_env`).
         seed: seeds the env(s) (workers get ``seed``, ``seed + 1``, ...).
-        num_workers: ``1`` for a single in-process env; more for a batch of
-            ``num_workers`` envs (batch size ``[num_workers]``).
+        num_workers: ``1`` for a single in-process env; more for a batch (``[num_workers]``).
         parallel: with ``num_workers > 1``, ``True`` runs one process per env
             (``ParallelEnv``), ``False`` steps them in turn in this process
-            (:class:`~wcsac_rl.envs.BatchedGymEnv`, or ``SerialEnv`` with
-            ``from_pixels``; the better choice when updates, not envs, use the cores).
+            (:class:`~wcsac_rl.envs.BatchedGymEnv`, or ``SerialEnv`` with ``from_pixels``).
         device: device of the output tensordicts.
         max_episode_steps: episode length override (default: the preset's).
         from_pixels: also emit rendered ``"pixels"``.
-        **kwargs: forwarded to the gymnasium env constructor, e.g.
-            ``hazards_num=5`` for a point-goal preset.
-
-    Returns:
-        A :class:`~torchrl.envs.TransformedEnv` (see the module docstring for keys).
+        **kwargs: forwarded to the gymnasium env constructor (``hazards_num=5``).
 
     Raises:
         ValueError: unknown preset name, bad keyword, or ``num_workers < 1``.
@@ -368,17 +313,11 @@ def make_env_creator(name: str, **kwargs: Any) -> Callable[[], TransformedEnv]:
 
 
 def env_info(name: str, **kwargs: Any) -> dict[str, Any]:
-    """Facts about a preset that a training loop needs, without building a TorchRL env.
-
-    Returns a dict with ``name`` (short name), ``gym_id``, ``max_episode_steps``,
-    ``obs_dim``, ``action_dim``, ``action_low``, ``action_high``, ``cost_key``
-    (``("next", "cost")``), ``observation_slices`` (name -> slice, point-goal presets
-    only, else ``{}``) and ``description``.
-
-    Args:
-        name: preset short name or gymnasium id.
-        **kwargs: the same overrides ``make_env`` would receive (e.g.
-            ``max_episode_steps``).
+    """Facts about a preset that a training loop needs, without building a TorchRL env:
+    ``name``, ``gym_id``, ``max_episode_steps``, ``obs_dim``, ``action_dim``,
+    ``action_low``, ``action_high``, ``cost_key`` (``("next", "cost")``),
+    ``observation_slices`` (point-goal presets, else ``{}``) and ``description``.
+    ``kwargs``: the overrides ``make_env`` would receive.
     """
     if name == GYMNASIUM:  # your own env: built and probed with one step
         return user_env_info(**kwargs)
@@ -387,18 +326,8 @@ def env_info(name: str, **kwargs: Any) -> dict[str, Any]:
     try:
         unwrapped = env.unwrapped
         slices = unwrapped.observation_slices() if hasattr(unwrapped, "observation_slices") else {}
-        return {
-            "name": preset.name,
-            "gym_id": preset.gym_id,
-            "max_episode_steps": int(unwrapped.max_episode_steps),
-            "obs_dim": int(np.prod(env.observation_space.shape)),
-            "action_dim": int(np.prod(env.action_space.shape)),
-            "action_low": float(np.min(env.action_space.low)),
-            "action_high": float(np.max(env.action_space.high)),
-            "cost_key": ("next", COST_KEY),
-            "observation_slices": slices,
-            "description": preset.description,
-        }
+        steps = unwrapped.max_episode_steps
+        return env_facts(env, preset.name, preset.gym_id, steps, slices, preset.description)
     finally:
         env.close()
 
