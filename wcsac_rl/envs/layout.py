@@ -74,21 +74,9 @@ def draw_position(
     placed_keepout: np.ndarray,
     tries: int,
 ) -> np.ndarray | None:
-    """Draw up to ``tries`` candidate positions for ``obj`` and return the first valid one.
-
-    A candidate is valid when its distance to every placed object ``i`` is at least
-    ``obj.keepout + placed_keepout[i]``.
-
-    Args:
-        rng: the random generator.
-        extents: placement area ``(xmin, ymin, xmax, ymax)``.
-        obj: the object to place.
-        placed_xy: positions of the objects already placed, shape ``(m, 2)``.
-        placed_keepout: their keepouts, shape ``(m,)``.
-        tries: maximum number of candidates.
-
-    Returns:
-        The position (shape ``(2,)``), or ``None`` if every candidate was rejected.
+    """Draw up to ``tries`` candidate positions for ``obj`` in ``extents`` and return the
+    first valid one (shape ``(2,)``; ``None`` if every candidate was rejected): at least
+    ``obj.keepout + placed_keepout[i]`` away from each placed object ``placed_xy[i]``.
     """
     low, high = obj.rectangle(extents)
     if obj.fixed_xy is not None:
@@ -116,23 +104,11 @@ def sample_layout(
     tries_per_object: int = 100,
     max_restarts: int = 10_000,
 ) -> dict[str, np.ndarray]:
-    """Sample the positions of ``objects`` in order, with keepouts and restarts.
-
-    Args:
-        rng: the random generator (the env's ``np_random``).
-        extents: placement area ``(xmin, ymin, xmax, ymax)``.
-        objects: placement rules, in placement order.
-        explicit: positions given by the caller; these objects are put there without
-            any keepout check, and every drawn object keeps clear of them, whether it
-            comes before or after them in the order.
-        tries_per_object: draws per object before the layout restarts.
-        max_restarts: whole-layout attempts before giving up.
-
-    Returns:
-        A dict ``name -> xy`` (shape ``(2,)`` arrays) with every object.
-
-    Raises:
-        LayoutError: no valid layout was found in ``max_restarts`` attempts.
+    """Sample the positions of ``objects`` (placement rules, in placement order) in
+    ``extents`` with the env's ``rng``: ``tries_per_object`` draws per object before the
+    layout restarts, up to ``max_restarts`` times, then :class:`LayoutError`. ``explicit``
+    positions are used as given, without a keepout check, and every drawn object keeps
+    clear of them. Returns ``name -> xy`` (shape ``(2,)``) for every object.
     """
     explicit = dict(explicit or {})
     n = len(objects)
@@ -187,18 +163,11 @@ def _as_xy(value: object, what: str, count: int | None = None) -> np.ndarray:
 def parse_explicit_layout(
     layout: object, *, hazards_num: int, vases_num: int
 ) -> tuple[dict[str, np.ndarray], float | None]:
-    """Validate a user layout and map it to object names.
-
-    Accepted keys (all optional; missing objects are sampled as usual):
-    ``robot_xy`` (x, y), ``robot_heading`` (radians), ``goal_xy`` (x, y),
-    ``hazards_xy`` (``hazards_num`` pairs), ``vases_xy`` (``vases_num`` pairs).
-
-    Returns:
-        ``(positions, heading)``: a dict ``object name -> xy`` for the explicit objects
-        and the explicit robot heading (``None`` if not given).
-
-    Raises:
-        ValueError: not a mapping, unknown key, wrong shape/count, or non-finite values.
+    """Validate a user layout (keys :data:`EXPLICIT_LAYOUT_KEYS`, all optional: ``robot_xy``,
+    ``robot_heading``, ``goal_xy``, ``hazards_num`` ``hazards_xy`` and ``vases_num``
+    ``vases_xy``) and map it to object names: ``(positions, heading)``, the explicit
+    objects' ``name -> xy`` and the robot heading (``None`` if not given). ``ValueError``:
+    not a mapping, an unknown key, a wrong shape or count, or a non-finite value.
     """
     if not isinstance(layout, Mapping):
         raise ValueError(

@@ -30,19 +30,14 @@ def pseudo_lidar(
     max_dist: float = 3.0,
     alias: bool = True,
 ) -> np.ndarray:
-    """Pseudo-lidar readings of one class of objects, as Safety Gym computes them.
+    """Pseudo-lidar readings of one class of objects, as Safety Gym computes them:
+    ``float64`` ``(num_bins,)`` values in ``[0, 1]``.
 
-    Args:
-        points_xy: object centres in the world frame, shape ``(n, 2)`` (``n`` may be 0).
-        robot_xy: robot body origin in the world frame, shape ``(2,)``.
-        robot_rot: the robot's rotation matrix; its top-left 2x2 block (world-from-robot)
-            is used, so a MuJoCo ``xmat`` reshaped to 3x3 works as well as a 2x2 matrix.
-        num_bins: number of angular bins covering ``[0, 2π)`` (at least 3).
-        max_dist: distance at which the reading drops to 0.
-        alias: also write the aliased values into the two neighbouring bins.
-
-    Returns:
-        ``float64`` array of shape ``(num_bins,)`` with values in ``[0, 1]``.
+    ``points_xy``: object centres in the world frame, ``(n, 2)`` (``n`` may be 0);
+    ``robot_xy``: the robot body origin; ``robot_rot``: its rotation matrix, of which the
+    top-left 2x2 block (world-from-robot) is used (a MuJoCo ``xmat`` reshaped to 3x3 works);
+    ``num_bins`` (at least 3) cover ``[0, 2π)``; the reading is 0 from ``max_dist`` on;
+    ``alias`` also writes the aliased values into the two neighbouring bins.
     """
     points_xy = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
     groups = np.zeros(points_xy.shape[0], dtype=np.intp)
@@ -61,17 +56,10 @@ def pseudo_lidar_groups(
     max_dist: float = 3.0,
     alias: bool = True,
 ) -> np.ndarray:
-    """Pseudo-lidar of several object classes at once (one vectorised pass).
-
-    Args:
-        points_xy: centres of all objects, shape ``(n, 2)``.
-        groups: class index in ``[0, num_groups)`` of each object, shape ``(n,)``.
-        num_groups: number of classes (rows of the result).
-        robot_xy, robot_rot, num_bins, max_dist, alias: as in :func:`pseudo_lidar`.
-
-    Returns:
-        ``float64`` array of shape ``(num_groups, num_bins)``; row ``g`` is
-        :func:`pseudo_lidar` of the objects of class ``g``.
+    """Pseudo-lidar of several object classes at once (one vectorised pass): ``groups`` gives
+    each object's class in ``[0, num_groups)``; the other arguments are
+    :func:`pseudo_lidar`'s. Returns ``float64`` ``(num_groups, num_bins)`` whose row ``g``
+    is :func:`pseudo_lidar` of the objects of class ``g``.
     """
     if num_bins < 3:
         raise ValueError(f"pseudo_lidar needs num_bins >= 3, got {num_bins}")

@@ -46,20 +46,11 @@ def build_point_goal_mjcf(
     floor_half_size: float = 3.5,
     camera_distance: float = 1.5,
 ) -> str:
-    """Return the MJCF string of a point-goal world.
-
-    Object positions are not part of the model: the env sets them at every reset
-    (robot joints, ``mocap_pos`` of the goal and hazards, free joints of the vases).
-
-    Args:
-        hazards_num: number of hazard discs (mocap bodies ``hazard{i}``).
-        hazards_size: hazard radius (drawn only).
-        goal_size: goal radius (drawn only).
-        vases_num: number of vases (free bodies ``vase{i}``, geoms ``vase{i}``).
-        vases_size: vase box half-size.
-        vases_density: vase density.
-        floor_half_size: half-size of the drawn floor.
-        camera_distance: half-width of the area the cameras frame (placement extents).
+    """The MJCF string of a point-goal world: mocap bodies ``hazard{i}`` and ``goal`` (drawn
+    only, of radius ``hazards_size`` / ``goal_size``), free bodies ``vase{i}`` (boxes of
+    half-size ``vases_size``), a floor drawn ``floor_half_size`` each way and cameras framing
+    ``camera_distance`` (the placement extents). Positions are not part of the model: the env
+    sets them at every reset (robot joints, ``mocap_pos``, the vases' free joints).
     """
     d = camera_distance
     hazards = "\n".join(
@@ -125,13 +116,10 @@ def build_point_goal_mjcf(
 
 @functools.lru_cache(maxsize=8)
 def vase_rest_height(vases_size: float = 0.1, vases_density: float = 0.001) -> float:
-    """Height of a vase's centre when it rests on the floor under gravity.
-
-    MuJoCo's soft contacts let a box sink slightly into the floor (about 4.4e-5 here;
-    Safety Gym hard-coded 4e-5 as ``vases_sink``). Placing vases at their rest height
-    keeps them still, so an untouched vase never triggers the velocity cost. The value
-    is measured once per process by letting one vase settle in a minimal world with the
-    same floor and options.
+    """Height of a vase's centre when it rests on the floor under gravity (MuJoCo's soft
+    contacts let it sink about 4.4e-5; Safety Gym hard-coded 4e-5): placed there, an
+    untouched vase stays still and never costs. Measured once per process by letting one
+    vase settle in a minimal world with the same floor and options.
     """
     import mujoco  # local: this module stays importable without MuJoCo
 

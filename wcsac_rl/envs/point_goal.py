@@ -178,14 +178,10 @@ def validate_action(action: Any, shape: tuple[int, ...]) -> np.ndarray:
 class PointGoalEnv(gym.Env):
     """Safety Gym's Point robot on the goal task, with hazards (and optionally vases).
 
-    Args:
-        config: the task configuration (a :class:`PointGoalConfig`); defaults to the
-            DynamicEnv values.
-        render_mode: ``None`` or ``"rgb_array"``.
-        width, height: rendered image size in pixels.
-        camera: MJCF camera to render from (``"overview"`` or ``"top"``).
-        **overrides: fields of :class:`PointGoalConfig` to replace, e.g.
-            ``max_episode_steps=200``.
+    ``config`` (a :class:`PointGoalConfig`; default the DynamicEnv values) with
+    ``overrides`` of its fields (``max_episode_steps=200``); ``render_mode`` ``None`` or
+    ``"rgb_array"``, rendered ``width`` x ``height`` from MJCF ``camera`` ``"overview"`` or
+    ``"top"``.
 
     Examples:
         >>> import gymnasium as gym

@@ -36,14 +36,10 @@ _TINY_ENTRY = "wcsac_rl.envs.tiny:TinyHazardEnv"
 
 @dataclass(frozen=True)
 class Preset:
-    """One named environment configuration.
-
-    Attributes:
-        name: short name used in configs (``"static"``, ...).
-        gym_id: gymnasium id it is registered under.
-        entry_point: ``"module:Class"`` of the env.
-        kwargs: constructor keyword arguments (``config`` for the point-goal presets).
-        description: one line for humans.
+    """One named environment configuration: its short name in configs (``"static"``), the
+    gymnasium id it is registered under, the env's ``"module:Class"`` entry point, its
+    constructor's keyword arguments (``config`` for the point-goal presets) and one line
+    for humans.
     """
 
     name: str
@@ -196,16 +192,11 @@ def preset_options(name: str) -> frozenset[str] | None:
 
 
 def make_gym_env(name: str, *, max_episode_steps: int | None = None, **kwargs: Any) -> gym.Env:
-    """Build the raw gymnasium env of a preset (no gymnasium wrappers).
-
-    Args:
-        name: short name or gymnasium id.
-        max_episode_steps: episode length override (the env truncates internally).
-        **kwargs: constructor overrides, e.g. ``render_mode="rgb_array"`` or, for the
-            point-goal presets, any :class:`PointGoalConfig` field (``hazards_num=5``).
-
-    Raises:
-        ValueError: unknown name or unknown keyword.
+    """The raw gymnasium env of a preset (short name or gymnasium id; no gymnasium wrappers):
+    ``max_episode_steps`` overrides the episode length (the env truncates internally),
+    ``kwargs`` the constructor's (``render_mode="rgb_array"``, or any
+    :class:`PointGoalConfig` field of a point-goal preset, ``hazards_num=5``).
+    ``ValueError``: an unknown name or keyword.
     """
     preset = get_preset(name)
     ctor_kwargs = dict(preset.kwargs)

@@ -1,23 +1,15 @@
 """A tiny, fast, cost-bearing env (numpy only) for smoke tests and training-loop examples.
 
-A point mass in the plane must reach a goal disc at ``(1, 0)`` from a start near
-``(-1, 0)``; a hazard disc at the origin lies on the straight path. The action is a
-velocity command in ``[-1, 1]^2`` (clipped), scaled by ``speed`` per step. The
-reward is progress towards the goal (``dist_prev - dist_now``) plus ``reward_goal``
-on arrival, which ends the episode; the cost is 1 while the point is strictly inside
-the hazard. The reward-greedy path crosses the hazard; the safe one goes around it.
-Episodes last at most ``max_episode_steps`` (100) steps.
-
-With ``hazard_cost_prob < 1`` the hazard is a *risky* shortcut: each step inside
-costs ``hazard_cost`` with probability ``hazard_cost_prob`` and nothing otherwise,
-so a crossing has a small expected cost and a heavy tail (the ``tiny_risky``
-preset: the expected cost of the straight route is within a budget its CVaR_0.1
-is not).
-
-The observation (6 dims, ``float32``) is ``[x, y, goal_x - x, goal_y - y,
-hazard_x - x, hazard_y - y]``. ``info`` carries the same keys as
-:class:`~wcsac_rl.envs.point_goal.PointGoalEnv` so the same TorchRL wrapping,
-metrics and trajectory plots work unchanged.
+A point mass moves by ``speed × clip(action, −1, 1)`` per step from near ``start_xy``
+to a goal disc; the reward is progress towards the goal (``dist_prev − dist_now``) plus
+``reward_goal`` on arrival, which ends the episode, and the cost is 1 while the point is
+strictly inside the hazard disc on the straight path (the reward-greedy path crosses
+it; the safe one goes around). With ``hazard_cost_prob < 1`` the hazard is a *risky*
+shortcut (a step inside costs ``hazard_cost`` with that probability: small expected
+cost, heavy tail). The observation (6 dims, ``float32``) is ``[x, y, goal_x − x,
+goal_y − y, hazard_x − x, hazard_y − y]``; ``info`` carries the keys of
+:class:`~wcsac_rl.envs.point_goal.PointGoalEnv`, so the same wrapping, metrics and
+plots work unchanged.
 """
 
 from __future__ import annotations
@@ -65,20 +57,11 @@ def _point(name: str, value: Any) -> tuple[float, float]:
 class TinyHazardEnv(gym.Env):
     """Point mass to a goal past a hazard disc: the smallest env with a real cost trade-off.
 
-    Args:
-        max_episode_steps: episode length (``truncated=True`` at the limit).
-        speed: distance moved per step for a unit action component.
-        goal_xy: goal centre.
-        goal_size: goal radius; reaching it gives ``reward_goal`` and ends the episode.
-        hazard_xy: hazard centre.
-        hazard_size: hazard radius; cost 1 while strictly inside.
-        start_xy: mean start position.
-        start_noise: start position is ``start_xy + U(-start_noise, start_noise)^2``.
-        reward_goal: bonus on reaching the goal.
-        hazard_cost: cost of one step inside the hazard when it is charged.
-        hazard_cost_prob: probability that a step inside the hazard is charged
-            (independently per step; 1 charges every step).
-        render_mode: only ``None`` (this env does not render).
+    The task is the module's: ``goal_xy`` / ``goal_size``, ``hazard_xy`` / ``hazard_size``,
+    a start drawn from ``start_xy + U(-start_noise, start_noise)^2``, ``speed`` per unit
+    action, ``reward_goal`` on arrival, ``hazard_cost`` charged per step inside with
+    probability ``hazard_cost_prob``, ``truncated=True`` after ``max_episode_steps``;
+    ``render_mode`` is only ``None`` (this env does not render).
 
     Examples:
         >>> env = TinyHazardEnv()
@@ -176,7 +159,7 @@ class TinyHazardEnv(gym.Env):
         return self._obs(), self._info(goal_reached=False)
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        """Move by ``speed * clip(action, -1, 1)``; see the module docstring for reward and cost."""
+        """Move by ``speed * clip(action, -1, 1)``; the reward and cost are the module's."""
         if self._needs_reset:
             raise RuntimeError(
                 "TinyHazardEnv.step() called before reset() or after the episode ended; "
