@@ -118,8 +118,9 @@ def write_error_reason(err: BaseException, directory: Path) -> str:
 
 
 def save_checkpoint(path: Path, state: dict[str, Any]) -> None:
-    """Write ``state`` with ``torch.save`` atomically (:func:`~wcsac_rl.training.run_dir.replace_file`,
-    a stop signal waiting until the file is in place). A failed write (a full disk) keeps
+    """Write ``state`` with ``torch.save`` atomically
+    (:func:`~wcsac_rl.training.run_dir.replace_file`, a stop signal waiting until the file
+    is in place). A failed write (a full disk) keeps
     the previous ``path`` and raises :class:`~wcsac_rl.training.TrainingError` with one
     line that says why.
     """
@@ -200,14 +201,11 @@ def _fsync_file(path: Path) -> None:
 
 
 def save_buffers(checkpoint_dir: Path, buffers: dict[str, Any], *, frames: int) -> dict[str, Any]:
-    """Write replay buffers (``ReplayBuffer.dumps``) for the checkpoint about to be saved.
-
-    They go to a temporary directory, are flushed to disk and measured (size and
-    SHA-256 of every file), and the directory is then renamed to
-    ``buffers-<frames>``: the previous checkpoint's buffers are untouched until the
-    new checkpoint that names these is in place (:func:`remove_unreferenced_buffers`).
-    Returns the manifest to store in the checkpoint. A failed write (a full disk)
-    removes the temporary directory and raises :class:`~wcsac_rl.training.TrainingError`.
+    """Write replay buffers (``ReplayBuffer.dumps``) for the checkpoint about to be saved
+    into ``buffers-<frames>/`` (a temporary directory, flushed, measured and renamed:
+    docs/training.md, "Saved replay buffers"); returns the manifest to store in the
+    checkpoint. A failed write (a full disk) removes the temporary directory and raises
+    ``TrainingError``.
     """
     name = f"{BUFFERS_PREFIX}{int(frames)}"
     final = checkpoint_dir / name
@@ -369,11 +367,8 @@ def read_checkpoint(
     path: Path, *, required: tuple[str, ...] = REQUIRED_ENTRIES
 ) -> tuple[dict[str, Any], str]:
     """:func:`load_checkpoint`, and the SHA-256 of the very bytes it loaded (what an
-    evaluation records to know later whether the run's checkpoint has changed).
-
-    The file is read as data only (:func:`~wcsac_rl.training.safe_load.load_data`,
-    ``torch.load(weights_only=True)``): one that holds anything but tensors and plain
-    data is refused with a :class:`~wcsac_rl.training.ConfigError`, and nothing in it runs.
+    evaluation records to know later whether the run's checkpoint has changed), read as
+    data only (:func:`~wcsac_rl.training.safe_load.load_data`).
     """
     try:
         check_size(Path(path), MAX_CHECKPOINT_BYTES, "checkpoint")
@@ -742,14 +737,10 @@ def check_current(cfg: Any, source: Path) -> None:
 
 
 def resume_config(cfg: DictConfig, overrides: list[str]) -> DictConfig:
-    """The config a resumed session runs with: the run's own (from its checkpoint), with
-    only the command line's explicit ``overrides`` applied on top.
-
-    ``cfg`` is the config Hydra composed (defaults + overrides); taking the values of
-    the overridden keys from it, and nothing else, keeps the defaults from leaking into
-    the run. A group override naming the run's own option (``env=static`` on a static
-    run) changes nothing. Whether a changed key may change is checked by the trainer
-    (:func:`check_resume_changes`).
+    """The config a resumed session runs with: the run's own (from its checkpoint), with only
+    the command line's explicit ``overrides`` taken from ``cfg`` (Hydra's composed config;
+    a group override naming the run's own option changes nothing). Whether a changed key
+    may change is checked by the trainer (:func:`check_resume_changes`).
     """
     from hydra.core.override_parser.overrides_parser import OverridesParser
 

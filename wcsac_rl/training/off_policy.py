@@ -87,10 +87,7 @@ class OffPolicyTrainer(Trainer):
         # algo.shield: the collector acts through a CriticShield (test episodes do not)
         collection = builders.make_collection_policy(cfg, self.loss, self.policy)
         self.collection_policy = None if collection is self.policy else collection
-        # a learner off the CPU: the collector acts with a CPU copy of the actor, its
-        # weights copied from the learner's after each batch's updates (and a resume),
-        # so that no env step waits on the device (a shield reads the learner's critic:
-        # it acts on the learner)
+        # a learner off the CPU: the collector acts with a CPU copy of the actor (devices.py)
         self.acting_copy: TanhNormalPolicy | None = None
         copy_on_cpu = self.collect_on_cpu_copy
         if copy_on_cpu is None:  # (meta, for device tests, holds nothing to copy)
@@ -111,10 +108,8 @@ class OffPolicyTrainer(Trainer):
         self._pending: list[tuple[TensorDictBase, torch.Tensor]] | None = None
         # fused Adam skips a step on the device (found_inf); other optimizers are read
         self._masked_steps = all(o.defaults.get("fused") for o in self.optimizers.values())
-        # compile=true: the whole update (loss, backward, optimizer steps, Polyak) is one
-        # compiled function (compiled lazily, at the first update); cudagraphs=true (CUDA):
-        # it is captured as a CUDA graph and replayed (one graph per set of stepped
-        # optimizers: κ held or not)
+        # compile=true: the whole update is one compiled function; cudagraphs=true: it is
+        # captured as a CUDA graph per set of stepped optimizers (docs/performance.md)
         self._update_step = torch.compile(self._device_step) if cfg.compile else self._device_step
         self._graphs: dict[bool, Any] | None = {} if cfg.get("cudagraphs", False) else None
         self._graph_warmup = 5 if cfg.compile else 2  # (eager updates before the capture)
@@ -153,19 +148,13 @@ class OffPolicyTrainer(Trainer):
         return batch
 
     def update(self, batch: TensorDictBase) -> TensorDictBase | None:
-        """One gradient step on every parameter group, then the polyak update of the targets.
+        """One gradient step on every parameter group (one backward of the terms' sum: each term
+        reaches only its own parameters), then the polyak update of the targets.
 
-        Each loss term reaches only its own parameters, so one backward of their sum
-        equals separate backwards; all terms are computed from the same parameters
-        (critics, actor, β and κ are then stepped together).
-
-        A non-finite loss (one NaN or inf in the batch makes the cost losses NaN) or
-        gradient is never stepped on, and nothing changes (networks, targets, optimizer
-        moments and step counts): the step is masked on the device (fused Adam's
-        ``found_inf``, a Polyak weight of 0), so an update reads nothing back to the host.
-        It is then counted as skipped (:meth:`skip_update`). Called by itself, the update
-        reads whether it was skipped (one host synchronisation) and returns ``None`` if
-        so; in :meth:`learn` the batch's updates are read together after the last one.
+        A non-finite loss or gradient is never stepped on: the step is masked on the device
+        (fused Adam's ``found_inf``, a Polyak weight of 0; docs/performance.md) and counted as
+        skipped (:meth:`skip_update`). Called by itself, the update reads whether it was
+        skipped and returns ``None`` if so; in :meth:`learn` a batch's updates are read together.
         """
         out, finite = self._step(batch)
         self.updates += 1  # (a skipped update is taken back when it is read)
@@ -329,9 +318,7 @@ class OffPolicyTrainer(Trainer):
         return TanhNormalPolicy(agent.actor)
 
     # ---------------------------------------------------------- checkpoint
-    # With save_replay_buffer=true the replay buffer (and the start-state buffer) are
-    # saved beside each checkpoint in checkpoints/buffers-<frames>/, atomically and
-    # with a manifest (sizes, SHA-256) in the checkpoint; a resume checks them first.
+    # save_replay_buffer=true: checkpoints/buffers-<frames>/ (docs/training.md)
     _saved_buffers: dict[str, Any] | None = None
 
     def learner_state(self) -> dict[str, Any]:

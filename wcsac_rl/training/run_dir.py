@@ -201,17 +201,13 @@ def discard_unused_run_dir(
     since: float | None = None,
     created: bool = False,
 ) -> bool:
-    """Undo what a refused command wrote into ``run_dir``: only what it created itself,
-    and nothing while another live process holds the directory's lock (its owner).
-
-    ``created``: the command made the directory (it is removed). Otherwise ``existed``
-    names the directory's entries before the command (``None``: not known). The
-    entries the command may have made are Hydra's staged records
-    (:data:`HYDRA_STAGING`), an empty job log (``*.log``) and the lock file; those not
-    in ``existed`` are removed. When it is not known whether the directory existed, it
-    is removed if it holds nothing else (a log in it empty and newer than ``since``). A
-    directory with anything else in it (a run, a user's files) keeps it all. Returns
-    whether the directory was removed."""
+    """Undo what a refused command wrote into ``run_dir``: only what it created itself
+    (Hydra's staged records, an empty job log, the lock file; the directory where
+    ``created``), and nothing while another live process holds the directory's lock.
+    ``existed``: the entries before the command (``None``: not known, then the directory is
+    removed only if it holds nothing else, a log in it empty and newer than ``since``).
+    Returns whether the directory was removed.
+    """
     run_dir = Path(run_dir)
     if not run_dir.is_dir() or run_dir.is_symlink():
         return False
@@ -295,12 +291,9 @@ def check_auto_resume_dir(hydra_cfg: object) -> None:
 
 
 def check_restartable_run_dir(run_dir: Path) -> None:
-    """``resume=auto`` without a checkpoint: start the run over in ``run_dir``.
-
-    The directory may hold what a session killed before its first checkpoint wrote
-    (:data:`RUN_ENTRIES`, ``config.resume*.yaml``, ``provenance.resume*.json``,
-    Hydra's files); its ``progress.csv``
-    rows and CSV logger lines are dropped. Anything else is refused, as for a new run.
+    """``resume=auto`` without a checkpoint: start the run over in ``run_dir``, which may
+    hold what a session killed before its first checkpoint wrote (its records are cut);
+    anything else is refused, as for a new run.
     """
     run_dir = Path(run_dir)
     if not run_dir.exists():
@@ -313,8 +306,8 @@ def check_restartable_run_dir(run_dir: Path) -> None:
     if others:
         raise ConfigError(
             f"{run_dir} has no checkpoint to continue and holds files that are not a run's "
-            f"({_shown(others)}); resume=auto starts a run only in an empty directory or one a killed "
-            "run left before its first checkpoint: choose another directory"
+            f"({_shown(others)}); resume=auto starts a run only in an empty directory or one "
+            "a killed run left before its first checkpoint: choose another directory"
         )
     dropped = cut_records_to(run_dir, epoch=0, frames=0)
     if dropped:

@@ -12,17 +12,11 @@ _M_MMAP_THRESHOLD = -3
 
 
 def retain_freed_memory(mmap_threshold: int = 256 << 20, trim_threshold: int = 1 << 30) -> bool:
-    """Make glibc's ``malloc`` keep freed memory in the process for reuse.
-
-    The WCSAC update allocates and frees dozens of 0.25–1 MB activation tensors;
-    with glibc's default (dynamic) thresholds many of them are ``mmap``-ed and
-    returned to the OS on free, so every update pays page faults on fresh pages.
-    Serving blocks below ``mmap_threshold`` from the heap and trimming the heap
-    only above ``trim_threshold`` of free memory makes the update ~4% faster on
-    this CPU (``benchmarks/bench_update.py``); the price is that the process keeps
-    up to ``trim_threshold`` of freed memory instead of returning it.
-
-    Returns whether the settings were applied (``False`` without glibc, e.g. on
+    """Make glibc's ``malloc`` keep freed memory in the process for reuse: blocks below
+    ``mmap_threshold`` come from the heap, which is trimmed only above ``trim_threshold``
+    of free memory, so the update's ~1 MB activations stop paying page faults on fresh
+    ``mmap``s (docs/performance.md; the price: up to ``trim_threshold`` of freed memory
+    kept). Returns whether the settings were applied (``False`` without glibc, e.g. on
     macOS or musl, where nothing changes).
     """
     if mmap_threshold <= 0 or trim_threshold <= 0:

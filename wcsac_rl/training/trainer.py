@@ -528,13 +528,10 @@ class Trainer:
         start = self.tracker.frames
         try:
             batch = next(batches, None)
-        except NonFiniteStepError as err:  # an env under RejectNonFinite: the env's own words
-            raise NonFiniteStepError(
-                f"{err}; training stopped while collecting the frames after {start} "
-                f"({self._kept_checkpoint()})"
-            ) from None
-        except (CostKeyError, EnvSourceError) as err:  # your env: a step without a cost
-            raise TrainingError(
+        except (NonFiniteStepError, CostKeyError, EnvSourceError) as err:  # the env's words
+            # (an env under RejectNonFinite; your env: a step without a cost)
+            error = NonFiniteStepError if isinstance(err, NonFiniteStepError) else TrainingError
+            raise error(
                 f"{err}; training stopped while collecting the frames after {start} "
                 f"({self._kept_checkpoint()})"
             ) from None
