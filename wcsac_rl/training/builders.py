@@ -379,12 +379,9 @@ def make_logger(
     state: dict | None = None,
     resume_frames: int | None = None,
 ) -> Logger | None:
-    """A ``torchrl.record.loggers`` logger writing under ``run_dir/logs`` (or ``None``).
-
-    A resumed run passes the logger's ``state_dict()`` from its checkpoint (``state``)
-    and the checkpoint's frame count: wandb continues the same run (same id), and
-    TensorBoard hides the events logged after the checkpoint (``purge_step``), as the
-    CSV files are cut back (:func:`~wcsac_rl.training.run_dir.cut_records_to`).
+    """A ``torchrl.record.loggers`` logger writing under ``run_dir/logs`` (or ``None``). A
+    resumed run passes its checkpoint's logger ``state`` and frames: wandb continues the
+    same run, TensorBoard hides the events after the checkpoint (``purge_step``).
     """
     backend = cfg.logger.backend
     log_dir = run_dir / "logs"

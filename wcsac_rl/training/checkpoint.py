@@ -355,10 +355,8 @@ def find_checkpoint(path: str | os.PathLike) -> Path:
 
 
 def load_checkpoint(path: Path, *, required: tuple[str, ...] = REQUIRED_ENTRIES) -> dict[str, Any]:
-    """Load a checkpoint written by :func:`save_checkpoint` (on CPU), as data only.
-
-    Raises :class:`~wcsac_rl.training.ConfigError` (one line) for a file that cannot
-    be read or is not a training checkpoint (a dict with the ``required`` entries).
+    """Load a checkpoint written by :func:`save_checkpoint` (on CPU), as data only; one
+    ``ConfigError`` line for a file that cannot be read or lacks the ``required`` entries.
     """
     return read_checkpoint(path, required=required)[0]
 

@@ -93,12 +93,10 @@ LOCK_RETRY_S = 0.1
 
 
 def lock_holder(run_dir: Path) -> str | None:
-    """Who holds ``run_dir``'s lock (``"host h, pid N"``), or ``None`` when no live
-    process does (no lock file, a stale one, or no ``fcntl``: Windows). Never waits.
-
-    The probe takes a shared lock for an instant; a run starting at that very instant
-    retries (:class:`RunLock`). Across nodes this sees a run on another node where the
-    shared filesystem forwards ``flock`` locks (NFS does; Lustre with ``-o flock``).
+    """Who holds ``run_dir``'s lock (``"host h, pid N"``), or ``None`` when no live process
+    does (no lock file, a stale one, or no ``fcntl``). Never waits: the probe takes a shared
+    lock for an instant (a run starting then retries, :class:`RunLock`); across nodes it
+    sees a run where the shared filesystem forwards ``flock`` locks (NFS does).
     """
     if fcntl is None:  # pragma: no cover - not POSIX
         return None

@@ -231,11 +231,10 @@ def _unsafe_globals(data: bytes) -> list[str]:
 
 
 def load_data(data: bytes, path: Path) -> Any:
-    """What ``torch.save`` wrote into ``data`` (the bytes of ``path``), read as data only.
-
-    ``torch.load(weights_only=True)``, and old checkpoints' NumPy arrays (see the
-    module). Raises :class:`~wcsac_rl.training.ConfigError` with one line for a file
-    that refers to anything else (saying that it was not executed) or cannot be read.
+    """What ``torch.save`` wrote into ``data`` (the bytes of ``path``), read as data only
+    (``torch.load(weights_only=True)``, and old checkpoints' NumPy arrays); one
+    ``ConfigError`` line for a file that refers to anything else (saying it was not
+    executed) or cannot be read.
     """
     stand_ins = [(obj, name) for name, obj in _NUMPY_STAND_INS.items()]
     try:
@@ -281,12 +280,10 @@ def _plain_prefetch_state(path: Path) -> bool:
 
 
 def check_buffer_files(directory: Path, checkpoint: Path, *, remove: Path) -> None:
-    """Refuse a saved buffer ``directory`` that holds anything but data, before TorchRL
-    reads it: ``*.json`` and ``*.memmap`` files, and a ``prefetch.pkl`` at its top that
-    unpickles to plain data with an empty queue.
-
-    Raises :class:`~wcsac_rl.training.ConfigError` (one line) naming the first other
-    file (nothing of the directory has been loaded then) and saying to delete ``remove``.
+    """Refuse, in one ``ConfigError`` line naming the first other file and saying to delete
+    ``remove``, a saved buffer ``directory`` that holds anything but ``*.json`` and
+    ``*.memmap`` files and a top-level ``prefetch.pkl`` of plain data with an empty queue
+    (checked before TorchRL reads anything of it).
     """
     fix = f"delete {remove} to resume without it (the buffer is then refilled)"
     for path in sorted(directory.rglob("*")):

@@ -309,13 +309,9 @@ class Trainer:
         return None
 
     def _auto_resume_checkpoint(self) -> dict[str, Any] | None:
-        """``resume=auto``: continue the run in this run directory from its checkpoint, or
-        start it if it has none (what re-running a sweep does for each of its jobs).
-
-        The config is the one composed now (the same command gives the same config): it
-        must match the checkpoint's as on any resume (:func:`check_compatible`,
-        :func:`check_resume_changes`). Records a session killed before its first
-        checkpoint left behind are cut (``progress.csv``, the CSV logger's files).
+        """``resume=auto``: continue the run in this run directory from its checkpoint (the
+        config composed now, checked as on any resume), or start it there if it has none (what
+        re-running a sweep does for each of its jobs; docs/training.md).
         """
         self.lock = RunLock(self.run_dir)
         path = self.checkpoint_path
@@ -340,11 +336,10 @@ class Trainer:
             )
 
     def _check_resumable(self, checkpoint: dict[str, Any], path: Path) -> None:
-        """What every resume verifies before it writes anything: the checkpoint's
-        algorithm, α, env and networks are the config's (:func:`check_compatible`) and
-        the run directory's own record's (:func:`check_run_config`: a checkpoint copied
-        under another run), the config changes only what may change on resume, and its
-        counters are what the trainer writes (:func:`check_counters`)."""
+        """What every resume verifies before it writes anything (docs/guarantees.md, "What a
+        resume verifies"): the checkpoint's config against the session's and the run's own
+        record, what may change, its counters and the run's records.
+        """
         self._resumed_from = path
         check_own_files(self.run_dir)
         check_compatible(checkpoint["config"], self.cfg, path)
