@@ -38,7 +38,7 @@ class RestoredRun:
         run_dir: the run directory.
         cfg: the run's resolved configuration.
         policy: the trained policy (``None`` for the random policy: uniform actions);
-            for the SAC family a :class:`~wcsac_rl.modules.tanh_normal.TanhNormalPolicy`
+            for the SAC family a :class:`~wcsac_rl.modules.actor.TanhNormalPolicy`
             over the actor (``policy.actor``).
         env: an env of the run's preset for test episodes: unbatched, or
             ``num_envs`` sub-envs stepped side by side (see :func:`load_run`).
