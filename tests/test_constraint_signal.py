@@ -177,7 +177,7 @@ def test_cost_target_discount_follows_the_reward_unless_given_and_checks_its_inp
     with pytest.raises(ValueError, match="has shape"):
         follows.cost(TensorDict({"next": {"cost": torch.zeros(2, 3)}}, [2]), torch.float32)
     for bad, message in (
-        ({"gamma": 1.5}, "cost_gamma must be in"),
+        ({"gamma": 1.5}, r"cost_gamma must be null or in \[0, 1\] \(a number\), got 1.5"),
         ({"n_steps": 0}, "cost_n_steps must be an integer"),
     ):
         with pytest.raises(ValueError, match=message):

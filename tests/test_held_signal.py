@@ -3,6 +3,7 @@ and held in between (:class:`~wcsac_rl.objectives.constraint.HeldStatistic`)."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from _loss_helpers import make_batch, make_loss
@@ -40,8 +41,13 @@ def test_held_statistic_is_read_once_in_every_k_takes():
         else:  # what the last read stored
             assert float(held) == max(s for s, read in enumerate(pattern) if read)
     assert pattern == [True, False, False, True, False, False, True]
-    for bad in (1, 0, 2.0, True):
-        with pytest.raises(ValueError, match="every >= 2"):
+    every = HeldStatistic(1)  # a hold of one update: the critic read at every one
+    for value in (1.0, 2.0):
+        assert every.take() is None
+        every.store(torch.tensor(value))
+    assert HeldStatistic(np.int64(3)).every == 3
+    for bad in (0, 2.0, True):
+        with pytest.raises(ValueError, match=r"kappa_signal_every must be an integer >= 1"):
             HeldStatistic(bad)
 
 

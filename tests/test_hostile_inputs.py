@@ -590,8 +590,8 @@ def _nstep_batch(edit=None):
 TRANSFORMS = [
     ("NStepCost(0, 0.99)", "error", "n_steps must be an integer >= 1, got 0"),
     ("NStepCost(1.5, 0.99)", "error", "n_steps must be an integer >= 1, got 1.5"),
-    ("NStepCost(3, 1.5)", "error", "gamma must be in [0, 1], got 1.5"),
-    ("NStepCost(3, nan)", "error", "gamma must be in [0, 1], got nan"),
+    ("NStepCost(3, 1.5)", "error", "gamma must be in [0, 1] (a number), got 1.5"),
+    ("NStepCost(3, nan)", "error", "gamma must be in [0, 1] (a number), got nan"),
     ("NStepCost('3', 0.99)", "error", "n_steps must be an integer >= 1"),
     ("NStepCost(True, 0.99)", "fixed", "n_steps must be an integer >= 1, got True"),
     ("NStepCost(3, 0.99) of a batch without ('next', 'cost')", "fixed", "('next', 'cost')"),

@@ -8,16 +8,23 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import math
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
+import torch
 import yaml
 from _loss_helpers import make_loss
 from _training_helpers import CONF, ROOT, compose_config
 from hydra import compose, initialize_config_dir
 
 from wcsac_rl import WCSACLoss, config_schema
+from wcsac_rl.objectives import EpisodeCostWindow, NStepCost
+from wcsac_rl.objectives.constraint import HeldStatistic
+from wcsac_rl.objectives.ensemble_reading import AdaptivePessimism
+from wcsac_rl.objectives.safety_head import CostTarget
 from wcsac_rl.options import (
     LOSS_OPTIONS,
     PAPER_OPTIONS,
@@ -25,6 +32,7 @@ from wcsac_rl.options import (
     PIDGains,
     SafetyOptions,
     ShieldOptions,
+    check_value,
     config_defaults,
     option,
     option_spec,
@@ -354,3 +362,41 @@ def test_the_kappa_bound_relations_are_defined_once(tmp_path, rule, kappa_init, 
     with pytest.raises(ConfigError, match=re.escape(expected)):
         make_trainer(compose_config("env=tiny", *overrides), tmp_path / "r")
     assert not (tmp_path / "r").exists()
+
+
+KEYS = WCSACLoss.default_keys()
+
+
+@pytest.mark.parametrize(
+    ("build", "override"),
+    [
+        (lambda: CostTarget(KEYS, gamma=1.5), "algo.cost_gamma=1.5"),
+        (lambda: CostTarget(KEYS, n_steps=0), "algo.cost_n_steps=0"),
+        (lambda: NStepCost(2.0, 0.99), "algo.cost_n_steps=2.0"),
+        (lambda: EpisodeCostWindow(0.5, window=0), "algo.kappa_episode_window=0"),
+        (lambda: EpisodeCostWindow(0.5, test_window=-1), "algo.kappa_test_window=-1"),
+        (lambda: HeldStatistic(0), "algo.kappa_signal_every=0"),
+        (lambda: AdaptivePessimism(math.nan, lr=0.1, k_max=1.0), "algo.k_ucb=nan"),
+    ],
+    ids=lambda case: case if isinstance(case, str) else "",
+)
+def test_a_part_and_the_config_refuse_a_value_by_the_same_rule(build, override):
+    """A part built directly checks its argument against the option's spec: the same
+    rule, in the same words after its argument's name, as the config's ``algo.<key>``."""
+    with pytest.raises(ValueError) as built:
+        build()
+    with pytest.raises(ConfigError) as config:
+        validate_config(compose_config("env=tiny", override))
+    built, config = str(built.value), str(config.value)
+    assert "\n" not in built and " must be " in built
+    assert built.split(" must be ", 1)[1] in config, (built, config)
+    assert f"{override.split('=')[0]} must be " in config
+
+
+def test_an_integer_of_any_type_is_an_integer_and_a_float_is_not():
+    for whole in (3, np.int64(3), np.int32(3), torch.tensor(3)):
+        check_value("cost_n_steps", whole, "cost_n_steps")
+        assert NStepCost(whole, np.float32(0.99)).n_steps == 3
+    for bad in (3.0, np.float64(3.0), True, "3", torch.tensor(3.0)):
+        with pytest.raises(ValueError, match="cost_n_steps must be an integer >= 1, got"):
+            check_value("cost_n_steps", bad, "cost_n_steps")

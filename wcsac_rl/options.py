@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import difflib
 import math
+import numbers
+import operator
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, fields
 from types import MappingProxyType, SimpleNamespace
@@ -226,15 +228,30 @@ def option_default(cls: type, name: str) -> Any:
     return cls.__dataclass_fields__[name].default
 
 
-def check_value(key: str, value: Any, spec: Option) -> None:
+def check_value(key: str, value: Any, spec: Option | str) -> None:
     """Raise ``ValueError("<key> must be <what it may be>, got <value>")`` (one line) if
-    ``value`` is not what ``spec`` allows (a group: left to its own dataclass's checks)."""
+    ``value`` is not what ``spec`` (a str: that :class:`SafetyOptions` option's) allows
+    (a group: left to its own dataclass's checks). An integer of any type (numpy's, a
+    one-element integer tensor) is an integer, and a numpy float a number."""
+    if isinstance(spec, str):
+        spec = option_spec(SafetyOptions, spec)
     if spec.kind == "risk_level":
         from wcsac_rl.objectives.risk import validate_risk_level  # (torch: only when checking)
 
         validate_risk_level(value, name=key)
-    elif spec.kind != "group" and not spec.accepts(value):
+    elif spec.kind != "group" and not spec.accepts(_as_python_number(value)):
         raise ValueError(f"{key} must be {spec.requirement()}, got {value!r}")
+
+
+def _as_python_number(value: Any) -> Any:
+    """An integer or a real number of another type as Python's ``int`` or ``float``; any
+    other value (a bool, a str, a float tensor) as it is."""
+    if isinstance(value, bool | str) or value is None:
+        return value
+    try:
+        return operator.index(value)
+    except TypeError:
+        return float(value) if isinstance(value, numbers.Real) else value
 
 
 def read_options(cls: type, values: Mapping[str, Any], prefix: str = "") -> Any:

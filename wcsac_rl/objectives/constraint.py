@@ -86,6 +86,7 @@ from wcsac_rl.options import (
     PIDGains,
     SafetyOptions,
     check_options,
+    check_value,
 )
 
 __all__ = [
@@ -247,9 +248,8 @@ class HeldStatistic(nn.Module):
 
     def __init__(self, every: int) -> None:
         super().__init__()
-        if isinstance(every, bool) or not isinstance(every, int) or every < 2:
-            raise ValueError(f"HeldStatistic holds for every >= 2 updates, got {every!r}")
-        self.every = every
+        check_value("kappa_signal_every", every, "kappa_signal_every")
+        self.every = int(every)
         self.register_buffer("value", torch.full((), float("nan")))
         self.register_buffer("age", torch.zeros((), dtype=torch.long))
         self._age: int | None = 0  # the buffer's value in Python (None: not read yet)

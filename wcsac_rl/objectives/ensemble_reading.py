@@ -44,6 +44,7 @@ from wcsac_rl.objectives.fast_paths import (
     torchrl_mlp_layout,
 )
 from wcsac_rl.objectives.risk import upper_tail_mean
+from wcsac_rl.options import check_options
 
 __all__ = ["AdaptivePessimism", "RandomPrior", "StackedMembers", "ucb", "upper_tail_mean"]
 
@@ -80,8 +81,7 @@ class AdaptivePessimism(nn.Module):
 
     def __init__(self, k_ucb: float, *, lr: float, k_max: float) -> None:
         super().__init__()
-        if not 0.0 <= k_ucb <= k_max:
-            raise ValueError(f"k_ucb must be in [0, k_ucb_max = {k_max:g}], got {k_ucb:g}")
+        check_options({"k_ucb": k_ucb, "k_ucb_lr": lr, "k_ucb_max": k_max})
         self.lr, self.k_max = float(lr), float(k_max)
         self.register_buffer("k", torch.tensor(float(k_ucb)))
 

@@ -24,7 +24,7 @@ from tensordict.utils import NestedKey
 
 from wcsac_rl.objectives.loss_keys import LossKey, follow_loss_keys
 from wcsac_rl.objectives.risk import empirical_cvar, validate_risk_level
-from wcsac_rl.options import EPISODE_STATISTICS
+from wcsac_rl.options import EPISODE_STATISTICS, check_value
 
 __all__ = ["EPISODE_STATISTICS", "EpisodeCostWindow"]
 
@@ -91,10 +91,8 @@ class EpisodeCostWindow:
         horizon: int | None = None,
         length_key: NestedKey = ("next", "step_count"),
     ) -> None:
-        if isinstance(window, bool) or int(window) != window or window < 1:
-            raise ValueError(f"window must be an integer >= 1 (episodes), got {window!r}")
-        if isinstance(test_window, bool) or int(test_window) != test_window or test_window < 0:
-            raise ValueError(f"test_window must be an integer >= 0 (episodes), got {test_window!r}")
+        check_value("window", window, "kappa_episode_window")
+        check_value("test_window", test_window, "kappa_test_window")
         self.risk_level = validate_risk_level(risk_level)
         if horizon is not None:
             if isinstance(horizon, bool) or int(horizon) != horizon or horizon < 1:
@@ -126,8 +124,7 @@ class EpisodeCostWindow:
         which no CVaR is below: with ``kappa_signal="max"`` it floors the critic's Γ
         by what the episodes actually cost, without asking more of the tail), or as the
         cost rate over the loss's ``max_episode_steps`` (``"rate"``: ``horizon``)."""
-        if statistic not in EPISODE_STATISTICS:
-            raise ValueError(f"statistic must be one of {EPISODE_STATISTICS}, got {statistic!r}")
+        check_value("statistic", statistic, "kappa_episode_statistic")
         risk_level = loss.risk_level if statistic == "cvar" else 1.0
         if statistic == "rate":
             kwargs["horizon"] = int(loss.max_episode_steps)

@@ -18,6 +18,8 @@ The reward critic keeps its one-step target.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
@@ -25,8 +27,12 @@ from torch import nn
 
 from wcsac_rl.objectives.inputs import state_keys
 from wcsac_rl.objectives.loss_keys import LossKey, follow_loss_keys
+from wcsac_rl.options import SafetyOptions, check_value, option_spec
 
 __all__ = ["NStepCost"]
+
+NSTEP_GAMMA = replace(option_spec(SafetyOptions, "cost_gamma"), nullable=False)
+"""What ``NStepCost``'s ``gamma`` may be: ``cost_gamma``'s range, resolved (no null)."""
 
 
 class NStepCost(nn.Module):
@@ -85,10 +91,8 @@ class NStepCost(nn.Module):
         out_key: NestedKey = "nstep",
     ) -> None:
         super().__init__()
-        if isinstance(n_steps, bool) or int(n_steps) != n_steps or n_steps < 1:
-            raise ValueError(f"n_steps must be an integer >= 1, got {n_steps}")
-        if not 0.0 <= gamma <= 1.0:
-            raise ValueError(f"gamma must be in [0, 1], got {gamma}")
+        check_value("n_steps", n_steps, "cost_n_steps")
+        check_value("gamma", gamma, NSTEP_GAMMA)
         self.n_steps = int(n_steps)
         self.gamma = float(gamma)
         self.observation_keys = tuple(observation_keys)

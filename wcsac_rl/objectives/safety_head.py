@@ -54,6 +54,7 @@ from wcsac_rl.options import (
     VARIANCE_TARGETS,
     IQNOptions,
     SafetyOptions,
+    check_options,
 )
 
 __all__ = [
@@ -141,10 +142,7 @@ class CostTarget:
         n_steps: int = 10,
         bootstrap_truncated: bool | None = None,
     ) -> None:
-        if gamma is not None and not 0.0 <= gamma <= 1.0:
-            raise ValueError(f"cost_gamma must be in [0, 1], got {gamma}")
-        if int(n_steps) != n_steps or n_steps < 1:
-            raise ValueError(f"cost_n_steps must be an integer >= 1, got {n_steps}")
+        check_options({"cost_gamma": gamma, "cost_n_steps": n_steps})
         self.keys = keys
         self.n_steps = int(n_steps)
         self._explicit_gamma = None if gamma is None else float(gamma)
@@ -386,6 +384,7 @@ class GaussianHead(SafetyHead):
         variance_target: str = SafetyOptions.variance_target,
     ) -> None:
         super().__init__(network, keys, risk_level=risk_level, nonnegative_cost=nonnegative_cost)
+        check_options({"variance_loss": variance_loss, "variance_target": variance_target})
         self.variance_loss = variance_loss
         self.variance_target_kind = variance_target
         self.cvar_multiplier = gaussian_cvar_multiplier(self.risk_level)
