@@ -401,7 +401,7 @@ def test_damping_is_cals_rectification_only_when_clamped(signal, clamped, unclam
 # ------------------------------------------------------ adaptive pessimism (CAP)
 def test_adaptive_k_ucb_follows_a_known_cost_sequence():
     """k ← clip(k + lr·(C − d), 0, k_max) per update; NaN (no episode yet) holds it."""
-    from wcsac_rl.objectives.ensemble_reading import AdaptivePessimism
+    from wcsac_rl.objectives.ensemble_head import AdaptivePessimism
 
     cap = AdaptivePessimism(0.5, lr=0.01, k_max=1.0)
     limit, expected = torch.tensor(15.0), []

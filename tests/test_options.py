@@ -23,7 +23,7 @@ from hydra import compose, initialize_config_dir
 from wcsac_rl import WCSACLoss, config_schema
 from wcsac_rl.objectives import EpisodeCostWindow, NStepCost
 from wcsac_rl.objectives.constraint import HeldStatistic
-from wcsac_rl.objectives.ensemble_reading import AdaptivePessimism
+from wcsac_rl.objectives.ensemble_head import AdaptivePessimism
 from wcsac_rl.objectives.safety_head import CostTarget
 from wcsac_rl.options import (
     LOSS_OPTIONS,

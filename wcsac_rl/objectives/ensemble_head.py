@@ -3,7 +3,8 @@
 ``num_safety_nets`` > 1 gives the loss this head over the member head
 :func:`~wcsac_rl.objectives.ensemble_head.make_safety_head` picks for the critic's kind;
 how the members are evaluated together, their random priors and the readings' maths
-are in :mod:`~wcsac_rl.objectives.ensemble_reading`.
+are in :mod:`~wcsac_rl.objectives.ensemble_reading`; CAP's adaptive ``k_ucb`` is
+:class:`AdaptivePessimism`.
 """
 
 from __future__ import annotations
@@ -11,14 +12,9 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModule
-from torch import Tensor
+from torch import Tensor, nn
 
-from wcsac_rl.objectives.ensemble_reading import (
-    AdaptivePessimism,
-    StackedMembers,
-    ucb,
-    upper_tail_mean,
-)
+from wcsac_rl.objectives.ensemble_reading import StackedMembers, ucb, upper_tail_mean
 from wcsac_rl.objectives.loss_options import SafetyHeadOptions
 from wcsac_rl.objectives.risk import quantile_mixture_cvar
 from wcsac_rl.objectives.safety_head import (
@@ -30,7 +26,41 @@ from wcsac_rl.objectives.safety_head import (
 )
 from wcsac_rl.options import check_options
 
-__all__ = ["EnsembleHead", "make_safety_head"]
+__all__ = ["AdaptivePessimism", "EnsembleHead", "make_safety_head"]
+
+
+class AdaptivePessimism(nn.Module):
+    """``k_ucb`` adapted from the realised episode cost (CAP, Ma et al. AAAI 2022).
+
+    At every :meth:`step` with the recent training episodes' cost ``C`` (the episode
+    window's statistic, :class:`~wcsac_rl.objectives.EpisodeCostWindow`) and the limit
+    ``d``: ``k ← clip(k + lr · (C − d), 0, k_max)`` — more pessimism while the episodes
+    cost more than the limit, less while they cost less; no change while ``C`` is NaN
+    (no episode has finished). ``k`` is a buffer: it is checkpointed with the loss, and
+    the step reads no value on the host (``torch.compile`` keeps one graph).
+
+    Example:
+        >>> cap = AdaptivePessimism(0.5, lr=0.01, k_max=1.0)
+        >>> for cost in (float("nan"), 45.0, 45.0, 0.0):
+        ...     cap.step(torch.tensor(cost), torch.tensor(15.0))
+        >>> cap.k  # 0.5, then + 0.3 twice (capped at 1), then − 0.15
+        tensor(0.8500)
+    """
+
+    def __init__(self, k_ucb: float, *, lr: float, k_max: float) -> None:
+        super().__init__()
+        check_options({"k_ucb": k_ucb, "k_ucb_lr": lr, "k_ucb_max": k_max})
+        self.lr, self.k_max = float(lr), float(k_max)
+        self.register_buffer("k", torch.tensor(float(k_ucb)))
+
+    @torch.no_grad()
+    def step(self, cost: Tensor, limit: Tensor) -> None:
+        cost = cost.reshape(-1)[0].to(self.k.dtype)
+        moved = (self.k + self.lr * (cost - limit)).clamp(0.0, self.k_max)
+        self.k.copy_(torch.where(cost.isnan(), self.k, moved))
+
+    def extra_repr(self) -> str:
+        return f"lr={self.lr}, k_max={self.k_max}"
 
 
 class EnsembleHead(SafetyHead):

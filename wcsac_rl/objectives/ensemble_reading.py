@@ -21,9 +21,10 @@ with their parameters stacked ``[E, ...]``. This module gives it
   ICLR 2024; the sample standard deviation over the members, Bessel-corrected, as
   ``torch.std_mean`` in CAL's code) — and :func:`upper_tail_mean`, the mean of the
   upper ``α`` share of atoms (the merged-quantile, TQC reading of an IQN ensemble:
-  COX-Q, Li, Spaan & Kooij ICLR 2026);
-* :class:`AdaptivePessimism` — CAP (Ma et al., AAAI 2022): ``k_ucb`` moved by the
-  realised cost of the recent training episodes against the limit ``d``.
+  COX-Q, Li, Spaan & Kooij ICLR 2026).
+
+CAP's adaptive ``k_ucb`` (:class:`~wcsac_rl.objectives.ensemble_head.AdaptivePessimism`)
+lives with the head that holds its options.
 """
 
 from __future__ import annotations
@@ -44,9 +45,8 @@ from wcsac_rl.objectives.fast_paths import (
     torchrl_mlp_layout,
 )
 from wcsac_rl.objectives.risk import upper_tail_mean
-from wcsac_rl.options import check_options
 
-__all__ = ["AdaptivePessimism", "RandomPrior", "StackedMembers", "ucb", "upper_tail_mean"]
+__all__ = ["RandomPrior", "StackedMembers", "ucb", "upper_tail_mean"]
 
 
 def ucb(values: Tensor, k_ucb: float) -> Tensor:
@@ -59,40 +59,6 @@ def ucb(values: Tensor, k_ucb: float) -> Tensor:
     """
     std, mean = torch.std_mean(values, dim=0, correction=1)
     return mean + k_ucb * std
-
-
-class AdaptivePessimism(nn.Module):
-    """``k_ucb`` adapted from the realised episode cost (CAP, Ma et al. AAAI 2022).
-
-    At every :meth:`step` with the recent training episodes' cost ``C`` (the episode
-    window's statistic, :class:`~wcsac_rl.objectives.EpisodeCostWindow`) and the limit
-    ``d``: ``k ← clip(k + lr · (C − d), 0, k_max)`` — more pessimism while the episodes
-    cost more than the limit, less while they cost less; no change while ``C`` is NaN
-    (no episode has finished). ``k`` is a buffer: it is checkpointed with the loss, and
-    the step reads no value on the host (``torch.compile`` keeps one graph).
-
-    Example:
-        >>> cap = AdaptivePessimism(0.5, lr=0.01, k_max=1.0)
-        >>> for cost in (float("nan"), 45.0, 45.0, 0.0):
-        ...     cap.step(torch.tensor(cost), torch.tensor(15.0))
-        >>> cap.k  # 0.5, then + 0.3 twice (capped at 1), then − 0.15
-        tensor(0.8500)
-    """
-
-    def __init__(self, k_ucb: float, *, lr: float, k_max: float) -> None:
-        super().__init__()
-        check_options({"k_ucb": k_ucb, "k_ucb_lr": lr, "k_ucb_max": k_max})
-        self.lr, self.k_max = float(lr), float(k_max)
-        self.register_buffer("k", torch.tensor(float(k_ucb)))
-
-    @torch.no_grad()
-    def step(self, cost: Tensor, limit: Tensor) -> None:
-        cost = cost.reshape(-1)[0].to(self.k.dtype)
-        moved = (self.k + self.lr * (cost - limit)).clamp(0.0, self.k_max)
-        self.k.copy_(torch.where(cost.isnan(), self.k, moved))
-
-    def extra_repr(self) -> str:
-        return f"lr={self.lr}, k_max={self.k_max}"
 
 
 class RandomPrior(nn.Module):
