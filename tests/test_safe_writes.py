@@ -31,6 +31,24 @@ def test_a_link_where_a_record_is_written_is_replaced_not_written_through(tmp_pa
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.md", "b.md", "victim.txt"]
 
 
+def test_a_leftover_temporary_file_of_this_pid_does_not_stop_a_write(tmp_path):
+    """A process killed mid-write leaves ``.<name>.<pid>.tmp``; a later process with the
+    same pid (a container's processes start at the same pids) still writes, and a link
+    left there is removed, not written through."""
+    victim = tmp_path / "victim.txt"
+    victim.write_text(VICTIM)
+    target = tmp_path / "last.pt"
+    target.write_bytes(b"old")
+    leftover = tmp_path / f".last.pt.{os.getpid()}.tmp"
+    leftover.write_bytes(b"half a checkpoint")
+    replace_file(target, b"new")
+    assert target.read_bytes() == b"new" and not leftover.exists()
+    leftover.symlink_to(victim)
+    replace_file(target, lambda f: f.write(b"newer"))
+    assert target.read_bytes() == b"newer" and victim.read_text() == VICTIM
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["last.pt", "victim.txt"]
+
+
 def test_the_targets_table_is_not_written_through_a_symlink(tmp_path):
     report = tmp_path / "report"
     report.mkdir()

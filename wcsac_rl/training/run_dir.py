@@ -399,6 +399,9 @@ def replace_file(path: str | os.PathLike, data: str | bytes | Callable[[BinaryIO
     path = Path(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0)
+    # a leftover of a process killed mid-write whose pid this one has again (a
+    # container's processes start at the same pids): removed, a link itself not its target
+    tmp.unlink(missing_ok=True)
     try:
         with os.fdopen(os.open(tmp, flags, 0o644), "wb") as f:
             if callable(data):
