@@ -104,7 +104,7 @@ class FastPaths:
         self.sampling = None if self.off else DirectSampling.of(actor_network)
         self.fused = None if self.off else head.fusion_plan(qvalue_network, num_qvalue_nets)
         self.stacked = None
-        if not (self.off or self.fused is not None or not vmap):
+        if vmap and not self.off and self.fused is None:
             self.stacked = stacked_mlp_layout(qvalue_network, action_key)
         self._not_stacked = (
             "not a plain TorchRL MLP reading [observation, action]"
